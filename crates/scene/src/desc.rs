@@ -1,0 +1,342 @@
+//! The plain scene description the loader produces and the renderer consumes.
+//!
+//! Everything here is already resolved: `$name` substitutions applied, `ref`s
+//! followed, transforms baked into world-space geometry, meshes and images
+//! loaded and validated. Colours are linear RGB (`Vec3`), as in Mitsuba 3's
+//! `scalar_rgb` variant. Nothing in this module knows about rays or sampling.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use glam::{Mat4, Vec2, Vec3};
+
+/// Where a plugin was declared: used in error messages and diagnostics.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Location {
+    pub file: PathBuf,
+    /// 1-based line number.
+    pub line: u32,
+}
+
+impl std::fmt::Display for Location {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}:{}", self.file.display(), self.line)
+    }
+}
+
+/// A whole scene, ready to render.
+#[derive(Clone, Debug)]
+pub struct SceneDesc {
+    /// The XML file the scene was loaded from.
+    pub source: PathBuf,
+    pub integrator: IntegratorDesc,
+    pub sensor: SensorDesc,
+    /// Shapes; each references a BSDF by index into `bsdfs`.
+    pub shapes: Vec<ShapeDesc>,
+    /// BSDF arena. `TwoSided` refers to other entries by index.
+    pub bsdfs: Vec<BsdfDesc>,
+    /// Texture arena, referenced by `TexRef::Texture`.
+    pub textures: Vec<TextureDesc>,
+    /// Emitters that are not attached to a shape (point, constant, envmap,
+    /// directional). Area emitters live on their shape.
+    pub emitters: Vec<EmitterDesc>,
+    /// Which effects the scene uses, so the renderer can skip the rest.
+    pub features: Features,
+}
+
+/// The effects a scene calls for. The renderer selects code paths from this
+/// so that a scene pays nothing for what it does not contain.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Features {
+    /// At least one bitmap or checkerboard texture is referenced.
+    pub textures: bool,
+    /// At least one BSDF transmits light (dielectric, roughdielectric, thindielectric).
+    pub transmission: bool,
+    /// At least one BSDF has a delta (perfectly specular) lobe.
+    pub delta_bsdfs: bool,
+    /// At least one microfacet BSDF (rough conductor / dielectric / plastic).
+    pub microfacets: bool,
+    /// At least one shape carries an area emitter.
+    pub area_lights: bool,
+    /// At least one point or directional emitter.
+    pub delta_lights: bool,
+    /// A constant or envmap emitter surrounds the scene.
+    pub environment: bool,
+    /// At least one analytic (non-triangle) shape: sphere or disk.
+    pub analytic_shapes: bool,
+}
+
+/// Integrator choice and its parameters (Mitsuba's meaning of each).
+#[derive(Clone, Debug, PartialEq)]
+pub enum IntegratorDesc {
+    Path(PathParams),
+}
+
+/// Parameters of Mitsuba's `path` integrator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PathParams {
+    /// Longest path depth in the output (-1 = unbounded). 1 renders only
+    /// directly visible emitters, 2 direct illumination. Default -1.
+    pub max_depth: i32,
+    /// Depth from which Russian roulette starts. Default 5.
+    pub rr_depth: u32,
+    /// Hide directly visible emitters. Default false.
+    pub hide_emitters: bool,
+}
+
+impl Default for PathParams {
+    fn default() -> Self {
+        Self { max_depth: -1, rr_depth: 5, hide_emitters: false }
+    }
+}
+
+/// The camera, film and sampler.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SensorDesc {
+    /// Camera-to-world. Camera space looks down +z, +y up, +x left (Mitsuba).
+    pub to_world: Mat4,
+    /// Field of view in degrees along `fov_axis`.
+    pub fov: f32,
+    pub fov_axis: FovAxis,
+    pub near_clip: f32,
+    pub far_clip: f32,
+    pub film: FilmDesc,
+    /// `sampler.sample_count` (samples per pixel). Default 4.
+    pub sample_count: u32,
+    /// `sampler.seed`. Default 0.
+    pub seed: u64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FovAxis {
+    X,
+    Y,
+    Diagonal,
+    Smaller,
+    Larger,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FilmDesc {
+    pub width: u32,
+    pub height: u32,
+    pub rfilter: RFilter,
+}
+
+/// Reconstruction filter. Mitsuba's defaults: box radius 0.5, tent radius 1,
+/// gaussian stddev 0.5 (support 4 stddev).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RFilter {
+    Box { radius: f32 },
+    Tent { radius: f32 },
+    Gaussian { stddev: f32 },
+}
+
+/// A colour parameter: a constant or a texture index.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TexRef {
+    Const(Vec3),
+    Texture(usize),
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum TextureDesc {
+    Bitmap(BitmapDesc),
+    Checkerboard {
+        color0: Vec3,
+        color1: Vec3,
+        /// Applied to the surface uv before lookup.
+        to_uv: UvTransform,
+    },
+}
+
+/// 2D affine transform of texture coordinates: `uv' = m * uv + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UvTransform {
+    pub m: glam::Mat2,
+    pub t: Vec2,
+}
+
+impl Default for UvTransform {
+    fn default() -> Self {
+        Self { m: glam::Mat2::IDENTITY, t: Vec2::ZERO }
+    }
+}
+
+impl UvTransform {
+    pub fn apply(&self, uv: Vec2) -> Vec2 {
+        self.m * uv + self.t
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct BitmapDesc {
+    pub width: u32,
+    pub height: u32,
+    /// Linear RGB texels, row-major, row 0 is the top of the image file.
+    pub texels: Arc<Vec<Vec3>>,
+    pub filter: TexFilter,
+    pub wrap: WrapMode,
+    pub to_uv: UvTransform,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TexFilter {
+    Nearest,
+    Bilinear,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WrapMode {
+    Repeat,
+    Mirror,
+    Clamp,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MicrofacetDistribution {
+    Beckmann,
+    Ggx,
+}
+
+/// Microfacet roughness parameters (Mitsuba: `distribution`, `alpha` or
+/// `alpha_u`/`alpha_v`, `sample_visible`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Roughness {
+    pub distribution: MicrofacetDistribution,
+    pub alpha_u: f32,
+    pub alpha_v: f32,
+    pub sample_visible: bool,
+}
+
+/// BSDF plugins with their (resolved) parameters.
+#[derive(Clone, Debug, PartialEq)]
+pub enum BsdfDesc {
+    Diffuse {
+        reflectance: TexRef,
+    },
+    /// Front and back materials (indices into `SceneDesc::bsdfs`). With one
+    /// nested BSDF both are the same.
+    TwoSided {
+        front: usize,
+        back: usize,
+    },
+    Conductor {
+        eta: Vec3,
+        k: Vec3,
+        specular_reflectance: TexRef,
+    },
+    RoughConductor {
+        roughness: Roughness,
+        eta: Vec3,
+        k: Vec3,
+        specular_reflectance: TexRef,
+    },
+    Dielectric {
+        int_ior: f32,
+        ext_ior: f32,
+        specular_reflectance: TexRef,
+        specular_transmittance: TexRef,
+    },
+    RoughDielectric {
+        roughness: Roughness,
+        int_ior: f32,
+        ext_ior: f32,
+        specular_reflectance: TexRef,
+        specular_transmittance: TexRef,
+    },
+    ThinDielectric {
+        int_ior: f32,
+        ext_ior: f32,
+        specular_reflectance: TexRef,
+        specular_transmittance: TexRef,
+    },
+    Plastic {
+        int_ior: f32,
+        ext_ior: f32,
+        diffuse_reflectance: TexRef,
+        specular_reflectance: TexRef,
+        nonlinear: bool,
+    },
+    RoughPlastic {
+        /// Mitsuba's roughplastic is isotropic: alpha_u == alpha_v.
+        roughness: Roughness,
+        int_ior: f32,
+        ext_ior: f32,
+        diffuse_reflectance: TexRef,
+        specular_reflectance: TexRef,
+        nonlinear: bool,
+    },
+}
+
+/// A shape with its material and optional area emitter.
+#[derive(Clone, Debug)]
+pub struct ShapeDesc {
+    pub id: Option<String>,
+    pub geometry: Geometry,
+    /// Index into `SceneDesc::bsdfs`. Shapes without a BSDF get Mitsuba's
+    /// default, a diffuse BSDF with reflectance 0.5.
+    pub bsdf: usize,
+    pub emitter: Option<AreaEmitterDesc>,
+    pub location: Location,
+}
+
+#[derive(Clone, Debug)]
+pub enum Geometry {
+    /// World-space triangle mesh (obj, ply, rectangle, cube, ...).
+    Mesh(Arc<TriangleMesh>),
+    /// Analytic sphere (Mitsuba `sphere`: `center`, `radius`, or a
+    /// similarity `to_world`).
+    Sphere { center: Vec3, radius: f32, flip_normals: bool },
+    /// Analytic unit disk in the local xy plane (normal +z), mapped by
+    /// `to_world`.
+    Disk { to_world: Mat4, flip_normals: bool },
+}
+
+/// A triangle mesh in world space. Invariant (checked by the loader): all
+/// positions, normals and uvs are finite, indices are in range, normals
+/// (when present) are unit length.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TriangleMesh {
+    pub positions: Vec<Vec3>,
+    /// Per-vertex shading normals; `None` for face normals
+    /// (`face_normals=true` or none in the file).
+    pub normals: Option<Vec<Vec3>>,
+    /// Per-vertex texture coordinates, as Mitsuba exposes them to textures.
+    pub uvs: Option<Vec<Vec2>>,
+    pub indices: Vec<[u32; 3]>,
+    /// Geometric (and shading) normals are negated (`flip_normals`).
+    pub flip_normals: bool,
+}
+
+/// Mitsuba `area` emitter: emits `radiance` from the front side (the side
+/// the surface normal points to).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AreaEmitterDesc {
+    pub radiance: Vec3,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub enum EmitterDesc {
+    Point {
+        position: Vec3,
+        /// Radiant intensity (W/sr).
+        intensity: Vec3,
+    },
+    Constant {
+        radiance: Vec3,
+    },
+    EnvMap {
+        width: u32,
+        height: u32,
+        /// Linear RGB, row-major, row 0 at the top (latitude-longitude map).
+        texels: Arc<Vec<Vec3>>,
+        scale: f32,
+        to_world: Mat4,
+    },
+    Directional {
+        /// World-space direction the light travels in (normalised).
+        direction: Vec3,
+        irradiance: Vec3,
+    },
+}
