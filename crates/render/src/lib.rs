@@ -1,1 +1,38 @@
+//! The pathfarm CPU renderer.
+//!
+//! [`Scene::build`] turns a [`pathfarm_scene::SceneDesc`] into render-ready
+//! data (BVH, materials, lights, camera); [`render()`] runs an integrator over
+//! the image in tiles on the rayon pool; [`output`] writes EXR and PNG files.
+//!
+//! Invariants:
+//! - Determinism: a sample's random numbers depend only on (seed, pixel,
+//!   sample index), and each pixel sums its samples in index order, so the
+//!   image is bit-identical for any tile size, thread count or pass split.
+//! - This crate does no network I/O.
 
+pub mod camera;
+pub mod filter;
+pub mod film;
+pub mod geometry;
+pub mod integrator;
+pub mod light;
+pub mod material;
+pub mod output;
+mod render;
+pub mod rng;
+pub mod sampling;
+pub mod scene;
+pub mod texture;
+
+pub use film::Film;
+pub use render::{render, Progress, RenderSettings, RenderStats};
+pub use scene::Scene;
+
+/// Errors of the renderer (scene loading has its own, in pathfarm-scene).
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("unsupported: {0}")]
+    Unsupported(String),
+    #[error("{path}: cannot write image: {message}")]
+    Output { path: std::path::PathBuf, message: String },
+}

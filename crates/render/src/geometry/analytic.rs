@@ -1,0 +1,105 @@
+//! Analytic shapes (Mitsuba `sphere`, `disk`), intersected directly. They are
+//! few in real scenes, so they are tested after the BVH without their own
+//! acceleration structure; scenes without them skip this entirely.
+
+use glam::{Mat4, Vec2, Vec3};
+
+use super::Ray;
+
+#[derive(Clone, Debug)]
+pub enum Analytic {
+    Sphere { center: Vec3, radius: f32, flip: bool },
+    Disk { to_world: Mat4, to_local: Mat4, normal: Vec3, flip: bool },
+}
+
+impl Analytic {
+    pub fn disk(to_world: Mat4, flip: bool) -> Self {
+        let normal = to_world.inverse().transpose().transform_vector3(Vec3::Z).normalize();
+        Analytic::Disk { to_world, to_local: to_world.inverse(), normal, flip }
+    }
+
+    /// Distance to the nearest intersection in (ray.tmin, ray.tmax), or infinity.
+    #[inline]
+    pub fn intersect(&self, ray: &Ray) -> f32 {
+        match self {
+            Analytic::Sphere { center, radius, .. } => {
+                // Numerically robust quadratic (pbrt-v4 / Ray Tracing Gems ch. 7).
+                let f = ray.o - *center;
+                let b = -f.dot(ray.d);
+                let perp = f + b * ray.d;
+                let disc = radius * radius - perp.length_squared();
+                if disc < 0.0 {
+                    return f32::INFINITY;
+                }
+                let q = b + b.signum() * disc.sqrt();
+                // The roots are c / q and q (a = 1 for a unit direction).
+                let c = f.length_squared() - radius * radius;
+                let r0 = if q == 0.0 { 0.0 } else { c / q };
+                let (t0, t1) = if r0 < q { (r0, q) } else { (q, r0) };
+                for t in [t0, t1] {
+                    if t > ray.tmin && t < ray.tmax {
+                        return t;
+                    }
+                }
+                f32::INFINITY
+            }
+            Analytic::Disk { to_local, .. } => {
+                let o = to_local.transform_point3(ray.o);
+                let d = to_local.transform_vector3(ray.d);
+                if d.z == 0.0 {
+                    return f32::INFINITY;
+                }
+                let t = -o.z / d.z;
+                let q = o + d * t;
+                if q.x * q.x + q.y * q.y <= 1.0 && t > ray.tmin && t < ray.tmax {
+                    t
+                } else {
+                    f32::INFINITY
+                }
+            }
+        }
+    }
+
+    /// (geometric normal, shading normal, uv) at point `p` on the surface.
+    pub fn shade(&self, p: Vec3) -> (Vec3, Vec3, Vec2) {
+        match self {
+            Analytic::Sphere { center, flip, .. } => {
+                let n = (p - *center).normalize();
+                let n = if *flip { -n } else { n };
+                let l = (p - *center).normalize();
+                let mut phi = l.y.atan2(l.x);
+                if phi < 0.0 {
+                    phi += 2.0 * std::f32::consts::PI;
+                }
+                let uv = Vec2::new(phi / (2.0 * std::f32::consts::PI), l.z.clamp(-1.0, 1.0).acos() / std::f32::consts::PI);
+                (n, n, uv)
+            }
+            Analytic::Disk { to_local, normal, flip, .. } => {
+                let q = to_local.transform_point3(p);
+                let n = if *flip { -*normal } else { *normal };
+                let r = (q.x * q.x + q.y * q.y).sqrt();
+                let mut phi = q.y.atan2(q.x);
+                if phi < 0.0 {
+                    phi += 2.0 * std::f32::consts::PI;
+                }
+                (n, n, Vec2::new(r, phi / (2.0 * std::f32::consts::PI)))
+            }
+        }
+    }
+
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        match self {
+            Analytic::Sphere { center, radius, .. } => (*center - Vec3::splat(*radius), *center + Vec3::splat(*radius)),
+            Analytic::Disk { to_world, .. } => {
+                let mut lo = Vec3::splat(f32::INFINITY);
+                let mut hi = Vec3::splat(f32::NEG_INFINITY);
+                for (x, y) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
+                    let q = to_world.transform_point3(Vec3::new(x, y, 0.0));
+                    lo = lo.min(q);
+                    hi = hi.max(q);
+                }
+                (lo, hi)
+            }
+        }
+    }
+}

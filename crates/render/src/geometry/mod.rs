@@ -1,0 +1,68 @@
+//! Ray-scene intersection: triangle meshes in an obvhs CWBVH, analytic
+//! spheres and disks beside it, and the surface interaction at a hit.
+
+mod accel;
+mod analytic;
+mod triangle;
+
+pub use accel::{Accel, ShapeGeom};
+pub use analytic::Analytic;
+
+use glam::{Vec2, Vec3};
+
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    pub o: Vec3,
+    pub d: Vec3,
+    pub tmin: f32,
+    pub tmax: f32,
+}
+
+/// What a closest-hit query found, before shading data is computed.
+#[derive(Clone, Copy, Debug)]
+pub struct Hit {
+    pub t: f32,
+    /// Index of the shape in the scene description.
+    pub shape: u32,
+    /// Triangle index within the shape (0 for analytic shapes).
+    pub prim: u32,
+}
+
+/// Local geometry at a hit point.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceInteraction {
+    pub p: Vec3,
+    pub t: f32,
+    /// Geometric normal (unit; `flip_normals` applied).
+    pub ng: Vec3,
+    /// Shading normal (unit; interpolated vertex normals or `ng`).
+    pub ns: Vec3,
+    pub uv: Vec2,
+    pub shape: u32,
+}
+
+/// Offset scale for spawned rays: relative to the magnitude of the point, so
+/// that it works at any scene scale (a fixed epsilon fails far from the
+/// origin).
+#[inline]
+pub fn offset_origin(p: Vec3, ng: Vec3, d: Vec3) -> Vec3 {
+    let scale = (1.0 + p.abs().max_element()) * 2.0e-5;
+    let n = if ng.dot(d) >= 0.0 { ng } else { -ng };
+    p + n * scale
+}
+
+/// A ray leaving surface point `p` in direction `d`.
+#[inline]
+pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3) -> Ray {
+    Ray { o: offset_origin(p, ng, d), d, tmin: 0.0, tmax: f32::INFINITY }
+}
+
+/// A shadow ray from surface point `p` towards `target` (stopping just short
+/// of it). Returns the ray; `d` is unit length.
+#[inline]
+pub fn spawn_ray_to(p: Vec3, ng: Vec3, target: Vec3) -> Ray {
+    let o = offset_origin(p, ng, target - p);
+    let v = target - o;
+    let dist = v.length();
+    Ray { o, d: v / dist, tmin: 0.0, tmax: dist * (1.0 - 1.0e-4) }
+}

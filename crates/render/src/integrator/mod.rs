@@ -1,0 +1,3 @@
+//! Integrators: estimate the radiance arriving along a camera ray.
+
+pub mod path;

@@ -1,0 +1,113 @@
+//! Area lights: uniform sampling of a shape's surface by area.
+
+use glam::{Vec2, Vec3};
+use std::f32::consts::PI;
+
+use super::LightSample;
+use crate::geometry::{Accel, Analytic, ShapeGeom};
+use crate::sampling::{concentric_disk, uniform_sphere, uniform_triangle, Distribution1D};
+
+pub struct AreaLight {
+    pub shape: u32,
+    /// Emitted radiance (front side only).
+    pub radiance: Vec3,
+    /// Triangle selection by area (meshes only).
+    tris: Distribution1D,
+    /// Total surface area.
+    area: f32,
+}
+
+impl AreaLight {
+    pub fn new(accel: &Accel, shape: u32, radiance: Vec3) -> Self {
+        let (tris, area) = match accel.shape(shape) {
+            ShapeGeom::Mesh(m) => {
+                let areas: Vec<f32> = m
+                    .indices
+                    .iter()
+                    .map(|t| {
+                        let [a, b, c] = t.map(|i| m.positions[i as usize]);
+                        0.5 * (b - a).cross(c - a).length()
+                    })
+                    .collect();
+                let d = Distribution1D::new(&areas);
+                let total = d.total() as f32;
+                (d, total)
+            }
+            ShapeGeom::Analytic(Analytic::Sphere { radius, .. }) => (Distribution1D::default(), 4.0 * PI * radius * radius),
+            ShapeGeom::Analytic(Analytic::Disk { to_world, .. }) => {
+                let x = to_world.transform_vector3(Vec3::X);
+                let y = to_world.transform_vector3(Vec3::Y);
+                (Distribution1D::default(), PI * x.cross(y).length())
+            }
+        };
+        Self { shape, radiance, tris, area }
+    }
+
+    /// A uniformly distributed point on the surface with its shading normal.
+    fn sample_point(&self, accel: &Accel, u: Vec2) -> Option<(Vec3, Vec3)> {
+        match accel.shape(self.shape) {
+            ShapeGeom::Mesh(m) => {
+                if self.tris.is_empty() || self.area <= 0.0 {
+                    return None;
+                }
+                let (t, ux) = self.tris.sample(u.x);
+                let b = uniform_triangle(Vec2::new(ux, u.y));
+                let [i0, i1, i2] = m.indices[t];
+                let (a, bb, c) = (m.positions[i0 as usize], m.positions[i1 as usize], m.positions[i2 as usize]);
+                let p = a * (1.0 - b.x - b.y) + bb * b.x + c * b.y;
+                let mut n = match &m.normals {
+                    Some(ns) => (ns[i0 as usize] * (1.0 - b.x - b.y) + ns[i1 as usize] * b.x + ns[i2 as usize] * b.y).normalize_or_zero(),
+                    None => (bb - a).cross(c - a).normalize_or_zero(),
+                };
+                if m.flip_normals {
+                    n = -n;
+                }
+                Some((p, n))
+            }
+            ShapeGeom::Analytic(Analytic::Sphere { center, radius, flip }) => {
+                let n = uniform_sphere(u);
+                Some((*center + n * *radius, if *flip { -n } else { n }))
+            }
+            ShapeGeom::Analytic(a @ Analytic::Disk { to_world, .. }) => {
+                let d = concentric_disk(u);
+                let p = to_world.transform_point3(Vec3::new(d.x, d.y, 0.0));
+                let (_, n, _) = a.shade(p);
+                Some((p, n))
+            }
+        }
+    }
+
+    pub fn sample(&self, accel: &Accel, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
+        let (p, n) = self.sample_point(accel, u)?;
+        let v = p - p_ref;
+        let d2 = v.length_squared();
+        let dist = d2.sqrt();
+        if dist == 0.0 {
+            return None;
+        }
+        let wi = v / dist;
+        let cos = n.dot(-wi);
+        if cos <= 0.0 {
+            // Back side: emits nothing. Mitsuba returns a zero sample too.
+            return None;
+        }
+        let pdf = d2 / (cos * self.area);
+        if !pdf.is_finite() {
+            return None;
+        }
+        Some(LightSample { wi, point: p, infinite: false, value: self.radiance, pdf, delta: false })
+    }
+
+    /// Solid-angle density of `sample` producing point `p` (normal `n`) seen
+    /// from `p_ref` (without the light-selection probability).
+    #[inline]
+    pub fn pdf_solid_angle(&self, p_ref: Vec3, p: Vec3, n: Vec3) -> f32 {
+        let v = p - p_ref;
+        let d2 = v.length_squared();
+        let cos = n.dot(v).abs() / d2.sqrt();
+        if cos <= 0.0 || self.area <= 0.0 {
+            return 0.0;
+        }
+        d2 / (cos * self.area)
+    }
+}

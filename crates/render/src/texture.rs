@@ -1,0 +1,109 @@
+//! Texture evaluation (Mitsuba `bitmap` and `checkerboard`).
+
+use glam::{Vec2, Vec3};
+use pathfarm_scene::{BitmapDesc, TexFilter, TexRef, TextureDesc, WrapMode};
+
+/// Looks up a colour parameter at surface coordinates `uv`.
+#[inline]
+pub fn eval(textures: &[TextureDesc], r: TexRef, uv: Vec2) -> Vec3 {
+    match r {
+        TexRef::Const(c) => c,
+        TexRef::Texture(i) => eval_texture(&textures[i], uv),
+    }
+}
+
+pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
+    match t {
+        TextureDesc::Bitmap(b) => eval_bitmap(b, b.to_uv.apply(uv)),
+        TextureDesc::Checkerboard { color0, color1, to_uv } => {
+            let q = to_uv.apply(uv);
+            let mx = q.x - q.x.floor() > 0.5;
+            let my = q.y - q.y.floor() > 0.5;
+            if mx == my {
+                *color0
+            } else {
+                *color1
+            }
+        }
+    }
+}
+
+#[inline]
+fn wrap(i: i64, n: u32, mode: WrapMode) -> usize {
+    let n = n as i64;
+    (match mode {
+        WrapMode::Repeat => i.rem_euclid(n),
+        WrapMode::Clamp => i.clamp(0, n - 1),
+        WrapMode::Mirror => {
+            let m = i.rem_euclid(2 * n);
+            if m < n {
+                m
+            } else {
+                2 * n - 1 - m
+            }
+        }
+    }) as usize
+}
+
+/// Texel lookup with uv (0, 0) at the first stored row (the top of the
+/// image file), as Mitsuba's bitmap does; bilinear uses `pos = uv * res - 0.5`.
+pub fn eval_bitmap(b: &BitmapDesc, uv: Vec2) -> Vec3 {
+    if !uv.is_finite() {
+        return Vec3::ZERO;
+    }
+    let texel = |x: i64, y: i64| b.texels[wrap(y, b.height, b.wrap) * b.width as usize + wrap(x, b.width, b.wrap)];
+    match b.filter {
+        TexFilter::Nearest => texel((uv.x * b.width as f32).floor() as i64, (uv.y * b.height as f32).floor() as i64),
+        TexFilter::Bilinear => {
+            let px = uv.x * b.width as f32 - 0.5;
+            let py = uv.y * b.height as f32 - 0.5;
+            let (x0, y0) = (px.floor(), py.floor());
+            let (fx, fy) = (px - x0, py - y0);
+            let (x0, y0) = (x0 as i64, y0 as i64);
+            let top = texel(x0, y0) * (1.0 - fx) + texel(x0 + 1, y0) * fx;
+            let bottom = texel(x0, y0 + 1) * (1.0 - fx) + texel(x0 + 1, y0 + 1) * fx;
+            top * (1.0 - fy) + bottom * fy
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pathfarm_scene::UvTransform;
+    use std::sync::Arc;
+
+    fn bitmap(filter: TexFilter, wrap: WrapMode) -> BitmapDesc {
+        // 2x2: top row red, green; bottom row blue, white.
+        let texels = vec![Vec3::X, Vec3::Y, Vec3::Z, Vec3::ONE];
+        BitmapDesc { width: 2, height: 2, texels: Arc::new(texels), filter, wrap, to_uv: UvTransform::default() }
+    }
+
+    #[test]
+    fn bitmap_texel_centres_return_texels_and_midpoints_average() {
+        let b = bitmap(TexFilter::Bilinear, WrapMode::Clamp);
+        assert_eq!(eval_bitmap(&b, Vec2::new(0.25, 0.25)), Vec3::X);
+        assert_eq!(eval_bitmap(&b, Vec2::new(0.75, 0.75)), Vec3::ONE);
+        let mid = eval_bitmap(&b, Vec2::new(0.5, 0.5));
+        assert!((mid - (Vec3::X + Vec3::Y + Vec3::Z + Vec3::ONE) / 4.0).length() < 1e-6);
+        let n = bitmap(TexFilter::Nearest, WrapMode::Repeat);
+        assert_eq!(eval_bitmap(&n, Vec2::new(0.9, 0.1)), Vec3::Y);
+        assert_eq!(eval_bitmap(&n, Vec2::new(1.9, 1.1)), Vec3::Y);
+    }
+
+    #[test]
+    fn wrap_modes_fold_indices() {
+        assert_eq!(wrap(-1, 4, WrapMode::Repeat), 3);
+        assert_eq!(wrap(-1, 4, WrapMode::Mirror), 0);
+        assert_eq!(wrap(4, 4, WrapMode::Mirror), 3);
+        assert_eq!(wrap(9, 4, WrapMode::Clamp), 3);
+    }
+
+    #[test]
+    fn checkerboard_alternates_like_mitsuba() {
+        let t = TextureDesc::Checkerboard { color0: Vec3::ONE, color1: Vec3::ZERO, to_uv: UvTransform::default() };
+        assert_eq!(eval_texture(&t, Vec2::new(0.25, 0.25)), Vec3::ONE);
+        assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.25)), Vec3::ZERO);
+        assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.75)), Vec3::ONE);
+    }
+}
