@@ -1,1 +1,12 @@
+//! pathfarm's one integration-test binary. Each module tests one behaviour
+//! area through the public APIs and the real `pathfarm` executable.
 
+mod common;
+
+mod it {
+    pub mod analytic;
+    pub mod bad_input;
+    pub mod crosscheck;
+    pub mod determinism;
+    pub mod shared_scenes;
+}

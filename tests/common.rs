@@ -1,0 +1,88 @@
+//! Helpers shared by the integration tests.
+
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use pathfarm_render::{render, Film, RenderSettings, Scene};
+use pathfarm_scene::load_scene;
+
+/// The repository root (tests run from the cli crate's directory).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").canonicalize().expect("repo root")
+}
+
+/// `../shared/scenes/NAME/scene.xml`, beside the repository.
+pub fn shared_scene(name: &str) -> PathBuf {
+    repo_root().join("../shared/scenes").join(name).join("scene.xml")
+}
+
+pub fn project_scene(name: &str) -> PathBuf {
+    repo_root().join("scenes").join(name).join("scene.xml")
+}
+
+/// A fresh, empty directory for one test.
+pub fn temp_dir(tag: &str) -> PathBuf {
+    static N: AtomicU32 = AtomicU32::new(0);
+    let d = std::env::temp_dir().join(format!("pathfarm-it-{}-{}-{}", std::process::id(), tag, N.fetch_add(1, Ordering::Relaxed)));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("temp dir");
+    d
+}
+
+/// Writes `xml` to a temporary scene file and returns its path.
+pub fn write_scene(tag: &str, xml: &str) -> PathBuf {
+    let p = temp_dir(tag).join("scene.xml");
+    std::fs::write(&p, xml).expect("write scene");
+    p
+}
+
+/// Loads and renders a scene file in-process.
+pub fn render_file(path: &Path, defines: &[(&str, &str)], spp: u32, seed: u64) -> Film {
+    let defs: Vec<(String, String)> = defines.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+    let desc = load_scene(path, &defs).unwrap_or_else(|e| panic!("{e}"));
+    let scene = Scene::build(&desc).expect("build");
+    render(&scene, &RenderSettings::new(Some(spp), None, seed), &|_| {}).0
+}
+
+pub fn render_xml(tag: &str, xml: &str, spp: u32, seed: u64) -> Film {
+    render_file(&write_scene(tag, xml), &[], spp, seed)
+}
+
+/// Runs the `pathfarm` binary.
+pub fn pathfarm(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pathfarm")).args(args).env("RUST_LOG", "warn").output().expect("run pathfarm")
+}
+
+/// A minimal scene: camera at (0,0,`cam_z`) looking down -z, given body.
+pub fn scene_xml(width: u32, height: u32, fov: f32, cam_z: f32, integrator: &str, body: &str) -> String {
+    format!(
+        r#"<scene version="3.0.0">
+    {integrator}
+    <sensor type="perspective">
+        <float name="fov" value="{fov}"/>
+        <transform name="to_world"><lookat origin="0, 0, {cam_z}" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="{width}"/>
+            <integer name="height" value="{height}"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>
+    {body}
+</scene>"#
+    )
+}
+
+/// Two-sided normal quantile for significance `alpha`, for the few levels the
+/// tests use.
+pub fn z_two_sided(alpha: f64) -> f64 {
+    match alpha {
+        a if a == 0.01 => 2.5758,
+        a if a == 0.001 => 3.2905,
+        a if a == 1e-4 => 3.8906,
+        _ => panic!("no quantile tabulated for {alpha}"),
+    }
+}

@@ -1,0 +1,39 @@
+//! Cross-check against an independent renderer: Mitsuba 3 (from PyPI) renders
+//! the same XML; image means must agree within 1 % and a per-pixel Z-test
+//! must pass for at least 99 % of pixels (tests/crosscheck/crosscheck.py).
+//!
+//! These need `python3` with `mitsuba` and `numpy` (./test.sh installs them);
+//! without them the tests fail and say so.
+
+use std::process::Command;
+
+use crate::common::*;
+
+fn crosscheck(scene: &std::path::Path, extra: &[&str]) {
+    let script = repo_root().join("tests/crosscheck/crosscheck.py");
+    let out_dir = temp_dir("crosscheck");
+    let o = Command::new("python3")
+        .arg(&script)
+        .arg("--pathfarm")
+        .arg(env!("CARGO_BIN_EXE_pathfarm"))
+        .arg("--scene")
+        .arg(scene)
+        .arg("--out")
+        .arg(&out_dir)
+        .args(extra)
+        .output()
+        .expect("python3 must be installed to run the Mitsuba cross-check");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "cross-check failed for {}:\n{stdout}\n{stderr}", scene.display());
+}
+
+#[test]
+fn cornell_box_agrees_with_mitsuba() {
+    crosscheck(&shared_scene("cornell-box"), &[]);
+}
+
+#[test]
+fn materials_scene_agrees_with_mitsuba() {
+    crosscheck(&project_scene("materials"), &[]);
+}
