@@ -25,7 +25,7 @@ pub mod scene;
 pub mod texture;
 
 pub use film::Film;
-pub use render::{render, Progress, RenderSettings, RenderStats};
+pub use render::{render, Progress, RenderSettings, RenderStats, DEFAULT_TILE};
 pub use scene::Scene;
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).

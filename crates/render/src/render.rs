@@ -12,8 +12,8 @@ use crate::integrator::path;
 use crate::rng::Rng;
 use crate::scene::Scene;
 
-/// Edge length of a square tile, in pixels.
-const TILE: u32 = 16;
+/// Default edge length of a square tile, in pixels.
+pub const DEFAULT_TILE: u32 = 16;
 
 /// What to render.
 #[derive(Clone, Debug)]
@@ -25,6 +25,17 @@ pub struct RenderSettings {
     pub time_limit: Option<Duration>,
     /// Seed of every random stream.
     pub seed: u64,
+    /// Tile edge in pixels (default 16). Does not change the image.
+    pub tile_size: u32,
+    /// Samples per pass when rendering to a sample budget (default: all in
+    /// one pass). Does not change the image.
+    pub pass_spp: Option<u32>,
+}
+
+impl RenderSettings {
+    pub fn new(spp: Option<u32>, time_limit: Option<Duration>, seed: u64) -> Self {
+        Self { spp, time_limit, seed, tile_size: DEFAULT_TILE, pass_spp: None }
+    }
 }
 
 /// Reported as the render advances.
@@ -46,20 +57,21 @@ pub struct RenderStats {
 /// Renders the scene into a film.
 pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progress) + Sync)) -> (Film, RenderStats) {
     let (w, h) = (scene.width, scene.height);
+    let tile = settings.tile_size.max(1);
     let start = Instant::now();
     let target_spp = match (settings.spp, settings.time_limit) {
         (Some(s), _) => s,
         (None, Some(_)) => u32::MAX,
         (None, None) => scene.sample_count,
     };
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(TILE)).flat_map(|ty| (0..w.div_ceil(TILE)).map(move |tx| (tx * TILE, ty * TILE))).collect();
+    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(tile)).flat_map(|ty| (0..w.div_ceil(tile)).map(move |tx| (tx * tile, ty * tile))).collect();
     let mut film = Film::new(w, h);
     let done = AtomicU64::new(0);
     let invalid = AtomicU64::new(0);
     let pixels = (w as u64) * (h as u64);
     let mut spp_done = 0u32;
     // Pass sizes: a time budget renders passes sized to about a second each.
-    let mut pass = if settings.time_limit.is_some() { 1 } else { target_spp };
+    let mut pass = if settings.time_limit.is_some() { 1 } else { settings.pass_spp.unwrap_or(target_spp) };
     while spp_done < target_spp {
         let s0 = spp_done;
         let s1 = s0.saturating_add(pass.max(1)).min(target_spp);
@@ -72,8 +84,8 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
         let results: Vec<Vec<PixelStats>> = tiles
             .par_iter()
             .map(|&(x0, y0)| {
-                let x1 = (x0 + TILE).min(w);
-                let y1 = (y0 + TILE).min(h);
+                let x1 = (x0 + tile).min(w);
+                let y1 = (y0 + tile).min(h);
                 let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
                 let mut bad = 0u64;
                 for y in y0..y1 {
@@ -99,9 +111,9 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
             })
             .collect();
         for (&(x0, y0), out) in tiles.iter().zip(results) {
-            let x1 = (x0 + TILE).min(w);
+            let x1 = (x0 + tile).min(w);
             let mut it = out.into_iter();
-            for y in y0..(y0 + TILE).min(h) {
+            for y in y0..(y0 + tile).min(h) {
                 for x in x0..x1 {
                     film.pixels[(y * w + x) as usize] = it.next().unwrap_or_default();
                 }
@@ -131,8 +143,17 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
 #[inline]
 fn sample(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64) -> glam::Vec3 {
     let mut rng = Rng::for_sample(seed, pixel, index);
-    let offset = scene.filter.sample(rng.next_2d());
-    let ray = scene.camera.ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5) + offset);
+    let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+    let size = Vec2::new(scene.width as f32, scene.height as f32);
+    // Like Mitsuba's film (no border sampling), a pixel only receives samples
+    // from inside the image: the filter is truncated at the image edges.
+    let mut pos = centre + scene.filter.sample(rng.next_2d());
+    let mut tries = 0;
+    while (pos.cmplt(Vec2::ZERO).any() || pos.cmpge(size).any()) && tries < 16 {
+        pos = centre + scene.filter.sample(rng.next_2d());
+        tries += 1;
+    }
+    let ray = scene.camera.ray(pos.clamp(Vec2::ZERO, size - Vec2::splat(1e-3)));
     match (scene.features.environment, scene.features.analytic_shapes) {
         (false, false) => path::li::<false, false>(scene, ray, &mut rng),
         (true, false) => path::li::<true, false>(scene, ray, &mut rng),
