@@ -42,6 +42,10 @@ pub struct SceneDesc {
     pub emitters: Vec<EmitterDesc>,
     /// Which effects the scene uses, so the renderer can skip the rest.
     pub features: Features,
+    /// Non-fatal notes from loading (e.g. a stratified sampler treated as
+    /// independent), each prefixed with `file:line`. The loader does not log;
+    /// the caller decides how to show these.
+    pub warnings: Vec<String>,
 }
 
 /// The effects a scene calls for. The renderer selects code paths from this

@@ -7,19 +7,189 @@
 //! the file and line: the loader never substitutes silently.
 //!
 //! Invariant: this crate knows nothing of rays, sampling or rendering.
+//!
+//! Pipeline: [`xml`] parses the file into a generic plugin tree; [`props`]
+//! gives typed, consumed-tracked access to each plugin's parameters; the
+//! plugin modules ([`shapes`], [`bsdfs`], [`textures`], [`emitters`],
+//! [`sensor`], [`integrator`]) build the description.
 
+// Validity checks are written `!(x > 0.0)` on purpose: they also reject NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+mod bsdfs;
+mod context;
 pub mod desc;
+mod emitters;
 mod error;
+mod imageio;
+mod integrator;
+mod ior;
+mod props;
+mod sensor;
+mod shapes;
+mod textures;
+mod transform;
+mod xml;
 
 pub use desc::*;
 pub use error::SceneError;
+pub use imageio::srgb_to_linear;
 
 use std::path::Path;
+
+use context::Ctx;
+use xml::{invalid, Category};
 
 /// Load a Mitsuba 3 XML scene. `overrides` are `-D name=value` pairs; they
 /// replace the values of `<default>` declarations (and may define names the
 /// file does not declare).
 pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDesc, SceneError> {
-    let _ = (path, overrides);
-    todo!("scene loader")
+    let parsed = xml::parse_file(path, overrides)?;
+    let mut ctx = Ctx::new(parsed.ids, parsed.base_dir);
+    let mut integrator_desc = None;
+    let mut sensor_desc = None;
+    let mut shape_descs = Vec::new();
+    let mut emitter_descs = Vec::new();
+
+    for child in &parsed.objects {
+        let r = props::resolve(child, &ctx.ids)?;
+        match r.node.category {
+            Category::Integrator => {
+                if integrator_desc.is_some() {
+                    return Err(invalid(
+                        &r.loc,
+                        "only one integrator can be specified per scene",
+                    ));
+                }
+                integrator_desc = Some(integrator::integrator(&ctx, &r)?);
+            }
+            Category::Sensor => {
+                let s = sensor::sensor(&mut ctx, &r)?;
+                if sensor_desc.is_none() {
+                    sensor_desc = Some(s);
+                } else {
+                    ctx.warnings.push(format!(
+                        "{}: additional sensor ignored (the first one is used)",
+                        r.loc
+                    ));
+                }
+            }
+            Category::Shape => shape_descs.push(shapes::shape(&mut ctx, &r)?),
+            Category::Bsdf => {
+                // Built now (validated, cached by identity) so refs reuse it.
+                bsdfs::bsdf(&mut ctx, &r)?;
+            }
+            Category::Texture => {
+                textures::texture(&mut ctx, &r)?;
+            }
+            Category::Emitter => emitter_descs.push(emitters::emitter(&ctx, &r)?),
+            Category::Film | Category::RFilter | Category::Sampler => {
+                return Err(invalid(
+                    &r.loc,
+                    format!(
+                    "<{}> must be nested inside a sensor (film inside sensor, rfilter inside film)",
+                    r.node.category.tag()
+                ),
+                ))
+            }
+        }
+    }
+
+    let sensor = sensor_desc.ok_or_else(|| invalid(&xml::root_loc(path), "scene has no sensor"))?;
+    let integrator = integrator_desc.unwrap_or(IntegratorDesc::Path(PathParams::default()));
+    let features = features(&shape_descs, &ctx.bsdfs, &emitter_descs);
+    Ok(SceneDesc {
+        source: path.to_path_buf(),
+        integrator,
+        sensor,
+        shapes: shape_descs,
+        bsdfs: ctx.bsdfs,
+        textures: ctx.textures,
+        emitters: emitter_descs,
+        features,
+        warnings: ctx.warnings,
+    })
+}
+
+/// What the scene actually uses: BSDFs reachable from shapes (through
+/// `twosided`), their textures, the shapes' emitters and geometry kinds,
+/// and the scene-level emitters.
+fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) -> Features {
+    let mut f = Features::default();
+    let mut seen = vec![false; bsdfs.len()];
+    let mut stack: Vec<usize> = shapes.iter().map(|s| s.bsdf).collect();
+    let tex = |t: &TexRef| matches!(t, TexRef::Texture(_));
+    while let Some(i) = stack.pop() {
+        if i >= bsdfs.len() || std::mem::replace(&mut seen[i], true) {
+            continue;
+        }
+        match &bsdfs[i] {
+            BsdfDesc::Diffuse { reflectance } => f.textures |= tex(reflectance),
+            BsdfDesc::TwoSided { front, back } => stack.extend([*front, *back]),
+            BsdfDesc::Conductor {
+                specular_reflectance,
+                ..
+            } => {
+                f.delta_bsdfs = true;
+                f.textures |= tex(specular_reflectance);
+            }
+            BsdfDesc::RoughConductor {
+                specular_reflectance,
+                ..
+            } => {
+                f.microfacets = true;
+                f.textures |= tex(specular_reflectance);
+            }
+            BsdfDesc::Dielectric {
+                specular_reflectance,
+                specular_transmittance,
+                ..
+            }
+            | BsdfDesc::ThinDielectric {
+                specular_reflectance,
+                specular_transmittance,
+                ..
+            } => {
+                f.delta_bsdfs = true;
+                f.transmission = true;
+                f.textures |= tex(specular_reflectance) || tex(specular_transmittance);
+            }
+            BsdfDesc::RoughDielectric {
+                specular_reflectance,
+                specular_transmittance,
+                ..
+            } => {
+                f.microfacets = true;
+                f.transmission = true;
+                f.textures |= tex(specular_reflectance) || tex(specular_transmittance);
+            }
+            BsdfDesc::Plastic {
+                diffuse_reflectance,
+                specular_reflectance,
+                ..
+            } => {
+                f.delta_bsdfs = true;
+                f.textures |= tex(diffuse_reflectance) || tex(specular_reflectance);
+            }
+            BsdfDesc::RoughPlastic {
+                diffuse_reflectance,
+                specular_reflectance,
+                ..
+            } => {
+                f.microfacets = true;
+                f.textures |= tex(diffuse_reflectance) || tex(specular_reflectance);
+            }
+        }
+    }
+    for s in shapes {
+        f.area_lights |= s.emitter.is_some();
+        f.analytic_shapes |= matches!(s.geometry, Geometry::Sphere { .. } | Geometry::Disk { .. });
+    }
+    for e in emitters {
+        match e {
+            EmitterDesc::Point { .. } | EmitterDesc::Directional { .. } => f.delta_lights = true,
+            EmitterDesc::Constant { .. } | EmitterDesc::EnvMap { .. } => f.environment = true,
+        }
+    }
+    f
 }

@@ -100,7 +100,7 @@ impl Accel {
             let mut hit = RayHit::none();
             if self.bvh.ray_traverse(Self::bray(ray), &mut hit, |r, id| self.tris[id].intersect(r)) {
                 let (shape, prim) = self.tri_ref[hit.primitive_id as usize];
-                best = Some(Hit { t: hit.t, shape, prim });
+                best = Some(Hit { t: hit.t, shape, prim, bvh_prim: hit.primitive_id });
                 tmax = hit.t;
             }
         }
@@ -111,7 +111,7 @@ impl Accel {
                 let t = a.intersect(&r);
                 if t < r.tmax {
                     r.tmax = t;
-                    best = Some(Hit { t, shape: *s, prim: 0 });
+                    best = Some(Hit { t, shape: *s, prim: 0, bvh_prim: u32::MAX });
                 }
             }
         }
@@ -139,7 +139,16 @@ impl Accel {
     pub fn interaction(&self, ray: &Ray, hit: &Hit) -> SurfaceInteraction {
         let p = ray.o + ray.d * hit.t;
         let (ng, ns, uv) = match &self.shapes[hit.shape as usize] {
-            ShapeGeom::Mesh(m) => triangle::shade(m, hit.prim as usize, p),
+            ShapeGeom::Mesh(m) => {
+                // Barycentrics from the intersection's own edge data (obvhs
+                // layout: e1 = v0 - v1, e2 = v2 - v0, ng = e1 x e2), which
+                // gives the weights of v1 and v2.
+                let t = &self.tris[hit.bvh_prim as usize];
+                let r = Vec3A::from(ray.d).cross(t.v0 - Vec3A::from(ray.o));
+                let inv = 1.0 / t.ng.dot(Vec3A::from(ray.d));
+                let b = glam::Vec2::new(r.dot(t.e2) * inv, r.dot(t.e1) * inv);
+                triangle::shade(m, hit.prim as usize, b, Vec3::from(-t.ng))
+            }
             ShapeGeom::Analytic(a) => a.shade(p),
         };
         SurfaceInteraction { p, t: hit.t, ng, ns, uv, shape: hit.shape }

@@ -26,6 +26,8 @@ pub struct Hit {
     pub shape: u32,
     /// Triangle index within the shape (0 for analytic shapes).
     pub prim: u32,
+    /// Index of the triangle in the BVH's order (u32::MAX for analytic shapes).
+    pub bvh_prim: u32,
 }
 
 /// Local geometry at a hit point.

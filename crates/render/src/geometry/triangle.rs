@@ -3,9 +3,8 @@
 use glam::{Vec2, Vec3};
 use pathfarm_scene::TriangleMesh;
 
-/// Barycentric coordinates (b1, b2) of point `p` in triangle (a, b, c),
-/// computed from the (already found) hit point.
-#[inline]
+/// Barycentric coordinates (b1, b2) of point `p` in triangle (a, b, c).
+#[cfg(test)]
 pub fn barycentrics(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> Vec2 {
     let e1 = b - a;
     let e2 = c - a;
@@ -24,13 +23,14 @@ pub fn barycentrics(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> Vec2 {
     Vec2::new(b1.clamp(0.0, 1.0), b2.clamp(0.0, 1.0))
 }
 
-/// Geometric normal, shading normal and uv at point `p` on triangle `tri`.
+/// Geometric normal, shading normal and uv on triangle `tri` at
+/// barycentrics `bc` (weights of vertices 1 and 2), given the unnormalised
+/// geometric normal `ng` (winding order v0, v1, v2).
 #[inline]
-pub fn shade(mesh: &TriangleMesh, tri: usize, p: Vec3) -> (Vec3, Vec3, Vec2) {
+pub fn shade(mesh: &TriangleMesh, tri: usize, bc: Vec2, ng: Vec3) -> (Vec3, Vec3, Vec2) {
     let [i0, i1, i2] = mesh.indices[tri];
-    let (a, b, c) = (mesh.positions[i0 as usize], mesh.positions[i1 as usize], mesh.positions[i2 as usize]);
-    let mut ng = (b - a).cross(c - a).normalize_or_zero();
-    let bc = barycentrics(p, a, b, c);
+    let bc = bc.clamp(Vec2::ZERO, Vec2::ONE);
+    let mut ng = ng.normalize_or_zero();
     let b0 = 1.0 - bc.x - bc.y;
     let mut ns = match &mesh.normals {
         Some(n) => (n[i0 as usize] * b0 + n[i1 as usize] * bc.x + n[i2 as usize] * bc.y).normalize_or_zero(),
@@ -48,4 +48,30 @@ pub fn shade(mesh: &TriangleMesh, tri: usize, p: Vec3) -> (Vec3, Vec3, Vec2) {
         None => bc,
     };
     (ng, ns, uv)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3A;
+    use obvhs::ray::Ray;
+    use obvhs::rt_triangle::RtTriangle;
+
+    #[test]
+    fn obvhs_barycentrics_weight_vertices_one_and_two() {
+        let (a, b, c) = (Vec3::new(0.0, 0.0, 0.0), Vec3::new(2.0, 0.0, 0.1), Vec3::new(0.3, 1.5, -0.2));
+        let t = RtTriangle::new(a.into(), b.into(), c.into());
+        let p = a * 0.2 + b * 0.5 + c * 0.3;
+        let o = Vec3::new(0.1, 0.2, 3.0);
+        let d = (p - o).normalize();
+        let ray = Ray::new_inf(o.into(), d.into());
+        let r = Vec3A::from(d).cross(t.v0 - Vec3A::from(o));
+        let inv = 1.0 / t.ng.dot(Vec3A::from(d));
+        let bc = Vec2::new(r.dot(t.e2) * inv, r.dot(t.e1) * inv);
+        assert!((bc - Vec2::new(0.5, 0.3)).length() < 1e-5, "{bc}");
+        assert!((bc - barycentrics(p, a, b, c)).length() < 1e-5);
+        assert!(t.intersect(&ray).is_finite());
+        // -ng is the winding-order normal.
+        assert!(Vec3::from(-t.ng).normalize().dot((b - a).cross(c - a).normalize()) > 0.9999);
+    }
 }

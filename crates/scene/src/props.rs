@@ -1,0 +1,290 @@
+//! Typed access to a plugin's properties, with consumed-tracking so that
+//! unknown (misspelt) parameters are reported instead of silently ignored.
+
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::rc::Rc;
+
+use glam::{DMat4, Vec3};
+
+use crate::desc::Location;
+use crate::error::SceneError;
+use crate::xml::{invalid, Category, Child, Node, ObjRef, Prop, Value};
+
+/// A nested object with `ref`s already followed.
+#[derive(Clone, Debug)]
+pub(crate) struct Resolved {
+    /// The `name` attribute of the nested element or `<ref>`.
+    pub name: Option<String>,
+    pub node: Rc<Node>,
+    /// Where the object was written or referenced (the `<ref>` line for refs).
+    pub loc: Location,
+}
+
+/// Follow a [`Child`] to its node, erroring on undefined ids.
+pub(crate) fn resolve(
+    child: &Child,
+    ids: &HashMap<String, Rc<Node>>,
+) -> Result<Resolved, SceneError> {
+    match &child.obj {
+        ObjRef::Inline(n) => Ok(Resolved {
+            name: child.name.clone(),
+            node: n.clone(),
+            loc: n.loc.clone(),
+        }),
+        ObjRef::Ref { id, loc } => match ids.get(id) {
+            Some(n) => Ok(Resolved {
+                name: child.name.clone(),
+                node: n.clone(),
+                loc: loc.clone(),
+            }),
+            None => Err(invalid(loc, format!("reference to undefined id '{id}'"))),
+        },
+    }
+}
+
+/// A plugin's properties and nested objects, tracking which were consumed.
+pub(crate) struct Props {
+    node: Rc<Node>,
+    children: Vec<Resolved>,
+    used_props: RefCell<Vec<bool>>,
+    used_children: RefCell<Vec<bool>>,
+}
+
+impl Props {
+    /// Wrap `node`, resolving its nested `ref`s against `ids`.
+    pub(crate) fn new(node: Rc<Node>, ids: &HashMap<String, Rc<Node>>) -> Result<Self, SceneError> {
+        let children = node
+            .children
+            .iter()
+            .map(|c| resolve(c, ids))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self {
+            used_props: RefCell::new(vec![false; node.props.len()]),
+            used_children: RefCell::new(vec![false; children.len()]),
+            node,
+            children,
+        })
+    }
+
+    pub(crate) fn loc(&self) -> &Location {
+        &self.node.loc
+    }
+
+    pub(crate) fn plugin(&self) -> &str {
+        &self.node.plugin
+    }
+
+    /// "roughconductor bsdf" etc., for messages.
+    pub(crate) fn what(&self) -> String {
+        format!("{} {}", self.node.plugin, self.node.category.tag())
+    }
+
+    /// Is a property or named nested object called `name` present? (Does not consume.)
+    pub(crate) fn has(&self, name: &str) -> bool {
+        self.node.props.iter().any(|p| p.name == name)
+            || self
+                .children
+                .iter()
+                .any(|c| c.name.as_deref() == Some(name))
+    }
+
+    /// Consume and return the raw property `name`.
+    pub(crate) fn get(&self, name: &str) -> Option<&Prop> {
+        let i = self.node.props.iter().position(|p| p.name == name)?;
+        self.used_props.borrow_mut()[i] = true;
+        Some(&self.node.props[i])
+    }
+
+    pub(crate) fn type_error(&self, p: &Prop, expected: &str) -> SceneError {
+        invalid(
+            &p.loc,
+            format!(
+                "parameter '{}' of {} has type <{}>, expected {expected}",
+                p.name,
+                self.what(),
+                p.value.type_name()
+            ),
+        )
+    }
+
+    pub(crate) fn float_opt(&self, name: &str) -> Result<Option<f32>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        let v = match p.value {
+            Value::Float(f) => f,
+            Value::Integer(i) => i as f64,
+            _ => return Err(self.type_error(p, "<float>")),
+        };
+        let f = v as f32;
+        if !f.is_finite() {
+            return Err(invalid(
+                &p.loc,
+                format!("parameter '{name}' must be finite (got {v})"),
+            ));
+        }
+        Ok(Some(f))
+    }
+
+    pub(crate) fn float(&self, name: &str, default: f32) -> Result<f32, SceneError> {
+        Ok(self.float_opt(name)?.unwrap_or(default))
+    }
+
+    pub(crate) fn int_opt(&self, name: &str) -> Result<Option<(i64, Location)>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        match p.value {
+            Value::Integer(i) => Ok(Some((i, p.loc.clone()))),
+            _ => Err(self.type_error(p, "<integer>")),
+        }
+    }
+
+    /// An integer in `[min, max]`.
+    pub(crate) fn int_in(
+        &self,
+        name: &str,
+        default: i64,
+        min: i64,
+        max: i64,
+    ) -> Result<i64, SceneError> {
+        match self.int_opt(name)? {
+            None => Ok(default),
+            Some((v, loc)) if v < min || v > max => Err(invalid(
+                &loc,
+                format!(
+                    "parameter '{name}' of {} must be in [{min}, {max}] (got {v})",
+                    self.what()
+                ),
+            )),
+            Some((v, _)) => Ok(v),
+        }
+    }
+
+    pub(crate) fn bool(&self, name: &str, default: bool) -> Result<bool, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(default);
+        };
+        match p.value {
+            Value::Boolean(b) => Ok(b),
+            _ => Err(self.type_error(p, "<boolean>")),
+        }
+    }
+
+    pub(crate) fn string_opt(&self, name: &str) -> Result<Option<(String, Location)>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        match &p.value {
+            Value::String(s) => Ok(Some((s.clone(), p.loc.clone()))),
+            _ => Err(self.type_error(p, "<string>")),
+        }
+    }
+
+    /// A `<point>` (or `<vector>`) property.
+    pub(crate) fn point_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        match p.value {
+            Value::Point(v) | Value::Vector(v) => Ok(Some(v.as_vec3())),
+            _ => Err(self.type_error(p, "<point> or <vector>")),
+        }
+    }
+
+    pub(crate) fn transform_opt(&self, name: &str) -> Result<Option<DMat4>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        match p.value {
+            Value::Transform(m) => Ok(Some(m)),
+            _ => Err(self.type_error(p, "<transform>")),
+        }
+    }
+
+    pub(crate) fn transform(&self, name: &str) -> Result<DMat4, SceneError> {
+        Ok(self.transform_opt(name)?.unwrap_or(DMat4::IDENTITY))
+    }
+
+    /// A constant colour given as `<rgb>`, `<spectrum>` (uniform) or a number.
+    /// Nested textures are not looked at (see [`Props::named_child`]).
+    pub(crate) fn color_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
+        let Some(p) = self.get(name) else {
+            return Ok(None);
+        };
+        let c = match p.value {
+            Value::Rgb(c) => c,
+            Value::Spectrum(s) => Vec3::splat(s),
+            Value::Float(f) => Vec3::splat(f as f32),
+            Value::Integer(i) => Vec3::splat(i as f32),
+            _ => return Err(self.type_error(p, "<rgb>, <spectrum> or <float>")),
+        };
+        if !c.is_finite() {
+            return Err(invalid(
+                &p.loc,
+                format!("parameter '{name}' must be finite"),
+            ));
+        }
+        Ok(Some(c))
+    }
+
+    /// Consume the nested object named `name` (e.g. `<texture name="reflectance">`).
+    pub(crate) fn named_child(&self, name: &str) -> Option<Resolved> {
+        let i = self
+            .children
+            .iter()
+            .position(|c| c.name.as_deref() == Some(name))?;
+        self.used_children.borrow_mut()[i] = true;
+        Some(self.children[i].clone())
+    }
+
+    /// Consume all not-yet-consumed nested objects of `category` (named or not).
+    pub(crate) fn children_of(&self, category: Category) -> Vec<Resolved> {
+        let mut used = self.used_children.borrow_mut();
+        let mut out = Vec::new();
+        for (i, c) in self.children.iter().enumerate() {
+            if !used[i] && c.node.category == category {
+                used[i] = true;
+                out.push(c.clone());
+            }
+        }
+        out
+    }
+
+    /// Error on the first property or nested object that no one consumed.
+    pub(crate) fn finish(&self) -> Result<(), SceneError> {
+        for (p, used) in self.node.props.iter().zip(self.used_props.borrow().iter()) {
+            if !used {
+                return Err(invalid(
+                    &p.loc,
+                    format!(
+                        "unknown parameter '{}' (<{}>) for {}",
+                        p.name,
+                        p.value.type_name(),
+                        self.what()
+                    ),
+                ));
+            }
+        }
+        for (c, used) in self.children.iter().zip(self.used_children.borrow().iter()) {
+            if !used {
+                let name = c
+                    .name
+                    .as_ref()
+                    .map(|n| format!(" named '{n}'"))
+                    .unwrap_or_default();
+                return Err(invalid(
+                    &c.loc,
+                    format!(
+                        "unexpected nested {} {}{name} inside {}",
+                        c.node.plugin,
+                        c.node.category.tag(),
+                        self.what()
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}

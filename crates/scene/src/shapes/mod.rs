@@ -1,0 +1,132 @@
+//! Shape plugins: `obj`, `ply`, `rectangle`, `cube`, `sphere`, `disk`.
+
+mod mesh;
+mod obj;
+mod ply;
+pub(crate) mod primitives;
+
+use std::sync::Arc;
+
+use glam::{DVec3, Vec3};
+
+use crate::bsdfs::bsdf;
+use crate::context::Ctx;
+use crate::desc::{Geometry, ShapeDesc};
+use crate::emitters::area_emitter;
+use crate::error::SceneError;
+use crate::props::{Props, Resolved};
+use crate::transform::similarity_scale;
+use crate::xml::{invalid, Category};
+
+/// Build the shape `r`: geometry in world space, its BSDF (Mitsuba's
+/// default diffuse 0.5 if none) and optional area emitter.
+pub(crate) fn shape(ctx: &mut Ctx, r: &Resolved) -> Result<ShapeDesc, SceneError> {
+    let p = ctx.props(&r.node)?;
+    let geometry = geometry(ctx, &p)?;
+
+    let bsdfs = p.children_of(Category::Bsdf);
+    let bsdf_index = match bsdfs.as_slice() {
+        [] => ctx.default_bsdf(),
+        [b] => bsdf(ctx, b)?,
+        [_, second, ..] => {
+            return Err(invalid(
+                &second.loc,
+                format!("{} has more than one bsdf", p.what()),
+            ))
+        }
+    };
+    let emitters = p.children_of(Category::Emitter);
+    let emitter = match emitters.as_slice() {
+        [] => None,
+        [e] => Some(area_emitter(ctx, e)?),
+        [_, second, ..] => {
+            return Err(invalid(
+                &second.loc,
+                format!("{} has more than one emitter", p.what()),
+            ))
+        }
+    };
+    p.finish()?;
+    Ok(ShapeDesc {
+        id: r.node.id.clone(),
+        geometry,
+        bsdf: bsdf_index,
+        emitter,
+        location: r.node.loc.clone(),
+    })
+}
+
+fn geometry(ctx: &Ctx, p: &Props) -> Result<Geometry, SceneError> {
+    let to_world = p.transform("to_world")?;
+    let flip_normals = p.bool("flip_normals", false)?;
+    let loc = p.loc().clone();
+    match p.plugin() {
+        "obj" | "ply" => {
+            let is_obj = p.plugin() == "obj";
+            let (name, name_loc) = p
+                .string_opt("filename")?
+                .ok_or_else(|| invalid(&loc, format!("{} requires a 'filename' parameter", p.what())))?;
+            let face_normals = p.bool("face_normals", false)?;
+            // Mitsuba: OBJ flips v by default, PLY does not.
+            let flip_tex_coords = p.bool("flip_tex_coords", is_obj)?;
+            let path = ctx.resolve_path(&name);
+            let source = format!("mesh file '{}'", path.display());
+            // Third-party parsers must not take the process down on a bad file.
+            let local = std::panic::catch_unwind(|| {
+                if is_obj {
+                    obj::load_obj(&path, flip_tex_coords)
+                } else {
+                    ply::load_ply(&path, flip_tex_coords)
+                }
+            })
+            .unwrap_or_else(|_| Err("the mesh parser failed (panicked) on this file".into()))
+            .map_err(|e| invalid(&name_loc, format!("{source}: {e}")))?;
+            let m = mesh::finalize(local, to_world, face_normals, flip_normals, &source, &name_loc)?;
+            Ok(Geometry::Mesh(Arc::new(m)))
+        }
+        "rectangle" | "cube" => {
+            let face_normals = p.bool("face_normals", false)?;
+            let local = if p.plugin() == "rectangle" { primitives::rectangle() } else { primitives::cube() };
+            let m = mesh::finalize(local, to_world, face_normals, flip_normals, p.plugin(), &loc)?;
+            Ok(Geometry::Mesh(Arc::new(m)))
+        }
+        "sphere" => {
+            let center = p.point_opt("center")?.unwrap_or(Vec3::ZERO).as_dvec3();
+            let radius = p.float("radius", 1.0)? as f64;
+            // Mitsuba: to_world * translate(center) * scale(radius).
+            let m = to_world
+                * glam::DMat4::from_translation(center)
+                * glam::DMat4::from_scale(DVec3::splat(radius));
+            let Some(_) = similarity_scale(m) else {
+                return Err(invalid(
+                    &loc,
+                    "sphere: to_world must be a similarity (rotation, uniform scale, translation); \
+                     non-uniform scale or shear would make an ellipsoid",
+                ));
+            };
+            let world_radius = m.transform_vector3(DVec3::X).length();
+            let world_center = m.transform_point3(DVec3::ZERO);
+            if !(world_radius > 0.0) || !world_center.is_finite() || !world_radius.is_finite() {
+                return Err(invalid(&loc, "sphere: radius must be positive and finite"));
+            }
+            // A mirroring transform (or negative radius) turns the sphere inside out.
+            let mirrored = glam::DMat3::from_mat4(m).determinant() < 0.0;
+            Ok(Geometry::Sphere {
+                center: world_center.as_vec3(),
+                radius: world_radius as f32,
+                flip_normals: flip_normals != mirrored,
+            })
+        }
+        "disk" => {
+            let m = to_world.as_mat4();
+            if !m.is_finite() || glam::DMat3::from_mat4(to_world).determinant() == 0.0 {
+                return Err(invalid(&loc, "disk: to_world must be finite and invertible"));
+            }
+            Ok(Geometry::Disk { to_world: m, flip_normals })
+        }
+        other => Err(invalid(
+            &loc,
+            format!("unsupported shape type '{other}' (supported: obj, ply, rectangle, cube, sphere, disk)"),
+        )),
+    }
+}

@@ -1,0 +1,687 @@
+//! Mitsuba 3 XML parsing into a generic plugin tree.
+//!
+//! This stage knows the XML format (elements, `$name` substitution,
+//! `<default>`, typed property elements, transforms, `ref`) but nothing about
+//! individual plugins. Every node and property carries its [`Location`] so
+//! later stages can report errors at the right line.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::rc::Rc;
+
+use glam::{DMat4, DVec3, Vec3};
+
+use crate::desc::Location;
+use crate::error::SceneError;
+use crate::transform;
+
+/// Build a [`SceneError::Invalid`] at `loc`.
+pub(crate) fn invalid(loc: &Location, message: impl Into<String>) -> SceneError {
+    SceneError::Invalid {
+        file: loc.file.clone(),
+        line: loc.line,
+        message: message.into(),
+    }
+}
+
+/// The object categories Mitsuba's XML knows (the element name of a plugin).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Category {
+    Shape,
+    Bsdf,
+    Texture,
+    Emitter,
+    Sensor,
+    Film,
+    RFilter,
+    Sampler,
+    Integrator,
+}
+
+impl Category {
+    fn from_tag(tag: &str) -> Option<Self> {
+        Some(match tag {
+            "shape" => Self::Shape,
+            "bsdf" => Self::Bsdf,
+            "texture" => Self::Texture,
+            "emitter" => Self::Emitter,
+            "sensor" => Self::Sensor,
+            "film" => Self::Film,
+            "rfilter" => Self::RFilter,
+            "sampler" => Self::Sampler,
+            "integrator" => Self::Integrator,
+            _ => return None,
+        })
+    }
+
+    /// The XML element name.
+    pub(crate) fn tag(self) -> &'static str {
+        match self {
+            Self::Shape => "shape",
+            Self::Bsdf => "bsdf",
+            Self::Texture => "texture",
+            Self::Emitter => "emitter",
+            Self::Sensor => "sensor",
+            Self::Film => "film",
+            Self::RFilter => "rfilter",
+            Self::Sampler => "sampler",
+            Self::Integrator => "integrator",
+        }
+    }
+}
+
+/// A typed property value, as written in the XML.
+#[derive(Clone, Debug)]
+pub(crate) enum Value {
+    Integer(i64),
+    Float(f64),
+    Boolean(bool),
+    String(String),
+    Rgb(Vec3),
+    /// A uniform spectrum (the only kind supported).
+    Spectrum(f32),
+    Point(DVec3),
+    Vector(DVec3),
+    Transform(DMat4),
+}
+
+impl Value {
+    /// The XML element name of this kind of value, for error messages.
+    pub(crate) fn type_name(&self) -> &'static str {
+        match self {
+            Value::Integer(_) => "integer",
+            Value::Float(_) => "float",
+            Value::Boolean(_) => "boolean",
+            Value::String(_) => "string",
+            Value::Rgb(_) => "rgb",
+            Value::Spectrum(_) => "spectrum",
+            Value::Point(_) => "point",
+            Value::Vector(_) => "vector",
+            Value::Transform(_) => "transform",
+        }
+    }
+}
+
+/// A named property of a plugin.
+#[derive(Clone, Debug)]
+pub(crate) struct Prop {
+    pub name: String,
+    pub value: Value,
+    pub loc: Location,
+}
+
+/// A nested plugin, either written inline or referenced by `id`.
+#[derive(Clone, Debug)]
+pub(crate) enum ObjRef {
+    Inline(Rc<Node>),
+    Ref { id: String, loc: Location },
+}
+
+/// A nested object slot: optional `name` attribute plus the object.
+#[derive(Clone, Debug)]
+pub(crate) struct Child {
+    pub name: Option<String>,
+    pub obj: ObjRef,
+}
+
+/// A plugin instance: `<shape type="obj" id="...">...</shape>`.
+#[derive(Clone, Debug)]
+pub(crate) struct Node {
+    pub category: Category,
+    pub plugin: String,
+    pub id: Option<String>,
+    pub props: Vec<Prop>,
+    pub children: Vec<Child>,
+    pub loc: Location,
+}
+
+/// The parsed scene: top-level objects plus the id table.
+#[derive(Debug)]
+pub(crate) struct XmlScene {
+    pub objects: Vec<Child>,
+    pub ids: HashMap<String, Rc<Node>>,
+    /// Directory that relative file names are resolved against.
+    pub base_dir: PathBuf,
+}
+
+struct Parser<'a> {
+    file: PathBuf,
+    doc: &'a roxmltree::Document<'a>,
+    params: HashMap<String, String>,
+    ids: HashMap<String, Rc<Node>>,
+}
+
+/// Parse `path` with command-line `overrides` (which take precedence over
+/// `<default>` values).
+pub(crate) fn parse_file(
+    path: &Path,
+    overrides: &[(String, String)],
+) -> Result<XmlScene, SceneError> {
+    let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+        file: path.to_path_buf(),
+        source,
+    })?;
+    let file_loc = |line: u32| Location {
+        file: path.to_path_buf(),
+        line,
+    };
+    let doc = roxmltree::Document::parse(&text).map_err(|e| {
+        let pos = e.pos();
+        invalid(&file_loc(pos.row), format!("malformed XML: {e}"))
+    })?;
+    let mut parser = Parser {
+        file: path.to_path_buf(),
+        doc: &doc,
+        params: overrides.iter().cloned().collect(),
+        ids: HashMap::new(),
+    };
+    let root = doc.root_element();
+    let root_loc = parser.loc(root);
+    if root.tag_name().name() != "scene" {
+        return Err(invalid(
+            &root_loc,
+            format!(
+                "root element must be <scene>, found <{}>",
+                root.tag_name().name()
+            ),
+        ));
+    }
+    let mut objects = Vec::new();
+    for attr in root.attributes() {
+        if !matches!(attr.name(), "version" | "type" | "id") {
+            return Err(invalid(
+                &root_loc,
+                format!("unexpected attribute '{}' on <scene>", attr.name()),
+            ));
+        }
+    }
+    if root.attribute("version").is_none() {
+        return Err(invalid(
+            &root_loc,
+            "<scene> is missing the 'version' attribute",
+        ));
+    }
+    for child in root.children().filter(|n| n.is_element()) {
+        let loc = parser.loc(child);
+        match child.tag_name().name() {
+            "default" => {
+                parser.check_attrs(child, &["name", "value"], &["name", "value"])?;
+                let name = child.attribute("name").unwrap_or_default().to_string();
+                let value = parser.subst(child, child.attribute("value").unwrap_or_default())?;
+                if name.is_empty() {
+                    return Err(invalid(&loc, "<default>: name must be non-empty"));
+                }
+                // As in Mitsuba, the first definition wins: command-line
+                // overrides, then the earliest <default> of that name.
+                parser.params.entry(name).or_insert(value);
+            }
+            "include" => {
+                return Err(invalid(
+                    &loc,
+                    "<include> is not supported; inline the included file",
+                ));
+            }
+            _ => match parser.parse_element(child)? {
+                Element::Object(obj) => objects.push(obj),
+                Element::Prop(p) => {
+                    return Err(invalid(
+                        &p.loc,
+                        format!(
+                            "unexpected <{}> property '{}' at scene level",
+                            p.value.type_name(),
+                            p.name
+                        ),
+                    ))
+                }
+            },
+        }
+    }
+    let base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    Ok(XmlScene {
+        objects,
+        ids: parser.ids,
+        base_dir,
+    })
+}
+
+enum Element {
+    Object(Child),
+    Prop(Prop),
+}
+
+/// Split a list of numbers separated by commas and/or whitespace.
+pub(crate) fn tokenize(s: &str) -> Vec<&str> {
+    s.split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|t| !t.is_empty())
+        .collect()
+}
+
+impl<'a> Parser<'a> {
+    fn loc(&self, node: roxmltree::Node) -> Location {
+        let pos = self.doc.text_pos_at(node.range().start);
+        Location {
+            file: self.file.clone(),
+            line: pos.row,
+        }
+    }
+
+    /// Check that `node` has all `required` attributes and nothing outside `allowed`.
+    fn check_attrs(
+        &self,
+        node: roxmltree::Node,
+        allowed: &[&str],
+        required: &[&str],
+    ) -> Result<(), SceneError> {
+        let tag = node.tag_name().name();
+        for attr in node.attributes() {
+            if !allowed.contains(&attr.name()) {
+                return Err(invalid(
+                    &self.loc(node),
+                    format!("unexpected attribute '{}' on <{tag}>", attr.name()),
+                ));
+            }
+        }
+        for r in required {
+            if node.attribute(*r).is_none() {
+                return Err(invalid(
+                    &self.loc(node),
+                    format!("<{tag}> is missing the '{r}' attribute"),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Apply `$name` substitution to an attribute value. `\$` escapes a dollar.
+    fn subst(&self, node: roxmltree::Node, value: &str) -> Result<String, SceneError> {
+        if !value.contains('$') {
+            return Ok(value.to_string());
+        }
+        let mut out = String::with_capacity(value.len());
+        let mut chars = value.char_indices().peekable();
+        while let Some((i, c)) = chars.next() {
+            if c == '\\' && value[i + 1..].starts_with('$') {
+                out.push('$');
+                chars.next();
+                continue;
+            }
+            if c != '$' {
+                out.push(c);
+                continue;
+            }
+            let start = i + 1;
+            let mut end = start;
+            while let Some(&(j, d)) = chars.peek() {
+                if d.is_ascii_alphanumeric() || d == '_' {
+                    end = j + d.len_utf8();
+                    chars.next();
+                } else {
+                    break;
+                }
+            }
+            let name = &value[start..end];
+            match self.params.get(name) {
+                Some(v) if !name.is_empty() => out.push_str(v),
+                _ => {
+                    return Err(invalid(
+                        &self.loc(node),
+                        format!("undefined parameter: ${name} (declare it with <default> or pass -D {name}=...)"),
+                    ))
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// Attribute value with substitution applied.
+    fn attr(&self, node: roxmltree::Node, name: &str) -> Result<Option<String>, SceneError> {
+        node.attribute(name)
+            .map(|v| self.subst(node, v))
+            .transpose()
+    }
+
+    fn req_attr(&self, node: roxmltree::Node, name: &str) -> Result<String, SceneError> {
+        self.attr(node, name)?.ok_or_else(|| {
+            invalid(
+                &self.loc(node),
+                format!(
+                    "<{}> is missing the '{name}' attribute",
+                    node.tag_name().name()
+                ),
+            )
+        })
+    }
+
+    fn parse_f64(&self, node: roxmltree::Node, what: &str, s: &str) -> Result<f64, SceneError> {
+        s.trim().parse::<f64>().map_err(|_| {
+            invalid(
+                &self.loc(node),
+                format!(
+                    "could not parse {what} value \"{s}\" in <{}>",
+                    node.tag_name().name()
+                ),
+            )
+        })
+    }
+
+    /// x/y/z attributes (each defaulting to `default`) or a `value` of 1 or 3 numbers.
+    fn parse_xyz(&self, node: roxmltree::Node, default: f64) -> Result<DVec3, SceneError> {
+        if let Some(v) = self.attr(node, "value")? {
+            if node.attribute("x").is_some()
+                || node.attribute("y").is_some()
+                || node.attribute("z").is_some()
+            {
+                return Err(invalid(
+                    &self.loc(node),
+                    "cannot mix \"value\" and \"x\"/\"y\"/\"z\" attributes",
+                ));
+            }
+            return self.parse_vec_str(node, &v, true);
+        }
+        let mut out = [default; 3];
+        for (k, name) in ["x", "y", "z"].iter().enumerate() {
+            if let Some(s) = self.attr(node, name)? {
+                out[k] = self.parse_f64(node, "numeric", &s)?;
+            }
+        }
+        Ok(DVec3::from_array(out))
+    }
+
+    /// "x y z" (or "x, y, z"); with `allow_single`, a single number is replicated.
+    fn parse_vec_str(
+        &self,
+        node: roxmltree::Node,
+        s: &str,
+        allow_single: bool,
+    ) -> Result<DVec3, SceneError> {
+        let toks = tokenize(s);
+        let nums = toks
+            .iter()
+            .map(|t| self.parse_f64(node, "numeric", t))
+            .collect::<Result<Vec<_>, _>>()?;
+        match nums.len() {
+            1 if allow_single => Ok(DVec3::splat(nums[0])),
+            3 => Ok(DVec3::new(nums[0], nums[1], nums[2])),
+            n => Err(invalid(
+                &self.loc(node),
+                format!(
+                    "expected 3 values in <{}>, got {n} (\"{s}\")",
+                    node.tag_name().name()
+                ),
+            )),
+        }
+    }
+
+    fn parse_element(&mut self, node: roxmltree::Node) -> Result<Element, SceneError> {
+        let tag = node.tag_name().name();
+        let loc = self.loc(node);
+        if let Some(category) = Category::from_tag(tag) {
+            return Ok(Element::Object(self.parse_object(node, category)?));
+        }
+        if tag == "ref" {
+            self.check_attrs(node, &["id", "name"], &["id"])?;
+            let id = self.req_attr(node, "id")?;
+            let name = self.attr(node, "name")?;
+            return Ok(Element::Object(Child {
+                name,
+                obj: ObjRef::Ref { id, loc },
+            }));
+        }
+        let name_attr = |p: &Self| p.req_attr(node, "name");
+        let value = match tag {
+            "float" | "integer" | "boolean" | "string" | "rgb" => {
+                self.check_attrs(node, &["name", "value"], &["name", "value"])?;
+                let s = self.req_attr(node, "value")?;
+                match tag {
+                    "float" => Value::Float(self.parse_f64(node, "floating point", &s)?),
+                    "integer" => Value::Integer(s.trim().parse::<i64>().map_err(|_| {
+                        invalid(&loc, format!("could not parse integer value \"{s}\""))
+                    })?),
+                    "boolean" => match s.trim().to_ascii_lowercase().as_str() {
+                        "true" => Value::Boolean(true),
+                        "false" => Value::Boolean(false),
+                        _ => {
+                            return Err(invalid(
+                                &loc,
+                                format!("could not parse boolean value \"{s}\" -- must be \"true\" or \"false\""),
+                            ))
+                        }
+                    },
+                    "string" => Value::String(s),
+                    _ => Value::Rgb(self.parse_vec_str(node, &s, true)?.as_vec3()),
+                }
+            }
+            "spectrum" => {
+                self.check_attrs(node, &["name", "value", "filename", "type"], &["name"])?;
+                if node.attribute("type").is_some() || node.attribute("filename").is_some() {
+                    return Err(invalid(
+                        &loc,
+                        "<spectrum> is supported only as a single uniform value (value=\"0.5\"); spectral files and plugins are not supported",
+                    ));
+                }
+                let s = self.req_attr(node, "value")?;
+                let toks = tokenize(&s);
+                if toks.len() != 1 || toks[0].contains(':') {
+                    return Err(invalid(
+                        &loc,
+                        format!("<spectrum value=\"{s}\">: only a single uniform value is supported (wavelength:value lists are not supported)"),
+                    ));
+                }
+                Value::Spectrum(self.parse_f64(node, "spectrum", toks[0])? as f32)
+            }
+            "point" | "vector" => {
+                self.check_attrs(node, &["name", "value", "x", "y", "z"], &["name"])?;
+                let v = if let Some(s) = self.attr(node, "value")? {
+                    if node.attribute("x").is_some()
+                        || node.attribute("y").is_some()
+                        || node.attribute("z").is_some()
+                    {
+                        return Err(invalid(
+                            &loc,
+                            "cannot mix \"value\" and \"x\"/\"y\"/\"z\" attributes",
+                        ));
+                    }
+                    self.parse_vec_str(node, &s, true)?
+                } else {
+                    for c in ["x", "y", "z"] {
+                        if node.attribute(c).is_none() {
+                            return Err(invalid(
+                                &loc,
+                                format!("<{tag}> is missing the '{c}' attribute"),
+                            ));
+                        }
+                    }
+                    self.parse_xyz(node, 0.0)?
+                };
+                if tag == "point" {
+                    Value::Point(v)
+                } else {
+                    Value::Vector(v)
+                }
+            }
+            "transform" => {
+                self.check_attrs(node, &["name"], &["name"])?;
+                Value::Transform(self.parse_transform(node)?)
+            }
+            "default" => {
+                return Err(invalid(
+                    &loc,
+                    "<default> is only allowed directly inside <scene>",
+                ))
+            }
+            "include" => {
+                return Err(invalid(
+                    &loc,
+                    "<include> is not supported; inline the included file",
+                ))
+            }
+            _ => return Err(invalid(&loc, format!("unsupported XML element <{tag}>"))),
+        };
+        Ok(Element::Prop(Prop {
+            name: name_attr(self)?,
+            value,
+            loc,
+        }))
+    }
+
+    fn parse_object(
+        &mut self,
+        node: roxmltree::Node,
+        category: Category,
+    ) -> Result<Child, SceneError> {
+        self.check_attrs(node, &["type", "id", "name"], &["type"])?;
+        let loc = self.loc(node);
+        let plugin = self.req_attr(node, "type")?;
+        let id = self.attr(node, "id")?;
+        let name = self.attr(node, "name")?;
+        let mut props: Vec<Prop> = Vec::new();
+        let mut children = Vec::new();
+        for c in node.children() {
+            if c.is_text() && !c.text().unwrap_or_default().trim().is_empty() {
+                return Err(invalid(
+                    &self.loc(c),
+                    format!("unexpected text inside <{}>", category.tag()),
+                ));
+            }
+            if !c.is_element() {
+                continue;
+            }
+            match self.parse_element(c)? {
+                Element::Object(child) => children.push(child),
+                Element::Prop(p) => {
+                    if let Some(prev) = props.iter().find(|q| q.name == p.name) {
+                        return Err(invalid(
+                            &p.loc,
+                            format!(
+                                "property '{}' is specified twice (first at line {})",
+                                p.name, prev.loc.line
+                            ),
+                        ));
+                    }
+                    props.push(p)
+                }
+            }
+        }
+        let n = Rc::new(Node {
+            category,
+            plugin,
+            id: id.clone(),
+            props,
+            children,
+            loc: loc.clone(),
+        });
+        if let Some(id) = id {
+            if let Some(prev) = self.ids.get(&id) {
+                return Err(invalid(
+                    &loc,
+                    format!(
+                        "duplicate id '{id}' (first declared at line {})",
+                        prev.loc.line
+                    ),
+                ));
+            }
+            self.ids.insert(id, n.clone());
+        }
+        Ok(Child {
+            name,
+            obj: ObjRef::Inline(n),
+        })
+    }
+
+    fn parse_transform(&self, node: roxmltree::Node) -> Result<DMat4, SceneError> {
+        let mut m = DMat4::IDENTITY;
+        for c in node.children() {
+            if c.is_text() && !c.text().unwrap_or_default().trim().is_empty() {
+                return Err(invalid(&self.loc(c), "unexpected text inside <transform>"));
+            }
+            if !c.is_element() {
+                continue;
+            }
+            let loc = self.loc(c);
+            let op = match c.tag_name().name() {
+                "translate" => {
+                    self.check_attrs(c, &["x", "y", "z", "value"], &[])?;
+                    DMat4::from_translation(self.parse_xyz(c, 0.0)?)
+                }
+                "scale" => {
+                    self.check_attrs(c, &["x", "y", "z", "value"], &[])?;
+                    DMat4::from_scale(self.parse_xyz(c, 1.0)?)
+                }
+                "rotate" => {
+                    self.check_attrs(c, &["x", "y", "z", "value", "angle"], &["angle"])?;
+                    let axis = self.parse_xyz(c, 0.0)?;
+                    if axis == DVec3::ZERO {
+                        return Err(invalid(&loc, "rotation axis cannot be zero"));
+                    }
+                    let angle = self.parse_f64(c, "angle", &self.req_attr(c, "angle")?)?;
+                    transform::rotate(axis, angle)
+                }
+                "lookat" => {
+                    self.check_attrs(c, &["origin", "target", "up"], &["origin", "target"])?;
+                    let origin = self.parse_vec_str(c, &self.req_attr(c, "origin")?, false)?;
+                    let target = self.parse_vec_str(c, &self.req_attr(c, "target")?, false)?;
+                    let up = match self.attr(c, "up")? {
+                        Some(s) => self.parse_vec_str(c, &s, false)?,
+                        None => DVec3::ZERO,
+                    };
+                    transform::look_at(origin, target, up).ok_or_else(|| {
+                        invalid(
+                            &loc,
+                            "invalid lookat transformation (degenerate origin/target/up)",
+                        )
+                    })?
+                }
+                "matrix" => {
+                    self.check_attrs(c, &["value"], &["value"])?;
+                    let s = self.req_attr(c, "value")?;
+                    let toks = tokenize(&s);
+                    let n = match toks.len() {
+                        16 => 4,
+                        9 => 3,
+                        k => {
+                            return Err(invalid(
+                                &loc,
+                                format!("matrix must have 9 or 16 values, got {k}"),
+                            ))
+                        }
+                    };
+                    let mut rows = DMat4::IDENTITY.to_cols_array_2d(); // used as rows
+                    for i in 0..n {
+                        for j in 0..n {
+                            rows[i][j] = self.parse_f64(c, "matrix", toks[i * n + j])?;
+                        }
+                    }
+                    // `rows` holds the matrix row-major; glam stores columns.
+                    DMat4::from_cols_array_2d(&rows).transpose()
+                }
+                other => {
+                    return Err(invalid(
+                        &loc,
+                        format!("unexpected <{other}> element inside <transform>"),
+                    ))
+                }
+            };
+            m = op * m;
+            if !m.is_finite() {
+                return Err(invalid(&loc, "transform contains non-finite values"));
+            }
+        }
+        Ok(m)
+    }
+}
+
+/// Location of the root element (line 1 fallback), for scene-wide errors.
+pub(crate) fn root_loc(path: &Path) -> Location {
+    let line = std::fs::read_to_string(path)
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .position(|l| l.contains("<scene"))
+                .map(|i| i as u32 + 1)
+        })
+        .unwrap_or(1);
+    Location {
+        file: path.to_path_buf(),
+        line,
+    }
+}

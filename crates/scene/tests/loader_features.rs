@@ -1,0 +1,460 @@
+//! XML semantics and plugin conventions, on small generated scenes.
+
+mod common;
+
+use common::*;
+use glam::{Vec2, Vec3};
+use pathfarm_scene::*;
+
+fn only_mesh(s: &SceneDesc) -> &TriangleMesh {
+    match &s.shapes[0].geometry {
+        Geometry::Mesh(m) => m,
+        g => panic!("not a mesh: {g:?}"),
+    }
+}
+
+fn ov(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+    pairs
+        .iter()
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .collect()
+}
+
+const SPP_SCENE: &str = r#"<scene version="3.0.0">
+<default name="spp" value="16"/>
+<sensor type="perspective">
+  <sampler type="independent"><integer name="sample_count" value="$spp"/><integer name="seed" value="$seed"/></sampler>
+</sensor>
+</scene>
+"#;
+
+#[test]
+fn command_line_override_beats_default_and_may_define_new_names() {
+    let p = write_scene("override", SPP_SCENE);
+    let s = load_scene(&p, &ov(&[("seed", "7")])).unwrap();
+    assert_eq!((s.sensor.sample_count, s.sensor.seed), (16, 7));
+    let s = load_scene(&p, &ov(&[("seed", "1"), ("spp", "3")])).unwrap();
+    assert_eq!((s.sensor.sample_count, s.sensor.seed), (3, 1));
+}
+
+#[test]
+fn undefined_dollar_parameter_is_an_error_at_its_line() {
+    let p = write_scene("undefined-param", SPP_SCENE);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(SPP_SCENE, "$seed"), &["$seed"]);
+}
+
+#[test]
+fn transform_ops_compose_in_document_order() {
+    // (1,1,0) -> scale(2,3,4) -> (2,3,0) -> rotate z 90 -> (-3,2,0) -> translate -> (-2,4,3)
+    let xml = scene(
+        r#"<shape type="rectangle"><transform name="to_world">
+  <scale x="2" y="3" z="4"/>
+  <rotate z="1" angle="90"/>
+  <translate value="1 2 3"/>
+</transform></shape>"#,
+    );
+    let s = load_scene(&write_scene("compose", &xml), &[]).unwrap();
+    let m = only_mesh(&s);
+    let corner = m.positions[3]; // Mitsuba's rectangle vertex 3 is (1,1,0)
+    assert!(
+        (corner - Vec3::new(-2.0, 4.0, 3.0)).length() < 1e-5,
+        "{corner:?}"
+    );
+    assert_eq!(m.uvs.as_ref().unwrap()[3], Vec2::ONE);
+    for n in m.normals.as_ref().unwrap() {
+        assert!((*n - Vec3::Z).length() < 1e-6);
+    }
+}
+
+#[test]
+fn matrix_is_row_major_and_normals_use_inverse_transpose() {
+    // Row-major: "1 0 1 5" is the first row, x' = x + z + 5.
+    let xml = scene(
+        r#"<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="90"/><matrix value="1 0 1 5  0 1 0 0  0 0 1 0  0 0 0 1"/></transform></shape>"#,
+    );
+    let s = load_scene(&write_scene("matrix", &xml), &[]).unwrap();
+    let m = only_mesh(&s);
+    // rotate x 90: (1,1,0) -> (1,0,1); shear+translate: (1+1+5, 0, 1) = (7,0,1)
+    assert!(
+        (m.positions[3] - Vec3::new(7.0, 0.0, 1.0)).length() < 1e-5,
+        "{:?}",
+        m.positions[3]
+    );
+    // rotated normal (0,-1,0); shear's inverse transpose leaves it (0,-1,0).
+    assert!((m.normals.as_ref().unwrap()[0] - Vec3::new(0.0, -1.0, 0.0)).length() < 1e-5);
+    let xml = scene(
+        r#"<shape type="rectangle"><transform name="to_world"><matrix value="1 0 0 0  0 1 0 0  1 0 1 0  0 0 0 1"/></transform></shape>"#,
+    );
+    // Shear z' = z + x maps the z=0 square onto the plane z = x, whose
+    // normal is the inverse transpose applied to +z: (-1, 0, 1)/sqrt2.
+    let s = load_scene(&write_scene("matrix2", &xml), &[]).unwrap();
+    let n = only_mesh(&s).normals.as_ref().unwrap()[0];
+    assert!(
+        (n - Vec3::new(-1.0, 0.0, 1.0).normalize()).length() < 1e-6,
+        "{n:?}"
+    );
+}
+
+#[test]
+fn lookat_sensor_looks_at_target_with_left_handed_x() {
+    let xml = r#"<scene version="3.0.0"><sensor type="perspective">
+<float name="fov" value="45"/><string name="fov_axis" value="y"/>
+<transform name="to_world"><lookat origin="0, 0, 5" target="0 0 0" up="0 1 0"/></transform>
+</sensor></scene>"#;
+    let s = load_scene(&write_scene("lookat", xml), &[]).unwrap();
+    let m = s.sensor.to_world;
+    assert!((m.transform_point3(Vec3::ZERO) - Vec3::new(0.0, 0.0, 5.0)).length() < 1e-6);
+    assert!((m.transform_vector3(Vec3::Z) - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
+    assert!((m.transform_vector3(Vec3::Y) - Vec3::Y).length() < 1e-6);
+    // Mitsuba camera space: +x is "left" = cross(up, dir) = -x here.
+    assert!((m.transform_vector3(Vec3::X) - Vec3::new(-1.0, 0.0, 0.0)).length() < 1e-6);
+    assert_eq!((s.sensor.fov, s.sensor.fov_axis), (45.0, FovAxis::Y));
+    // Defaults when film/sampler are absent: Mitsuba's hdrfilm 768x576 with a gaussian, 4 spp.
+    assert_eq!(
+        s.sensor.film,
+        FilmDesc {
+            width: 768,
+            height: 576,
+            rfilter: RFilter::Gaussian { stddev: 0.5 }
+        }
+    );
+    assert_eq!((s.sensor.sample_count, s.sensor.seed), (4, 0));
+    assert_eq!((s.sensor.near_clip, s.sensor.far_clip), (1e-2, 1e4));
+}
+
+#[test]
+fn focal_length_converts_to_diagonal_fov() {
+    let xml = r#"<scene version="3.0.0"><sensor type="perspective"><string name="focal_length" value="50mm"/></sensor></scene>"#;
+    let s = load_scene(&write_scene("focal", xml), &[]).unwrap();
+    assert_eq!(s.sensor.fov_axis, FovAxis::Diagonal);
+    let expected = 2.0 * (43.266615f32 / 100.0).atan().to_degrees();
+    assert!((s.sensor.fov - expected).abs() < 1e-3, "{}", s.sensor.fov);
+}
+
+#[test]
+fn colours_parse_commas_spaces_single_values_and_uniform_spectra() {
+    let xml = scene(
+        r#"<bsdf type="diffuse" id="a"><rgb name="reflectance" value="0.1, 0.2,0.3"/></bsdf>
+<bsdf type="diffuse" id="b"><rgb name="reflectance" value="0.1 0.2 0.3"/></bsdf>
+<bsdf type="diffuse" id="c"><rgb name="reflectance" value="0.25"/></bsdf>
+<bsdf type="diffuse" id="d"><spectrum name="reflectance" value="0.75"/></bsdf>
+<bsdf type="diffuse" id="e"><float name="reflectance" value="0.125"/></bsdf>
+<shape type="sphere"><ref id="a"/></shape><shape type="sphere"><ref id="b"/></shape>
+<shape type="sphere"><ref id="c"/></shape><shape type="sphere"><ref id="d"/></shape><shape type="sphere"><ref id="e"/></shape>"#,
+    );
+    let s = load_scene(&write_scene("colours", &xml), &[]).unwrap();
+    let refl: Vec<TexRef> = s
+        .shapes
+        .iter()
+        .map(|sh| match s.bsdfs[sh.bsdf] {
+            BsdfDesc::Diffuse { reflectance } => reflectance,
+            _ => panic!(),
+        })
+        .collect();
+    let c = |x: f32, y: f32, z: f32| TexRef::Const(Vec3::new(x, y, z));
+    assert_eq!(
+        refl,
+        vec![
+            c(0.1, 0.2, 0.3),
+            c(0.1, 0.2, 0.3),
+            c(0.25, 0.25, 0.25),
+            c(0.75, 0.75, 0.75),
+            c(0.125, 0.125, 0.125)
+        ]
+    );
+    assert!(s.features.analytic_shapes);
+}
+
+#[test]
+fn referenced_bsdf_is_shared_and_missing_bsdf_gets_default_diffuse() {
+    let xml = scene(
+        r#"<bsdf type="roughplastic" id="p"><float name="alpha" value="0.3"/></bsdf>
+<shape type="cube"><ref id="p"/></shape>
+<shape type="cube"><ref name="bsdf" id="p"/></shape>
+<shape type="cube"/>"#,
+    );
+    let s = load_scene(&write_scene("refs", &xml), &[]).unwrap();
+    assert_eq!(s.shapes[0].bsdf, s.shapes[1].bsdf);
+    let BsdfDesc::RoughPlastic {
+        roughness,
+        int_ior,
+        ext_ior,
+        diffuse_reflectance,
+        specular_reflectance,
+        nonlinear,
+    } = &s.bsdfs[s.shapes[0].bsdf]
+    else {
+        panic!()
+    };
+    assert_eq!(roughness.distribution, MicrofacetDistribution::Beckmann);
+    assert_eq!((roughness.alpha_u, roughness.alpha_v), (0.3, 0.3));
+    assert_eq!((*int_ior, *ext_ior), (1.49, 1.000277));
+    assert_eq!(*diffuse_reflectance, TexRef::Const(Vec3::splat(0.5)));
+    assert_eq!(*specular_reflectance, TexRef::Const(Vec3::ONE));
+    assert!(!nonlinear);
+    assert_eq!(
+        s.bsdfs[s.shapes[2].bsdf],
+        BsdfDesc::Diffuse {
+            reflectance: TexRef::Const(Vec3::splat(0.5))
+        }
+    );
+    assert!(s.features.microfacets && !s.features.delta_bsdfs);
+}
+
+#[test]
+fn named_conductors_iors_and_mitsuba_defaults() {
+    let xml = scene(
+        r#"<shape type="disk"><bsdf type="conductor"><string name="material" value="Au"/></bsdf></shape>
+<shape type="disk"><bsdf type="conductor"/></shape>
+<shape type="disk"><bsdf type="dielectric"><string name="int_ior" value="water"/></bsdf></shape>
+<shape type="disk"><bsdf type="thindielectric"/></shape>
+<shape type="disk"><bsdf type="roughconductor"><float name="alpha_u" value="0.2"/><float name="alpha_v" value="0.4"/><boolean name="sample_visible" value="false"/></bsdf></shape>"#,
+    );
+    let s = load_scene(&write_scene("named", &xml), &[]).unwrap();
+    let b = |i: usize| &s.bsdfs[s.shapes[i].bsdf];
+    let BsdfDesc::Conductor { eta, k, .. } = b(0) else {
+        panic!()
+    };
+    assert!((eta.x - 0.143036).abs() < 1e-5 && (k.x - 3.982997).abs() < 1e-5);
+    assert_eq!(
+        b(1),
+        &BsdfDesc::Conductor {
+            eta: Vec3::ZERO,
+            k: Vec3::ONE,
+            specular_reflectance: TexRef::Const(Vec3::ONE)
+        }
+    );
+    let BsdfDesc::Dielectric {
+        int_ior, ext_ior, ..
+    } = b(2)
+    else {
+        panic!()
+    };
+    assert_eq!((*int_ior, *ext_ior), (1.333, 1.000277));
+    let BsdfDesc::ThinDielectric { int_ior, .. } = b(3) else {
+        panic!()
+    };
+    assert_eq!(*int_ior, 1.5046);
+    let BsdfDesc::RoughConductor { roughness, .. } = b(4) else {
+        panic!()
+    };
+    assert_eq!(
+        (
+            roughness.alpha_u,
+            roughness.alpha_v,
+            roughness.sample_visible
+        ),
+        (0.2, 0.4, false)
+    );
+    assert!(s.features.transmission && s.features.delta_bsdfs && s.features.analytic_shapes);
+}
+
+#[test]
+fn obj_v_is_flipped_but_ply_v_is_not() {
+    let d = temp_dir("uv-convention");
+    std::fs::write(
+        d.join("tri.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0.25 0.1\nvt 0.5 0.2\nvt 0.75 0.3\nf 1/1 2/2 3/3\n",
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("tri.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty float u\nproperty float v\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 0.25 0.1\n1 0 0 0.5 0.2\n0 1 0 0.75 0.3\n3 0 1 2\n",
+    )
+    .unwrap();
+    let xml = scene(
+        r#"<shape type="obj"><string name="filename" value="tri.obj"/></shape>
+<shape type="ply"><string name="filename" value="tri.ply"/></shape>"#,
+    );
+    let p = d.join("scene.xml");
+    std::fs::write(&p, xml).unwrap();
+    let s = load_scene(&p, &[]).unwrap();
+    let uv_at = |i: usize, pos: Vec3| {
+        let Geometry::Mesh(m) = &s.shapes[i].geometry else {
+            panic!()
+        };
+        let v = m.positions.iter().position(|p| *p == pos).unwrap();
+        m.uvs.as_ref().unwrap()[v]
+    };
+    assert!((uv_at(0, Vec3::ZERO) - Vec2::new(0.25, 0.9)).length() < 1e-6);
+    assert!((uv_at(0, Vec3::Y) - Vec2::new(0.75, 0.7)).length() < 1e-6);
+    assert!((uv_at(1, Vec3::ZERO) - Vec2::new(0.25, 0.1)).length() < 1e-6);
+    // No normals in the files and face_normals=false: smooth normals are computed (+z here).
+    let Geometry::Mesh(m) = &s.shapes[0].geometry else {
+        panic!()
+    };
+    assert!(m
+        .normals
+        .as_ref()
+        .unwrap()
+        .iter()
+        .all(|n| (*n - Vec3::Z).length() < 1e-6));
+}
+
+#[test]
+fn png_bytes_are_linearised_with_the_srgb_curve_unless_raw() {
+    let d = temp_dir("srgb");
+    let img = image::RgbImage::from_pixel(2, 1, image::Rgb([128, 0, 255]));
+    img.save(d.join("c.png")).unwrap();
+    let img16 =
+        image::ImageBuffer::<image::Luma<u16>, _>::from_pixel(1, 1, image::Luma([32896u16]));
+    img16.save(d.join("g16.png")).unwrap();
+    let xml = scene(
+        r#"<texture type="bitmap" id="t"><string name="filename" value="c.png"/><string name="filter_type" value="nearest"/><string name="wrap_mode" value="clamp"/></texture>
+<texture type="bitmap" id="raw"><string name="filename" value="c.png"/><boolean name="raw" value="true"/></texture>
+<texture type="bitmap" id="g"><string name="filename" value="g16.png"/></texture>"#,
+    );
+    let p = d.join("scene.xml");
+    std::fs::write(&p, xml).unwrap();
+    let s = load_scene(&p, &[]).unwrap();
+    let TextureDesc::Bitmap(b) = &s.textures[0] else {
+        panic!()
+    };
+    assert_eq!(
+        (b.width, b.height, b.filter, b.wrap),
+        (2, 1, TexFilter::Nearest, WrapMode::Clamp)
+    );
+    assert!(
+        (b.texels[0] - Vec3::new(0.215_860_5, 0.0, 1.0))
+            .abs()
+            .max_element()
+            < 1e-6,
+        "{:?}",
+        b.texels[0]
+    );
+    assert!((srgb_to_linear(128.0 / 255.0) - 0.215_860_5).abs() < 1e-6);
+    let TextureDesc::Bitmap(r) = &s.textures[1] else {
+        panic!()
+    };
+    assert!((r.texels[0].x - 128.0 / 255.0).abs() < 1e-6);
+    let TextureDesc::Bitmap(g) = &s.textures[2] else {
+        panic!()
+    };
+    // 16-bit grey 32896/65535 == 128/255 expands to RGB and is linearised too.
+    assert!(
+        (g.texels[0] - Vec3::splat(0.215_860_5)).abs().max_element() < 1e-5,
+        "{:?}",
+        g.texels[0]
+    );
+    // Unreferenced textures do not switch the feature on.
+    assert!(!s.features.textures);
+}
+
+#[test]
+fn sphere_takes_center_and_radius_through_a_similarity() {
+    let xml = scene(
+        r#"<shape type="sphere"><point name="center" x="1" y="0" z="0"/><float name="radius" value="0.5"/>
+<transform name="to_world"><scale value="2"/><translate x="0" y="3" z="0"/></transform></shape>"#,
+    );
+    let s = load_scene(&write_scene("sphere", &xml), &[]).unwrap();
+    let Geometry::Sphere {
+        center,
+        radius,
+        flip_normals,
+    } = s.shapes[0].geometry
+    else {
+        panic!()
+    };
+    assert!((center - Vec3::new(2.0, 3.0, 0.0)).length() < 1e-6);
+    assert!((radius - 1.0).abs() < 1e-6);
+    assert!(!flip_normals);
+}
+
+#[test]
+fn scene_level_emitters_and_their_features() {
+    let xml = scene(
+        r#"<emitter type="point"><point name="position" value="1 2 3"/><rgb name="intensity" value="5"/></emitter>
+<emitter type="directional"><vector name="direction" x="0" y="-2" z="0"/></emitter>
+<emitter type="constant"><rgb name="radiance" value="0.5 0.6 0.7"/></emitter>
+<shape type="rectangle"><emitter type="area"/></shape>"#,
+    );
+    let s = load_scene(&write_scene("emitters", &xml), &[]).unwrap();
+    assert_eq!(
+        s.emitters[0],
+        EmitterDesc::Point {
+            position: Vec3::new(1.0, 2.0, 3.0),
+            intensity: Vec3::splat(5.0)
+        }
+    );
+    assert_eq!(
+        s.emitters[1],
+        EmitterDesc::Directional {
+            direction: Vec3::new(0.0, -1.0, 0.0),
+            irradiance: Vec3::ONE
+        }
+    );
+    assert_eq!(
+        s.emitters[2],
+        EmitterDesc::Constant {
+            radiance: Vec3::new(0.5, 0.6, 0.7)
+        }
+    );
+    assert_eq!(
+        s.shapes[0].emitter,
+        Some(AreaEmitterDesc {
+            radiance: Vec3::ONE
+        })
+    );
+    assert!(s.features.delta_lights && s.features.environment && s.features.area_lights);
+}
+
+#[test]
+fn stratified_sampler_is_accepted_with_a_warning() {
+    let xml = r#"<scene version="3.0.0"><sensor type="perspective"><sampler type="stratified"><integer name="sample_count" value="9"/></sampler></sensor></scene>"#;
+    let s = load_scene(&write_scene("stratified", xml), &[]).unwrap();
+    assert_eq!(s.sensor.sample_count, 9);
+    assert_eq!(s.warnings.len(), 1);
+    assert!(s.warnings[0].contains("stratified"));
+}
+
+#[test]
+fn defaults_can_use_earlier_defaults_and_the_first_definition_wins() {
+    let xml = r#"<scene version="3.0.0">
+<default name="a" value="5"/>
+<default name="b" value="1$a"/>
+<default name="a" value="9"/>
+<sensor type="perspective"><sampler type="independent"><integer name="sample_count" value="$b"/><integer name="seed" value="$a"/></sampler></sensor>
+</scene>"#;
+    let p = write_scene("default-chain", xml);
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!((s.sensor.sample_count, s.sensor.seed), (15, 5));
+    let s = load_scene(&p, &ov(&[("a", "2")])).unwrap();
+    assert_eq!((s.sensor.sample_count, s.sensor.seed), (12, 2));
+}
+
+#[test]
+fn escaped_dollar_is_kept_literally() {
+    let xml = scene(r#"<shape type="cube" id="price\$5"/>"#);
+    let s = load_scene(&write_scene("escaped-dollar", &xml), &[]).unwrap();
+    assert_eq!(s.shapes[0].id.as_deref(), Some("price$5"));
+}
+
+#[test]
+fn envmap_loads_linear_exr_with_scale_and_transform() {
+    let d = temp_dir("envmap");
+    exr::prelude::write_rgb_file(d.join("sky.exr"), 4, 2, |x, y| (x as f32, y as f32, 2.5))
+        .unwrap();
+    let xml = scene(
+        r#"<emitter type="envmap"><string name="filename" value="sky.exr"/><float name="scale" value="3"/>
+<transform name="to_world"><rotate y="1" angle="90"/></transform></emitter>"#,
+    );
+    let p = d.join("scene.xml");
+    std::fs::write(&p, xml).unwrap();
+    let s = load_scene(&p, &[]).unwrap();
+    let EmitterDesc::EnvMap {
+        width,
+        height,
+        texels,
+        scale,
+        to_world,
+    } = &s.emitters[0]
+    else {
+        panic!()
+    };
+    assert_eq!((*width, *height, *scale), (4, 2, 3.0));
+    // Row-major, row 0 at the top, values untouched (EXR is linear).
+    assert_eq!(texels[4 + 3], Vec3::new(3.0, 1.0, 2.5));
+    assert!((to_world.transform_vector3(Vec3::X) - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
+    assert!(s.features.environment);
+}
