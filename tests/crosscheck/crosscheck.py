@@ -34,6 +34,9 @@ Choice of K (arithmetic)
   binomial s.d. of that fraction is ~0.05 %, so a correct renderer fails by chance only if
   heavy tails / pixel correlation (Mitsuba's tent filter splats into neighbours) inflate it
   several-fold.  K >= 24 is the minimum we recommend; the script warns below that.
+  Observed with correct renderers: 0.05-0.25 % on cornell-box / materials / caustic /
+  white-furnace, ~0.55 % on door-ajar (heavy-tailed pixels: a per-run mean without a firefly also
+  has a small sample variance, so Z skews negative) - use more --spp for such scenes.
   Caveat: Mitsuba's splatted pixel = sum(w L)/sum(w) is a ratio estimator with O(1/N) bias;
   with N = 64 spp per run that is << the noise of the K*N-sample mean.
 """
@@ -51,6 +54,8 @@ Z_CRIT = 3.2905          # two-sided 0.001
 PIXEL_FRAC = 0.99        # fraction of pixel-channels that must pass
 MEAN_TOL = 0.01          # relative tolerance on per-channel image means
 DET_REL_TOL = 1e-3       # for deterministic (zero-variance) pixels
+DET_SE_REL = 1e-5        # pixel is deterministic if sqrt(var_a+var_b) < DET_SE_REL*|value|
+FLOAT_FLOOR = 1e-6       # relative float32 round-off added to the Z denominator
 CHANNELS = ("R", "G", "B")
 
 
@@ -66,7 +71,7 @@ def render_mitsuba(xml, params, spp, runs, seed0=0):
     scene = mi.load_file(xml, **params)
     imgs = []
     for i in range(runs):
-        imgs.append(np.array(mi.render(scene, seed=seed0 + i, spp=spp), dtype=np.float64))
+        imgs.append(np.array(mi.render(scene, seed=seed0 + i, spp=spp), dtype=np.float64)[..., :3])
     imgs = np.stack(imgs)
     return imgs.mean(0), imgs.var(0, ddof=1) / runs
 
@@ -121,7 +126,11 @@ def tonemap(img, scale):
 
 
 def write_png(path, arr_u8):
+    """Writes an 8-bit PNG, upscaled (nearest) so small renders stay inspectable."""
     import mitsuba as mi
+    f = max(1, 256 // max(arr_u8.shape[:2]))
+    if f > 1:
+        arr_u8 = np.repeat(np.repeat(arr_u8, f, 0), f, 1)
     bmp = mi.Bitmap(np.ascontiguousarray(arr_u8))
     bmp.write(path)
 
@@ -138,16 +147,17 @@ def main():
     ap.add_argument("--seed", type=int, default=7, help="pathfarm seed")
     ap.add_argument("--mi-seed0", type=int, default=0, help="first Mitsuba seed (runs use seed0..seed0+K-1)")
     ap.add_argument("-D", action="append", default=[], metavar="K=V")
-    ap.add_argument("--out", default=None, help="output dir for EXR/PNGs (default crosscheck-out/<scene>)")
+    ap.add_argument("--out", default=None, help="output dir for EXR/PNGs (default $TMPDIR/crosscheck-out/<scene>)")
     a = ap.parse_args()
 
     xml = os.path.abspath(a.scene)
     scene_name = os.path.basename(os.path.dirname(xml)) or "scene"
-    outdir = a.out or os.path.join("crosscheck-out", scene_name)
+    outdir = a.out or os.path.join(os.environ.get("TMPDIR", "/tmp"), "crosscheck-out", scene_name)
     os.makedirs(outdir, exist_ok=True)
     if a.runs < 24:
-        print("warning: --runs %d < 24: the t-distribution of Mitsuba's variance estimate alone "
-              "makes ~%.2f%% of pixels fail by chance" % (a.runs, 100 * (0.005 if a.runs < 16 else 0.004)))
+        print("warning: --runs %d < 24: with %d d.o.f. in Mitsuba's variance estimate, up to "
+              "~%.1f%% of pixels fail by chance (t-distribution tails)"
+              % (a.runs, a.runs - 1, 0.5 if a.runs >= 16 else 1.0 if a.runs >= 8 else 3.0))
 
     # Parameters passed to both renderers: the XML defaults, overridden by --res/--max-depth/-D.
     defaults = xml_defaults(xml)
@@ -201,9 +211,11 @@ def main():
     # ---- (b) per-pixel Z test ------------------------------------------------------------------
     vsum = va + vb
     scale = np.maximum(np.abs(ma), np.abs(mb))
-    det = vsum <= (1e-7 * scale) ** 2 + 1e-30          # both variances ~0
+    # "Deterministic": standard error of the difference below 1e-5 relative (float32
+    # accumulation in either renderer leaves ~1e-7 relative junk in supposedly-zero variances).
+    det = vsum <= (DET_SE_REL * scale) ** 2 + 1e-30
     z = np.zeros_like(ma)
-    z[~det] = (mb - ma)[~det] / np.sqrt(vsum[~det])
+    z[~det] = (mb - ma)[~det] / np.sqrt(vsum[~det] + (FLOAT_FLOOR * scale[~det]) ** 2)
     det_fail = det & (np.abs(mb - ma) > DET_REL_TOL * np.maximum(scale, 1e-6))
     fail = (~det & (np.abs(z) >= Z_CRIT)) | det_fail
     frac = fail.mean()
@@ -213,6 +225,13 @@ def main():
     print("  |Z|>=%.2f: %.3f%% (allowed %.1f%%, expected ~0.1-0.25%%)   mean Z %+.3f   rms Z %.3f"
           % (Z_CRIT, 100 * frac, 100 * (1 - PIXEL_FRAC), z[~det].mean() if (~det).any() else 0.0,
              np.sqrt((z[~det] ** 2).mean()) if (~det).any() else 0.0))
+    border = np.zeros(ma.shape[:2], bool)
+    border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
+    fb, fi = fail[border].mean(), fail[~border].mean()
+    print("  failures on the 1-px image border: %.2f%%, interior: %.2f%%" % (100 * fb, 100 * fi))
+    if fb > 5 * max(fi, 0.002) and fb > 0.02:
+        msgs.append("hint: failures concentrate on the image border - Mitsuba samples only inside "
+                    "the film (sample_border=false), i.e. its filter is truncated at the image edge")
     if frac > 1 - PIXEL_FRAC:
         ok = False
         msgs.append("check (b) per-pixel Z: %.2f%% of pixel-channels have |Z| >= %.2f (allowed %.1f%%); "
@@ -222,7 +241,7 @@ def main():
         msgs.append("note: pathfarm spp AOV has %d pixels with 0 samples" % int((spp_map <= 0).sum()))
 
     # ---- debugging images ---------------------------------------------------------------------
-    expo = 0.5 / max(float(np.percentile(ma.mean(-1), 99)), 1e-6)
+    expo = 0.6 / max(float(np.percentile(ma.mean(-1), 90)), 1e-6)
     write_png(os.path.join(outdir, "mitsuba.png"), tonemap(ma, expo))
     write_png(os.path.join(outdir, "pathfarm.png"), tonemap(mb, expo))
     zl = z.copy()
@@ -240,6 +259,10 @@ def main():
     print("debug images in %s (z.png: blue = pathfarm darker, red = brighter, saturates at |Z|=5 "
           "of the channel-averaged Z; fail.png; reldiff.png saturates at 20%%)" % outdir)
 
+    for m in msgs:
+        if m.startswith(("hint", "note")):
+            print(m)
+    msgs = [m for m in msgs if not m.startswith(("hint", "note"))]
     if ok:
         print("PASS")
         return 0

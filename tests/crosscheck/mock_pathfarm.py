@@ -12,6 +12,7 @@ sub-renders (different seeds) of N/M spp each.
 Environment knobs for self-tests:
   MOCK_SCALE=1.03       multiply the image by this factor (a deliberately wrong renderer)
   MOCK_SUBRUNS=32       number of sub-renders used for the variance estimate
+  MOCK_SAMPLE_BORDER=1  film sample_border=true (filter not truncated at the image edge)
 """
 import argparse
 import os
@@ -40,7 +41,14 @@ def main():
     for d in a.D:
         k, v = d.split("=", 1)
         params[k] = v
-    scene = mi.load_file(a.scene, **params)
+    if os.environ.get("MOCK_SAMPLE_BORDER"):
+        # simulate a renderer that does not truncate the pixel filter at the image edge
+        xml = open(a.scene).read().replace('<film type="hdrfilm">',
+                                           '<film type="hdrfilm"><boolean name="sample_border" value="true"/>')
+        mi.Thread.thread().file_resolver().prepend(os.path.dirname(os.path.abspath(a.scene)))
+        scene = mi.load_string(xml, **params)
+    else:
+        scene = mi.load_file(a.scene, **params)
     spp_total = a.spp if a.spp is not None else scene.sensors()[0].sampler().sample_count()
     m = int(os.environ.get("MOCK_SUBRUNS", "32"))
     m = max(2, min(m, spp_total))

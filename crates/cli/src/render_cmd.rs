@@ -88,6 +88,9 @@ pub fn render(args: RenderArgs) -> Result<()> {
     }
     let t_load = Instant::now();
     let desc = load_scene(&args.scene, &parse_defines(&args.defines)?).with_context(|| format!("loading {}", args.scene.display()))?;
+    for w in &desc.warnings {
+        tracing::warn!("{w}");
+    }
     let scene = Scene::build(&desc)?;
     tracing::info!(
         "loaded {} in {:.2} s: {}x{}, {} shapes, {} triangles, {} lights; features {:?}",
@@ -100,11 +103,11 @@ pub fn render(args: RenderArgs) -> Result<()> {
         scene.lights.lights.len(),
         desc.features
     );
-    let settings = RenderSettings {
-        spp: args.spp.or(if args.time.is_some() { None } else { Some(scene.sample_count) }),
-        time_limit: args.time.map(Duration::from_secs_f64),
-        seed: args.seed.unwrap_or(scene.seed),
-    };
+    let settings = RenderSettings::new(
+        args.spp.or(if args.time.is_some() { None } else { Some(scene.sample_count) }),
+        args.time.map(Duration::from_secs_f64),
+        args.seed.unwrap_or(scene.seed),
+    );
     let bar = ProgressBar::new(1);
     bar.set_style(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% ({eta} left)").unwrap_or_else(|_| ProgressStyle::default_bar()),
