@@ -13,9 +13,27 @@
 //!   of refraction `eta` of the crossing (1 for reflection).
 //! - One-sided models (everything but the dielectrics) return zero when
 //!   `wi.z <= 0`; two-sidedness is handled by the caller flipping the frame.
+//!   There is no `twosided` model here: for Mitsuba's `twosided` wrapper the
+//!   caller flips the shading frame (`Frame::flipped`) when `wi` is below the
+//!   surface and evaluates the front (or back) BSDF in that frame; the
+//!   (rough) dielectrics and thin dielectric are two-sided by themselves and
+//!   must see the unflipped frame.
+//! - `eta` parameters of the dielectrics are relative, `int_ior / ext_ior`,
+//!   with the normal pointing to the exterior; `wi.z < 0` means the ray is
+//!   inside. Conductors take the complex IOR (`eta`, `k`) per RGB channel.
+//! - Transport mode is always *radiance* (paths traced from the camera):
+//!   refracted samples and the transmission part of `eval` carry Mitsuba's
+//!   solid-angle compression factor `eta_ti^2 = 1 / eta_crossing^2`, where
+//!   `eta_crossing` is the reported `BsdfSample::eta` (e.g. entering glass of
+//!   eta 1.5 scales by 1/2.25, leaving it by 2.25).
+//! - No function returns NaN or infinity; `sample` returns `None` instead of
+//!   a zero-weight or invalid sample.
 //!
 //! Parameters are already evaluated (textures looked up by the caller), so a
 //! `Bsdf` value is small, `Copy`, and built per shading point.
+
+// `!(x > 0.0)` is used on purpose throughout: it also rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 use glam::{Vec2, Vec3};
 
@@ -53,4 +71,98 @@ pub struct BsdfFlags {
     pub transmission: bool,
 }
 
+pub mod conductor;
+pub mod dielectric;
+pub mod diffuse;
 pub mod frame;
+pub mod fresnel;
+pub mod microfacet;
+pub mod plastic;
+pub mod roughconductor;
+pub mod roughdielectric;
+pub mod roughplastic;
+pub mod thindielectric;
+pub mod warp;
+
+pub use conductor::Conductor;
+pub use dielectric::Dielectric;
+pub use diffuse::Diffuse;
+pub use frame::Frame;
+pub use microfacet::{Microfacet, MicrofacetType};
+pub use plastic::{specular_sampling_weight, Plastic};
+pub use roughconductor::RoughConductor;
+pub use roughdielectric::RoughDielectric;
+pub use roughplastic::{RoughPlastic, RoughPlasticTable};
+pub use thindielectric::ThinDielectric;
+
+#[inline]
+pub(crate) fn finite_or_zero(v: Vec3) -> Vec3 {
+    if v.is_finite() {
+        v
+    } else {
+        Vec3::ZERO
+    }
+}
+
+/// A scattering model with its parameters evaluated at one shading point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Bsdf<'a> {
+    Diffuse(Diffuse),
+    Conductor(Conductor),
+    RoughConductor(RoughConductor),
+    Dielectric(Dielectric),
+    RoughDielectric(RoughDielectric),
+    ThinDielectric(ThinDielectric),
+    Plastic(Plastic),
+    RoughPlastic(RoughPlastic<'a>),
+}
+
+macro_rules! dispatch {
+    ($self:expr, $b:ident => $e:expr) => {
+        match $self {
+            Bsdf::Diffuse($b) => $e,
+            Bsdf::Conductor($b) => $e,
+            Bsdf::RoughConductor($b) => $e,
+            Bsdf::Dielectric($b) => $e,
+            Bsdf::RoughDielectric($b) => $e,
+            Bsdf::ThinDielectric($b) => $e,
+            Bsdf::Plastic($b) => $e,
+            Bsdf::RoughPlastic($b) => $e,
+        }
+    };
+}
+
+impl Bsdf<'_> {
+    pub fn flags(&self) -> BsdfFlags {
+        dispatch!(self, b => b.flags())
+    }
+
+    /// Samples `wo` given `wi` (local frame). `u_lobe` picks the lobe, `u`
+    /// the direction. `None` means no valid sample (the path is absorbed).
+    pub fn sample(&self, wi: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        let s = dispatch!(self, b => b.sample(wi, u_lobe, u))?;
+        if s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0 && s.wo.is_finite() && s.weight.max_element() > 0.0 {
+            Some(s)
+        } else {
+            None
+        }
+    }
+
+    /// f(wi, wo) |cos theta_o| (zero for delta lobes).
+    pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        finite_or_zero(dispatch!(self, b => b.eval(wi, wo)))
+    }
+
+    /// Solid-angle density of `sample` producing `wo` (zero for delta lobes).
+    pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        let p = dispatch!(self, b => b.pdf(wi, wo));
+        if p.is_finite() && p > 0.0 {
+            p
+        } else {
+            0.0
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

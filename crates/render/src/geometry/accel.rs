@@ -64,7 +64,7 @@ impl Accel {
         let (bvh, tris, tri_ref) = if tris.is_empty() {
             (CwBvh::default(), Vec::new(), Vec::new())
         } else {
-            let bvh = build_cwbvh_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
+            let bvh = build_cwbvh_from_tris(&tris, BvhBuildParams::slow_build(), &mut Duration::default());
             let ordered: Vec<RtTriangle> = bvh.primitive_indices.iter().map(|&i| RtTriangle::from(&tris[i as usize])).collect();
             let ordered_refs = bvh.primitive_indices.iter().map(|&i| refs[i as usize]).collect();
             (bvh, ordered, ordered_refs)

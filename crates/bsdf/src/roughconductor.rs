@@ -1,0 +1,97 @@
+//! Rough conductor (Mitsuba `roughconductor`): Cook–Torrance with a
+//! Beckmann/GGX distribution, separable Smith G and complex Fresnel.
+
+use crate::fresnel::{fresnel_conductor_rgb, reflect_about};
+use crate::microfacet::{Microfacet, MicrofacetType};
+use crate::{finite_or_zero, BsdfFlags, BsdfSample, Lobe};
+use glam::{Vec2, Vec3};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RoughConductor {
+    pub distribution: MicrofacetType,
+    pub alpha_u: f32,
+    pub alpha_v: f32,
+    /// Visible-normal sampling (Mitsuba's default `sample_visible = true`).
+    pub sample_visible: bool,
+    pub eta: Vec3,
+    pub k: Vec3,
+    pub specular_reflectance: Vec3,
+}
+
+impl RoughConductor {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        distribution: MicrofacetType,
+        alpha_u: f32,
+        alpha_v: f32,
+        sample_visible: bool,
+        eta: Vec3,
+        k: Vec3,
+        specular_reflectance: Vec3,
+    ) -> Self {
+        Self { distribution, alpha_u, alpha_v, sample_visible, eta, k, specular_reflectance }
+    }
+
+    #[inline]
+    fn distr(&self) -> Microfacet {
+        Microfacet::new(self.distribution, self.alpha_u, self.alpha_v, self.sample_visible)
+    }
+
+    pub fn flags(&self) -> BsdfFlags {
+        BsdfFlags { smooth: true, delta: false, transmission: false }
+    }
+
+    pub fn sample(&self, wi: Vec3, _u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
+        if !(wi.z > 0.0) {
+            return None;
+        }
+        let distr = self.distr();
+        let (m, pdf_m) = distr.sample(wi, u);
+        let wo = reflect_about(wi, m);
+        if !(pdf_m > 0.0) || !(wo.z > 0.0) {
+            return None;
+        }
+        let weight = if self.sample_visible { distr.smith_g1(wo, m) } else { distr.g(wi, wo, m) * wi.dot(m) / (wi.z * m.z) };
+        let pdf = pdf_m / (4.0 * wo.dot(m));
+        let f = fresnel_conductor_rgb(wi.dot(m), self.eta, self.k);
+        let weight = f * self.specular_reflectance * weight;
+        if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || weight == Vec3::ZERO {
+            return None;
+        }
+        Some(BsdfSample { wo, pdf, weight, eta: 1.0, lobe: Lobe { delta: false, transmission: false } })
+    }
+
+    pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
+        if !(wi.z > 0.0 && wo.z > 0.0) {
+            return Vec3::ZERO;
+        }
+        let h = (wi + wo).normalize();
+        let distr = self.distr();
+        let d = distr.eval(h);
+        if d == 0.0 {
+            return Vec3::ZERO;
+        }
+        let g = distr.g(wi, wo, h);
+        let result = d * g / (4.0 * wi.z);
+        let f = fresnel_conductor_rgb(wi.dot(h), self.eta, self.k);
+        finite_or_zero(f * self.specular_reflectance * result)
+    }
+
+    pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
+        if !(wi.z > 0.0 && wo.z > 0.0) {
+            return 0.0;
+        }
+        let m = (wi + wo).normalize();
+        if !(wi.dot(m) > 0.0 && wo.dot(m) > 0.0) {
+            return 0.0;
+        }
+        let distr = self.distr();
+        let r =
+            if self.sample_visible { distr.eval(m) * distr.smith_g1(wi, m) / (4.0 * wi.z) } else { distr.pdf(wi, m) / (4.0 * wo.dot(m)) };
+        if r.is_finite() {
+            r
+        } else {
+            0.0
+        }
+    }
+}

@@ -1,0 +1,301 @@
+//! Test utilities: a small RNG, the chi-square distribution (regularised
+//! incomplete gamma function, no stats crate) and a spherical histogram
+//! goodness-of-fit test of `sample` against `pdf`.
+
+use crate::Bsdf;
+use glam::{Vec2, Vec3};
+
+/// PCG32 (O'Neill), fixed seeds for reproducible tests.
+pub struct Pcg32 {
+    state: u64,
+    inc: u64,
+}
+
+impl Pcg32 {
+    pub fn new(seed: u64, seq: u64) -> Self {
+        let mut r = Self { state: 0, inc: (seq << 1) | 1 };
+        r.next_u32();
+        r.state = r.state.wrapping_add(seed);
+        r.next_u32();
+        r
+    }
+    pub fn next_u32(&mut self) -> u32 {
+        let old = self.state;
+        self.state = old.wrapping_mul(6364136223846793005).wrapping_add(self.inc);
+        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
+        let rot = (old >> 59) as u32;
+        xorshifted.rotate_right(rot)
+    }
+    /// Uniform in [0, 1).
+    pub fn f32(&mut self) -> f32 {
+        (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0)
+    }
+    pub fn vec2(&mut self) -> Vec2 {
+        Vec2::new(self.f32(), self.f32())
+    }
+}
+
+/// ln Gamma(x) for x > 0 (Lanczos, g = 7, n = 9).
+pub fn ln_gamma(x: f64) -> f64 {
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        return (std::f64::consts::PI / (std::f64::consts::PI * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = C[0];
+    let t = x + 7.5;
+    for (i, c) in C.iter().enumerate().skip(1) {
+        a += c / (x + i as f64);
+    }
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// Regularised upper incomplete gamma Q(a, x) = 1 - P(a, x).
+pub fn gamma_q(a: f64, x: f64) -> f64 {
+    if x <= 0.0 {
+        return 1.0;
+    }
+    let gln = ln_gamma(a);
+    if x < a + 1.0 {
+        // Series for P.
+        let (mut ap, mut sum) = (a, 1.0 / a);
+        let mut del = sum;
+        for _ in 0..10_000 {
+            ap += 1.0;
+            del *= x / ap;
+            sum += del;
+            if del.abs() < sum.abs() * 1e-15 {
+                break;
+            }
+        }
+        1.0 - sum * (-x + a * x.ln() - gln).exp()
+    } else {
+        // Continued fraction for Q (modified Lentz).
+        let tiny = 1e-300;
+        let mut b = x + 1.0 - a;
+        let mut c = 1.0 / tiny;
+        let mut d = 1.0 / b;
+        let mut h = d;
+        for i in 1..10_000 {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < tiny {
+                d = tiny;
+            }
+            c = b + an / c;
+            if c.abs() < tiny {
+                c = tiny;
+            }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < 1e-15 {
+                break;
+            }
+        }
+        (-x + a * x.ln() - gln).exp() * h
+    }
+}
+
+/// P(X >= stat) for X ~ chi-square with `dof` degrees of freedom.
+pub fn chi2_sf(stat: f64, dof: usize) -> f64 {
+    gamma_q(dof as f64 / 2.0, stat / 2.0)
+}
+
+/// The chi-square quantile: the x with P(X <= x) = p (bisection on the CDF).
+pub fn chi2_quantile(p: f64, dof: usize) -> f64 {
+    let (mut lo, mut hi) = (0.0f64, (dof as f64 + 10.0) * 10.0);
+    while 1.0 - chi2_sf(hi, dof) < p {
+        hi *= 2.0;
+    }
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if 1.0 - chi2_sf(mid, dof) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
+/// Per-test significance level after a Šidák correction for `n` tests.
+pub fn sidak(alpha: f64, n: usize) -> f64 {
+    1.0 - (1.0 - alpha).powf(1.0 / n as f64)
+}
+
+pub const THETA_BINS: usize = 20;
+pub const PHI_BINS: usize = 40;
+
+fn dir(z: f64, phi: f64) -> Vec3 {
+    let s = (1.0 - z * z).max(0.0).sqrt();
+    Vec3::new((s * phi.cos()) as f32, (s * phi.sin()) as f32, z as f32)
+}
+
+fn bin_of(wo: Vec3) -> usize {
+    let z = wo.z.clamp(-1.0, 1.0) as f64;
+    let i = (((z + 1.0) * 0.5 * THETA_BINS as f64) as usize).min(THETA_BINS - 1);
+    let mut phi = (wo.y as f64).atan2(wo.x as f64);
+    if phi < 0.0 {
+        phi += std::f64::consts::TAU;
+    }
+    let j = ((phi / std::f64::consts::TAU * PHI_BINS as f64) as usize).min(PHI_BINS - 1);
+    i * PHI_BINS + j
+}
+
+/// 2-D Simpson estimate over a (z, phi) rectangle.
+fn simpson(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64) -> f64 {
+    let (zm, pm) = (0.5 * (z0 + z1), 0.5 * (p0 + p1));
+    let w = [1.0, 4.0, 1.0];
+    let zs = [z0, zm, z1];
+    let ps = [p0, pm, p1];
+    let mut s = 0.0;
+    for (a, z) in zs.iter().enumerate() {
+        for (b, p) in ps.iter().enumerate() {
+            s += w[a] * w[b] * f(*z, *p);
+        }
+    }
+    s * (z1 - z0) * (p1 - p0) / 36.0
+}
+
+#[allow(clippy::too_many_arguments)]
+fn adaptive(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, whole: f64, tol: f64, depth: u32, min_depth: u32) -> f64 {
+    let (zm, pm) = (0.5 * (z0 + z1), 0.5 * (p0 + p1));
+    let quads = [(z0, zm, p0, pm), (zm, z1, p0, pm), (z0, zm, pm, p1), (zm, z1, pm, p1)];
+    let parts: Vec<f64> = quads.iter().map(|q| simpson(f, q.0, q.1, q.2, q.3)).collect();
+    let sum: f64 = parts.iter().sum();
+    if depth == 0 || (min_depth == 0 && (sum - whole).abs() <= 15.0 * tol) {
+        return sum + (sum - whole) / 15.0;
+    }
+    quads.iter().zip(parts).map(|(q, w)| adaptive(f, q.0, q.1, q.2, q.3, w, tol / 4.0, depth - 1, min_depth.saturating_sub(1))).sum()
+}
+
+/// Result of one goodness-of-fit test.
+#[derive(Debug)]
+pub struct Chi2Result {
+    pub stat: f64,
+    pub dof: usize,
+    pub p_value: f64,
+    /// Fraction of trials that were delta lobes or no sample.
+    pub leftover: f64,
+}
+
+/// Draws `n` samples of `bsdf` at `wi`, bins the non-delta ones on the
+/// sphere (equal-area in cos theta x phi) and compares with the integral of
+/// `pdf` over each bin. Delta and failed samples go to one extra cell whose
+/// expected mass is 1 - integral of pdf. Cells with expected < 5 are pooled.
+pub fn chi2_test(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64) -> Chi2Result {
+    chi2_test_refine(bsdf, wi, n, seed, 6.0)
+}
+
+/// [`chi2_test`] with the threshold of a bin's chi-square contribution above
+/// which its expected count is re-integrated more accurately.
+pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64) -> Chi2Result {
+    let nb = THETA_BINS * PHI_BINS;
+    let mut obs = vec![0f64; nb];
+    let mut leftover_obs = 0f64;
+    let mut rng = Pcg32::new(seed, 0xda3e_39cb_94b9_5bdb);
+    for _ in 0..n {
+        let u_lobe = rng.f32();
+        let u = rng.vec2();
+        match bsdf.sample(wi, u_lobe, u) {
+            Some(s) if !s.lobe.delta => obs[bin_of(s.wo)] += 1.0,
+            _ => leftover_obs += 1.0,
+        }
+    }
+    // Expected counts: adaptive Simpson in (theta, phi) over each bin (theta
+    // rather than cos(theta) coordinates resolve narrow lobes at the poles).
+    let pdf_theta = |theta: f64, phi: f64| bsdf.pdf(wi, dir(theta.cos(), phi)) as f64 * theta.sin();
+    let (dz, dp) = (2.0 / THETA_BINS as f64, std::f64::consts::TAU / PHI_BINS as f64);
+    let tol = 0.5 / n as f64;
+    let mut exp = vec![0f64; nb];
+    for i in 0..THETA_BINS {
+        for j in 0..PHI_BINS {
+            let (z0, p0) = (-1.0 + i as f64 * dz, j as f64 * dp);
+            let (t0, t1) = ((z0 + dz).min(1.0).acos(), z0.max(-1.0).acos());
+            let whole = simpson(&pdf_theta, t0, t1, p0, p0 + dp);
+            exp[i * PHI_BINS + j] = adaptive(&pdf_theta, t0, t1, p0, p0 + dp, whole, tol, 8, 2).max(0.0) * n as f64;
+        }
+    }
+    // Refine the bins with a large deviation: integrate them again with a
+    // fine minimum subdivision. This only makes the expected counts more
+    // accurate (a wrong sampler still fails).
+    for i in 0..THETA_BINS {
+        for j in 0..PHI_BINS {
+            let k = i * PHI_BINS + j;
+            let (o, e) = (obs[k], exp[k]);
+            if (o - e) * (o - e) / e.max(1.0) < refine {
+                continue;
+            }
+            let (z0, p0) = (-1.0 + i as f64 * dz, j as f64 * dp);
+            let (t0, t1) = ((z0 + dz).min(1.0).acos(), z0.max(-1.0).acos());
+            let whole = simpson(&pdf_theta, t0, t1, p0, p0 + dp);
+            exp[k] = adaptive(&pdf_theta, t0, t1, p0, p0 + dp, whole, 0.02 / n as f64, 14, 5).max(0.0) * n as f64;
+        }
+    }
+    let total: f64 = exp.iter().sum();
+    let mut cells: Vec<(f64, f64)> = obs.iter().copied().zip(exp.iter().copied()).collect();
+    cells.push((leftover_obs, (n as f64 - total).max(0.0)));
+    // Pool the cells with small expected counts.
+    let (mut pool_o, mut pool_e) = (0.0, 0.0);
+    let mut kept: Vec<(f64, f64)> = Vec::new();
+    for (o, e) in cells {
+        if e < 5.0 {
+            pool_o += o;
+            pool_e += e;
+        } else {
+            kept.push((o, e));
+        }
+    }
+    if pool_e >= 5.0 || kept.is_empty() {
+        kept.push((pool_o, pool_e));
+    } else if pool_o > 0.0 || pool_e > 0.0 {
+        // Merge into the smallest kept cell.
+        let k = kept.iter().enumerate().min_by(|a, b| a.1 .1.partial_cmp(&b.1 .1).unwrap()).unwrap().0;
+        kept[k].0 += pool_o;
+        kept[k].1 += pool_e;
+    }
+    let stat: f64 = kept
+        .iter()
+        .map(|(o, e)| {
+            if *e > 0.0 {
+                (o - e) * (o - e) / e
+            } else if *o > 0.0 {
+                f64::INFINITY
+            } else {
+                0.0
+            }
+        })
+        .sum();
+    let dof = kept.len().saturating_sub(1).max(1);
+    Chi2Result { stat, dof, p_value: if stat.is_finite() { chi2_sf(stat, dof) } else { 0.0 }, leftover: leftover_obs / n as f64 }
+}
+
+/// Direction at polar angle `theta_deg` (measured from +z; > 90 is below
+/// the surface) and azimuth `phi_deg`.
+pub fn sph(theta_deg: f32, phi_deg: f32) -> Vec3 {
+    let (t, p) = (theta_deg.to_radians(), phi_deg.to_radians());
+    Vec3::new(t.sin() * p.cos(), t.sin() * p.sin(), t.cos())
+}
+
+#[test]
+fn chi_square_distribution_matches_tabulated_quantiles() {
+    // Tabulated 99% quantiles: dof 1 -> 6.635, dof 10 -> 23.209, dof 100 -> 135.807.
+    for (dof, q) in [(1usize, 6.6349), (10, 23.2093), (100, 135.8067)] {
+        assert!((chi2_quantile(0.99, dof) - q).abs() < 2e-3, "dof {dof}: {}", chi2_quantile(0.99, dof));
+        assert!((chi2_sf(q, dof) - 0.01).abs() < 1e-5);
+    }
+    assert!((chi2_sf(2.0, 2) - (-1.0f64).exp()).abs() < 1e-12);
+    assert!((ln_gamma(5.0) - 24f64.ln()).abs() < 1e-12);
+}

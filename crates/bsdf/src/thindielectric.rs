@@ -1,0 +1,69 @@
+//! Thin dielectric sheet (Mitsuba `thindielectric`): delta reflection plus
+//! undeviated transmission, with the reflectance of a slab including all
+//! internal bounces, R' = R + T^2 R / (1 - R^2) = 2R / (1 + R).
+
+use crate::fresnel::{fresnel_dielectric, reflect};
+use crate::{BsdfFlags, BsdfSample, Lobe};
+use glam::{Vec2, Vec3};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ThinDielectric {
+    pub eta: f32,
+    pub specular_reflectance: Vec3,
+    pub specular_transmittance: Vec3,
+}
+
+impl ThinDielectric {
+    pub fn new(eta: f32, specular_reflectance: Vec3, specular_transmittance: Vec3) -> Self {
+        Self { eta, specular_reflectance, specular_transmittance }
+    }
+
+    pub fn flags(&self) -> BsdfFlags {
+        BsdfFlags { smooth: false, delta: true, transmission: true }
+    }
+
+    /// Slab reflectance 2R/(1+R) at |cos theta_i|.
+    #[inline]
+    pub fn reflectance(&self, cos_theta_i: f32) -> f32 {
+        let r = fresnel_dielectric(cos_theta_i.abs(), self.eta).0;
+        r * 2.0 / (1.0 + r)
+    }
+
+    /// Two-sided. The transmitted direction is `-wi` with `eta = 1` (Mitsuba
+    /// reports it as a `Null` lobe; here it is a delta transmission).
+    pub fn sample(&self, wi: Vec3, u_lobe: f32, _u: Vec2) -> Option<BsdfSample> {
+        if wi.z == 0.0 || !wi.z.is_finite() {
+            return None;
+        }
+        let r = self.reflectance(wi.z);
+        let t = 1.0 - r;
+        if r > 0.0 && u_lobe <= r {
+            Some(BsdfSample {
+                wo: reflect(wi),
+                pdf: r,
+                weight: self.specular_reflectance,
+                eta: 1.0,
+                lobe: Lobe { delta: true, transmission: false },
+            })
+        } else {
+            if !(t > 0.0) {
+                return None;
+            }
+            Some(BsdfSample {
+                wo: -wi,
+                pdf: t,
+                weight: self.specular_transmittance,
+                eta: 1.0,
+                lobe: Lobe { delta: true, transmission: true },
+            })
+        }
+    }
+
+    pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {
+        Vec3::ZERO
+    }
+
+    pub fn pdf(&self, _wi: Vec3, _wo: Vec3) -> f32 {
+        0.0
+    }
+}
