@@ -1,45 +1,63 @@
-//! Per-pixel accumulation of samples.
+//! Per-pixel accumulation of filtered samples.
 //!
-//! Each pixel keeps the running sum and sum of squares of its samples (in
-//! f64, added in sample-index order), so the mean and the variance of the mean
-//! are available, and the result does not depend on how pixels were grouped
-//! into tiles or passes.
+//! A pixel keeps weighted sums of the samples splatted into it: sum w,
+//! sum w L, and the second-order sums needed for the variance of the
+//! weight-normalised mean. The renderer adds a pixel's contributions in a
+//! canonical order (source pixel, then sample index), so the sums do not
+//! depend on threads or tiles.
 
 use glam::Vec3;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PixelStats {
-    pub sum: [f64; 3],
-    pub sum_sq: [f64; 3],
+    pub sum_w: f64,
+    pub sum_wl: [f64; 3],
+    pub sum_w2: f64,
+    pub sum_w2l: [f64; 3],
+    pub sum_w2l2: [f64; 3],
+    /// Camera samples generated in this pixel.
     pub count: u32,
 }
 
 impl PixelStats {
+    /// Adds one sample `v` with filter weight `w`.
     #[inline]
-    pub fn add(&mut self, v: Vec3) {
+    pub fn add(&mut self, w: f32, v: Vec3) {
+        let w = w as f64;
+        let w2 = w * w;
+        self.sum_w += w;
+        self.sum_w2 += w2;
         for (c, x) in [v.x, v.y, v.z].into_iter().enumerate() {
             let x = x as f64;
-            self.sum[c] += x;
-            self.sum_sq[c] += x * x;
+            self.sum_wl[c] += w * x;
+            self.sum_w2l[c] += w2 * x;
+            self.sum_w2l2[c] += w2 * x * x;
         }
-        self.count += 1;
     }
 
     pub fn mean(&self) -> [f32; 3] {
-        let n = self.count.max(1) as f64;
-        self.sum.map(|s| (s / n) as f32)
+        if self.sum_w <= 0.0 {
+            return [0.0; 3];
+        }
+        self.sum_wl.map(|s| (s / self.sum_w) as f32)
     }
 
-    /// Unbiased variance of the pixel mean: sample variance / N.
+    /// Variance of the pixel value (the weighted mean), estimated as
+    /// sum w^2 (L - mean)^2 / (sum w)^2, with the small-sample correction
+    /// n_eff / (n_eff - 1), n_eff = (sum w)^2 / sum w^2. For unit weights this
+    /// is the sample variance divided by N.
     pub fn variance_of_mean(&self) -> [f32; 3] {
-        let n = self.count as f64;
-        if n < 2.0 {
+        if self.sum_w <= 0.0 || self.sum_w2 <= 0.0 {
+            return [0.0; 3];
+        }
+        let n_eff = self.sum_w * self.sum_w / self.sum_w2;
+        if n_eff <= 1.0 + 1e-9 {
             return [0.0; 3];
         }
         std::array::from_fn(|c| {
-            let m = self.sum[c] / n;
-            let var = ((self.sum_sq[c] - n * m * m) / (n - 1.0)).max(0.0);
-            (var / n) as f32
+            let m = self.sum_wl[c] / self.sum_w;
+            let ss = self.sum_w2l2[c] - 2.0 * m * self.sum_w2l[c] + m * m * self.sum_w2;
+            ((ss.max(0.0) / (self.sum_w * self.sum_w)) * n_eff / (n_eff - 1.0)) as f32
         })
     }
 }
@@ -71,13 +89,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn pixel_stats_give_mean_and_variance_of_the_mean() {
+    fn unit_weights_give_mean_and_variance_of_the_mean() {
         let mut p = PixelStats::default();
         for x in [1.0f32, 2.0, 3.0, 4.0] {
-            p.add(Vec3::splat(x));
+            p.add(1.0, Vec3::splat(x));
         }
         assert_eq!(p.mean(), [2.5; 3]);
         // Sample variance 5/3, divided by N = 4.
         assert!((p.variance_of_mean()[0] - 5.0 / 12.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn weighted_mean_normalises_by_the_weights() {
+        let mut p = PixelStats::default();
+        p.add(0.25, Vec3::splat(4.0));
+        p.add(0.75, Vec3::splat(0.0));
+        assert_eq!(p.mean(), [1.0; 3]);
     }
 }

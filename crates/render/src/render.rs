@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use glam::Vec2;
 use rayon::prelude::*;
 
-use crate::film::{Film, PixelStats};
+use crate::film::Film;
 use crate::integrator::path;
 use crate::rng::Rng;
 use crate::scene::Scene;
@@ -25,7 +25,7 @@ pub struct RenderSettings {
     pub time_limit: Option<Duration>,
     /// Seed of every random stream.
     pub seed: u64,
-    /// Tile edge in pixels (default 16). Does not change the image.
+    /// Pixels per work item (default 16). Does not change the image.
     pub tile_size: u32,
     /// Samples per pass when rendering to a sample budget (default: all in
     /// one pass). Does not change the image.
@@ -54,71 +54,99 @@ pub struct RenderStats {
     pub invalid_samples: u64,
 }
 
+/// One camera sample, kept until it has been splatted: its film position
+/// within its pixel and its radiance estimate.
+#[derive(Clone, Copy, Default)]
+struct SampleRec {
+    offset: Vec2,
+    value: glam::Vec3,
+}
+
+/// Upper bound on the sample buffer of one pass (bytes).
+const PASS_BUFFER_BYTES: usize = 256 << 20;
+
 /// Renders the scene into a film.
+///
+/// Each pass renders samples `s0..s1` of every pixel (phase 1, rows in
+/// parallel), then splats them (phase 2): every pixel gathers, in a fixed
+/// order (source pixel, then sample index), the samples within its filter's
+/// support. Pixels only depend on their own gather, so the image is the same
+/// for any thread count or tile size.
 pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progress) + Sync)) -> (Film, RenderStats) {
     let (w, h) = (scene.width, scene.height);
-    let tile = settings.tile_size.max(1);
     let start = Instant::now();
     let target_spp = match (settings.spp, settings.time_limit) {
         (Some(s), _) => s,
         (None, Some(_)) => u32::MAX,
         (None, None) => scene.sample_count,
     };
-    let tiles: Vec<(u32, u32)> = (0..h.div_ceil(tile)).flat_map(|ty| (0..w.div_ceil(tile)).map(move |tx| (tx * tile, ty * tile))).collect();
+    let npix = (w as usize) * (h as usize);
+    let max_pass = ((PASS_BUFFER_BYTES / (npix.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1);
+    let tile = settings.tile_size.max(1) as usize;
     let mut film = Film::new(w, h);
     let done = AtomicU64::new(0);
     let invalid = AtomicU64::new(0);
-    let pixels = (w as u64) * (h as u64);
     let mut spp_done = 0u32;
-    // Pass sizes: a time budget renders passes sized to about a second each.
     let mut pass = if settings.time_limit.is_some() { 1 } else { settings.pass_spp.unwrap_or(target_spp) };
+    let mut buffer: Vec<SampleRec> = Vec::new();
     while spp_done < target_spp {
         let s0 = spp_done;
-        let s1 = s0.saturating_add(pass.max(1)).min(target_spp);
+        let s1 = s0.saturating_add(pass.clamp(1, max_pass)).min(target_spp);
+        let n = (s1 - s0) as usize;
         let total = if settings.time_limit.is_some() && settings.spp.is_none() {
             let rate = (done.load(Ordering::Relaxed) as f64 / start.elapsed().as_secs_f64().max(1e-3)).max(1.0);
             (rate * settings.time_limit.unwrap().as_secs_f64()) as u64
         } else {
-            pixels * target_spp as u64
+            npix as u64 * target_spp as u64
         };
-        let results: Vec<Vec<PixelStats>> = tiles
-            .par_iter()
-            .map(|&(x0, y0)| {
-                let x1 = (x0 + tile).min(w);
-                let y1 = (y0 + tile).min(h);
-                let mut out = Vec::with_capacity(((x1 - x0) * (y1 - y0)) as usize);
-                let mut bad = 0u64;
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        let pixel = (y * w + x) as usize;
-                        let mut stats = film.pixels[pixel];
-                        for s in s0..s1 {
-                            let v = sample(scene, settings.seed, x, y, pixel as u64, s as u64);
-                            if v.is_finite() {
-                                stats.add(v);
-                            } else {
-                                bad += 1;
-                                stats.add(glam::Vec3::ZERO);
-                            }
-                        }
-                        out.push(stats);
+        // Phase 1: samples, in tiles of `tile` pixels along each row.
+        buffer.clear();
+        buffer.resize(npix * n, SampleRec::default());
+        buffer.par_chunks_mut(tile * n).enumerate().for_each(|(chunk, out)| {
+            let first = chunk * tile;
+            let mut bad = 0u64;
+            for (i, recs) in out.chunks_mut(n).enumerate() {
+                let pixel = first + i;
+                let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
+                for (k, rec) in recs.iter_mut().enumerate() {
+                    let (offset, mut value) = sample(scene, settings.seed, x, y, pixel as u64, (s0 as usize + k) as u64);
+                    if !value.is_finite() {
+                        bad += 1;
+                        value = glam::Vec3::ZERO;
                     }
-                }
-                invalid.fetch_add(bad, Ordering::Relaxed);
-                let n = done.fetch_add(out.len() as u64 * (s1 - s0) as u64, Ordering::Relaxed) + out.len() as u64 * (s1 - s0) as u64;
-                progress(Progress { samples_done: n, samples_total: total.max(n) });
-                out
-            })
-            .collect();
-        for (&(x0, y0), out) in tiles.iter().zip(results) {
-            let x1 = (x0 + tile).min(w);
-            let mut it = out.into_iter();
-            for y in y0..(y0 + tile).min(h) {
-                for x in x0..x1 {
-                    film.pixels[(y * w + x) as usize] = it.next().unwrap_or_default();
+                    *rec = SampleRec { offset, value };
                 }
             }
-        }
+            invalid.fetch_add(bad, Ordering::Relaxed);
+            let m = (out.len()) as u64;
+            let d = done.fetch_add(m, Ordering::Relaxed) + m;
+            progress(Progress { samples_done: d, samples_total: total.max(d) });
+        });
+        // Phase 2: splat by gathering.
+        let filter = scene.filter;
+        let reach = filter.reach();
+        let buf = &buffer;
+        film.pixels.par_chunks_mut(w as usize).enumerate().for_each(|(y, row)| {
+            let y = y as i32;
+            for (x, stats) in row.iter_mut().enumerate() {
+                let x = x as i32;
+                stats.count += n as u32;
+                let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                for qy in (y - reach).max(0)..=(y + reach).min(h as i32 - 1) {
+                    for qx in (x - reach).max(0)..=(x + reach).min(w as i32 - 1) {
+                        let q = qy as usize * w as usize + qx as usize;
+                        let base = Vec2::new(qx as f32, qy as f32) - centre;
+                        for rec in &buf[q * n..(q + 1) * n] {
+                            let d = base + rec.offset;
+                            let wt = filter.eval(d.x) * filter.eval(d.y);
+                            if wt > 0.0 {
+                                stats.add(wt, rec.value);
+                            }
+                        }
+                    }
+                }
+            }
+        });
         spp_done = s1;
         if let Some(limit) = settings.time_limit {
             let elapsed = start.elapsed();
@@ -138,26 +166,19 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
     (film, stats)
 }
 
-/// One camera sample of pixel (x, y): its own random stream, a film position
-/// drawn from the reconstruction filter, and the integrator's estimate.
+/// One camera sample of pixel (x, y): its own random stream, a position
+/// uniformly inside the pixel (returned as the offset from the pixel's
+/// corner), and the integrator's estimate.
 #[inline]
-fn sample(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64) -> glam::Vec3 {
+fn sample(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64) -> (Vec2, glam::Vec3) {
     let mut rng = Rng::for_sample(seed, pixel, index);
-    let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-    let size = Vec2::new(scene.width as f32, scene.height as f32);
-    // Like Mitsuba's film (no border sampling), a pixel only receives samples
-    // from inside the image: the filter is truncated at the image edges.
-    let mut pos = centre + scene.filter.sample(rng.next_2d());
-    let mut tries = 0;
-    while (pos.cmplt(Vec2::ZERO).any() || pos.cmpge(size).any()) && tries < 16 {
-        pos = centre + scene.filter.sample(rng.next_2d());
-        tries += 1;
-    }
-    let ray = scene.camera.ray(pos.clamp(Vec2::ZERO, size - Vec2::splat(1e-3)));
-    match (scene.features.environment, scene.features.analytic_shapes) {
+    let offset = rng.next_2d();
+    let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + offset);
+    let value = match (scene.features.environment, scene.features.analytic_shapes) {
         (false, false) => path::li::<false, false>(scene, ray, &mut rng),
         (true, false) => path::li::<true, false>(scene, ray, &mut rng),
         (false, true) => path::li::<false, true>(scene, ray, &mut rng),
         (true, true) => path::li::<true, true>(scene, ray, &mut rng),
-    }
+    };
+    (offset, value)
 }

@@ -1,0 +1,585 @@
+//! Directional quadtree (D-tree) over the cylindrical `(u, v)` square.
+//!
+//! Nodes live in one flat array; node 0 is the root (depth 1) and is never a child. Each node
+//! stores 4 quadrant sums (fixed point, see [`crate::stats`]) and 4 child indices, 0 meaning
+//! "this quadrant is a leaf cell". Quadrant index: bit 0 = (u >= 0.5), bit 1 = (v >= 0.5).
+//! A quadrant of a node at depth `d` is a square cell of side `2^-d`. Children are always
+//! stored after their parent, so [`DTree::build`] can propagate sums in one reverse sweep.
+//!
+//! Records add to the leaf cell only; [`DTree::build`] makes every inner quadrant the exact
+//! integer sum of its child's four quadrants.
+
+use crate::stats::{from_fixed, split_exact, Acc128};
+use glam::Vec2;
+use std::sync::atomic::AtomicU64;
+
+#[derive(Default)]
+struct Scratch {
+    cells: Vec<(u32, u8)>,
+    areas: Vec<f64>,
+    parts: Vec<u128>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+/// Maximum quadtree depth (root = depth 1; cells at depth 20 have side `2^-20`).
+pub const MAX_DEPTH: u32 = 20;
+
+/// One quadtree node: four quadrant sums and four child indices (0 = leaf cell).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct DNode {
+    /// Fixed-point sums of weighted estimates per quadrant.
+    pub sums: [Acc128; 4],
+    /// Child node index per quadrant, 0 if the quadrant is a leaf cell.
+    pub children: [u32; 4],
+}
+
+impl DNode {
+    /// Sum of the four quadrants (exact, wrapping).
+    #[inline]
+    pub fn total(&self) -> u128 {
+        self.sums
+            .iter()
+            .fold(0u128, |a, s| a.wrapping_add(s.get()))
+    }
+    #[inline]
+    fn sums_f64(&self) -> [f64; 4] {
+        [
+            from_fixed(self.sums[0].get()),
+            from_fixed(self.sums[1].get()),
+            from_fixed(self.sums[2].get()),
+            from_fixed(self.sums[3].get()),
+        ]
+    }
+}
+
+/// A leaf cell of a quadtree, as found by a point lookup or a traversal.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Cell {
+    /// Index of the node owning the cell.
+    pub node: u32,
+    /// Quadrant of that node (0..4).
+    pub quadrant: u8,
+    /// Depth of the owning node (root = 1); the cell's side is `2^-depth`.
+    pub depth: u32,
+    /// Lower corner of the cell in `(u, v)`.
+    pub origin: [f64; 2],
+    /// Side length of the cell.
+    pub size: f64,
+}
+
+/// Directional quadtree with fixed-point sums and a statistical weight.
+///
+/// Equality compares the nodes (structure and sums) and W; the sampling cache is ignored.
+#[derive(Clone, Debug)]
+pub struct DTree {
+    pub(crate) nodes: Vec<DNode>,
+    pub(crate) weight: Acc128,
+    /// Optional cache of the quadrant sums as f64 (exactly `from_fixed` of the sums) used by
+    /// sample and pdf; valid only when its length equals the node count (see [`DTree::freeze`]).
+    pub(crate) frozen: Vec<[f64; 4]>,
+}
+
+impl PartialEq for DTree {
+    fn eq(&self, o: &Self) -> bool {
+        self.nodes == o.nodes && self.weight == o.weight
+    }
+}
+impl Eq for DTree {}
+
+impl Default for DTree {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+#[inline]
+fn quadrant_origin(origin: [f64; 2], size: f64, q: usize) -> [f64; 2] {
+    let h = size * 0.5;
+    [
+        origin[0] + if q & 1 != 0 { h } else { 0.0 },
+        origin[1] + if q & 2 != 0 { h } else { 0.0 },
+    ]
+}
+
+/// Puts `x` (computed in f64) into the f32 grid while keeping it inside `[lo, hi)`.
+#[inline]
+fn to_f32_inside(x: f64, lo: f64, hi: f64) -> f32 {
+    let mut f = x as f32;
+    if (f as f64) >= hi {
+        f = f32::from_bits(f.to_bits() - 1);
+    }
+    if (f as f64) < lo {
+        f = f32::from_bits(f.to_bits() + 1);
+    }
+    f
+}
+
+#[inline]
+fn next_unit(rng: &mut impl FnMut() -> f32) -> f64 {
+    let r = rng() as f64;
+    if r.is_nan() {
+        0.0
+    } else {
+        r.clamp(0.0, 1.0 - f64::EPSILON)
+    }
+}
+
+impl DTree {
+    /// A tree with only the root node (4 empty leaf cells), weight 0.
+    pub fn new() -> Self {
+        Self {
+            nodes: vec![DNode::default()],
+            weight: Acc128::default(),
+            frozen: Vec::new(),
+        }
+    }
+
+    /// Caches the quadrant sums as f64 for fast sampling and pdf evaluation. Call it on a tree
+    /// whose sums will not change any more (the SD-tree does this for every sampling tree); any
+    /// later change of the sums must be followed by another `freeze` or an [`DTree::unfreeze`].
+    /// Results are bit-identical with and without the cache.
+    pub fn freeze(&mut self) {
+        self.frozen = self.nodes.iter().map(|n| n.sums_f64()).collect();
+    }
+
+    /// Drops the sampling cache.
+    pub fn unfreeze(&mut self) {
+        self.frozen = Vec::new();
+    }
+
+    #[inline]
+    fn node_sums(&self, idx: usize) -> [f64; 4] {
+        if self.frozen.len() == self.nodes.len() {
+            self.frozen[idx]
+        } else {
+            self.nodes[idx].sums_f64()
+        }
+    }
+
+    /// A complete tree of the given depth (`depth >= 1`, clamped to [`MAX_DEPTH`]), all sums 0.
+    /// Depth 4 gives 85 nodes and 256 leaf cells.
+    pub fn uniform(depth: u32) -> Self {
+        let depth = depth.clamp(1, MAX_DEPTH);
+        let mut t = Self::new();
+        let mut frontier = vec![0u32];
+        for _ in 1..depth {
+            let mut next = Vec::with_capacity(frontier.len() * 4);
+            for &n in &frontier {
+                for q in 0..4 {
+                    let c = t.nodes.len() as u32;
+                    t.nodes.push(DNode::default());
+                    t.nodes[n as usize].children[q] = c;
+                    next.push(c);
+                }
+            }
+            frontier = next;
+        }
+        t
+    }
+
+    /// The node array (node 0 is the root).
+    pub fn nodes(&self) -> &[DNode] {
+        &self.nodes
+    }
+
+    /// Number of nodes.
+    pub fn node_count(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Number of leaf cells (quadrants without a child).
+    pub fn leaf_count(&self) -> usize {
+        self.nodes
+            .iter()
+            .map(|n| n.children.iter().filter(|&&c| c == 0).count())
+            .sum()
+    }
+
+    /// Depth of the deepest node (root = 1).
+    pub fn depth(&self) -> u32 {
+        let mut best = 1;
+        let mut stack = vec![(0u32, 1u32)];
+        while let Some((n, d)) = stack.pop() {
+            best = best.max(d);
+            for &c in &self.nodes[n as usize].children {
+                if c != 0 {
+                    stack.push((c, d + 1));
+                }
+            }
+        }
+        best
+    }
+
+    /// Approximate heap memory of the tree in bytes.
+    pub fn memory_bytes(&self) -> usize {
+        self.nodes.capacity() * std::mem::size_of::<DNode>()
+            + self.frozen.capacity() * std::mem::size_of::<[f64; 4]>()
+            + std::mem::size_of::<Self>()
+    }
+
+    /// Total sum (the root's four quadrants) in fixed point. Equals the sum of all leaf cells
+    /// after [`DTree::build`].
+    pub fn total_fixed(&self) -> u128 {
+        self.nodes[0].total()
+    }
+
+    /// Total sum as a real number.
+    pub fn total(&self) -> f64 {
+        from_fixed(self.total_fixed())
+    }
+
+    /// Statistical weight W in fixed point.
+    pub fn weight_fixed(&self) -> u128 {
+        self.weight.get()
+    }
+
+    /// Statistical weight W (number of records, weighted).
+    pub fn weight(&self) -> f64 {
+        self.weight.get_f64()
+    }
+
+    /// Sets W (fixed point).
+    pub fn set_weight_fixed(&mut self, w: u128) {
+        self.weight.set(w);
+    }
+
+    /// Mean radiance `total / (4 pi W)`, 0 when W = 0.
+    pub fn mean(&self) -> f64 {
+        let w = self.weight();
+        if w > 0.0 {
+            self.total() / (4.0 * std::f64::consts::PI * w)
+        } else {
+            0.0
+        }
+    }
+
+    /// A tree is empty (samples uniformly) when its total sum is zero (mean <= 0).
+    pub fn is_empty(&self) -> bool {
+        if self.frozen.len() == self.nodes.len() {
+            let s = self.frozen[0];
+            return !(s[0] + s[1] + s[2] + s[3] > 0.0);
+        }
+        self.total_fixed() == 0
+    }
+
+    /// Finds the leaf cell containing `uv` (coordinates clamped to `[0, 1]`).
+    pub fn leaf_cell(&self, uv: Vec2) -> Cell {
+        let mut x = (uv.x as f64).clamp(0.0, 1.0);
+        let mut y = (uv.y as f64).clamp(0.0, 1.0);
+        let mut idx = 0u32;
+        let mut origin = [0.0f64; 2];
+        let mut size = 1.0f64;
+        let mut depth = 1u32;
+        loop {
+            let bu = (x >= 0.5) as usize;
+            let bv = (y >= 0.5) as usize;
+            let q = bu | (bv << 1);
+            x = x * 2.0 - bu as f64;
+            y = y * 2.0 - bv as f64;
+            let c = self.nodes[idx as usize].children[q];
+            if c == 0 {
+                return Cell {
+                    node: idx,
+                    quadrant: q as u8,
+                    depth,
+                    origin: quadrant_origin(origin, size, q),
+                    size: size * 0.5,
+                };
+            }
+            origin = quadrant_origin(origin, size, q);
+            size *= 0.5;
+            idx = c;
+            depth += 1;
+        }
+    }
+
+    /// Adds `amount` (fixed point) to the leaf cell containing `uv` (thread safe).
+    #[inline]
+    pub fn deposit(&self, uv: Vec2, amount: u128, overflow: &AtomicU64) {
+        if amount == 0 {
+            return;
+        }
+        let c = self.leaf_cell(uv);
+        self.nodes[c.node as usize].sums[c.quadrant as usize].add(amount, overflow);
+    }
+
+    /// Adds `amount` (fixed point) to W (thread safe).
+    #[inline]
+    pub fn add_weight(&self, amount: u128, overflow: &AtomicU64) {
+        self.weight.add(amount, overflow);
+    }
+
+    /// Directional box splat: distributes `amount` over the leaf cells overlapped by the square of
+    /// side `size` centred on `uv`, proportionally to overlap area. The square wraps across the
+    /// `v` (phi) seam, and the parts beyond `u = 0` / `u = 1` go to the cells on that border (the
+    /// same as clamping), so the integer amount is conserved exactly.
+    pub fn splat_box(&self, uv: Vec2, size: f64, amount: u128, overflow: &AtomicU64) {
+        if amount == 0 {
+            return;
+        }
+        SCRATCH.with(|sc| {
+            let mut sc = sc.borrow_mut();
+            let Scratch { cells, areas, parts } = &mut *sc;
+            self.box_overlaps(uv, size, cells, areas);
+            if cells.is_empty() {
+                self.deposit(uv, amount, overflow);
+                return;
+            }
+            split_exact(amount, areas, parts);
+            for (c, &p) in cells.iter().zip(parts.iter()) {
+                self.nodes[c.0 as usize].sums[c.1 as usize].add(p, overflow);
+            }
+        });
+    }
+
+    /// Leaf cells `(node, quadrant)` overlapped by the wrapped box of side `size` centred on
+    /// `uv`, with their overlap areas (u extended at the borders, v periodic).
+    pub fn box_overlaps(&self, uv: Vec2, size: f64, cells: &mut Vec<(u32, u8)>, areas: &mut Vec<f64>) {
+        let h = (size * 0.5).clamp(0.0, 0.5);
+        let (u, v) = ((uv.x as f64).clamp(0.0, 1.0), (uv.y as f64).clamp(0.0, 1.0));
+        let (u0, u1) = (u - h, u + h);
+        let (v0, v1) = (v - h, v + h);
+        cells.clear();
+        areas.clear();
+        // Depth-first with a fixed-size stack: at most 4 entries per level are pending.
+        let mut stack = [(0u32, [0.0f64; 2], 0.0f64); 4 * MAX_DEPTH as usize + 4];
+        stack[0] = (0, [0.0, 0.0], 1.0);
+        let mut len = 1usize;
+        while len > 0 {
+            len -= 1;
+            let (n, o, s) = stack[len];
+            for q in 0..4usize {
+                let co = quadrant_origin(o, s, q);
+                let cs = s * 0.5;
+                // u overlap with borders extended to infinity
+                let lo = if co[0] <= 0.0 { f64::NEG_INFINITY } else { co[0] };
+                let hi = if co[0] + cs >= 1.0 { f64::INFINITY } else { co[0] + cs };
+                let ou = (u1.min(hi) - u0.max(lo)).max(0.0);
+                if ou <= 0.0 {
+                    continue;
+                }
+                // v overlap, periodic: test the box shifted by -1, 0, +1
+                let mut ov = 0.0;
+                for shift in [-1.0, 0.0, 1.0] {
+                    ov += ((v1 + shift).min(co[1] + cs) - (v0 + shift).max(co[1])).max(0.0);
+                }
+                if ov <= 0.0 {
+                    continue;
+                }
+                let c = self.nodes[n as usize].children[q];
+                if c == 0 {
+                    cells.push((n, q as u8));
+                    areas.push(ou * ov);
+                } else {
+                    stack[len] = (c, co, cs);
+                    len += 1;
+                }
+            }
+        }
+    }
+
+    /// Bottom-up build: every inner quadrant becomes the exact sum of its child's quadrants.
+    pub fn build(&mut self) {
+        self.unfreeze();
+        for i in (0..self.nodes.len()).rev() {
+            for q in 0..4 {
+                let c = self.nodes[i].children[q];
+                if c != 0 {
+                    let s = self.nodes[c as usize].total();
+                    self.nodes[i].sums[q].set(s);
+                }
+            }
+        }
+    }
+
+    /// Density over `(u, v)` at `uv`: product of `4 s_i / sum` along the path, 0 as soon as a
+    /// quadrant on the path is zero, 1 (uniform) for an empty tree. Divide by `4 pi` for solid angle.
+    pub fn pdf(&self, uv: Vec2) -> f32 {
+        if self.is_empty() {
+            return 1.0;
+        }
+        let mut x = (uv.x as f64).clamp(0.0, 1.0);
+        let mut y = (uv.y as f64).clamp(0.0, 1.0);
+        let mut idx = 0usize;
+        let mut pdf = 1.0f64;
+        loop {
+            let n = &self.nodes[idx];
+            let bu = (x >= 0.5) as usize;
+            let bv = (y >= 0.5) as usize;
+            let q = bu | (bv << 1);
+            let s = self.node_sums(idx);
+            let tot = s[0] + s[1] + s[2] + s[3];
+            if !(s[q] > 0.0) || !(tot > 0.0) {
+                return 0.0;
+            }
+            pdf *= 4.0 * s[q] / tot;
+            let c = n.children[q];
+            if c == 0 {
+                return pdf as f32;
+            }
+            x = x * 2.0 - bu as f64;
+            y = y * 2.0 - bv as f64;
+            idx = c as usize;
+        }
+    }
+
+    /// Samples `(u, v)` proportionally to the quadtree density; see [`DTree::sample_with_pdf`].
+    pub fn sample(&self, rng: &mut impl FnMut() -> f32) -> Vec2 {
+        self.sample_with_pdf(rng).0
+    }
+
+    /// Samples `(u, v)` and returns it with its density over `(u, v)`.
+    ///
+    /// At each node the column (u half) is chosen with probability `(s1 + s3) / sum`, then the
+    /// row within it, using two fresh random numbers per level; two more place the point
+    /// uniformly in the leaf cell. `rng` must return numbers in `[0, 1)`. An empty tree
+    /// samples uniformly with density 1.
+    pub fn sample_with_pdf(&self, rng: &mut impl FnMut() -> f32) -> (Vec2, f32) {
+        if self.is_empty() {
+            let a = next_unit(rng);
+            let b = next_unit(rng);
+            return (
+                Vec2::new(to_f32_inside(a, 0.0, 1.0), to_f32_inside(b, 0.0, 1.0)),
+                1.0,
+            );
+        }
+        let mut idx = 0usize;
+        let mut origin = [0.0f64; 2];
+        let mut size = 1.0f64;
+        let mut pdf = 1.0f64;
+        loop {
+            let n = &self.nodes[idx];
+            let s = self.node_sums(idx);
+            let tot = s[0] + s[1] + s[2] + s[3];
+            let left = s[0] + s[2];
+            let r1 = next_unit(rng);
+            let mut col = if r1 * tot < left { 0 } else { 1 };
+            if !(s[col] + s[col + 2] > 0.0) {
+                col ^= 1; // rounding guard: never pick a zero-mass column
+            }
+            let (a, b) = (s[col], s[col + 2]);
+            let r2 = next_unit(rng);
+            let mut row = if r2 * (a + b) < a { 0 } else { 1 };
+            if !(s[col | (row << 1)] > 0.0) {
+                row ^= 1;
+            }
+            let q = col | (row << 1);
+            pdf *= 4.0 * s[q] / tot;
+            origin = quadrant_origin(origin, size, q);
+            size *= 0.5;
+            let c = n.children[q];
+            if c == 0 {
+                let r3 = next_unit(rng);
+                let r4 = next_unit(rng);
+                let u = to_f32_inside(origin[0] + r3 * size, origin[0], origin[0] + size);
+                let v = to_f32_inside(origin[1] + r4 * size, origin[1], origin[1] + size);
+                return (Vec2::new(u, v), pdf as f32);
+            }
+            idx = c as usize;
+        }
+    }
+
+    /// All leaf cells with their geometry, in depth-first order.
+    pub fn leaf_cells(&self) -> Vec<Cell> {
+        let mut out = Vec::new();
+        let mut stack = vec![(0u32, [0.0f64; 2], 1.0f64, 1u32)];
+        while let Some((n, o, s, d)) = stack.pop() {
+            for q in 0..4usize {
+                let co = quadrant_origin(o, s, q);
+                let c = self.nodes[n as usize].children[q];
+                if c == 0 {
+                    out.push(Cell {
+                        node: n,
+                        quadrant: q as u8,
+                        depth: d,
+                        origin: co,
+                        size: s * 0.5,
+                    });
+                } else {
+                    stack.push((c, co, s * 0.5, d + 1));
+                }
+            }
+        }
+        out
+    }
+
+    /// Density over `(u, v)` of a given leaf cell (constant within the cell).
+    pub fn cell_pdf(&self, cell: &Cell) -> f64 {
+        let cx = cell.origin[0] + cell.size * 0.5;
+        let cy = cell.origin[1] + cell.size * 0.5;
+        self.pdf(Vec2::new(cx as f32, cy as f32)) as f64
+    }
+
+    /// Refines the tree from its own (built) sums and zeroes all statistics (doc section 3).
+    ///
+    /// Walks the tree depth first. For a quadrant with sum `s_i`, `f = s_i / S_total`. If
+    /// `depth < max_depth` and `f > rho` the quadrant gets a child: the old child if there
+    /// was one, else a new node whose 4 quadrants are seeded with `s_i / 4` (so one reset can
+    /// refine several levels). Quadrants with `f <= rho` become leaf cells (coarsening).
+    /// Finally all sums and W are zero. An empty tree (S_total = 0) becomes the uniform depth-4
+    /// tree (85 nodes, 256 cells). Call [`DTree::build`] first.
+    pub fn reset(&mut self, rho: f64, max_depth: u32) {
+        let max_depth = max_depth.clamp(1, MAX_DEPTH);
+        let total = self.total();
+        if !(total > 0.0) {
+            *self = Self::uniform(4.min(max_depth));
+            return;
+        }
+        let mut nodes = vec![DNode::default()];
+        // (new index, old index or u32::MAX when seeded, seeded sums, depth)
+        let mut stack: Vec<(u32, u32, [f64; 4], u32)> = vec![(0, 0, [0.0; 4], 1)];
+        while let Some((ni, oi, seeded, depth)) = stack.pop() {
+            let sums = if oi != u32::MAX {
+                self.nodes[oi as usize].sums_f64()
+            } else {
+                seeded
+            };
+            for q in 0..4 {
+                let f = sums[q] / total;
+                if depth < max_depth && f > rho {
+                    let c = nodes.len() as u32;
+                    nodes.push(DNode::default());
+                    nodes[ni as usize].children[q] = c;
+                    let oc = if oi != u32::MAX {
+                        self.nodes[oi as usize].children[q]
+                    } else {
+                        0
+                    };
+                    if oc != 0 {
+                        stack.push((c, oc, [0.0; 4], depth + 1));
+                    } else {
+                        let s4 = sums[q] * 0.25;
+                        stack.push((c, u32::MAX, [s4; 4], depth + 1));
+                    }
+                }
+            }
+        }
+        self.nodes = nodes;
+        self.weight.set(0);
+        self.unfreeze();
+    }
+
+    /// Zeroes every sum and W, keeping the structure.
+    pub fn clear_stats(&mut self) {
+        self.unfreeze();
+        for n in &self.nodes {
+            for s in &n.sums {
+                s.set(0);
+            }
+        }
+        self.weight.set(0);
+    }
+
+    /// A 64-bit fingerprint of the structure (child arrays only).
+    pub fn structure_hash(&self, h: &mut crate::wire::Hasher64) {
+        h.write_u64(self.nodes.len() as u64);
+        for n in &self.nodes {
+            for &c in &n.children {
+                h.write_u32(c);
+            }
+        }
+    }
+}

@@ -1,0 +1,100 @@
+//! Cylindrical (equal-area) mapping between world-space unit directions and the unit square.
+//!
+//! `u = (clamp(d.z, -1, 1) + 1) / 2`, `v = atan2(d.y, d.x) / (2 pi)` wrapped into `[0, 1)`.
+//! The mapping is area preserving up to the constant Jacobian `d(omega) = 4 pi du dv`, so a
+//! density over the square converts to solid angle as `p_omega = p_uv / (4 pi)`.
+
+use glam::{Vec2, Vec3};
+use std::f64::consts::PI;
+
+/// Jacobian of the cylindrical mapping: solid angle per unit area of `(u, v)`, i.e. `4 pi`.
+pub const JACOBIAN: f32 = 4.0 * std::f32::consts::PI;
+
+/// Maps a world-space direction to `(u, v)` in `[0, 1]^2` (`v` in `[0, 1)`).
+///
+/// The direction need not be normalised for `v`, but `u` reads `d.z` directly, so pass unit
+/// vectors. A direction with a non-finite component maps to `(0, 0)`.
+pub fn dir_to_uv(d: Vec3) -> Vec2 {
+    if !d.is_finite() {
+        return Vec2::ZERO;
+    }
+    let z = (d.z as f64).clamp(-1.0, 1.0);
+    let u = (z + 1.0) * 0.5;
+    let mut phi = (d.y as f64).atan2(d.x as f64);
+    if phi < 0.0 {
+        phi += 2.0 * PI;
+    }
+    let mut v = phi / (2.0 * PI);
+    if !(v < 1.0) || !v.is_finite() {
+        v = 0.0;
+    }
+    let mut vf = v as f32;
+    if vf >= 1.0 {
+        vf = 0.0;
+    }
+    Vec2::new((u as f32).clamp(0.0, 1.0), vf)
+}
+
+/// Maps `(u, v)` (expected in `[0, 1]^2`, clamped) to a unit world-space direction.
+pub fn uv_to_dir(uv: Vec2) -> Vec3 {
+    let u = (uv.x as f64).clamp(0.0, 1.0);
+    let v = uv.y as f64;
+    let cos_t = 2.0 * u - 1.0;
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let phi = 2.0 * PI * v;
+    Vec3::new(
+        (sin_t * phi.cos()) as f32,
+        (sin_t * phi.sin()) as f32,
+        cos_t as f32,
+    )
+}
+
+/// Converts a density over `(u, v)` to a density over solid angle (divides by `4 pi`).
+#[inline]
+pub fn pdf_uv_to_solid_angle(p_uv: f32) -> f32 {
+    p_uv / JACOBIAN
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_direction_uv_direction() {
+        let mut s = 12345u64;
+        for _ in 0..10000 {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let a = ((s >> 40) as f32) / (1u64 << 24) as f32;
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let b = ((s >> 40) as f32) / (1u64 << 24) as f32;
+            let uv = Vec2::new(a, b);
+            let d = uv_to_dir(uv);
+            assert!((d.length() - 1.0).abs() < 1e-5);
+            let uv2 = dir_to_uv(d);
+            let dv = (uv2.y - uv.y).abs();
+            let dv = dv.min(1.0 - dv);
+            assert!((uv2.x - uv.x).abs() < 1e-5, "{uv} {uv2}");
+            // phi is ill-conditioned only at the poles
+            if a > 1e-3 && a < 1.0 - 1e-3 {
+                assert!(dv < 1e-4, "{uv} {uv2}");
+            }
+            let d2 = uv_to_dir(uv2);
+            assert!((d2 - d).length() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn axes_map_to_documented_coordinates_and_nan_to_origin() {
+        assert_eq!(dir_to_uv(Vec3::Z).x, 1.0);
+        assert_eq!(dir_to_uv(-Vec3::Z).x, 0.0);
+        let x = dir_to_uv(Vec3::X);
+        assert!((x.x - 0.5).abs() < 1e-7 && x.y == 0.0);
+        let y = dir_to_uv(Vec3::Y);
+        assert!((y.y - 0.25).abs() < 1e-7);
+        let my = dir_to_uv(-Vec3::Y);
+        assert!((my.y - 0.75).abs() < 1e-7);
+        assert_eq!(dir_to_uv(Vec3::new(f32::NAN, 0.0, 1.0)), Vec2::ZERO);
+        assert_eq!(dir_to_uv(Vec3::new(f32::INFINITY, 0.0, 0.0)), Vec2::ZERO);
+        assert!((JACOBIAN - 12.566371).abs() < 1e-5);
+    }
+}

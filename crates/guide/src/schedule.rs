@@ -1,0 +1,268 @@
+//! Training schedule and combination of iteration images (pure functions, doc section 5).
+//!
+//! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel. The last iteration
+//! absorbs the remainder when the iteration after it could not get at least twice its passes
+//! (so the final iteration always has at least about half the budget).
+
+/// How iteration images become the final image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum SampleCombination {
+    /// The final image is the last iteration only.
+    Discard,
+    /// Like `Discard`, but stop learning early when the extrapolated final variance gets worse
+    /// (after 256 spp) or the next iteration cannot be afforded, and render the rest of the
+    /// budget into the current iteration ([`automatic_should_stop`]).
+    Automatic,
+    /// Keep every iteration; combine the last (up to) 4 with inverse-variance weights (2019).
+    #[default]
+    InverseVar,
+}
+
+/// Render budget.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Budget {
+    /// Samples per pixel (rounded up to whole passes).
+    Spp(u32),
+    /// Wall-clock seconds.
+    Seconds(f64),
+}
+
+/// Total passes for an spp budget: `ceil(spp / spp_per_pass)`.
+pub fn total_passes(spp: u32, spp_per_pass: u32) -> u32 {
+    let s = spp_per_pass.max(1);
+    spp.div_ceil(s)
+}
+
+/// Passes of iteration `k` given the passes still to render: `min(remaining, 2^k)`, extended to
+/// all `remaining` if what would be left is less than twice that. Returns `(passes, is_last)`.
+pub fn iteration_passes(k: u32, remaining_passes: u32) -> (u32, bool) {
+    let base = if k >= 31 { u32::MAX } else { 1u32 << k };
+    let mut p = remaining_passes.min(base);
+    if (remaining_passes - p) < p.saturating_mul(2) {
+        p = remaining_passes;
+    }
+    (p, p >= remaining_passes)
+}
+
+/// The whole spp-budget plan: passes per iteration, summing to `total_passes(spp, spp_per_pass)`.
+pub fn plan_spp(spp: u32, spp_per_pass: u32) -> Vec<u32> {
+    let mut remaining = total_passes(spp, spp_per_pass);
+    let mut out = Vec::new();
+    let mut k = 0;
+    while remaining > 0 {
+        let (p, _) = iteration_passes(k, remaining);
+        out.push(p);
+        remaining -= p;
+        k += 1;
+    }
+    out
+}
+
+/// Time budget: whether iteration `k`, predicted to take `predicted_seconds` (e.g. twice the
+/// previous iteration), should be the last one and run until the budget ends: true when the
+/// time left after it would be less than twice its duration.
+pub fn time_iteration_is_last(remaining_seconds: f64, predicted_seconds: f64) -> bool {
+    remaining_seconds - predicted_seconds < 2.0 * predicted_seconds
+}
+
+/// Length of an iteration.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum IterationLength {
+    /// Render this many passes.
+    Passes(u32),
+    /// Render passes (in chunks of the doubled size) until this total elapsed time (the budget).
+    UntilSeconds(f64),
+}
+
+/// What the next iteration should do.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IterationPlan {
+    /// How long it runs.
+    pub length: IterationLength,
+    /// Whether it is the final iteration (renders the image that is kept, records nothing).
+    pub is_last: bool,
+}
+
+/// Plans iteration `k` for either budget kind, or `None` when the budget is used up.
+///
+/// * `Budget::Spp`: [`iteration_passes`] over `total_passes - passes_done`.
+/// * `Budget::Seconds`: `2^k` passes, predicted to take twice `previous_iteration_seconds`;
+///   if the time left after that would be less than twice the prediction
+///   ([`time_iteration_is_last`]) the iteration is the last and runs until the budget.
+///   Without a previous duration (k = 0) the iteration is not last.
+pub fn plan_iteration(
+    k: u32,
+    budget: Budget,
+    spp_per_pass: u32,
+    passes_done: u32,
+    elapsed_seconds: f64,
+    previous_iteration_seconds: Option<f64>,
+) -> Option<IterationPlan> {
+    match budget {
+        Budget::Spp(spp) => {
+            let total = total_passes(spp, spp_per_pass);
+            let remaining = total.saturating_sub(passes_done);
+            if remaining == 0 {
+                return None;
+            }
+            let (p, is_last) = iteration_passes(k, remaining);
+            Some(IterationPlan { length: IterationLength::Passes(p), is_last })
+        }
+        Budget::Seconds(s) => {
+            let remaining = s - elapsed_seconds;
+            if !(remaining > 0.0) {
+                return None;
+            }
+            let passes = if k >= 31 { u32::MAX } else { 1u32 << k };
+            match previous_iteration_seconds {
+                Some(prev) if time_iteration_is_last(remaining, 2.0 * prev) => Some(IterationPlan {
+                    length: IterationLength::UntilSeconds(s),
+                    is_last: true,
+                }),
+                _ => Some(IterationPlan { length: IterationLength::Passes(passes), is_last: false }),
+            }
+        }
+    }
+}
+
+/// Extrapolated variance of the final image if the rest of the budget were rendered with the
+/// distribution of the iteration just finished: `V_k * cost_k / remaining`, where `cost_k` is
+/// the iteration's cost (passes or seconds) and `remaining` the budget left *before* it,
+/// in the same unit (as \[G\] computes it).
+pub fn extrapolated_final_variance(variance: f64, cost: f64, remaining_before: f64) -> f64 {
+    if remaining_before > 0.0 {
+        variance * cost / remaining_before
+    } else {
+        f64::INFINITY
+    }
+}
+
+/// One finished iteration, for [`automatic_should_stop`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IterationOutcome {
+    /// Estimated variance of the iteration's image ([`image_variance`]).
+    pub variance: f64,
+    /// Cost of the iteration (passes or seconds).
+    pub cost: f64,
+    /// Budget left before the iteration (same unit).
+    pub remaining_before: f64,
+    /// Samples per pixel rendered before this iteration started.
+    pub spp_before: u64,
+}
+
+/// `Automatic` combination: after iteration `history.last()`, whether to stop learning and
+/// spend the rest of the budget on the current distribution. True when budget is left and
+/// either the remainder is smaller than the iteration just done (the next cannot be afforded),
+/// or more than 256 spp were rendered before it and its extrapolated final variance is worse
+/// than the previous iteration's.
+pub fn automatic_should_stop(history: &[IterationOutcome]) -> bool {
+    let Some(cur) = history.last() else {
+        return false;
+    };
+    let remaining_after = cur.remaining_before - cur.cost;
+    if !(remaining_after > 0.0) {
+        return false;
+    }
+    if remaining_after < cur.cost {
+        return true;
+    }
+    let now = extrapolated_final_variance(cur.variance, cur.cost, cur.remaining_before);
+    let last = if history.len() >= 2 {
+        let p = &history[history.len() - 2];
+        extrapolated_final_variance(p.variance, p.cost, p.remaining_before)
+    } else {
+        f64::INFINITY
+    };
+    cur.spp_before > 256 && now > last
+}
+
+/// Index of the iteration at which `Automatic` stops on a sequence of outcomes, if any.
+pub fn automatic_stop_index(history: &[IterationOutcome]) -> Option<usize> {
+    (1..=history.len()).find(|&n| automatic_should_stop(&history[..n])).map(|n| n - 1)
+}
+
+/// Inverse-variance weights for iterations with the given variances: the last (up to) 4 get
+/// `(1 / V_i) / sum_j (1 / V_j)`, earlier ones 0. Non-finite or negative variances get weight
+/// 0; if some of the last 4 have variance exactly 0 they share the weight equally. If none is
+/// usable the last iteration gets weight 1.
+pub fn inverse_variance_weights(variances: &[f64]) -> Vec<f64> {
+    let n = variances.len();
+    let mut w = vec![0.0; n];
+    if n == 0 {
+        return w;
+    }
+    let begin = n.saturating_sub(4);
+    let zeros: Vec<usize> = (begin..n).filter(|&i| variances[i] == 0.0).collect();
+    if !zeros.is_empty() {
+        for &i in &zeros {
+            w[i] = 1.0 / zeros.len() as f64;
+        }
+        return w;
+    }
+    let mut total = 0.0;
+    for i in begin..n {
+        let v = variances[i];
+        if v > 0.0 && v.is_finite() {
+            w[i] = 1.0 / v;
+            total += w[i];
+        }
+    }
+    if total > 0.0 {
+        for x in &mut w {
+            *x /= total;
+        }
+    } else {
+        w[n - 1] = 1.0;
+    }
+    w
+}
+
+/// Combines images (equal-length slices, any channel layout) with the given weights.
+pub fn combine_images(images: &[&[f32]], weights: &[f64]) -> Vec<f32> {
+    let len = images.first().map(|i| i.len()).unwrap_or(0);
+    let mut out = vec![0.0f64; len];
+    for (img, &w) in images.iter().zip(weights) {
+        if w == 0.0 {
+            continue;
+        }
+        for (o, &x) in out.iter_mut().zip(img.iter()) {
+            *o += w * x as f64;
+        }
+    }
+    out.into_iter().map(|x| x as f32).collect()
+}
+
+/// Inverse-variance combination of the last (up to) 4 images.
+pub fn combine_inverse_variance(images: &[&[f32]], variances: &[f64]) -> Vec<f32> {
+    combine_images(images, &inverse_variance_weights(variances))
+}
+
+/// Per-image variance estimate of an iteration image (doc section 5, done properly).
+///
+/// Per pixel entry i (flatten channels as you like), with `weight_sum[i]` the sum of the
+/// sample (filter) weights, `sum[i]` the weighted sum of sample values, `sum_sq[i]` the weighted
+/// sum of squared values and `count[i]` the number of samples N: `m1 = sum / weight_sum`,
+/// `m2 = sum_sq / weight_sum`, and the variance of the pixel estimate is
+/// `max(m2 - m1^2, 0) / (N - 1)`. The image variance is the mean over entries with N >= 2.
+pub fn image_variance(weight_sum: &[f64], sum: &[f64], sum_sq: &[f64], count: &[f64]) -> f64 {
+    let mut acc = 0.0;
+    let mut n = 0usize;
+    for i in 0..weight_sum.len().min(sum.len()).min(sum_sq.len()).min(count.len()) {
+        let (ws, c) = (weight_sum[i], count[i]);
+        if !(ws > 0.0) || !(c >= 2.0) {
+            continue;
+        }
+        let m1 = sum[i] / ws;
+        let m2 = sum_sq[i] / ws;
+        let v = (m2 - m1 * m1).max(0.0) / (c - 1.0);
+        if v.is_finite() {
+            acc += v;
+            n += 1;
+        }
+    }
+    if n == 0 {
+        0.0
+    } else {
+        acc / n as f64
+    }
+}

@@ -1,0 +1,510 @@
+//! The SD-tree facade: spatial binary tree whose leaves hold double-buffered directional
+//! quadtrees and the learned BSDF-sampling fraction.
+
+use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter};
+use crate::dtree::DTree;
+use crate::filter::{spatial_box_overlaps, stochastic_jitter};
+use crate::fraction::{dloss_dalpha, FractionState, GradAccum};
+use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
+use crate::record::Record;
+use crate::stats::{add_counted, split_exact, to_fixed, Acc128};
+use crate::stree::{SLookup, STree};
+use crate::wire::{Hasher64, IterationStats, LeafStats, StatsError};
+use glam::Vec3;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+
+/// Deepest S-tree level (root = 0): 20 splits per axis, about the precision of the f32 lookup.
+pub const MAX_SPATIAL_DEPTH: u32 = 60;
+
+type BoxScratch = (Vec<(u32, f64)>, Vec<f64>, Vec<u128>, Vec<u128>);
+thread_local! {
+    static BOX_SCRATCH: std::cell::RefCell<BoxScratch> = std::cell::RefCell::new(Default::default());
+}
+
+/// Handle of a spatial leaf (index into [`SdTree::leaves`]), from [`SdTree::leaf_index`].
+/// Valid until the next [`SdTree::refine`]: a split leaf keeps its index for its first child
+/// and the second child gets a new index, so look handles up again after a refinement.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct LeafHandle(pub u32);
+
+/// Payload of one spatial leaf.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Leaf {
+    /// Quadtree receiving this iteration's records.
+    pub building: DTree,
+    /// Frozen quadtree of the previous iteration, read by sample and pdf.
+    pub sampling: DTree,
+    /// Learned-fraction state (logit and Adam moments).
+    pub fraction: FractionState,
+    /// Exactly accumulated fraction gradients not yet stepped.
+    pub grad: GradAccum,
+}
+
+impl Leaf {
+    fn initial() -> Self {
+        Self {
+            // The state of a freshly reset empty tree (as [G] resets before iteration 0).
+            building: DTree::uniform(4),
+            sampling: DTree::new(),
+            fraction: FractionState::default(),
+            grad: GradAccum::default(),
+        }
+    }
+}
+
+/// Size and shape statistics of an SD-tree.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct TreeStats {
+    /// Number of S-tree nodes.
+    pub spatial_nodes: usize,
+    /// Number of spatial leaves.
+    pub leaves: usize,
+    /// Number of spatial leaves per S-tree depth (index = depth, root = 0).
+    pub depth_histogram: Vec<usize>,
+    /// Total quadtree nodes over all sampling trees.
+    pub sampling_dtree_nodes: usize,
+    /// Total quadtree nodes over all building trees.
+    pub building_dtree_nodes: usize,
+    /// Deepest quadtree (root = 1) over all sampling trees.
+    pub max_dtree_depth: u32,
+    /// Approximate heap memory in bytes.
+    pub memory_bytes: usize,
+    /// Number of fixed-point overflow events so far (should be 0; see [`crate::stats`]).
+    pub overflow_events: u64,
+}
+
+/// The SD-tree guide. Recording takes `&self` and may run on many threads at once; the learned
+/// statistics are exact integers, bit-identical for any thread count and record order.
+#[derive(Debug)]
+pub struct SdTree {
+    pub(crate) config: GuideConfig,
+    pub(crate) stree: STree,
+    pub(crate) leaves: Vec<Leaf>,
+    pub(crate) built: bool,
+    pub(crate) overflow: AtomicU64,
+}
+
+impl Clone for SdTree {
+    fn clone(&self) -> Self {
+        Self {
+            config: self.config.clone(),
+            stree: self.stree.clone(),
+            leaves: self.leaves.clone(),
+            built: self.built,
+            overflow: AtomicU64::new(self.overflow.load(Relaxed)),
+        }
+    }
+}
+
+impl PartialEq for SdTree {
+    fn eq(&self, o: &Self) -> bool {
+        self.config == o.config
+            && self.stree == o.stree
+            && self.leaves == o.leaves
+            && self.built == o.built
+            && self.overflow.load(Relaxed) == o.overflow.load(Relaxed)
+    }
+}
+
+impl SdTree {
+    /// A tree over the cube containing the scene box `[aabb_min, aabb_max]`, with one spatial
+    /// leaf whose building quadtree is the uniform depth-4 tree. Not built: [`SdTree::sample`]
+    /// returns `None` until the first [`SdTree::refine`].
+    pub fn new(aabb_min: Vec3, aabb_max: Vec3, config: GuideConfig) -> Self {
+        Self {
+            config,
+            stree: STree::new(aabb_min, aabb_max),
+            leaves: vec![Leaf::initial()],
+            built: false,
+            overflow: AtomicU64::new(0),
+        }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &GuideConfig {
+        &self.config
+    }
+
+    /// The spatial tree.
+    pub fn stree(&self) -> &STree {
+        &self.stree
+    }
+
+    /// All leaf payloads, indexed by [`LeafHandle`].
+    pub fn leaves(&self) -> &[Leaf] {
+        &self.leaves
+    }
+
+    /// One leaf payload.
+    pub fn leaf(&self, h: LeafHandle) -> &Leaf {
+        &self.leaves[h.0 as usize]
+    }
+
+    /// Whether sampling distributions exist (at least one [`SdTree::refine`] happened).
+    pub fn is_built(&self) -> bool {
+        self.built
+    }
+
+    /// Number of fixed-point overflow events so far (0 unless sums exceed `2^80` units or one
+    /// contribution exceeds `2^80`). Nonzero means the statistics are not trustworthy.
+    pub fn overflow_events(&self) -> u64 {
+        self.overflow.load(Relaxed)
+    }
+
+    /// The leaf containing `p` (points outside the domain are clamped onto it).
+    #[inline]
+    pub fn leaf_index(&self, p: Vec3) -> LeafHandle {
+        LeafHandle(self.stree.lookup(p).leaf)
+    }
+
+    /// The leaf containing `p` with its world-space box.
+    #[inline]
+    pub fn lookup(&self, p: Vec3) -> SLookup {
+        self.stree.lookup(p)
+    }
+
+    /// Samples a direction from the guide at `p`: `Some((unit direction, solid-angle pdf))`, or
+    /// `None` before the first refinement. `rng` returns numbers in `[0, 1)` (2 per level + 2).
+    pub fn sample(&self, p: Vec3, rng: &mut impl FnMut() -> f32) -> Option<(Vec3, f32)> {
+        self.sample_leaf(self.leaf_index(p), rng)
+    }
+
+    /// [`SdTree::sample`] for a leaf handle.
+    pub fn sample_leaf(&self, h: LeafHandle, rng: &mut impl FnMut() -> f32) -> Option<(Vec3, f32)> {
+        if !self.built {
+            return None;
+        }
+        let (uv, p) = self.leaves[h.0 as usize].sampling.sample_with_pdf(rng);
+        Some((uv_to_dir(uv), pdf_uv_to_solid_angle(p)))
+    }
+
+    /// Solid-angle pdf of the guide sampling `dir` (world space, unit) at `p`; 0 before the first
+    /// refinement.
+    pub fn pdf(&self, p: Vec3, dir: Vec3) -> f32 {
+        self.pdf_leaf(self.leaf_index(p), dir)
+    }
+
+    /// [`SdTree::pdf`] for a leaf handle.
+    pub fn pdf_leaf(&self, h: LeafHandle, dir: Vec3) -> f32 {
+        if !self.built {
+            return 0.0;
+        }
+        pdf_uv_to_solid_angle(self.leaves[h.0 as usize].sampling.pdf(dir_to_uv(dir)))
+    }
+
+    /// Probability alpha of sampling the BSDF rather than the guide at `p`.
+    pub fn bsdf_sampling_fraction(&self, p: Vec3) -> f32 {
+        self.bsdf_sampling_fraction_leaf(self.leaf_index(p))
+    }
+
+    /// [`SdTree::bsdf_sampling_fraction`] for a leaf handle: the fixed value, or
+    /// `sigmoid(theta)` clamped to `config.fraction_clamp` when learned.
+    pub fn bsdf_sampling_fraction_leaf(&self, h: LeafHandle) -> f32 {
+        match self.config.bsdf_sampling_fraction {
+            FractionMode::Fixed(a) => a,
+            FractionMode::Learned { .. } => {
+                let a = self.leaves[h.0 as usize].fraction.alpha() as f32;
+                let (lo, hi) = self.config.fraction_clamp;
+                a.clamp(lo, hi)
+            }
+        }
+    }
+
+    /// Records one training sample into the building statistics (thread safe, `&self`).
+    ///
+    /// `rng` supplies random numbers in `[0, 1)` for the stochastic spatial filter (three per
+    /// record, only with [`SpatialFilter::Stochastic`]), so the renderer keeps determinism.
+    /// See [`Record`] for the validity rules and the radiance convention.
+    pub fn record(&self, rec: &Record, rng: &mut impl FnMut() -> f32) {
+        let w = rec.weight as f64;
+        let pm = rec.pdf_mix as f64;
+        let valid = w > 0.0
+            && w.is_finite()
+            && pm > 0.0
+            && pm.is_finite()
+            && rec.position.is_finite()
+            && rec.direction.is_finite();
+        if !valid {
+            return;
+        }
+        let uv = dir_to_uv(rec.direction);
+        let value = w * rec.radiance as f64 / pm;
+        let (qv, ov) = if value > 0.0 && value.is_finite() {
+            to_fixed(value)
+        } else {
+            (0, false)
+        };
+        let (qw, ow) = to_fixed(w);
+        if ov || ow {
+            self.overflow.fetch_add(1, Relaxed);
+        }
+        let at = self.stree.lookup(rec.position);
+        match self.config.spatial_filter {
+            SpatialFilter::Nearest => self.deposit_leaf(at.leaf, uv, qv, qw, w, rec),
+            SpatialFilter::Stochastic => {
+                let pj = stochastic_jitter(rec.position, &at, rng);
+                let leaf = self.stree.lookup(pj).leaf;
+                self.deposit_leaf(leaf, uv, qv, qw, w, rec);
+            }
+            SpatialFilter::Box => {
+                let (ov, vols, pv, pw) = BOX_SCRATCH.with(|sc| {
+                    let mut sc = sc.borrow_mut();
+                    let (ov, vols, pv, pw) = &mut *sc;
+                    spatial_box_overlaps(&self.stree, rec.position, &at, ov);
+                    vols.clear();
+                    vols.extend(ov.iter().map(|o| o.1));
+                    split_exact(qv, vols, pv);
+                    split_exact(qw, vols, pw);
+                    (
+                        std::mem::take(ov),
+                        std::mem::take(vols),
+                        std::mem::take(pv),
+                        std::mem::take(pw),
+                    )
+                });
+                let total: f64 = vols.iter().sum();
+                for (i, &(leaf, vol)) in ov.iter().enumerate() {
+                    self.deposit_leaf(leaf, uv, pv[i], pw[i], w * vol / total, rec);
+                }
+                // hand the buffers back for the next record on this thread
+                BOX_SCRATCH.with(|sc| *sc.borrow_mut() = (ov, vols, pv, pw));
+            }
+        }
+    }
+
+    fn deposit_leaf(&self, leaf: u32, uv: glam::Vec2, qv: u128, qw: u128, w_share: f64, rec: &Record) {
+        let l = &self.leaves[leaf as usize];
+        l.building.add_weight(qw, &self.overflow);
+        if qv != 0 {
+            match self.config.directional_filter {
+                DirectionalFilter::Nearest => l.building.deposit(uv, qv, &self.overflow),
+                DirectionalFilter::Box => {
+                    let cell = l.building.leaf_cell(uv);
+                    l.building.splat_box(uv, cell.size, qv, &self.overflow);
+                }
+            }
+        }
+        if let FractionMode::Learned { loss } = self.config.bsdf_sampling_fraction {
+            if !rec.is_delta && w_share > 0.0 {
+                if let Some(g) = dloss_dalpha(
+                    l.fraction.alpha(),
+                    loss,
+                    rec.product,
+                    rec.pdf_bsdf,
+                    rec.pdf_guide,
+                    rec.pdf_mix,
+                ) {
+                    l.grad
+                        .accumulate(w_share, g, self.config.adam.gradient_clamp, &self.overflow);
+                }
+            }
+        }
+    }
+
+    /// One Adam step per leaf whose accumulated fraction-gradient weight exceeds
+    /// `config.adam.min_batch_weight` (others keep accumulating). Call it at a fixed point of
+    /// the schedule, e.g. at the end of every pass, so training is deterministic. No-op in
+    /// fixed-fraction mode. Returns the number of leaves stepped.
+    pub fn step_fractions(&mut self) -> usize {
+        if !matches!(self.config.bsdf_sampling_fraction, FractionMode::Learned { .. }) {
+            return 0;
+        }
+        let adam = self.config.adam;
+        let mut n = 0;
+        for l in &mut self.leaves {
+            if l.fraction.step(&l.grad, &adam) {
+                n += 1;
+            }
+        }
+        n
+    }
+
+    /// End of iteration `k` (0-based, the iteration whose records were just taken):
+    /// 1. build every building quadtree bottom-up and make it the sampling tree
+    ///    (`sampling := building`);
+    /// 2. refine the S-tree: a leaf splits while its building W exceeds the threshold of the
+    ///    iteration about to start, `c * sqrt(2^(k+1) * spp_per_pass / 4)` (as \[G\] refines at the
+    ///    start of iteration k+1); both children copy the whole payload with W (and the pending
+    ///    fraction batch) halved, and are re-tested; `max_nodes` stops splitting, and so does
+    ///    depth [`MAX_SPATIAL_DEPTH`]; the threshold is never taken below 1;
+    /// 3. reset every building quadtree from its built sums (rho = `d_tree_threshold`), which
+    ///    zeroes the statistics.
+    pub fn refine(&mut self, k: u32) {
+        for l in &mut self.leaves {
+            l.building.build();
+            l.sampling = l.building.clone();
+            l.sampling.freeze();
+        }
+        self.built = true;
+        // Floor of one record's weight: with a zero or negative threshold every leaf with any
+        // weight would split exponentially.
+        let threshold = self.config.split_threshold(k.saturating_add(1)).max(1.0);
+        let threshold_fixed = to_fixed(threshold).0;
+        let mut work: Vec<u32> = (0..self.stree.nodes.len() as u32)
+            .filter(|&i| self.stree.nodes[i as usize].is_leaf())
+            .collect();
+        work.reverse();
+        while let Some(node) = work.pop() {
+            if let Some(maxn) = self.config.max_nodes {
+                if self.stree.nodes.len() + 2 > maxn {
+                    break;
+                }
+            }
+            if self.stree.nodes[node as usize].depth >= MAX_SPATIAL_DEPTH {
+                continue;
+            }
+            let li = self.stree.nodes[node as usize].leaf;
+            let w = self.leaves[li as usize].building.weight_fixed();
+            if w <= threshold_fixed {
+                continue;
+            }
+            let (w0, w1) = (w / 2, w - w / 2);
+            let new_li = self.leaves.len() as u32;
+            let mut child = self.leaves[li as usize].clone();
+            {
+                let l = &mut self.leaves[li as usize];
+                l.building.set_weight_fixed(w0);
+                l.sampling.set_weight_fixed(l.sampling.weight_fixed() / 2);
+                halve(&l.grad, false);
+            }
+            child.building.set_weight_fixed(w1);
+            let sw = child.sampling.weight_fixed();
+            child.sampling.set_weight_fixed(sw - sw / 2);
+            halve(&child.grad, true);
+            self.leaves.push(child);
+            let [c0, c1] = self.stree.split(node, li, new_li);
+            work.push(c1);
+            work.push(c0);
+        }
+        let rho = self.config.d_tree_threshold;
+        let md = self.config.max_d_tree_depth;
+        for l in &mut self.leaves {
+            l.building.reset(rho, md);
+        }
+    }
+
+    /// Size statistics.
+    pub fn stats(&self) -> TreeStats {
+        let mut hist = Vec::new();
+        for n in &self.stree.nodes {
+            if n.is_leaf() {
+                let d = n.depth as usize;
+                if hist.len() <= d {
+                    hist.resize(d + 1, 0);
+                }
+                hist[d] += 1;
+            }
+        }
+        let mut s = TreeStats {
+            spatial_nodes: self.stree.nodes.len(),
+            leaves: self.leaves.len(),
+            depth_histogram: hist,
+            overflow_events: self.overflow_events(),
+            memory_bytes: std::mem::size_of::<Self>()
+                + self.stree.nodes.capacity() * std::mem::size_of::<crate::stree::SNode>()
+                + self.leaves.capacity() * std::mem::size_of::<Leaf>(),
+            ..Default::default()
+        };
+        for l in &self.leaves {
+            s.sampling_dtree_nodes += l.sampling.node_count();
+            s.building_dtree_nodes += l.building.node_count();
+            s.max_dtree_depth = s.max_dtree_depth.max(l.sampling.depth());
+            s.memory_bytes += l.sampling.memory_bytes() + l.building.memory_bytes()
+                - 2 * std::mem::size_of::<DTree>();
+        }
+        s
+    }
+
+    /// 64-bit fingerprint of everything statistics refer to: the S-tree and the structure of
+    /// every building quadtree. Statistics only apply to a tree with the same fingerprint.
+    pub fn structure_hash(&self) -> u64 {
+        let mut h = Hasher64::new();
+        h.write_u64(self.stree.nodes.len() as u64);
+        for n in &self.stree.nodes {
+            h.write_u32(n.axis as u32);
+            h.write_u32(n.children[0]);
+            h.write_u32(n.children[1]);
+            h.write_u32(n.leaf);
+        }
+        h.write_u64(self.leaves.len() as u64);
+        for l in &self.leaves {
+            l.building.structure_hash(&mut h);
+        }
+        h.finish()
+    }
+
+    /// Moves this iteration's building statistics (quadtree sums, W, pending fraction gradients)
+    /// out of the tree, leaving zeros: a worker calls this and ships the result (see
+    /// [`IterationStats::encode`]). Only touched leaves and nodes are included. The overflow
+    /// counter moves into the statistics too. Call it before [`SdTree::refine`] (the building
+    /// trees must not have been built or reset since the records were taken).
+    pub fn take_stats(&mut self) -> IterationStats {
+        let mut out = IterationStats {
+            structure_hash: self.structure_hash(),
+            overflow_events: self.overflow.swap(0, Relaxed),
+            leaves: Vec::new(),
+        }; 
+        for (i, l) in self.leaves.iter().enumerate() {
+            let mut ls = LeafStats {
+                leaf: i as u32,
+                weight: l.building.weight.take(),
+                grad_pos: l.grad.pos.take(),
+                grad_neg: l.grad.neg.take(),
+                grad_weight: l.grad.weight.take(),
+                nodes: Vec::new(),
+            };
+            for (ni, n) in l.building.nodes.iter().enumerate() {
+                let s = [n.sums[0].take(), n.sums[1].take(), n.sums[2].take(), n.sums[3].take()];
+                if s.iter().any(|&x| x != 0) {
+                    ls.nodes.push((ni as u32, s));
+                }
+            }
+            if ls.weight != 0 || ls.grad_pos != 0 || ls.grad_neg != 0 || ls.grad_weight != 0 || !ls.nodes.is_empty() {
+                out.leaves.push(ls);
+            }
+        }
+        out
+    }
+
+    /// Adds statistics (from [`SdTree::take_stats`] on trees with the same structure, possibly
+    /// merged) into this tree's building statistics, exactly (integer addition). Fails without
+    /// changing anything if the structure fingerprint or an index does not match.
+    pub fn apply_stats(&mut self, s: &IterationStats) -> Result<(), StatsError> {
+        if s.structure_hash != self.structure_hash() {
+            return Err(StatsError::StructureMismatch);
+        }
+        for ls in &s.leaves {
+            let Some(l) = self.leaves.get(ls.leaf as usize) else {
+                return Err(StatsError::IndexOutOfRange);
+            };
+            if ls.nodes.iter().any(|&(n, _)| n as usize >= l.building.nodes.len()) {
+                return Err(StatsError::IndexOutOfRange);
+            }
+        }
+        let mut of = 0u64;
+        for ls in &s.leaves {
+            let l = &self.leaves[ls.leaf as usize];
+            l.building.weight.set(add_counted(l.building.weight.get(), ls.weight, &mut of));
+            l.grad.add_from(ls.grad_pos, ls.grad_neg, ls.grad_weight, &mut of);
+            for &(n, sums) in &ls.nodes {
+                let node = &l.building.nodes[n as usize];
+                for q in 0..4 {
+                    node.sums[q].set(add_counted(node.sums[q].get(), sums[q], &mut of));
+                }
+            }
+        }
+        self.overflow.fetch_add(of + s.overflow_events, Relaxed);
+        Ok(())
+    }
+}
+
+/// Halves an exact gradient batch: the first child gets `floor(x/2)`, the second `x - floor(x/2)`.
+fn halve(g: &GradAccum, second: bool) {
+    let h = |a: &Acc128| {
+        let v = a.get();
+        a.set(if second { v - v / 2 } else { v / 2 });
+    };
+    h(&g.pos);
+    h(&g.neg);
+    h(&g.weight);
+}

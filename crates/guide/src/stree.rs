@@ -1,0 +1,216 @@
+//! Spatial binary tree (S-tree) over a cube made from the scene's bounding box.
+//!
+//! Nodes live in one flat array; node 0 is the root and splits on x, a child splits on
+//! `(parent.axis + 1) % 3`, always at the midpoint. Leaves point into the payload array owned
+//! by [`crate::SdTree`].
+
+use glam::Vec3;
+
+/// One S-tree node.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SNode {
+    /// Axis this node splits on (0 = x, 1 = y, 2 = z); meaningful for inner nodes.
+    pub axis: u8,
+    /// Child node indices, `[0, 0]` for a leaf (the root is never a child).
+    pub children: [u32; 2],
+    /// Payload (leaf) index for leaves, `u32::MAX` for inner nodes.
+    pub leaf: u32,
+    /// Depth of the node (root = 0).
+    pub depth: u32,
+}
+
+impl SNode {
+    /// Whether this node is a leaf.
+    #[inline]
+    pub fn is_leaf(&self) -> bool {
+        self.children[0] == 0
+    }
+}
+
+/// Result of a point lookup.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SLookup {
+    /// Payload index of the leaf.
+    pub leaf: u32,
+    /// Node index of the leaf.
+    pub node: u32,
+    /// World-space lower corner of the leaf's box.
+    pub min: Vec3,
+    /// World-space extent (size) of the leaf's box.
+    pub extent: Vec3,
+}
+
+/// The spatial binary tree: cube domain and node array.
+#[derive(Clone, Debug, PartialEq)]
+pub struct STree {
+    pub(crate) min: Vec3,
+    pub(crate) size: f32,
+    pub(crate) nodes: Vec<SNode>,
+}
+
+impl STree {
+    /// A single-leaf tree (payload 0) over the cube that contains `[aabb_min, aabb_max]`: the
+    /// box is extended symmetrically around its centre to its largest extent (a degenerate box
+    /// gets side 1; a tiny relative margin keeps the original faces strictly inside).
+    pub fn new(aabb_min: Vec3, aabb_max: Vec3) -> Self {
+        let (lo, hi) = if aabb_min.is_finite() && aabb_max.is_finite() {
+            (aabb_min.min(aabb_max), aabb_min.max(aabb_max))
+        } else {
+            (Vec3::splat(-1.0), Vec3::splat(1.0))
+        };
+        let centre = (lo + hi) * 0.5;
+        let mut size = (hi - lo).max_element();
+        if !(size > 0.0) {
+            size = 1.0;
+        }
+        size *= 1.0 + 1e-5;
+        Self {
+            min: centre - Vec3::splat(size * 0.5),
+            size,
+            nodes: vec![SNode {
+                axis: 0,
+                children: [0, 0],
+                leaf: 0,
+                depth: 0,
+            }],
+        }
+    }
+
+    /// Lower corner of the cube domain.
+    pub fn domain_min(&self) -> Vec3 {
+        self.min
+    }
+
+    /// Side length of the cube domain.
+    pub fn domain_size(&self) -> f32 {
+        self.size
+    }
+
+    /// The node array.
+    pub fn nodes(&self) -> &[SNode] {
+        &self.nodes
+    }
+
+    /// Normalises a world point into `[0, 1]^3` (clamped; NaN maps to 0).
+    #[inline]
+    pub fn normalise(&self, p: Vec3) -> Vec3 {
+        let x = (p - self.min) / self.size;
+        let c = |v: f32| if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+        Vec3::new(c(x.x), c(x.y), c(x.z))
+    }
+
+    /// Finds the leaf containing `p` and its box. Points outside the domain are clamped onto it.
+    #[inline]
+    pub fn lookup(&self, p: Vec3) -> SLookup {
+        self.lookup_normalised(self.normalise(p))
+    }
+
+    /// Lookup with a point already in normalised `[0, 1]^3` coordinates.
+    pub fn lookup_normalised(&self, x: Vec3) -> SLookup {
+        let mut x = x.to_array();
+        let mut idx = 0usize;
+        let mut ext = [1.0f32; 3];
+        let mut org = [0.0f32; 3];
+        loop {
+            let n = &self.nodes[idx];
+            if n.is_leaf() {
+                let e = Vec3::from_array(ext) * self.size;
+                return SLookup {
+                    leaf: n.leaf,
+                    node: idx as u32,
+                    min: self.min + Vec3::from_array(org) * self.size,
+                    extent: e,
+                };
+            }
+            let a = n.axis as usize;
+            ext[a] *= 0.5;
+            if x[a] < 0.5 {
+                x[a] *= 2.0;
+                idx = n.children[0] as usize;
+            } else {
+                x[a] = (x[a] - 0.5) * 2.0;
+                org[a] += ext[a];
+                idx = n.children[1] as usize;
+            }
+        }
+    }
+
+    /// Normalised box (`min`, `extent`) of node `node`, by walking from the root.
+    pub fn node_box_normalised(&self, node: u32) -> ([f32; 3], [f32; 3]) {
+        // parent links are not stored; find the path by a DFS (used rarely: tests, splats use traversal)
+        let mut stack = vec![(0u32, [0.0f32; 3], [1.0f32; 3])];
+        while let Some((n, o, e)) = stack.pop() {
+            if n == node {
+                return (o, e);
+            }
+            let sn = &self.nodes[n as usize];
+            if !sn.is_leaf() {
+                let a = sn.axis as usize;
+                let mut e2 = e;
+                e2[a] *= 0.5;
+                let mut o2 = o;
+                o2[a] += e2[a];
+                stack.push((sn.children[0], o, e2));
+                stack.push((sn.children[1], o2, e2));
+            }
+        }
+        ([0.0; 3], [1.0; 3])
+    }
+
+    /// Splits leaf node `node` at its midpoint: child 0 keeps payload `leaf0`, child 1 gets
+    /// `leaf1`. Returns the two child node indices.
+    pub(crate) fn split(&mut self, node: u32, leaf0: u32, leaf1: u32) -> [u32; 2] {
+        let n = self.nodes.len() as u32;
+        let parent = &self.nodes[node as usize];
+        let axis = ((parent.axis as u32 + 1) % 3) as u8;
+        let depth = parent.depth + 1;
+        // `node` splits on its own `axis`; its children split on the next axis
+        self.nodes.push(SNode {
+            axis,
+            children: [0, 0],
+            leaf: leaf0,
+            depth,
+        });
+        self.nodes.push(SNode {
+            axis,
+            children: [0, 0],
+            leaf: leaf1,
+            depth,
+        });
+        let p = &mut self.nodes[node as usize];
+        p.children = [n, n + 1];
+        p.leaf = u32::MAX;
+        [n, n + 1]
+    }
+
+    /// Visits every leaf whose box (in normalised coordinates, with faces on the domain border
+    /// extended to infinity) overlaps the normalised box `[lo, hi]`, calling `f(leaf, overlap
+    /// volume)` for overlaps > 0.
+    pub fn for_each_overlap(&self, lo: [f32; 3], hi: [f32; 3], mut f: impl FnMut(u32, f64)) {
+        let mut stack = vec![(0u32, [0.0f64; 3], [1.0f64; 3])];
+        while let Some((n, o, e)) = stack.pop() {
+            let mut vol = 1.0f64;
+            for a in 0..3 {
+                let l = if o[a] <= 0.0 { f64::NEG_INFINITY } else { o[a] };
+                let h = if o[a] + e[a] >= 1.0 { f64::INFINITY } else { o[a] + e[a] };
+                let ov = ((hi[a] as f64).min(h) - (lo[a] as f64).max(l)).max(0.0);
+                vol *= ov;
+            }
+            if !(vol > 0.0) {
+                continue;
+            }
+            let sn = &self.nodes[n as usize];
+            if sn.is_leaf() {
+                f(sn.leaf, vol);
+            } else {
+                let a = sn.axis as usize;
+                let mut e2 = e;
+                e2[a] *= 0.5;
+                let mut o2 = o;
+                o2[a] += e2[a];
+                stack.push((sn.children[1], o2, e2));
+                stack.push((sn.children[0], o, e2));
+            }
+        }
+    }
+}

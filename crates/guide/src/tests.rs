@@ -1,0 +1,1275 @@
+//! Library-level correctness tests (doc section 11, items 1-5 and 9-12).
+//!
+//! Statistical tests use fixed seeds and state their significance level; chi-square p-values
+//! come from our own regularised incomplete gamma function.
+
+use crate::config::*;
+use crate::dtree::{DTree, MAX_DEPTH};
+use crate::mapping::{dir_to_uv, uv_to_dir, JACOBIAN};
+use crate::record::Record;
+use crate::schedule::*;
+use crate::sdtree::SdTree;
+use crate::stats::{to_fixed, FIXED_ONE};
+use crate::wire::{IterationStats, WireError};
+use glam::{Vec2, Vec3};
+use std::sync::atomic::AtomicU64;
+
+// ------------------------------------------------------------------ helpers
+
+/// Small deterministic PRNG (PCG-XSH-RR 64/32).
+#[derive(Clone)]
+struct Pcg(u64);
+impl Pcg {
+    fn new(seed: u64) -> Self {
+        let mut p = Pcg(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xDA3E_39CB_94B9_5BDB);
+        p.next_u32();
+        p
+    }
+    fn next_u32(&mut self) -> u32 {
+        let old = self.0;
+        self.0 = old.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
+        let rot = (old >> 59) as u32;
+        xorshifted.rotate_right(rot)
+    }
+    /// Uniform in [0, 1) with 24 bits.
+    fn f32(&mut self) -> f32 {
+        (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0)
+    }
+    /// Uniform in [0, 1) with 53 bits.
+    fn f64(&mut self) -> f64 {
+        let a = (self.next_u32() >> 5) as u64;
+        let b = (self.next_u32() >> 6) as u64;
+        ((a << 26) | b) as f64 * (1.0 / 9_007_199_254_740_992.0)
+    }
+    fn below(&mut self, n: u32) -> u32 {
+        ((self.next_u32() as u64 * n as u64) >> 32) as u32
+    }
+    fn gauss(&mut self) -> f64 {
+        let u1 = 1.0 - self.f64();
+        let u2 = self.f64();
+        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    }
+    fn rng(&mut self) -> impl FnMut() -> f32 + '_ {
+        move || self.f32()
+    }
+}
+
+fn ln_gamma(x: f64) -> f64 {
+    // Lanczos approximation (g = 7, n = 9), accurate to ~1e-15 for x > 0.
+    const C: [f64; 9] = [
+        0.999_999_999_999_809_9,
+        676.520_368_121_885_1,
+        -1_259.139_216_722_402_8,
+        771.323_428_777_653_1,
+        -176.615_029_162_140_6,
+        12.507_343_278_686_905,
+        -0.138_571_095_265_720_12,
+        9.984_369_578_019_572e-6,
+        1.505_632_735_149_311_6e-7,
+    ];
+    if x < 0.5 {
+        let pi = std::f64::consts::PI;
+        return (pi / (pi * x).sin()).ln() - ln_gamma(1.0 - x);
+    }
+    let x = x - 1.0;
+    let mut a = C[0];
+    let t = x + 7.5;
+    for (i, &c) in C.iter().enumerate().skip(1) {
+        a += c / (x + i as f64);
+    }
+    0.5 * (2.0 * std::f64::consts::PI).ln() + (x + 0.5) * t.ln() - t + a.ln()
+}
+
+/// Regularised upper incomplete gamma Q(a, x).
+fn gamma_q(a: f64, x: f64) -> f64 {
+    if x <= 0.0 {
+        return 1.0;
+    }
+    let lg = ln_gamma(a);
+    if x < a + 1.0 {
+        // series for P
+        let mut sum = 1.0 / a;
+        let mut term = sum;
+        let mut n = a;
+        for _ in 0..10_000 {
+            n += 1.0;
+            term *= x / n;
+            sum += term;
+            if term.abs() < sum.abs() * 1e-16 {
+                break;
+            }
+        }
+        1.0 - sum * (-x + a * x.ln() - lg).exp()
+    } else {
+        // Lentz continued fraction for Q
+        let tiny = 1e-300;
+        let mut b = x + 1.0 - a;
+        let mut c = 1.0 / tiny;
+        let mut d = 1.0 / b;
+        let mut h = d;
+        for i in 1..10_000 {
+            let an = -(i as f64) * (i as f64 - a);
+            b += 2.0;
+            d = an * d + b;
+            if d.abs() < tiny {
+                d = tiny;
+            }
+            c = b + an / c;
+            if c.abs() < tiny {
+                c = tiny;
+            }
+            d = 1.0 / d;
+            let del = d * c;
+            h *= del;
+            if (del - 1.0).abs() < 1e-16 {
+                break;
+            }
+        }
+        (-x + a * x.ln() - lg).exp() * h
+    }
+}
+
+/// p-value of a chi-square statistic with `dof` degrees of freedom.
+fn chi2_pvalue(stat: f64, dof: usize) -> f64 {
+    gamma_q(dof as f64 * 0.5, stat * 0.5)
+}
+
+/// Pearson chi-square test with pooling of bins whose expectation is < 5. Returns the p-value,
+/// or 0 if a sample fell into a bin of zero expectation.
+fn chi2_test(observed: &[f64], expected: &[f64]) -> f64 {
+    let (mut stat, mut bins) = (0.0, 0usize);
+    let (mut po, mut pe) = (0.0, 0.0);
+    for (&o, &e) in observed.iter().zip(expected) {
+        if e <= 0.0 {
+            if o > 0.0 {
+                return 0.0;
+            }
+            continue;
+        }
+        if e < 5.0 {
+            po += o;
+            pe += e;
+        } else {
+            stat += (o - e) * (o - e) / e;
+            bins += 1;
+        }
+    }
+    if pe > 0.0 {
+        stat += (po - pe) * (po - pe) / pe;
+        bins += 1;
+    }
+    if bins < 2 {
+        return 1.0;
+    }
+    chi2_pvalue(stat, bins - 1)
+}
+
+#[test]
+fn chi2_helper_matches_known_quantiles() {
+    // chi2(0.95 quantile) values: dof 1 -> 3.841, dof 10 -> 18.307, dof 100 -> 124.342
+    assert!((chi2_pvalue(3.841_458_8, 1) - 0.05).abs() < 1e-6);
+    assert!((chi2_pvalue(18.307_038, 10) - 0.05).abs() < 1e-6);
+    assert!((chi2_pvalue(124.342_11, 100) - 0.05).abs() < 1e-6);
+    assert!((chi2_pvalue(2.0, 2) - (-1.0f64).exp()).abs() < 1e-12);
+}
+
+/// Šidák-corrected per-test significance for an overall level `alpha` over `m` tests.
+fn sidak(alpha: f64, m: usize) -> f64 {
+    1.0 - (1.0 - alpha).powf(1.0 / m as f64)
+}
+
+/// Kinds of random quadtrees.
+#[derive(Clone, Copy, Debug)]
+enum TreeKind {
+    /// Several blobs of random width, including zero-energy regions.
+    Blobs,
+    /// One point mass refined down to depth 20, plus a weak background.
+    Peak,
+    /// Mass only inside a random rectangle (large zero regions).
+    Rect,
+}
+
+fn random_uv(rng: &mut Pcg, kind: TreeKind, centres: &[(f64, f64, f64)], rect: [f64; 4]) -> Vec2 {
+    match kind {
+        TreeKind::Blobs => {
+            let (cx, cy, s) = centres[rng.below(centres.len() as u32) as usize];
+            let u = (cx + s * rng.gauss()).clamp(0.0, 0.999_999);
+            let v = (cy + s * rng.gauss()).rem_euclid(1.0).min(0.999_999);
+            Vec2::new(u as f32, v as f32)
+        }
+        TreeKind::Peak => Vec2::new(centres[0].0 as f32, centres[0].1 as f32),
+        TreeKind::Rect => Vec2::new(
+            (rect[0] + rng.f64() * (rect[2] - rect[0])) as f32,
+            (rect[1] + rng.f64() * (rect[3] - rect[1])) as f32,
+        ),
+    }
+}
+
+/// A random built quadtree: several rounds of deposit / build / reset, then a final deposit
+/// and build.
+fn random_dtree(seed: u64, kind: TreeKind) -> DTree {
+    let mut rng = Pcg::new(seed);
+    let ov = AtomicU64::new(0);
+    let nc = 1 + rng.below(4) as usize;
+    let centres: Vec<(f64, f64, f64)> = (0..nc)
+        .map(|_| (rng.f64(), rng.f64(), 10f64.powf(-1.0 - 4.0 * rng.f64())))
+        .collect();
+    let a = [rng.f64() * 0.5, rng.f64() * 0.5];
+    let rect = [a[0], a[1], a[0] + 0.05 + rng.f64() * 0.4, a[1] + 0.05 + rng.f64() * 0.4];
+    let mut t = DTree::new();
+    let rounds = if matches!(kind, TreeKind::Peak) { 9 } else { 1 + rng.below(6) };
+    for round in 0..=rounds {
+        for _ in 0..2000 {
+            let uv = random_uv(&mut rng, kind, &centres, rect);
+            let val = 0.1 + rng.f64() * 2.0;
+            t.deposit(uv, to_fixed(val).0, &ov);
+            t.add_weight(FIXED_ONE, &ov);
+        }
+        if round == rounds && matches!(kind, TreeKind::Peak) {
+            // weak background so that the peak cell is not the only one with mass
+            for _ in 0..200 {
+                let uv = Vec2::new(rng.f32(), rng.f32());
+                t.deposit(uv, to_fixed(0.01).0, &ov);
+            }
+        }
+        t.build();
+        if round < rounds {
+            t.reset(0.01, MAX_DEPTH);
+        }
+    }
+    t
+}
+
+/// Exact probability mass of the tree's distribution inside each cell of a `nu x nv` grid in
+/// (u, v), and inside each (theta, phi) bin on the sphere (`nt` equal-angle theta bins over
+/// u = (cos theta + 1) / 2, `np` phi bins).
+fn bin_masses(t: &DTree, u_edges: &[f64], nv: usize) -> Vec<f64> {
+    let nu = u_edges.len() - 1;
+    let mut m = vec![0.0; nu * nv];
+    for c in t.leaf_cells() {
+        let p = t.cell_pdf(&c);
+        if p == 0.0 {
+            continue;
+        }
+        let (u0, u1) = (c.origin[0], c.origin[0] + c.size);
+        let (v0, v1) = (c.origin[1], c.origin[1] + c.size);
+        for i in 0..nu {
+            let ou = (u1.min(u_edges[i + 1]) - u0.max(u_edges[i])).max(0.0);
+            if ou == 0.0 {
+                continue;
+            }
+            let j0 = ((v0 * nv as f64).floor() as usize).min(nv - 1);
+            let j1 = ((v1 * nv as f64).ceil() as usize).min(nv);
+            for j in j0..j1 {
+                let (b0, b1) = (j as f64 / nv as f64, (j + 1) as f64 / nv as f64);
+                let ovv = (v1.min(b1) - v0.max(b0)).max(0.0);
+                m[i * nv + j] += p * ou * ovv;
+            }
+        }
+    }
+    m
+}
+
+fn bin_index(edges: &[f64], x: f64) -> usize {
+    let n = edges.len() - 1;
+    let mut i = edges.partition_point(|&e| e <= x);
+    i = i.saturating_sub(1);
+    i.min(n - 1)
+}
+
+// ------------------------------------------------------------------ 1. chi-square
+
+#[test]
+fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
+    // Overall significance 0.01 over all (tree, binning) pairs, Šidák corrected.
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    let trees: Vec<(u64, TreeKind)> = (0..12u64).map(|i| (1000 + i, kinds[i as usize % 3])).collect();
+    let m = trees.len() * 2;
+    let level = sidak(0.01, m);
+    let n_samples = 60_000;
+    let mut max_depth_seen = 0;
+    let mut saw_zero_cell = false;
+    for &(seed, kind) in &trees {
+        let t = random_dtree(seed, kind);
+        max_depth_seen = max_depth_seen.max(t.depth());
+        saw_zero_cell |= t.leaf_cells().iter().any(|c| t.cell_pdf(c) == 0.0);
+        // (u, v) grid
+        let nu = 24;
+        let nv = 24;
+        let u_edges: Vec<f64> = (0..=nu).map(|i| i as f64 / nu as f64).collect();
+        // sphere grid: equal-angle theta bins, theta measured from +z
+        let nt = 12;
+        let t_edges: Vec<f64> = (0..=nt)
+            .map(|i| {
+                let th = std::f64::consts::PI * (nt - i) as f64 / nt as f64;
+                ((th.cos() + 1.0) * 0.5).clamp(0.0, 1.0)
+            })
+            .collect();
+        let exp_uv: Vec<f64> = bin_masses(&t, &u_edges, nv).iter().map(|m| m * n_samples as f64).collect();
+        let exp_sp: Vec<f64> = bin_masses(&t, &t_edges, nv).iter().map(|m| m * n_samples as f64).collect();
+        let total: f64 = exp_uv.iter().sum();
+        assert!((total - n_samples as f64).abs() < 1e-6 * n_samples as f64, "mass {total}");
+        let mut obs_uv = vec![0.0; nu * nv];
+        let mut obs_sp = vec![0.0; nt * nv];
+        let mut rng = Pcg::new(seed ^ 0xABCD);
+        for _ in 0..n_samples {
+            let (uv, pdf) = t.sample_with_pdf(&mut rng.rng());
+            assert!(pdf > 0.0, "sampled a zero-pdf point");
+            let p2 = t.pdf(uv);
+            assert!((pdf - p2).abs() <= 1e-4 * pdf, "sample pdf {pdf} vs pdf {p2}");
+            let iu = bin_index(&u_edges, uv.x as f64);
+            let iv = ((uv.y as f64 * nv as f64) as usize).min(nv - 1);
+            obs_uv[iu * nv + iv] += 1.0;
+            // sphere binning from the world direction
+            let d = uv_to_dir(uv);
+            let theta = (d.z as f64).clamp(-1.0, 1.0).acos();
+            let it = ((theta / std::f64::consts::PI * nt as f64) as usize).min(nt - 1);
+            let mut phi = (d.y as f64).atan2(d.x as f64);
+            if phi < 0.0 {
+                phi += 2.0 * std::f64::consts::PI;
+            }
+            let ip = ((phi / (2.0 * std::f64::consts::PI) * nv as f64) as usize).min(nv - 1);
+            // sphere bins are indexed from u = 0 (theta = pi) upwards
+            obs_sp[(nt - 1 - it) * nv + ip] += 1.0;
+        }
+        let p_uv = chi2_test(&obs_uv, &exp_uv);
+        assert!(p_uv > level, "tree {seed} {kind:?}: uv chi2 p = {p_uv:e} (level {level:e})");
+        // For directions exactly on a theta-bin border, float rounding may move the bin; the
+        // expected masses treat bins as half-open in u, which is measure-zero different.
+        let p_sp = chi2_test(&obs_sp, &exp_sp);
+        assert!(p_sp > level, "tree {seed} {kind:?}: sphere chi2 p = {p_sp:e} (level {level:e})");
+    }
+    assert_eq!(max_depth_seen, MAX_DEPTH, "random trees must reach depth 20");
+    assert!(saw_zero_cell, "random trees must contain zero-energy cells");
+}
+
+#[test]
+fn chi_square_detects_a_wrong_sampler() {
+    // Power check of the harness: sampling a tree but binning against a different tree's pdf
+    // must be rejected.
+    let t = random_dtree(77, TreeKind::Blobs);
+    let other = random_dtree(78, TreeKind::Blobs);
+    let nv = 16;
+    let u_edges: Vec<f64> = (0..=16).map(|i| i as f64 / 16.0).collect();
+    let n = 20_000;
+    let exp: Vec<f64> = bin_masses(&other, &u_edges, nv).iter().map(|m| m * n as f64).collect();
+    let mut obs = vec![0.0; 16 * nv];
+    let mut rng = Pcg::new(5);
+    for _ in 0..n {
+        let uv = t.sample(&mut rng.rng());
+        obs[bin_index(&u_edges, uv.x as f64) * nv + ((uv.y * nv as f32) as usize).min(nv - 1)] += 1.0;
+    }
+    assert!(chi2_test(&obs, &exp) < 1e-6);
+}
+
+// ------------------------------------------------------------------ 2. pdf integral, round trip
+
+#[test]
+fn quadtree_pdf_integrates_to_one_in_uv_and_on_the_sphere() {
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    for i in 0..9u64 {
+        let t = random_dtree(200 + i, kinds[i as usize % 3]);
+        let mut s_uv = 0.0;
+        let mut s_sphere = 0.0;
+        for c in t.leaf_cells() {
+            let p = t.cell_pdf(&c);
+            s_uv += p * c.size * c.size;
+            s_sphere += (p / JACOBIAN as f64) * (JACOBIAN as f64) * c.size * c.size;
+        }
+        assert!((s_uv - 1.0).abs() < 1e-5, "uv integral {s_uv}");
+        assert!((s_sphere - 1.0).abs() < 1e-5);
+    }
+    let empty = DTree::new();
+    assert_eq!(empty.pdf(Vec2::new(0.3, 0.7)), 1.0);
+    let mut rng = Pcg::new(1);
+    let (uv, p) = empty.sample_with_pdf(&mut rng.rng());
+    assert!(p == 1.0 && uv.x >= 0.0 && uv.x < 1.0 && uv.y >= 0.0 && uv.y < 1.0);
+}
+
+#[test]
+fn sdtree_sample_returns_unit_directions_whose_pdf_round_trips() {
+    let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), GuideConfig::default());
+    let mut rng = Pcg::new(3);
+    assert!(tree.sample(Vec3::ZERO, &mut rng.rng()).is_none(), "no sampling before refine");
+    assert_eq!(tree.pdf(Vec3::ZERO, Vec3::Z), 0.0);
+    for _ in 0..5000 {
+        let d = uv_to_dir(Vec2::new(0.6 + 0.3 * rng.f32(), 0.2 * rng.f32()));
+        tree.record(&Record::radiance_only(Vec3::ZERO, d, 1.0, 1.0, 1.0), &mut rng.rng());
+    }
+    tree.refine(0);
+    for _ in 0..2000 {
+        let (d, p) = tree.sample(Vec3::new(0.1, 0.2, 0.3), &mut rng.rng()).unwrap();
+        assert!((d.length() - 1.0).abs() < 1e-5);
+        let p2 = tree.pdf(Vec3::new(0.1, 0.2, 0.3), d);
+        assert!((p - p2).abs() <= 2e-3 * p, "{p} {p2} {d}");
+        let uv = dir_to_uv(d);
+        assert!((uv_to_dir(uv) - d).length() < 1e-4);
+    }
+}
+
+// ------------------------------------------------------------------ 3. recorder
+
+#[test]
+fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_change_w() {
+    use std::f64::consts::PI;
+    let cfg = GuideConfig {
+        s_tree_threshold: 1e12,
+        ..GuideConfig::default()
+    };
+    let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut rng = Pcg::new(11);
+    // L(w) = 3 max(z, 0) + 0.5 [y > 0]; sampled with p_uv(u, v) = u + 0.5.
+    let l = |d: Vec3| 3.0 * (d.z as f64).max(0.0) + if d.y > 0.0 { 0.5 } else { 0.0 };
+    let n = 200_000;
+    let mut vals = Vec::with_capacity(n);
+    for _ in 0..n {
+        let r = rng.f64();
+        let u = (-1.0 + (1.0 + 8.0 * r).sqrt()) * 0.5;
+        let v = rng.f64();
+        let d = uv_to_dir(Vec2::new(u as f32, v as f32));
+        let uv = dir_to_uv(d);
+        let p = (uv.x as f64 + 0.5) / (4.0 * PI);
+        let rad = l(d);
+        vals.push(rad / p);
+        tree.record(&Record::radiance_only(Vec3::ZERO, d, rad as f32, p as f32, 1.0), &mut rng.rng());
+    }
+    // Zero-radiance, negative and NaN radiance records only add to W; invalid weights add nothing.
+    let leaf = &tree.leaves()[0];
+    let sums_before: Vec<u128> = leaf.building.nodes().iter().flat_map(|n| n.sums.iter().map(|s| s.get())).collect();
+    let w_before = leaf.building.weight_fixed();
+    for rad in [0.0f32, -1.0, f32::NAN, f32::INFINITY] {
+        tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, rad, 1.0, 1.0), &mut rng.rng());
+    }
+    for w in [0.0f32, -1.0, f32::NAN] {
+        tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 1.0, w), &mut rng.rng());
+    }
+    tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 0.0, 1.0), &mut rng.rng());
+    let leaf = &tree.leaves()[0];
+    let sums_after: Vec<u128> = leaf.building.nodes().iter().flat_map(|n| n.sums.iter().map(|s| s.get())).collect();
+    assert_eq!(sums_before, sums_after, "zero / invalid radiance must not change sums");
+    assert_eq!(leaf.building.weight_fixed(), w_before + 4 * FIXED_ONE);
+
+    tree.refine(0);
+    let t = &tree.leaves()[0].sampling;
+    let w = t.weight();
+    assert_eq!(w, (n + 4) as f64);
+    let mean: f64 = vals.iter().sum::<f64>() / n as f64;
+    let var: f64 = vals.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64;
+    let se = (var / n as f64).sqrt();
+    // 5 standard errors: two-sided significance ~6e-7 per check (normal approximation).
+    let est = t.total() / n as f64;
+    assert!((est - 4.0 * PI).abs() < 5.0 * se, "integral {est} vs {}", 4.0 * PI);
+    assert!((t.mean() * 4.0 * PI * w / n as f64 - est).abs() < 1e-9);
+    // Per root quadrant: q0 (z<0, y>0) = pi/2, q1 (z>0, y>0) = 2 pi, q2 = 0, q3 = 1.5 pi.
+    let expect = [0.5 * PI, 2.0 * PI, 0.0, 1.5 * PI];
+    for q in 0..4 {
+        let s = t.nodes()[0].sums[q].get_f64() / n as f64;
+        assert!((s - expect[q]).abs() < 5.0 * se, "quadrant {q}: {s} vs {}", expect[q]);
+    }
+    assert_eq!(t.nodes()[0].sums[2].get(), 0);
+}
+
+// ------------------------------------------------------------------ 4. reset invariants
+
+/// Mass of the old tree inside the cell (origin, size), assuming uniform density in old leaves.
+fn old_mass(t: &DTree, origin: [f64; 2], size: f64) -> f64 {
+    let mut node = 0usize;
+    let mut o = [0.0f64; 2];
+    let mut s = 1.0f64;
+    loop {
+        let h = s * 0.5;
+        let q = ((origin[0] >= o[0] + h) as usize) | (((origin[1] >= o[1] + h) as usize) << 1);
+        let qo = [o[0] + if q & 1 != 0 { h } else { 0.0 }, o[1] + if q & 2 != 0 { h } else { 0.0 }];
+        let c = t.nodes()[node].children[q];
+        let sum = t.nodes()[node].sums[q].get_f64();
+        if size >= h || c == 0 {
+            return sum * (size / h) * (size / h);
+        }
+        node = c as usize;
+        o = qo;
+        s = h;
+    }
+}
+
+#[test]
+fn reset_refines_exactly_where_energy_fraction_exceeds_rho() {
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    for i in 0..9u64 {
+        let old = random_dtree(300 + i, kinds[i as usize % 3]);
+        let total = old.total();
+        for rho in [0.01, 0.05] {
+            let mut t = old.clone();
+            t.reset(rho, MAX_DEPTH);
+            assert!(t.depth() <= MAX_DEPTH);
+            assert_eq!(t.weight_fixed(), 0);
+            let mut stack = vec![(0usize, [0.0f64; 2], 1.0f64, 1u32)];
+            let mut checked = 0;
+            while let Some((n, o, s, d)) = stack.pop() {
+                for q in 0..4 {
+                    let h = s * 0.5;
+                    let qo = [o[0] + if q & 1 != 0 { h } else { 0.0 }, o[1] + if q & 2 != 0 { h } else { 0.0 }];
+                    let f = old_mass(&old, qo, h) / total;
+                    let c = t.nodes()[n].children[q];
+                    assert_eq!(c != 0, f > rho && d < MAX_DEPTH, "cell {qo:?} size {h} f {f} depth {d}");
+                    assert_eq!(t.nodes()[n].sums[q].get(), 0);
+                    checked += 1;
+                    if c != 0 {
+                        stack.push((c as usize, qo, h, d + 1));
+                    }
+                }
+            }
+            assert!(checked > 4);
+        }
+    }
+    // An empty tree resets to the uniform depth-4 tree.
+    let mut e = random_dtree(1, TreeKind::Blobs);
+    e.clear_stats();
+    e.reset(0.01, MAX_DEPTH);
+    assert_eq!(e.leaf_count(), 256);
+    assert_eq!(e.node_count(), 85);
+    assert_eq!(e.depth(), 4);
+}
+
+#[test]
+fn build_makes_every_parent_sum_equal_the_sum_of_its_children() {
+    for i in 0..6u64 {
+        let t = random_dtree(400 + i, [TreeKind::Blobs, TreeKind::Peak][i as usize % 2]);
+        let mut inner = 0;
+        for n in t.nodes() {
+            for q in 0..4 {
+                let c = n.children[q];
+                if c != 0 {
+                    assert_eq!(n.sums[q].get(), t.nodes()[c as usize].total());
+                    inner += 1;
+                }
+            }
+        }
+        assert!(inner > 0);
+        let leaf_total: u128 = t
+            .leaf_cells()
+            .iter()
+            .map(|c| t.nodes()[c.node as usize].sums[c.quadrant as usize].get())
+            .sum();
+        assert_eq!(leaf_total, t.total_fixed());
+    }
+}
+
+// ------------------------------------------------------------------ 5. S-tree
+
+fn clustered_records(rng: &mut Pcg, n: usize) -> Vec<Record> {
+    (0..n)
+        .map(|_| {
+            let p = if rng.below(2) == 0 {
+                Vec3::new(-0.8 + 0.3 * rng.f32(), -0.7 + 0.2 * rng.f32(), 0.5 + 0.4 * rng.f32())
+            } else {
+                Vec3::new(rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0)
+            };
+            let d = uv_to_dir(Vec2::new(rng.f32(), rng.f32()));
+            let pb = 0.1 + rng.f32();
+            let pg = 0.1 + rng.f32();
+            Record {
+                position: p,
+                direction: d,
+                radiance: rng.f32() * 2.0,
+                pdf_mix: 0.5 * (pb + pg),
+                weight: if rng.below(8) == 0 { 0.5 } else { 1.0 },
+                product: rng.f32(),
+                pdf_bsdf: pb,
+                pdf_guide: pg,
+                is_delta: rng.below(20) == 0,
+            }
+        })
+        .collect()
+}
+
+fn warmed_tree(cfg: GuideConfig, seed: u64, n: usize, iterations: u32) -> SdTree {
+    let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut rng = Pcg::new(seed);
+    for k in 0..iterations {
+        for r in clustered_records(&mut rng, n) {
+            t.record(&r, &mut rng.rng());
+        }
+        t.step_fractions();
+        t.refine(k);
+    }
+    t
+}
+
+#[test]
+fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 100.0,
+        ..GuideConfig::default()
+    };
+    let t = warmed_tree(cfg, 5, 6000, 2);
+    assert!(t.stats().leaves > 10);
+    let st = t.stree();
+    let mut rng = Pcg::new(9);
+    for i in 0..20_000 {
+        let p = if i < 8 {
+            // corners of the domain, including the max faces
+            let m = st.domain_min();
+            let s = st.domain_size();
+            m + Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32) * s
+        } else {
+            Vec3::new(rng.f32() * 2.4 - 1.2, rng.f32() * 2.4 - 1.2, rng.f32() * 2.4 - 1.2)
+        };
+        let l = st.lookup(p);
+        let x = st.normalise(p);
+        let (o, e) = st.node_box_normalised(l.node);
+        for a in 0..3 {
+            assert!(x[a] >= o[a] && (x[a] < o[a] + e[a] || (x[a] == 1.0 && o[a] + e[a] == 1.0)), "point {p} box {o:?} {e:?}");
+            assert!((l.extent[a] - e[a] * st.domain_size()).abs() < 1e-6);
+            assert!((l.min[a] - (st.domain_min()[a] + o[a] * st.domain_size())).abs() < 1e-5);
+        }
+        assert!(st.nodes()[l.node as usize].is_leaf());
+        assert_eq!(st.nodes()[l.node as usize].leaf, l.leaf);
+    }
+    // Points exactly on split planes belong to the upper child: every leaf's lower corner
+    // (and its centre) looks up that leaf.
+    for (i, n) in st.nodes().iter().enumerate() {
+        if n.is_leaf() {
+            let (o, e) = st.node_box_normalised(i as u32);
+            let o3 = Vec3::from_array(o);
+            assert_eq!(st.lookup_normalised(o3).node, i as u32, "lower corner of leaf {i}");
+            let c = o3 + Vec3::from_array(e) * 0.5;
+            assert_eq!(st.lookup_normalised(c).node, i as u32);
+        }
+    }
+}
+
+#[test]
+fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 300.0,
+        ..GuideConfig::default()
+    };
+    let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg.clone());
+    let mut rng = Pcg::new(21);
+    let recs = clustered_records(&mut rng, 20_000);
+    for r in &recs {
+        t.record(r, &mut rng.rng());
+    }
+    t.refine(0);
+    let thr = cfg.split_threshold(1);
+    let st = t.stree();
+    // subtree weights (sampling W keeps the W used in the split decisions)
+    fn sub_w(t: &SdTree, n: u32) -> f64 {
+        let node = &t.stree().nodes()[n as usize];
+        if node.is_leaf() {
+            t.leaves()[node.leaf as usize].sampling.weight()
+        } else {
+            sub_w(t, node.children[0]) + sub_w(t, node.children[1])
+        }
+    }
+    let total_w: f64 = recs.iter().map(|r| r.weight as f64).sum();
+    assert!((sub_w(&t, 0) - total_w).abs() < 1e-6);
+    let mut inner = 0;
+    for (i, n) in st.nodes().iter().enumerate() {
+        if n.is_leaf() {
+            assert!(t.leaves()[n.leaf as usize].sampling.weight() <= thr);
+        } else {
+            assert!(sub_w(&t, i as u32) > thr, "node {i} split below the threshold");
+            inner += 1;
+        }
+    }
+    assert!(inner > 3);
+    // Memory cap stops refinement.
+    let capped = GuideConfig {
+        max_nodes: Some(5),
+        ..cfg
+    };
+    let mut t2 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), capped);
+    for r in &recs {
+        t2.record(r, &mut rng.rng());
+    }
+    t2.refine(0);
+    assert!(t2.stats().spatial_nodes <= 5);
+    assert_eq!(t2.stats().leaves, 3);
+    // a zero threshold does not split without bound (floor of one record weight)
+    let zero = GuideConfig { s_tree_threshold: 0.0, ..GuideConfig::default() };
+    let mut t3 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), zero);
+    for r in recs.iter().take(50) {
+        t3.record(r, &mut rng.rng());
+    }
+    t3.refine(0);
+    assert!(t3.stats().leaves <= 100, "{}", t3.stats().leaves);
+}
+
+#[test]
+fn stree_children_inherit_the_whole_payload() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 1000.0,
+        bsdf_sampling_fraction: FractionMode::Learned { loss: FractionLoss::Kl },
+        ..GuideConfig::default()
+    };
+    let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut rng = Pcg::new(4);
+    for r in clustered_records(&mut rng, 3000) {
+        t.record(&r, &mut rng.rng());
+    }
+    t.leaves[0].fraction.theta = 0.75;
+    t.leaves[0].fraction.m = 0.125;
+    let mut expected = t.leaves[0].building.clone();
+    expected.build();
+    let pending = t.leaves[0].grad.clone();
+    assert!(pending.pos.get() > 0 && pending.neg.get() > 0 && pending.weight.get() > 0);
+    t.refine(0);
+    // the pending fraction batch is split exactly between the children
+    let sum = |f: fn(&crate::fraction::GradAccum) -> u128| t.leaves().iter().map(|l| f(&l.grad)).sum::<u128>();
+    assert_eq!(sum(|g| g.pos.get()), pending.pos.get());
+    assert_eq!(sum(|g| g.neg.get()), pending.neg.get());
+    assert_eq!(sum(|g| g.weight.get()), pending.weight.get());
+    let mean0 = pending.mean().unwrap();
+    for l in t.leaves() {
+        assert!((l.grad.mean().unwrap() - mean0).abs() < 1e-9 * mean0.abs().max(1.0));
+    }
+    assert!(t.leaves().len() >= 2);
+    for l in t.leaves() {
+        assert_eq!(l.sampling.nodes(), expected.nodes(), "sampling tree not inherited");
+        assert_eq!(l.fraction.theta, 0.75);
+        assert_eq!(l.fraction.m, 0.125);
+        let mut reset = expected.clone();
+        reset.reset(0.01, MAX_DEPTH);
+        assert_eq!(l.building, reset, "building tree not reset from the inherited tree");
+    }
+    let ws: f64 = t.leaves().iter().map(|l| l.sampling.weight()).sum();
+    assert!((ws - expected.weight()).abs() < 1e-9);
+}
+
+#[test]
+fn sample_and_pdf_read_only_the_frozen_sampling_tree() {
+    let mut t = warmed_tree(GuideConfig::default(), 8, 3000, 1);
+    let dirs: Vec<Vec3> = (0..64).map(|i| uv_to_dir(Vec2::new((i % 8) as f32 / 8.0 + 0.01, (i / 8) as f32 / 8.0 + 0.01))).collect();
+    let before: Vec<f32> = dirs.iter().map(|&d| t.pdf(Vec3::ZERO, d)).collect();
+    let mut rng = Pcg::new(1);
+    let s_before = t.sample(Vec3::ZERO, &mut Pcg::new(2).rng());
+    for _ in 0..5000 {
+        let r = Record::radiance_only(Vec3::ZERO, Vec3::Z, 100.0, 0.1, 1.0);
+        t.record(&r, &mut rng.rng());
+    }
+    let after: Vec<f32> = dirs.iter().map(|&d| t.pdf(Vec3::ZERO, d)).collect();
+    assert_eq!(before, after);
+    assert_eq!(s_before, t.sample(Vec3::ZERO, &mut Pcg::new(2).rng()));
+    let h = t.leaf_index(Vec3::ZERO);
+    assert_eq!(t.pdf_leaf(h, dirs[3]), after[3]);
+    // and the next refinement does pick the new records up
+    t.refine(1);
+    let l = t.leaf_index(Vec3::ZERO);
+    assert!(t.pdf_leaf(l, Vec3::Z) > after.iter().cloned().fold(0.0, f32::max));
+}
+
+// ------------------------------------------------------------------ 9. filters
+
+#[test]
+fn box_splats_conserve_mass_exactly() {
+    let base = GuideConfig {
+        s_tree_threshold: 200.0,
+        spatial_filter: SpatialFilter::Box,
+        directional_filter: DirectionalFilter::Box,
+        ..GuideConfig::default()
+    };
+    let t = warmed_tree(base, 31, 4000, 3);
+    assert!(t.stats().leaves > 8);
+    let mut rng = Pcg::new(32);
+    let mut recs = clustered_records(&mut rng, 3000);
+    // records at the phi seam, the poles and the domain corners
+    for i in 0..200 {
+        let v = if i % 2 == 0 { 0.9999 } else { 0.0001 };
+        let u = [0.0001f32, 0.5, 0.9999][i % 3];
+        let c = if i % 4 == 0 { Vec3::splat(1.0) } else { Vec3::splat(-1.0) };
+        recs.push(Record::radiance_only(c, uv_to_dir(Vec2::new(u, v)), 1.5, 0.3, 1.0));
+    }
+    let mut expect_sum = 0u128;
+    let mut expect_w = 0u128;
+    for r in &recs {
+        t.record(r, &mut rng.rng());
+        let v = r.weight as f64 * r.radiance as f64 / r.pdf_mix as f64;
+        expect_sum += to_fixed(v).0;
+        expect_w += to_fixed(r.weight as f64).0;
+    }
+    let mut got_sum = 0u128;
+    let mut got_w = 0u128;
+    let mut touched = 0;
+    for l in t.leaves() {
+        got_w += l.building.weight_fixed();
+        let s: u128 = l.building.nodes().iter().map(|n| n.total()).sum();
+        got_sum += s;
+        touched += (s > 0) as usize;
+    }
+    assert_eq!(got_w, expect_w);
+    assert_eq!(got_sum, expect_sum);
+    assert!(touched > 4);
+    // a single splat spreads over several spatial leaves and several cells
+    let mut t2 = t.clone();
+    let _ = t2.take_stats();
+    let p = Vec3::new(-0.62, -0.6, 0.7);
+    t2.record(&Record::radiance_only(p, uv_to_dir(Vec2::new(0.3, 0.9995)), 1.0, 1.0, 1.0), &mut rng.rng());
+    let s = t2.take_stats();
+    assert!(s.leaves.len() > 1, "box splat hit only one leaf");
+    assert!(s.leaves.iter().any(|l| l.nodes.len() > 1 || l.nodes.iter().any(|n| n.1.iter().filter(|&&x| x > 0).count() > 1)));
+    let tot: u128 = s.leaves.iter().flat_map(|l| l.nodes.iter().flat_map(|n| n.1.iter())).sum();
+    assert_eq!(tot, FIXED_ONE);
+}
+
+#[test]
+fn directional_box_splat_wraps_across_the_phi_seam() {
+    let ov = AtomicU64::new(0);
+    let t = DTree::uniform(4);
+    // cell size 1/16 centred on v = 0.001: most of the square lies beyond the seam
+    t.splat_box(Vec2::new(0.5, 0.001), 1.0 / 16.0, 1_000_000, &ov);
+    let mut low = 0u128;
+    let mut high = 0u128;
+    for c in t.leaf_cells() {
+        let s = t.nodes()[c.node as usize].sums[c.quadrant as usize].get();
+        if c.origin[1] < 0.5 {
+            low += s;
+        } else {
+            high += s;
+        }
+    }
+    assert_eq!(low + high, 1_000_000);
+    let frac = high as f64 / 1e6;
+    assert!((frac - (0.03125 - 0.001) / 0.0625).abs() < 1e-4, "{frac}");
+}
+
+#[test]
+fn mean_of_stochastic_splats_equals_the_box_splat() {
+    // Chi-square at significance 0.01 over the per-leaf counts of M jittered records, against
+    // the box filter's per-leaf weights; two record positions (Šidák corrected).
+    let mk = |f| GuideConfig {
+        s_tree_threshold: 150.0,
+        spatial_filter: f,
+        ..GuideConfig::default()
+    };
+    let warm = warmed_tree(mk(SpatialFilter::Nearest), 41, 5000, 2);
+    assert!(warm.stats().leaves > 8);
+    let level = sidak(0.01, 2);
+    for p0 in [Vec3::new(-0.66, -0.61, 0.72), Vec3::new(-0.98, 0.99, -0.5)] {
+        // near a corner of its leaf, so that the box overlaps several leaves
+        let l = warm.lookup(p0);
+        let p = l.min + 0.15 * l.extent;
+        let mut a = warm.clone();
+        a.config.spatial_filter = SpatialFilter::Stochastic;
+        let _ = a.take_stats();
+        let mut b = warm.clone();
+        b.config.spatial_filter = SpatialFilter::Box;
+        let _ = b.take_stats();
+        let m = 40_000;
+        let mut rng = Pcg::new(42);
+        let rec = Record::radiance_only(p, Vec3::Z, 1.0, 1.0, 1.0);
+        for _ in 0..m {
+            a.record(&rec, &mut rng.rng());
+        }
+        b.record(&rec, &mut rng.rng());
+        let obs: Vec<f64> = a.leaves().iter().map(|l| l.building.weight()).collect();
+        let exp: Vec<f64> = b.leaves().iter().map(|l| l.building.weight() * m as f64).collect();
+        assert!(exp.iter().filter(|&&e| e > 0.0).count() >= 2, "box must overlap several leaves: {exp:?} {l:?}");
+        let pv = chi2_test(&obs, &exp);
+        assert!(pv > level, "p = {pv}");
+    }
+}
+
+// ------------------------------------------------------------------ 10. learned fraction
+
+/// Expected gradient of the loss with respect to theta (including L2), by quadrature, for the
+/// 1-D toy: p_bsdf = 1, p_guide = 2x, F = 0.3 + 1.4x on [0, 1].
+fn toy_expected_grad(theta: f64, p: i32) -> f64 {
+    let a = 1.0 / (1.0 + (-theta).exp());
+    let n = 20_000;
+    let mut g = 0.0;
+    for i in 0..n {
+        let x = (i as f64 + 0.5) / n as f64;
+        let (pb, pg, f) = (1.0, 2.0 * x, 0.3 + 1.4 * x);
+        let q = a * pb + (1.0 - a) * pg;
+        g += -(f / q).powi(p) * (pb - pg) / n as f64;
+    }
+    g * a * (1.0 - a) + 0.01 * theta
+}
+
+#[test]
+fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
+    for loss in [FractionLoss::Kl, FractionLoss::Var] {
+        let p = loss.exponent();
+        // analytic optimum: root of the expected gradient (bisection)
+        let (mut lo, mut hi) = (-5.0f64, 5.0f64);
+        for _ in 0..100 {
+            let mid = 0.5 * (lo + hi);
+            if toy_expected_grad(mid, p) > 0.0 {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        let alpha_opt = 1.0 / (1.0 + (-(0.5 * (lo + hi))).exp());
+        // Without the L2 term the optimum is exactly 0.3 (q = F); L2 pulls it towards 0.5.
+        assert!(alpha_opt > 0.3 && alpha_opt < 0.45, "optimum {alpha_opt}");
+        let unreg = toy_expected_grad(-(1.0f64 / 0.3 - 1.0).ln(), p) - 0.01 * -(1.0f64 / 0.3 - 1.0).ln();
+        assert!(unreg.abs() < 1e-6, "unregularised gradient at alpha = 0.3: {unreg}");
+        let cfg = GuideConfig {
+            s_tree_threshold: 1e15,
+            bsdf_sampling_fraction: FractionMode::Learned { loss },
+            ..GuideConfig::default()
+        };
+        let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+        let mut rng = Pcg::new(99);
+        let steps = 1500;
+        let mut tail = 0.0;
+        for s in 0..steps {
+            let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
+            for _ in 0..128 {
+                let x = if rng.f64() < alpha { rng.f64() } else { rng.f64().sqrt() };
+                let (pb, pg) = (1.0, 2.0 * x);
+                let rec = Record {
+                    position: Vec3::ZERO,
+                    direction: Vec3::Z,
+                    radiance: 0.0,
+                    pdf_mix: (alpha * pb + (1.0 - alpha) * pg) as f32,
+                    weight: 1.0,
+                    product: (0.3 + 1.4 * x) as f32,
+                    pdf_bsdf: pb as f32,
+                    pdf_guide: pg as f32,
+                    is_delta: false,
+                };
+                t.record(&rec, &mut rng.rng());
+            }
+            assert_eq!(t.step_fractions(), 1);
+            if s >= steps - 300 {
+                tail += t.leaves()[0].fraction.alpha();
+            }
+        }
+        let alpha_end = tail / 300.0;
+        assert!((alpha_end - alpha_opt).abs() < 0.02, "{loss:?}: learned {alpha_end} vs optimum {alpha_opt}");
+    }
+}
+
+#[test]
+fn fixed_fraction_and_clamped_learned_fraction() {
+    let t = SdTree::new(Vec3::ZERO, Vec3::ONE, GuideConfig::default());
+    assert_eq!(t.bsdf_sampling_fraction(Vec3::ZERO), 0.5);
+    let mut l = SdTree::new(Vec3::ZERO, Vec3::ONE, GuideConfig::improvements_2019());
+    assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.5);
+    l.leaves[0].fraction.theta = 20.0;
+    assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.95);
+    l.leaves[0].fraction.theta = -20.0;
+    assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.05);
+    // theta stays within [-20, 20] under huge gradients
+    let mut f = crate::fraction::FractionState { theta: 19.999, ..Default::default() };
+    for _ in 0..100 {
+        f.adam_step(-1e30, &AdamConfig::default());
+    }
+    assert!(f.theta <= 20.0);
+    let c = GuideConfig::improvements_2019();
+    assert_eq!(c.s_tree_threshold, 4000.0);
+    assert_eq!(c.spp_per_pass, 1);
+    assert_eq!(c.spatial_filter, SpatialFilter::Stochastic);
+    assert_eq!(c.directional_filter, DirectionalFilter::Box);
+}
+
+// ------------------------------------------------------------------ 11. schedule
+
+#[test]
+fn schedule_doubles_passes_and_last_iteration_absorbs_the_remainder() {
+    assert_eq!(plan_spp(1024, 4), vec![1, 2, 4, 8, 16, 32, 64, 129]);
+    assert_eq!(plan_spp(12, 4), vec![1, 2]);
+    assert_eq!(plan_spp(4, 4), vec![1]);
+    assert_eq!(plan_spp(0, 4), Vec::<u32>::new());
+    assert_eq!(total_passes(10, 4), 3);
+    for spp in [1u32, 7, 64, 100, 1000, 4096, 5000] {
+        for ppp in [1u32, 4] {
+            let plan = plan_spp(spp, ppp);
+            let total: u32 = plan.iter().sum();
+            assert_eq!(total, total_passes(spp, ppp));
+            let last = *plan.last().unwrap();
+            assert!(2 * last + 2 >= total, "last {last} of {total}");
+            for (k, &p) in plan.iter().enumerate().take(plan.len() - 1) {
+                assert_eq!(p, 1 << k);
+            }
+        }
+    }
+    assert_eq!(iteration_passes(3, 100), (8, false));
+    assert_eq!(iteration_passes(3, 20), (20, true));
+    assert_eq!(
+        plan_iteration(7, Budget::Spp(1024), 4, 127, 0.0, None),
+        Some(IterationPlan { length: IterationLength::Passes(129), is_last: true })
+    );
+    assert_eq!(plan_iteration(8, Budget::Spp(1024), 4, 256, 0.0, None), None);
+    assert_eq!(
+        plan_iteration(3, Budget::Seconds(100.0), 1, 7, 10.0, Some(5.0)),
+        Some(IterationPlan { length: IterationLength::Passes(8), is_last: false })
+    );
+    assert_eq!(
+        plan_iteration(4, Budget::Seconds(100.0), 1, 15, 60.0, Some(10.0)),
+        Some(IterationPlan { length: IterationLength::UntilSeconds(100.0), is_last: true })
+    );
+    assert_eq!(plan_iteration(4, Budget::Seconds(100.0), 1, 15, 100.0, Some(10.0)), None);
+    assert!(time_iteration_is_last(100.0, 40.0));
+    assert!(!time_iteration_is_last(100.0, 30.0));
+}
+
+#[test]
+fn automatic_combination_stops_when_extrapolated_variance_worsens_after_256_spp() {
+    // Mocked iterations with an spp budget of 1024 passes at 1 spp.
+    let mk = |vars: &[f64]| {
+        let mut remaining = 1024.0;
+        let mut spp = 0u64;
+        let mut h = Vec::new();
+        for (k, &v) in vars.iter().enumerate() {
+            let cost = (1u64 << k) as f64;
+            h.push(IterationOutcome { variance: v, cost, remaining_before: remaining, spp_before: spp });
+            remaining -= cost;
+            spp += cost as u64;
+        }
+        h
+    };
+    // variance halves (extrapolation improves) until iteration 9, then stalls
+    let mut vars: Vec<f64> = (0..9).map(|k| 1.0 / (1u64 << k) as f64 / (1.0 + k as f64)).collect();
+    vars.push(vars[8] * 0.9); // k = 9: 512 passes; worse extrapolation? check below
+    let h = mk(&vars);
+    let e8 = extrapolated_final_variance(h[8].variance, h[8].cost, h[8].remaining_before);
+    let e9 = extrapolated_final_variance(h[9].variance, h[9].cost, h[9].remaining_before);
+    assert!(e9 > e8);
+    assert_eq!(automatic_stop_index(&h), Some(9));
+    // the same worsening before 256 spp is not trusted
+    let mut early: Vec<f64> = vec![1.0, 0.4, 0.9];
+    early.extend((3..8).map(|k| 0.5f64.powi(k) / 8.0));
+    let he = mk(&early);
+    assert_eq!(automatic_stop_index(&he[..3]), None);
+    // a budget that cannot afford the next iteration stops
+    let tight = vec![IterationOutcome { variance: 1.0, cost: 64.0, remaining_before: 100.0, spp_before: 63 }];
+    assert!(automatic_should_stop(&tight));
+    assert!((extrapolated_final_variance(2.0, 4.0, 16.0) - 0.5).abs() < 1e-12);
+}
+
+#[test]
+fn inverse_variance_weights_combine_synthetic_images_optimally() {
+    let w = inverse_variance_weights(&[1.0, 1.0, 4.0, 2.0, 1.0, 0.5]);
+    assert_eq!(&w[..2], &[0.0, 0.0]);
+    let inv = [0.25, 0.5, 1.0, 2.0];
+    let s: f64 = inv.iter().sum();
+    for i in 0..4 {
+        assert!((w[2 + i] - inv[i] / s).abs() < 1e-12);
+    }
+    assert_eq!(inverse_variance_weights(&[3.0, 0.0, 2.0]), vec![0.0, 1.0, 0.0]);
+    assert_eq!(inverse_variance_weights(&[f64::NAN]), vec![1.0]);
+    // synthetic noisy images of a known truth
+    let mut rng = Pcg::new(7);
+    let npx = 20_000;
+    let truth: Vec<f32> = (0..npx).map(|i| (i % 17) as f32 * 0.1).collect();
+    let sig = [2.0f64, 1.5, 1.0, 0.8, 0.6, 0.5];
+    let imgs: Vec<Vec<f32>> = sig
+        .iter()
+        .map(|&s| truth.iter().map(|&t| (t as f64 + s * rng.gauss()) as f32).collect())
+        .collect();
+    let vars: Vec<f64> = sig.iter().map(|s| s * s).collect();
+    let refs: Vec<&[f32]> = imgs.iter().map(|v| v.as_slice()).collect();
+    let comb = combine_inverse_variance(&refs, &vars);
+    let mse: f64 = comb.iter().zip(&truth).map(|(&c, &t)| ((c - t) as f64).powi(2)).sum::<f64>() / npx as f64;
+    let ideal = 1.0 / vars[2..].iter().map(|v| 1.0 / v).sum::<f64>();
+    // relative sd of the MSE estimate is sqrt(2/npx) = 1%; 5% is ~5 sigma
+    assert!((mse / ideal - 1.0).abs() < 0.05, "mse {mse} ideal {ideal}");
+    assert!(mse < vars[5] * 0.8);
+}
+
+#[test]
+fn image_variance_estimator_is_unbiased_on_synthetic_pixels() {
+    let mut rng = Pcg::new(17);
+    let (npx, n, sigma) = (5000usize, 16usize, 0.7f64);
+    let (mut ws, mut s1, mut s2, mut cnt) = (vec![0.0; npx], vec![0.0; npx], vec![0.0; npx], vec![0.0; npx]);
+    for i in 0..npx {
+        for _ in 0..n {
+            let x = 3.0 + sigma * rng.gauss();
+            ws[i] += 1.0;
+            s1[i] += x;
+            s2[i] += x * x;
+            cnt[i] += 1.0;
+        }
+    }
+    let v = image_variance(&ws, &s1, &s2, &cnt);
+    let truth = sigma * sigma / n as f64;
+    // the mean of npx unbiased per-pixel estimates has relative sd sqrt(2/(n-1)/npx) ~ 0.5%
+    assert!((v / truth - 1.0).abs() < 0.03, "{v} vs {truth}");
+}
+
+// ------------------------------------------------------------------ 12. determinism, merge, wire
+
+fn det_records(n: usize, seed: u64) -> Vec<(Record, u64)> {
+    let mut rng = Pcg::new(seed);
+    clustered_records(&mut rng, n).into_iter().enumerate().map(|(i, r)| (r, seed * 1_000_003 + i as u64)).collect()
+}
+
+fn record_all(t: &SdTree, recs: &[(Record, u64)]) {
+    for (r, s) in recs {
+        t.record(r, &mut Pcg::new(*s).rng());
+    }
+}
+
+#[test]
+fn recording_from_one_or_two_threads_gives_bit_identical_trees() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 300.0,
+        ..GuideConfig::improvements_2019()
+    };
+    let base = warmed_tree(cfg, 51, 4000, 2);
+    let recs = det_records(30_000, 52);
+    let mut one = base.clone();
+    record_all(&one, &recs);
+    let mut two = base.clone();
+    std::thread::scope(|s| {
+        let t = &two;
+        let odd: Vec<_> = recs.iter().skip(1).step_by(2).rev().cloned().collect();
+        let even: Vec<_> = recs.iter().step_by(2).cloned().collect();
+        s.spawn(move || record_all(t, &odd));
+        s.spawn(move || record_all(t, &even));
+    });
+    assert!(one.leaves().iter().any(|l| !l.grad.is_zero()));
+    assert_eq!(one.encode(), two.encode());
+    one.step_fractions();
+    two.step_fractions();
+    one.refine(2);
+    two.refine(2);
+    assert_eq!(one.encode(), two.encode());
+    assert!(one == two);
+}
+
+#[test]
+fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 300.0,
+        spatial_filter: SpatialFilter::Box,
+        directional_filter: DirectionalFilter::Box,
+        bsdf_sampling_fraction: FractionMode::Learned { loss: FractionLoss::Var },
+        ..GuideConfig::default()
+    };
+    let base = warmed_tree(cfg, 61, 4000, 2);
+    let recs = det_records(20_000, 62);
+    let mut rng = Pcg::new(63);
+    let mut parts: [Vec<(Record, u64)>; 3] = Default::default();
+    for r in &recs {
+        parts[rng.below(3) as usize].push(*r);
+    }
+    let mut one = base.clone();
+    record_all(&one, &recs);
+    let mut shipped = Vec::new();
+    for p in &parts {
+        let mut w = base.clone();
+        record_all(&w, p);
+        let st = w.take_stats();
+        let bytes = st.encode();
+        let back = IterationStats::decode(&bytes).unwrap();
+        assert_eq!(back, st);
+        shipped.push(back);
+    }
+    let merged = IterationStats::merge_all(shipped.iter().rev()).unwrap();
+    let mut applied = base.clone();
+    applied.apply_stats(&merged).unwrap();
+    assert_eq!(applied.encode(), one.encode());
+    assert_eq!(one.clone().take_stats(), merged);
+    one.step_fractions();
+    applied.step_fractions();
+    one.refine(2);
+    applied.refine(2);
+    assert_eq!(applied.encode(), one.encode());
+    // statistics of another structure are refused
+    assert!(matches!(one.apply_stats(&merged), Err(crate::wire::StatsError::StructureMismatch)));
+}
+
+#[test]
+fn wire_round_trips_and_detects_corruption() {
+    let t = warmed_tree(GuideConfig::improvements_2019(), 71, 3000, 2);
+    let mut t2 = t.clone();
+    record_all(&t2, &det_records(2000, 72));
+    let bytes = t2.encode();
+    let back = SdTree::decode(&bytes).unwrap();
+    assert!(back == t2);
+    assert_eq!(back.encode(), bytes);
+    // a tree with a depth-20 quadtree survives the trip
+    let mut deep = SdTree::new(Vec3::ZERO, Vec3::ONE, GuideConfig::default());
+    deep.leaves[0].building = random_dtree(5, TreeKind::Peak);
+    assert!(SdTree::decode(&deep.encode()).unwrap() == deep);
+
+    let stats = t2.take_stats();
+    let sbytes = stats.encode();
+    assert_eq!(IterationStats::decode(&sbytes).unwrap(), stats);
+
+    let mut rng = Pcg::new(73);
+    for (buf, is_tree) in [(&bytes, true), (&sbytes, false)] {
+        let decode = |b: &[u8]| -> Result<(), WireError> {
+            if is_tree {
+                SdTree::decode(b).map(|_| ())
+            } else {
+                IterationStats::decode(b).map(|_| ())
+            }
+        };
+        for _ in 0..300 {
+            let mut c = buf.clone();
+            let i = rng.below(c.len() as u32) as usize;
+            c[i] ^= 1 << rng.below(8);
+            assert!(decode(&c).is_err(), "flip at {i} undetected");
+        }
+        for _ in 0..50 {
+            let n = rng.below(buf.len() as u32) as usize;
+            let e = decode(&buf[..n]).unwrap_err();
+            assert!(matches!(e, WireError::Truncated | WireError::BadMagic(_)), "{e:?}");
+        }
+        let mut c = buf.clone();
+        c[0] = b'X';
+        assert!(matches!(decode(&c), Err(WireError::BadMagic(_))));
+        let mut c = buf.clone();
+        c[4] = 9;
+        assert!(matches!(decode(&c), Err(WireError::UnsupportedVersion(9))));
+        let mut c = buf.clone();
+        let mid = c.len() / 2;
+        c[mid] ^= 0x10;
+        assert!(matches!(decode(&c), Err(WireError::ChecksumMismatch { .. })));
+    }
+    assert!(matches!(SdTree::decode(&sbytes), Err(WireError::BadMagic(_))));
+}
+
+#[test]
+fn frozen_sampling_cache_gives_bit_identical_samples_and_pdfs() {
+    for i in 0..4u64 {
+        let t = random_dtree(500 + i, [TreeKind::Blobs, TreeKind::Peak][i as usize % 2]);
+        let mut f = t.clone();
+        f.freeze();
+        let (mut r1, mut r2) = (Pcg::new(i), Pcg::new(i));
+        for _ in 0..2000 {
+            let a = t.sample_with_pdf(&mut r1.rng());
+            let b = f.sample_with_pdf(&mut r2.rng());
+            assert_eq!(a.0.to_array().map(f32::to_bits), b.0.to_array().map(f32::to_bits));
+            assert_eq!(a.1.to_bits(), b.1.to_bits());
+            assert_eq!(t.pdf(a.0).to_bits(), f.pdf(a.0).to_bits());
+        }
+    }
+}
+
+#[test]
+fn stats_report_sizes_and_depth_histogram() {
+    let t = warmed_tree(GuideConfig { s_tree_threshold: 200.0, ..GuideConfig::default() }, 81, 4000, 2);
+    let s = t.stats();
+    assert_eq!(s.leaves, t.leaves().len());
+    assert_eq!(s.depth_histogram.iter().sum::<usize>(), s.leaves);
+    assert_eq!(s.spatial_nodes, 2 * s.leaves - 1);
+    assert!(s.memory_bytes > s.sampling_dtree_nodes * 64);
+    assert_eq!(s.overflow_events, 0);
+    assert!(s.max_dtree_depth >= 2);
+}
+
+#[test]
+fn viz_rasterises_the_pdf_with_its_peak_brightest() {
+    let ov = AtomicU64::new(0);
+    let mut t = DTree::uniform(3); // 8 x 8 cells
+    t.deposit(Vec2::new(0.3, 0.8), to_fixed(10.0).0, &ov); // cell (2, 6)
+    t.deposit(Vec2::new(0.9, 0.1), to_fixed(1.0).0, &ov); // cell (7, 0)
+    t.build();
+    let img = crate::viz::rasterize_pdf(&t, 64, 32, false);
+    assert_eq!(img.len(), 64 * 32 * 3);
+    let px = |x: usize, y: usize| [img[(y * 64 + x) * 3], img[(y * 64 + x) * 3 + 1], img[(y * 64 + x) * 3 + 2]];
+    assert_eq!(px(20, 25), [1.0, 1.0, 1.0], "peak cell must be white");
+    let dim = px(60, 2);
+    assert!(dim.iter().sum::<f32>() > 0.0 && dim.iter().sum::<f32>() < 1.0, "{dim:?}");
+    assert_eq!(px(5, 5), [0.0, 0.0, 0.0], "zero-pdf cell must be black");
+    let o = crate::viz::rasterize_pdf(&t, 64, 64, true);
+    assert_eq!(&o[(8 * 64 + 8) * 3..(8 * 64 + 8) * 3 + 3], &[0.0, 1.0, 0.0], "cell corner outlined");
+}

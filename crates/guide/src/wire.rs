@@ -1,0 +1,718 @@
+//! Compact, versioned, checksummed binary forms of (a) a whole SD-tree and (b) one iteration's
+//! statistics, plus the exact merge of statistics.
+//!
+//! Frame layout (all integers little endian):
+//! `magic[4] | version u16 | reserved u16 (0) | payload_len u64 | payload | crc32 u32`,
+//! the CRC-32 (IEEE 802.3, reflected, poly 0xEDB88320) covering everything before it.
+//! Magic `PFSD` = whole tree, `PFIS` = iteration statistics. Current version: [`VERSION`].
+//! Fixed-point values are 128-bit integers with 48 fractional bits (see [`crate::stats`]);
+//! quadtree sums are stored sparsely behind a 4-bit mask per node.
+
+use crate::config::{
+    AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
+};
+use crate::dtree::{DNode, DTree, MAX_DEPTH};
+use crate::fraction::{FractionState, GradAccum};
+use crate::sdtree::{Leaf, SdTree};
+use crate::stats::{add_counted, Acc128};
+use crate::stree::{SNode, STree};
+use glam::Vec3;
+use std::sync::atomic::AtomicU64;
+
+/// Format version written by this crate.
+pub const VERSION: u16 = 1;
+/// Magic of a whole-tree frame.
+pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
+/// Magic of an iteration-statistics frame.
+pub const MAGIC_STATS: [u8; 4] = *b"PFIS";
+const HEADER: usize = 4 + 2 + 2 + 8;
+
+/// Decoding errors.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WireError {
+    /// The first four bytes are not the expected magic.
+    #[error("bad magic {0:?}")]
+    BadMagic([u8; 4]),
+    /// A version this crate cannot read.
+    #[error("unsupported version {0}")]
+    UnsupportedVersion(u16),
+    /// The CRC-32 does not match the content.
+    #[error("checksum mismatch (stored {stored:#010x}, computed {computed:#010x})")]
+    ChecksumMismatch {
+        /// CRC stored in the frame.
+        stored: u32,
+        /// CRC computed over the received bytes.
+        computed: u32,
+    },
+    /// The input ends early (or the payload is shorter than a field needs).
+    #[error("truncated input")]
+    Truncated,
+    /// The checksum matched but the content is inconsistent.
+    #[error("malformed payload: {0}")]
+    Malformed(&'static str),
+}
+
+/// Errors of merging or applying statistics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum StatsError {
+    /// The statistics were taken on a tree with a different structure.
+    #[error("statistics refer to a different tree structure")]
+    StructureMismatch,
+    /// A leaf or node index does not exist in the tree.
+    #[error("statistics index out of range")]
+    IndexOutOfRange,
+}
+
+// ---------------------------------------------------------------- checksums
+
+const fn crc_table() -> [u32; 256] {
+    let mut t = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            k += 1;
+        }
+        t[i] = c;
+        i += 1;
+    }
+    t
+}
+static CRC_TABLE: [u32; 256] = crc_table();
+
+/// CRC-32 (IEEE) of `data`.
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in data {
+        c = CRC_TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
+    }
+    !c
+}
+
+/// FNV-1a 64-bit hasher used for structure fingerprints.
+#[derive(Clone, Debug)]
+pub struct Hasher64(u64);
+
+impl Default for Hasher64 {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Hasher64 {
+    /// A fresh hasher.
+    pub fn new() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+    /// Hashes bytes.
+    pub fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 ^= b as u64;
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    /// Hashes a u32 (little endian).
+    pub fn write_u32(&mut self, v: u32) {
+        self.write(&v.to_le_bytes());
+    }
+    /// Hashes a u64 (little endian).
+    pub fn write_u64(&mut self, v: u64) {
+        self.write(&v.to_le_bytes());
+    }
+    /// The hash value.
+    pub fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+// ---------------------------------------------------------------- byte io
+
+struct W(Vec<u8>);
+impl W {
+    fn u8(&mut self, v: u8) {
+        self.0.push(v);
+    }
+    fn u32(&mut self, v: u32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn u64(&mut self, v: u64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn u128(&mut self, v: u128) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn f32(&mut self, v: f32) {
+        self.u32(v.to_bits());
+    }
+    fn f64(&mut self, v: f64) {
+        self.u64(v.to_bits());
+    }
+}
+
+struct R<'a> {
+    b: &'a [u8],
+    p: usize,
+}
+impl<'a> R<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], WireError> {
+        if self.b.len() - self.p < n {
+            return Err(WireError::Truncated);
+        }
+        let s = &self.b[self.p..self.p + n];
+        self.p += n;
+        Ok(s)
+    }
+    fn u8(&mut self) -> Result<u8, WireError> {
+        Ok(self.take(1)?[0])
+    }
+    fn u32(&mut self) -> Result<u32, WireError> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    fn u64(&mut self) -> Result<u64, WireError> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().unwrap()))
+    }
+    fn u128(&mut self) -> Result<u128, WireError> {
+        Ok(u128::from_le_bytes(self.take(16)?.try_into().unwrap()))
+    }
+    fn f32(&mut self) -> Result<f32, WireError> {
+        Ok(f32::from_bits(self.u32()?))
+    }
+    fn f64(&mut self) -> Result<f64, WireError> {
+        Ok(f64::from_bits(self.u64()?))
+    }
+    /// A count that must be plausible given the bytes left (each element >= `min_size` bytes).
+    fn count(&mut self, min_size: usize) -> Result<usize, WireError> {
+        let n = self.u32()? as usize;
+        if n.saturating_mul(min_size) > self.b.len() - self.p {
+            return Err(WireError::Truncated);
+        }
+        Ok(n)
+    }
+}
+
+fn frame(magic: [u8; 4], payload: W) -> Vec<u8> {
+    let mut out = Vec::with_capacity(HEADER + payload.0.len() + 4);
+    out.extend_from_slice(&magic);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&0u16.to_le_bytes());
+    out.extend_from_slice(&(payload.0.len() as u64).to_le_bytes());
+    out.extend_from_slice(&payload.0);
+    let c = crc32(&out);
+    out.extend_from_slice(&c.to_le_bytes());
+    out
+}
+
+fn unframe(magic: [u8; 4], bytes: &[u8]) -> Result<&[u8], WireError> {
+    if bytes.len() < 4 {
+        return Err(WireError::Truncated);
+    }
+    let m: [u8; 4] = bytes[..4].try_into().unwrap();
+    if m != magic {
+        return Err(WireError::BadMagic(m));
+    }
+    if bytes.len() < HEADER + 4 {
+        return Err(WireError::Truncated);
+    }
+    let version = u16::from_le_bytes([bytes[4], bytes[5]]);
+    if version != VERSION {
+        return Err(WireError::UnsupportedVersion(version));
+    }
+    let len = u64::from_le_bytes(bytes[8..16].try_into().unwrap());
+    let avail = (bytes.len() - HEADER - 4) as u64;
+    if len > avail {
+        return Err(WireError::Truncated);
+    }
+    let end = HEADER + len as usize;
+    let stored = u32::from_le_bytes(bytes[end..end + 4].try_into().unwrap());
+    let computed = crc32(&bytes[..end]);
+    if stored != computed {
+        return Err(WireError::ChecksumMismatch { stored, computed });
+    }
+    if len < avail {
+        return Err(WireError::Malformed("trailing bytes after the frame"));
+    }
+    if bytes[6] != 0 || bytes[7] != 0 {
+        return Err(WireError::Malformed("reserved header field is not zero"));
+    }
+    Ok(&bytes[HEADER..end])
+}
+
+// ---------------------------------------------------------------- tree
+
+fn put_config(w: &mut W, c: &GuideConfig) {
+    w.f64(c.s_tree_threshold);
+    w.f64(c.d_tree_threshold);
+    w.u32(c.max_d_tree_depth);
+    w.u32(c.spp_per_pass);
+    w.u8(match c.spatial_filter {
+        SpatialFilter::Nearest => 0,
+        SpatialFilter::Stochastic => 1,
+        SpatialFilter::Box => 2,
+    });
+    w.u8(match c.directional_filter {
+        DirectionalFilter::Nearest => 0,
+        DirectionalFilter::Box => 1,
+    });
+    match c.bsdf_sampling_fraction {
+        FractionMode::Fixed(a) => {
+            w.u8(0);
+            w.f32(a);
+        }
+        FractionMode::Learned { loss } => {
+            w.u8(1);
+            w.u32(match loss {
+                FractionLoss::Kl => 0,
+                FractionLoss::Var => 1,
+            });
+        }
+    }
+    w.f32(c.fraction_clamp.0);
+    w.f32(c.fraction_clamp.1);
+    let a = &c.adam;
+    for v in [a.learning_rate, a.beta1, a.beta2, a.epsilon, a.l2, a.min_batch_weight, a.gradient_clamp] {
+        w.f64(v);
+    }
+    w.u64(c.max_nodes.map(|n| n as u64).unwrap_or(u64::MAX));
+}
+
+fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
+    let s_tree_threshold = r.f64()?;
+    let d_tree_threshold = r.f64()?;
+    let max_d_tree_depth = r.u32()?;
+    let spp_per_pass = r.u32()?;
+    let spatial_filter = match r.u8()? {
+        0 => SpatialFilter::Nearest,
+        1 => SpatialFilter::Stochastic,
+        2 => SpatialFilter::Box,
+        _ => return Err(WireError::Malformed("spatial filter")),
+    };
+    let directional_filter = match r.u8()? {
+        0 => DirectionalFilter::Nearest,
+        1 => DirectionalFilter::Box,
+        _ => return Err(WireError::Malformed("directional filter")),
+    };
+    let bsdf_sampling_fraction = match r.u8()? {
+        0 => FractionMode::Fixed(r.f32()?),
+        1 => FractionMode::Learned {
+            loss: match r.u32()? {
+                0 => FractionLoss::Kl,
+                1 => FractionLoss::Var,
+                _ => return Err(WireError::Malformed("fraction loss")),
+            },
+        },
+        _ => return Err(WireError::Malformed("fraction mode")),
+    };
+    let fraction_clamp = (r.f32()?, r.f32()?);
+    let adam = AdamConfig {
+        learning_rate: r.f64()?,
+        beta1: r.f64()?,
+        beta2: r.f64()?,
+        epsilon: r.f64()?,
+        l2: r.f64()?,
+        min_batch_weight: r.f64()?,
+        gradient_clamp: r.f64()?,
+    };
+    let mn = r.u64()?;
+    if max_d_tree_depth == 0 || max_d_tree_depth > MAX_DEPTH {
+        return Err(WireError::Malformed("quadtree depth"));
+    }
+    Ok(GuideConfig {
+        s_tree_threshold,
+        d_tree_threshold,
+        max_d_tree_depth,
+        spp_per_pass,
+        spatial_filter,
+        directional_filter,
+        bsdf_sampling_fraction,
+        fraction_clamp,
+        adam,
+        max_nodes: if mn == u64::MAX { None } else { Some(mn as usize) },
+    })
+}
+
+fn put_sums(w: &mut W, sums: &[u128; 4]) {
+    let mut mask = 0u8;
+    for (q, &s) in sums.iter().enumerate() {
+        if s != 0 {
+            mask |= 1 << q;
+        }
+    }
+    w.u8(mask);
+    for &s in sums {
+        if s != 0 {
+            w.u128(s);
+        }
+    }
+}
+
+fn get_sums(r: &mut R) -> Result<[u128; 4], WireError> {
+    let mask = r.u8()?;
+    if mask > 15 {
+        return Err(WireError::Malformed("sum mask"));
+    }
+    let mut s = [0u128; 4];
+    for (q, v) in s.iter_mut().enumerate() {
+        if mask & (1 << q) != 0 {
+            *v = r.u128()?;
+        }
+    }
+    Ok(s)
+}
+
+fn put_dtree(w: &mut W, t: &DTree) {
+    w.u128(t.weight.get());
+    w.u32(t.nodes.len() as u32);
+    for n in &t.nodes {
+        for &c in &n.children {
+            w.u32(c);
+        }
+        put_sums(w, &[n.sums[0].get(), n.sums[1].get(), n.sums[2].get(), n.sums[3].get()]);
+    }
+}
+
+fn get_dtree(r: &mut R) -> Result<DTree, WireError> {
+    let weight = r.u128()?;
+    let n = r.count(17)?;
+    if n == 0 {
+        return Err(WireError::Malformed("empty quadtree"));
+    }
+    let mut nodes = Vec::with_capacity(n);
+    let mut seen = vec![false; n];
+    for i in 0..n {
+        let mut children = [0u32; 4];
+        for c in &mut children {
+            *c = r.u32()?;
+            if *c != 0 {
+                let ci = *c as usize;
+                if ci <= i || ci >= n || seen[ci] {
+                    return Err(WireError::Malformed("quadtree child index"));
+                }
+                seen[ci] = true;
+            }
+        }
+        let s = get_sums(r)?;
+        nodes.push(DNode {
+            sums: s.map(Acc128::from_u128),
+            children,
+        });
+    }
+    if seen.iter().skip(1).any(|&s| !s) {
+        return Err(WireError::Malformed("unreachable quadtree node"));
+    }
+    let t = DTree {
+        nodes,
+        weight: Acc128::from_u128(weight),
+        frozen: Vec::new(),
+    };
+    if t.depth() > MAX_DEPTH {
+        return Err(WireError::Malformed("quadtree too deep"));
+    }
+    Ok(t)
+}
+
+impl SdTree {
+    /// Serialises the whole tree (configuration, S-tree, both quadtrees of every leaf, fraction
+    /// state, pending statistics) into a `PFSD` frame. `decode(encode(t)) == t` bit for bit.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut w = W(Vec::new());
+        put_config(&mut w, &self.config);
+        let s = &self.stree;
+        w.f32(s.min.x);
+        w.f32(s.min.y);
+        w.f32(s.min.z);
+        w.f32(s.size);
+        w.u8(self.built as u8);
+        w.u64(self.overflow_events());
+        w.u32(s.nodes.len() as u32);
+        for n in &s.nodes {
+            w.u8(n.axis);
+            w.u32(n.children[0]);
+            w.u32(n.children[1]);
+            w.u32(n.leaf);
+            w.u32(n.depth);
+        }
+        w.u32(self.leaves.len() as u32);
+        for l in &self.leaves {
+            let f = &l.fraction;
+            w.f64(f.theta);
+            w.f64(f.m);
+            w.f64(f.v);
+            w.u64(f.t);
+            w.u128(l.grad.pos.get());
+            w.u128(l.grad.neg.get());
+            w.u128(l.grad.weight.get());
+            put_dtree(&mut w, &l.building);
+            put_dtree(&mut w, &l.sampling);
+        }
+        frame(MAGIC_TREE, w)
+    }
+
+    /// Parses a `PFSD` frame produced by [`SdTree::encode`].
+    pub fn decode(bytes: &[u8]) -> Result<SdTree, WireError> {
+        let payload = unframe(MAGIC_TREE, bytes)?;
+        let mut r = R { b: payload, p: 0 };
+        let config = get_config(&mut r)?;
+        let min = Vec3::new(r.f32()?, r.f32()?, r.f32()?);
+        let size = r.f32()?;
+        let built = match r.u8()? {
+            0 => false,
+            1 => true,
+            _ => return Err(WireError::Malformed("built flag")),
+        };
+        let overflow = r.u64()?;
+        let nn = r.count(17)?;
+        let mut nodes = Vec::with_capacity(nn);
+        for _ in 0..nn {
+            nodes.push(SNode {
+                axis: r.u8()?,
+                children: [r.u32()?, r.u32()?],
+                leaf: r.u32()?,
+                depth: r.u32()?,
+            });
+        }
+        let nl = r.count(100)?;
+        // validate the S-tree
+        if nn == 0 || !(size > 0.0) || !min.is_finite() {
+            return Err(WireError::Malformed("spatial domain"));
+        }
+        let mut leaf_seen = vec![false; nl];
+        let mut node_seen = vec![false; nn];
+        for (i, n) in nodes.iter().enumerate() {
+            if n.axis > 2 {
+                return Err(WireError::Malformed("split axis"));
+            }
+            if n.is_leaf() {
+                if n.children[1] != 0 || (n.leaf as usize) >= nl || leaf_seen[n.leaf as usize] {
+                    return Err(WireError::Malformed("spatial leaf index"));
+                }
+                leaf_seen[n.leaf as usize] = true;
+            } else {
+                for &c in &n.children {
+                    let c = c as usize;
+                    if c <= i || c >= nn || node_seen[c] {
+                        return Err(WireError::Malformed("spatial child index"));
+                    }
+                    node_seen[c] = true;
+                }
+            }
+        }
+        if leaf_seen.iter().any(|&s| !s) || node_seen.iter().skip(1).any(|&s| !s) {
+            return Err(WireError::Malformed("spatial tree is not a tree"));
+        }
+        let mut leaves = Vec::with_capacity(nl);
+        for _ in 0..nl {
+            let fraction = FractionState {
+                theta: r.f64()?,
+                m: r.f64()?,
+                v: r.f64()?,
+                t: r.u64()?,
+            };
+            let grad = GradAccum {
+                pos: Acc128::from_u128(r.u128()?),
+                neg: Acc128::from_u128(r.u128()?),
+                weight: Acc128::from_u128(r.u128()?),
+            };
+            let building = get_dtree(&mut r)?;
+            let mut sampling = get_dtree(&mut r)?;
+            sampling.freeze();
+            leaves.push(Leaf {
+                building,
+                sampling,
+                fraction,
+                grad,
+            });
+        }
+        if r.p != payload.len() {
+            return Err(WireError::Malformed("trailing payload bytes"));
+        }
+        Ok(SdTree {
+            config,
+            stree: STree { min, size, nodes },
+            leaves,
+            built,
+            overflow: AtomicU64::new(overflow),
+        })
+    }
+}
+
+// ---------------------------------------------------------------- statistics
+
+/// Statistics of one spatial leaf for one iteration (fixed-point integers, see [`crate::stats`]).
+#[derive(Clone, Debug, PartialEq, Eq, Default)]
+pub struct LeafStats {
+    /// Leaf index ([`crate::LeafHandle`]).
+    pub leaf: u32,
+    /// Building statistical weight W.
+    pub weight: u128,
+    /// Positive fraction-gradient sum.
+    pub grad_pos: u128,
+    /// Negative fraction-gradient magnitude sum.
+    pub grad_neg: u128,
+    /// Fraction-gradient weight sum.
+    pub grad_weight: u128,
+    /// Touched building quadtree nodes `(node index, 4 quadrant sums)`, ascending by index.
+    pub nodes: Vec<(u32, [u128; 4])>,
+}
+
+/// One iteration's statistics: sparse (only touched leaves and nodes), exactly mergeable.
+#[derive(Clone, Debug, PartialEq, Eq, Default)]
+pub struct IterationStats {
+    /// [`SdTree::structure_hash`] of the tree the statistics were taken on.
+    pub structure_hash: u64,
+    /// Overflow events counted while recording these statistics.
+    pub overflow_events: u64,
+    /// Touched leaves, ascending by index.
+    pub leaves: Vec<LeafStats>,
+}
+
+impl IterationStats {
+    /// Adds `other` into `self` by exact integer addition. Merging the statistics of disjoint
+    /// record sets gives, bit for bit, the statistics of recording them all in one tree.
+    /// Fails if the two were taken on differently structured trees.
+    pub fn merge(&mut self, other: &IterationStats) -> Result<(), StatsError> {
+        if self.structure_hash != other.structure_hash {
+            return Err(StatsError::StructureMismatch);
+        }
+        let mut of = 0u64;
+        let a = std::mem::take(&mut self.leaves);
+        let mut out = Vec::with_capacity(a.len().max(other.leaves.len()));
+        let (mut i, mut j) = (0, 0);
+        while i < a.len() || j < other.leaves.len() {
+            let take_a = j >= other.leaves.len() || (i < a.len() && a[i].leaf < other.leaves[j].leaf);
+            let take_b = i >= a.len() || (j < other.leaves.len() && other.leaves[j].leaf < a[i].leaf);
+            if take_a {
+                out.push(a[i].clone());
+                i += 1;
+            } else if take_b {
+                out.push(other.leaves[j].clone());
+                j += 1;
+            } else {
+                let (x, y) = (&a[i], &other.leaves[j]);
+                out.push(LeafStats {
+                    leaf: x.leaf,
+                    weight: add_counted(x.weight, y.weight, &mut of),
+                    grad_pos: add_counted(x.grad_pos, y.grad_pos, &mut of),
+                    grad_neg: add_counted(x.grad_neg, y.grad_neg, &mut of),
+                    grad_weight: add_counted(x.grad_weight, y.grad_weight, &mut of),
+                    nodes: merge_nodes(&x.nodes, &y.nodes, &mut of),
+                });
+                i += 1;
+                j += 1;
+            }
+        }
+        self.leaves = out;
+        self.overflow_events = self.overflow_events + other.overflow_events + of;
+        Ok(())
+    }
+
+    /// Merges many statistics (e.g. one per worker) into one.
+    pub fn merge_all<'a>(parts: impl IntoIterator<Item = &'a IterationStats>) -> Result<IterationStats, StatsError> {
+        let mut it = parts.into_iter();
+        let Some(first) = it.next() else {
+            return Ok(IterationStats::default());
+        };
+        let mut acc = first.clone();
+        for p in it {
+            acc.merge(p)?;
+        }
+        Ok(acc)
+    }
+
+    /// Serialises into a `PFIS` frame.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut w = W(Vec::new());
+        w.u64(self.structure_hash);
+        w.u64(self.overflow_events);
+        w.u32(self.leaves.len() as u32);
+        for l in &self.leaves {
+            w.u32(l.leaf);
+            w.u128(l.weight);
+            w.u128(l.grad_pos);
+            w.u128(l.grad_neg);
+            w.u128(l.grad_weight);
+            w.u32(l.nodes.len() as u32);
+            for (n, s) in &l.nodes {
+                w.u32(*n);
+                put_sums(&mut w, s);
+            }
+        }
+        frame(MAGIC_STATS, w)
+    }
+
+    /// Parses a `PFIS` frame produced by [`IterationStats::encode`].
+    pub fn decode(bytes: &[u8]) -> Result<IterationStats, WireError> {
+        let payload = unframe(MAGIC_STATS, bytes)?;
+        let mut r = R { b: payload, p: 0 };
+        let structure_hash = r.u64()?;
+        let overflow_events = r.u64()?;
+        let nl = r.count(72)?;
+        let mut leaves: Vec<LeafStats> = Vec::with_capacity(nl);
+        for _ in 0..nl {
+            let leaf = r.u32()?;
+            if leaves.last().is_some_and(|p| p.leaf >= leaf) {
+                return Err(WireError::Malformed("leaves not ascending"));
+            }
+            let mut ls = LeafStats {
+                leaf,
+                weight: r.u128()?,
+                grad_pos: r.u128()?,
+                grad_neg: r.u128()?,
+                grad_weight: r.u128()?,
+                nodes: Vec::new(),
+            };
+            let nn = r.count(5)?;
+            for _ in 0..nn {
+                let n = r.u32()?;
+                if ls.nodes.last().is_some_and(|p| p.0 >= n) {
+                    return Err(WireError::Malformed("nodes not ascending"));
+                }
+                ls.nodes.push((n, get_sums(&mut r)?));
+            }
+            leaves.push(ls);
+        }
+        if r.p != payload.len() {
+            return Err(WireError::Malformed("trailing payload bytes"));
+        }
+        Ok(IterationStats {
+            structure_hash,
+            overflow_events,
+            leaves,
+        })
+    }
+}
+
+fn merge_nodes(a: &[(u32, [u128; 4])], b: &[(u32, [u128; 4])], of: &mut u64) -> Vec<(u32, [u128; 4])> {
+    let mut out = Vec::with_capacity(a.len().max(b.len()));
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() || j < b.len() {
+        if j >= b.len() || (i < a.len() && a[i].0 < b[j].0) {
+            out.push(a[i]);
+            i += 1;
+        } else if i >= a.len() || b[j].0 < a[i].0 {
+            out.push(b[j]);
+            j += 1;
+        } else {
+            let mut s = a[i].1;
+            for q in 0..4 {
+                s[q] = add_counted(s[q], b[j].1[q], of);
+            }
+            out.push((a[i].0, s));
+            i += 1;
+            j += 1;
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crc32_matches_the_standard_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+    }
+}
