@@ -18,6 +18,7 @@ pub mod integrator;
 pub mod light;
 pub mod material;
 pub mod output;
+pub mod guided;
 mod render;
 pub mod rng;
 pub mod sampling;
@@ -25,7 +26,7 @@ pub mod scene;
 pub mod texture;
 
 pub use film::Film;
-pub use render::{render, Progress, RenderSettings, RenderStats, DEFAULT_TILE};
+pub use render::{render, render_into, Progress, RenderSettings, RenderStats, DEFAULT_TILE};
 pub use scene::Scene;
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).

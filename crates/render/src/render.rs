@@ -8,6 +8,7 @@ use glam::Vec2;
 use rayon::prelude::*;
 
 use crate::film::Film;
+use crate::geometry::Ray;
 use crate::integrator::path;
 use crate::rng::Rng;
 use crate::scene::Scene;
@@ -73,6 +74,34 @@ const PASS_BUFFER_BYTES: usize = 256 << 20;
 /// support. Pixels only depend on their own gather, so the image is the same
 /// for any thread count or tile size.
 pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progress) + Sync)) -> (Film, RenderStats) {
+    let mut film = Film::new(scene.width, scene.height);
+    let estimator = |ray: Ray, rng: &mut Rng| match (scene.features.environment, scene.features.analytic_shapes) {
+        (false, false) => path::li::<false, false>(scene, ray, rng),
+        (true, false) => path::li::<true, false>(scene, ray, rng),
+        (false, true) => path::li::<false, true>(scene, ray, rng),
+        (true, true) => path::li::<true, true>(scene, ray, rng),
+    };
+    let stats = render_into(scene, settings, progress, 0, &mut film, &estimator);
+    (film, stats)
+}
+
+/// The render loop of [`render`] with any per-sample estimator, accumulating
+/// into `film`. Sample `k` of this call uses the random stream of sample index
+/// `first_sample + k`, so successive calls (e.g. the passes of path-guiding
+/// iterations) draw fresh, deterministic streams. The estimator gets the
+/// camera ray and the sample's own generator (after the two pixel-offset
+/// numbers).
+pub fn render_into<E>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+    first_sample: u64,
+    film: &mut Film,
+    estimator: &E,
+) -> RenderStats
+where
+    E: Fn(Ray, &mut Rng) -> glam::Vec3 + Sync,
+{
     let (w, h) = (scene.width, scene.height);
     let start = Instant::now();
     let target_spp = match (settings.spp, settings.time_limit) {
@@ -83,7 +112,6 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
     let npix = (w as usize) * (h as usize);
     let max_pass = ((PASS_BUFFER_BYTES / (npix.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1);
     let tile = settings.tile_size.max(1) as usize;
-    let mut film = Film::new(w, h);
     let done = AtomicU64::new(0);
     let invalid = AtomicU64::new(0);
     let mut spp_done = 0u32;
@@ -109,7 +137,7 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
                 let pixel = first + i;
                 let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
                 for (k, rec) in recs.iter_mut().enumerate() {
-                    let (offset, mut value) = sample(scene, settings.seed, x, y, pixel as u64, (s0 as usize + k) as u64);
+                    let (offset, mut value) = sample(scene, settings.seed, x, y, pixel as u64, first_sample + (s0 as usize + k) as u64, estimator);
                     if !value.is_finite() {
                         bad += 1;
                         value = glam::Vec3::ZERO;
@@ -162,23 +190,16 @@ pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progr
             pass = ((left.min(1.0) / per_spp).floor() as u32).max(1);
         }
     }
-    let stats = RenderStats { spp: spp_done, wall: start.elapsed(), invalid_samples: invalid.load(Ordering::Relaxed) };
-    (film, stats)
+    RenderStats { spp: spp_done, wall: start.elapsed(), invalid_samples: invalid.load(Ordering::Relaxed) }
 }
 
 /// One camera sample of pixel (x, y): its own random stream, a position
 /// uniformly inside the pixel (returned as the offset from the pixel's
 /// corner), and the integrator's estimate.
 #[inline]
-fn sample(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64) -> (Vec2, glam::Vec3) {
+fn sample<E: Fn(Ray, &mut Rng) -> glam::Vec3>(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64, estimator: &E) -> (Vec2, glam::Vec3) {
     let mut rng = Rng::for_sample(seed, pixel, index);
     let offset = rng.next_2d();
     let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + offset);
-    let value = match (scene.features.environment, scene.features.analytic_shapes) {
-        (false, false) => path::li::<false, false>(scene, ray, &mut rng),
-        (true, false) => path::li::<true, false>(scene, ray, &mut rng),
-        (false, true) => path::li::<false, true>(scene, ray, &mut rng),
-        (true, true) => path::li::<true, true>(scene, ray, &mut rng),
-    };
-    (offset, value)
+    (offset, estimator(ray, &mut rng))
 }

@@ -2,7 +2,7 @@
 //! lights, camera, built once from a [`SceneDesc`].
 
 use pathfarm_bsdf::{frame::Frame, Bsdf};
-use pathfarm_scene::{EmitterDesc, Features, Geometry, IntegratorDesc, PathParams, SceneDesc, TextureDesc};
+use pathfarm_scene::{EmitterDesc, Features, Geometry, GuidedParams, IntegratorDesc, PathParams, SceneDesc, TextureDesc};
 
 use crate::camera::Camera;
 use crate::filter::Filter;
@@ -23,6 +23,9 @@ pub struct Scene {
     pub camera: Camera,
     pub filter: Filter,
     pub path: PathParams,
+    /// The `guided_path` parameters when the scene asks for that integrator
+    /// (render it with [`crate::guided::render_guided`]).
+    pub guided: Option<GuidedParams>,
     pub features: Features,
     pub width: u32,
     pub height: u32,
@@ -77,8 +80,10 @@ impl Scene {
 
         let materials = desc.bsdfs.iter().map(|b| Material::new(b, &desc.bsdfs, &desc.textures)).collect();
         let shape_material = desc.shapes.iter().map(|s| s.bsdf as u32).collect();
-        let path = match &desc.integrator {
-            IntegratorDesc::Path(p) => *p,
+        let path = desc.integrator.path_params();
+        let guided = match &desc.integrator {
+            IntegratorDesc::Path(_) => None,
+            IntegratorDesc::GuidedPath(g) => Some(g.clone()),
         };
         Ok(Self {
             accel,
@@ -90,6 +95,7 @@ impl Scene {
             camera: Camera::new(&desc.sensor),
             filter: Filter::new(desc.sensor.film.rfilter),
             path,
+            guided,
             features: desc.features,
             width: desc.sensor.film.width,
             height: desc.sensor.film.height,

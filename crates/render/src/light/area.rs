@@ -7,8 +7,20 @@ use super::LightSample;
 use crate::geometry::{Accel, Analytic, ShapeGeom};
 use crate::sampling::{concentric_disk, uniform_sphere, uniform_triangle, Distribution1D};
 
+/// A triangle of an emitting mesh, prepared for sampling.
+#[derive(Clone, Copy)]
+struct EmitterTri {
+    v0: Vec3,
+    e1: Vec3,
+    e2: Vec3,
+    /// Unit face normal (flip applied); used when the mesh has no vertex normals.
+    n: Vec3,
+}
+
 pub struct AreaLight {
     pub shape: u32,
+    /// Prepared triangles (meshes without vertex normals only).
+    tri_data: Vec<EmitterTri>,
     /// Emitted radiance (front side only).
     pub radiance: Vec3,
     /// Triangle selection by area (meshes only).
@@ -40,11 +52,30 @@ impl AreaLight {
                 (Distribution1D::default(), PI * x.cross(y).length())
             }
         };
-        Self { shape, radiance, tris, area }
+        let tri_data = match accel.shape(shape) {
+            ShapeGeom::Mesh(m) if m.normals.is_none() => m
+                .indices
+                .iter()
+                .map(|t| {
+                    let [a, b, c] = t.map(|i| m.positions[i as usize]);
+                    let n = (b - a).cross(c - a).normalize_or_zero();
+                    EmitterTri { v0: a, e1: b - a, e2: c - a, n: if m.flip_normals { -n } else { n } }
+                })
+                .collect(),
+            _ => Vec::new(),
+        };
+        Self { shape, tri_data, radiance, tris, area }
     }
 
     /// A uniformly distributed point on the surface with its shading normal.
+    #[inline]
     fn sample_point(&self, accel: &Accel, u: Vec2) -> Option<(Vec3, Vec3)> {
+        if !self.tri_data.is_empty() {
+            let (t, ux) = self.tris.sample(u.x);
+            let b = uniform_triangle(Vec2::new(ux, u.y));
+            let tri = &self.tri_data[t];
+            return Some((tri.v0 + tri.e1 * b.x + tri.e2 * b.y, tri.n));
+        }
         match accel.shape(self.shape) {
             ShapeGeom::Mesh(m) => {
                 if self.tris.is_empty() || self.area <= 0.0 {
