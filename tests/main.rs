@@ -8,5 +8,6 @@ mod it {
     pub mod bad_input;
     pub mod crosscheck;
     pub mod determinism;
+    pub mod guided;
     pub mod shared_scenes;
 }

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use pathfarm_render::guided::{self, Budget};
 use pathfarm_render::{output, RenderSettings, Scene};
 use pathfarm_scene::load_scene;
 
@@ -113,10 +114,45 @@ pub fn render(args: RenderArgs) -> Result<()> {
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% ({eta} left)").unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let cpu0 = process_cpu_time();
-    let (film, stats) = pathfarm_render::render(&scene, &settings, &|p: pathfarm_render::Progress| {
+    let progress = |p: pathfarm_render::Progress| {
         bar.set_length(p.samples_total);
         bar.set_position(p.samples_done);
-    });
+    };
+    let (film, stats) = match &scene.guided {
+        None => pathfarm_render::render(&scene, &settings, &progress),
+        Some(params) => {
+            // --spp / --time set the guided budget (training + final) as they set the
+            // path tracer's; otherwise the integrator's own budget applies.
+            let budget = match (args.spp, args.time) {
+                (Some(s), _) => Budget::Spp(s),
+                (None, Some(t)) => Budget::Seconds(t),
+                (None, None) => guided::params_budget(params, &scene),
+            };
+            let on_iteration = |it: &guided::GuidedIteration| {
+                bar.suspend(|| {
+                    tracing::info!(
+                        "iteration {}: spp={} nodes={} leaves={} variance={:.6e} time={:.3}s",
+                        it.index,
+                        it.spp,
+                        it.nodes,
+                        it.leaves,
+                        it.variance,
+                        it.seconds
+                    )
+                })
+            };
+            let (film, gs, _tree) = guided::render_guided_with(&scene, params, budget, &settings, &progress, &on_iteration);
+            bar.suspend(|| {
+                tracing::info!(
+                    "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?}",
+                    gs.training_fraction,
+                    gs.tree_memory_bytes as f64 / 1048576.0,
+                    gs.weights
+                )
+            });
+            (film, pathfarm_render::RenderStats { spp: gs.spp, wall: gs.wall, invalid_samples: gs.invalid_samples })
+        }
+    };
     let cpu = (process_cpu_time() - cpu0).as_secs_f64();
     bar.finish_and_clear();
     if stats.invalid_samples > 0 {

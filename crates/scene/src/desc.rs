@@ -74,6 +74,152 @@ pub struct Features {
 #[derive(Clone, Debug, PartialEq)]
 pub enum IntegratorDesc {
     Path(PathParams),
+    /// `guided_path`: path tracing guided by an SD-tree (Müller et al. 2017 + 2019).
+    GuidedPath(GuidedParams),
+}
+
+impl IntegratorDesc {
+    /// The Mitsuba path-tracing parameters (shared by every integrator).
+    pub fn path_params(&self) -> PathParams {
+        match self {
+            IntegratorDesc::Path(p) => *p,
+            IntegratorDesc::GuidedPath(g) => g.path,
+        }
+    }
+}
+
+/// Unit of [`GuidedParams::budget`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedBudgetType {
+    /// Samples per pixel (training + final).
+    Spp,
+    /// Wall-clock seconds (training + final).
+    Seconds,
+}
+
+/// Next-event estimation mode of `guided_path`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedNee {
+    /// No light sampling (the 2017 paper's results).
+    Never,
+    /// Light sampling at every smooth vertex; the guide learns indirect light only.
+    Always,
+    /// Light sampling while fewer than 128 spp have been rendered.
+    Kickstart,
+}
+
+/// How the training iterations' images become the final image.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedCombination {
+    /// The last iteration only.
+    Discard,
+    /// Stop training when the extrapolated variance worsens; render the rest.
+    Automatic,
+    /// Inverse-variance weighted mean of the last (up to) 4 iterations.
+    InverseVar,
+}
+
+/// Spatial recording filter of `guided_path`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedSpatialFilter {
+    Nearest,
+    Stochastic,
+    Box,
+}
+
+/// Directional recording filter of `guided_path`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedDirectionalFilter {
+    Nearest,
+    Box,
+}
+
+/// How the BSDF-sampling fraction is chosen.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedFractionLoss {
+    /// Fixed at `bsdf_sampling_fraction`.
+    None,
+    /// Learned per spatial leaf (Adam on the KL-divergence gradient).
+    Kl,
+    /// Learned per spatial leaf (Adam on the variance gradient).
+    Var,
+}
+
+/// Parameters of `guided_path` (snake_case names after Müller's plugin). A `preset`
+/// ("2017" or "2019") sets defaults; explicit parameters override it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GuidedParams {
+    /// `max_depth`, `rr_depth`, `hide_emitters` with the `path` meaning.
+    pub path: PathParams,
+    /// `budget`: seconds or spp per `budget_type`; `None` = the sensor's
+    /// sample_count (spp) or 300 (seconds).
+    pub budget: Option<f64>,
+    /// `budget_type`: "spp" (default) or "seconds".
+    pub budget_type: GuidedBudgetType,
+    /// `spp_per_pass` (4; 2019 preset 1).
+    pub spp_per_pass: u32,
+    /// `s_tree_threshold` c (12000; 2019 preset 4000).
+    pub s_tree_threshold: f64,
+    /// `d_tree_threshold` rho (0.01).
+    pub d_tree_threshold: f64,
+    /// `nee`: "never" | "always" (default) | "kickstart".
+    pub nee: GuidedNee,
+    /// `sample_combination`: "discard" | "automatic" (default) | "inversevar" (2019).
+    pub sample_combination: GuidedCombination,
+    /// `spatial_filter`: "nearest" (default) | "stochastic" (2019) | "box".
+    pub spatial_filter: GuidedSpatialFilter,
+    /// `directional_filter`: "nearest" (default) | "box" (2019).
+    pub directional_filter: GuidedDirectionalFilter,
+    /// `bsdf_sampling_fraction` (0.5), used when the loss is "none".
+    pub bsdf_sampling_fraction: f32,
+    /// `bsdf_sampling_fraction_loss`: "none" (default) | "kl" (2019) | "var".
+    pub bsdf_sampling_fraction_loss: GuidedFractionLoss,
+    /// `max_memory_mb`: approximate cap on the tree's memory (default none).
+    pub max_memory_mb: Option<f64>,
+    /// `max_nodes`: cap on the number of spatial nodes (default none).
+    pub max_nodes: Option<u64>,
+}
+
+impl GuidedParams {
+    /// Defaults of the 2017 paper (with `nee` = always, `sample_combination` = automatic).
+    pub fn preset_2017() -> Self {
+        Self {
+            path: PathParams::default(),
+            budget: None,
+            budget_type: GuidedBudgetType::Spp,
+            spp_per_pass: 4,
+            s_tree_threshold: 12000.0,
+            d_tree_threshold: 0.01,
+            nee: GuidedNee::Always,
+            sample_combination: GuidedCombination::Automatic,
+            spatial_filter: GuidedSpatialFilter::Nearest,
+            directional_filter: GuidedDirectionalFilter::Nearest,
+            bsdf_sampling_fraction: 0.5,
+            bsdf_sampling_fraction_loss: GuidedFractionLoss::None,
+            max_memory_mb: None,
+            max_nodes: None,
+        }
+    }
+
+    /// The 2019 improvements: inversevar, stochastic spatial and box directional filters,
+    /// learned fraction (KL), `s_tree_threshold` 4000, `spp_per_pass` 1.
+    pub fn preset_2019() -> Self {
+        Self {
+            spp_per_pass: 1,
+            s_tree_threshold: 4000.0,
+            sample_combination: GuidedCombination::InverseVar,
+            spatial_filter: GuidedSpatialFilter::Stochastic,
+            directional_filter: GuidedDirectionalFilter::Box,
+            bsdf_sampling_fraction_loss: GuidedFractionLoss::Kl,
+            ..Self::preset_2017()
+        }
+    }
+}
+
+impl Default for GuidedParams {
+    fn default() -> Self {
+        Self::preset_2017()
+    }
 }
 
 /// Parameters of Mitsuba's `path` integrator.

@@ -68,7 +68,7 @@ fn veach_ajar_loads_all_shapes_with_textures_and_a_dielectric() {
         assert_eq!(b.filter, TexFilter::Bilinear);
         assert_eq!(b.wrap, WrapMode::Repeat);
     }
-    let IntegratorDesc::Path(PathParams { max_depth, .. }) = s.integrator;
+    let PathParams { max_depth, .. } = s.integrator.path_params();
     assert_eq!(max_depth, 13);
     assert_eq!((s.sensor.film.width, s.sensor.film.height), (1280, 720));
 }

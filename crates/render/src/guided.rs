@@ -1,0 +1,376 @@
+//! The path-guiding training driver (doc sections 3 and 5).
+//!
+//! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel over
+//! the whole image with [`crate::integrator::guided_path`], recording into the
+//! SD-tree's building statistics (all but the final iteration); after every
+//! pass the learned fractions take an Adam step ([`SdTree::step_fractions`]),
+//! after every training iteration the tree is refined ([`SdTree::refine`]).
+//! The budget (spp or seconds) covers training and the final iteration
+//! ([`pathfarm_guide::schedule`]). The final image:
+//! * `discard`: the last iteration's film;
+//! * `automatic`: training stops when the extrapolated final variance gets
+//!   worse (or the next iteration cannot be afforded); the rest of the budget
+//!   is rendered, without recording, into that iteration's film;
+//! * `inversevar`: the inverse-variance weighted mean of the last (up to) 4
+//!   iteration films.
+//!
+//! Determinism: each pass is one [`render_into`] call whose sample `s` uses
+//! the stream of global sample index `spp_done + s`; recording into the tree is
+//! exact integer arithmetic and fractions step at pass boundaries, so image and
+//! tree are bit-identical for any thread count (spp budgets; time budgets
+//! depend on the clock by nature).
+
+use std::time::{Duration, Instant};
+
+pub use pathfarm_guide::schedule::Budget;
+pub use pathfarm_guide::SdTree;
+use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome};
+use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
+use pathfarm_scene::{
+    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee, GuidedParams, GuidedSpatialFilter,
+};
+
+use crate::film::Film;
+use crate::geometry::Ray;
+use crate::integrator::guided_path::{self, GuideCtx};
+use crate::render::{render_into, Progress, RenderSettings};
+use crate::rng::Rng;
+use crate::scene::Scene;
+
+/// NEE "kickstart" does light sampling while fewer than this many spp have been rendered.
+pub const KICKSTART_SPP: u64 = 128;
+
+/// One iteration of a guided render.
+#[derive(Clone, Debug)]
+pub struct GuidedIteration {
+    /// 0-based iteration index.
+    pub index: u32,
+    /// Samples per pixel rendered in the iteration.
+    pub spp: u32,
+    /// Spatial nodes and leaves of the tree the iteration sampled from.
+    pub nodes: usize,
+    pub leaves: usize,
+    /// Image variance of the iteration's film (mean over pixels and channels of the
+    /// per-pixel variance of the mean).
+    pub variance: f64,
+    /// Wall time of the iteration.
+    pub seconds: f64,
+    /// Training iteration (recorded into the tree) rather than final.
+    pub training: bool,
+}
+
+/// Statistics of a guided render.
+#[derive(Clone, Debug)]
+pub struct GuidedStats {
+    pub iterations: Vec<GuidedIteration>,
+    /// Total samples per pixel (training + final).
+    pub spp: u32,
+    /// Fraction of the budget spent in training iterations (by spp).
+    pub training_fraction: f64,
+    /// Approximate heap memory of the final tree.
+    pub tree_memory_bytes: usize,
+    /// Weights of the iteration films in the final image (inversevar), else 1 for the kept one.
+    pub weights: Vec<f64>,
+    pub wall: Duration,
+    /// Camera samples that produced a non-finite value (counted as zero).
+    pub invalid_samples: u64,
+}
+
+/// The guide configuration of `params`.
+pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
+    let mut cfg = GuideConfig {
+        s_tree_threshold: params.s_tree_threshold,
+        d_tree_threshold: params.d_tree_threshold,
+        spp_per_pass: params.spp_per_pass.max(1),
+        spatial_filter: match params.spatial_filter {
+            GuidedSpatialFilter::Nearest => SpatialFilter::Nearest,
+            GuidedSpatialFilter::Stochastic => SpatialFilter::Stochastic,
+            GuidedSpatialFilter::Box => SpatialFilter::Box,
+        },
+        directional_filter: match params.directional_filter {
+            GuidedDirectionalFilter::Nearest => DirectionalFilter::Nearest,
+            GuidedDirectionalFilter::Box => DirectionalFilter::Box,
+        },
+        bsdf_sampling_fraction: match params.bsdf_sampling_fraction_loss {
+            GuidedFractionLoss::None => FractionMode::Fixed(params.bsdf_sampling_fraction),
+            GuidedFractionLoss::Kl => FractionMode::Learned { loss: FractionLoss::Kl },
+            GuidedFractionLoss::Var => FractionMode::Learned { loss: FractionLoss::Var },
+        },
+        max_nodes: params.max_nodes.map(|n| n as usize),
+        ..GuideConfig::default()
+    };
+    if let Some(mb) = params.max_memory_mb {
+        // Approximate: a spatial leaf costs about twice a fresh tree's single leaf (its
+        // quadtrees grow past the uniform depth-4 start), and nodes ~ 2 leaves.
+        let (lo, hi) = scene.accel.bounds();
+        let per_leaf = (2 * SdTree::new(lo, hi, cfg.clone()).stats().memory_bytes).max(1) as f64;
+        let nodes = ((2.0 * mb * 1048576.0 / per_leaf) as usize).max(1);
+        cfg.max_nodes = Some(cfg.max_nodes.map_or(nodes, |n| n.min(nodes)));
+    }
+    cfg
+}
+
+/// The budget of `params` (`budget` in `budget_type` units; by default the scene's
+/// sample_count spp, or 300 seconds).
+pub fn params_budget(params: &GuidedParams, scene: &Scene) -> Budget {
+    match params.budget_type {
+        GuidedBudgetType::Spp => Budget::Spp(params.budget.map_or(scene.sample_count, |b| (b.ceil() as u32).max(1))),
+        GuidedBudgetType::Seconds => Budget::Seconds(params.budget.unwrap_or(300.0)),
+    }
+}
+
+/// Image variance: mean over pixels and channels of the per-pixel variance of the mean.
+pub fn film_variance(film: &Film) -> f64 {
+    let v = film.variance_rgb();
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.iter().map(|p| p.iter().map(|&x| x as f64).sum::<f64>()).sum::<f64>() / (3 * v.len()) as f64
+}
+
+/// Weighted combination of films: per pixel, film k's sample weights are scaled by
+/// `weights[k] / sum_w_k`, so the mean is `sum_k weights[k] mean_k` and the variance
+/// sums of the merged samples give the combined variance.
+pub fn combine_films(films: &[&Film], weights: &[f64]) -> Film {
+    let first = films[0];
+    let mut out = Film::new(first.width, first.height);
+    for (f, &wk) in films.iter().zip(weights) {
+        if wk == 0.0 {
+            continue;
+        }
+        for (o, p) in out.pixels.iter_mut().zip(&f.pixels) {
+            o.count += p.count;
+            if p.sum_w <= 0.0 {
+                continue;
+            }
+            let l = wk / p.sum_w;
+            let l2 = l * l;
+            o.sum_w += l * p.sum_w;
+            o.sum_w2 += l2 * p.sum_w2;
+            for c in 0..3 {
+                o.sum_wl[c] += l * p.sum_wl[c];
+                o.sum_w2l[c] += l2 * p.sum_w2l[c];
+                o.sum_w2l2[c] += l2 * p.sum_w2l2[c];
+            }
+        }
+    }
+    out
+}
+
+/// Renders `scene` with the guided path tracer within `budget`. Returns the final film,
+/// the statistics and the tree (as it stands at the end).
+pub fn render_guided(
+    scene: &Scene,
+    params: &GuidedParams,
+    budget: Budget,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> (Film, GuidedStats, SdTree) {
+    render_guided_with(scene, params, budget, settings, progress, &|_| {})
+}
+
+/// [`render_guided`], calling `on_iteration` as each iteration ends.
+pub fn render_guided_with(
+    scene: &Scene,
+    params: &GuidedParams,
+    budget: Budget,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+    on_iteration: &dyn Fn(&GuidedIteration),
+) -> (Film, GuidedStats, SdTree) {
+    let cfg = guide_config(params, scene);
+    let (lo, hi) = scene.accel.bounds();
+    let mut tree = SdTree::new(lo, hi, cfg);
+    let spp_per_pass = params.spp_per_pass.max(1);
+    let npix = scene.width as u64 * scene.height as u64;
+    let start = Instant::now();
+    let pass_settings = RenderSettings { spp: Some(spp_per_pass), time_limit: None, seed: settings.seed, tile_size: settings.tile_size, pass_spp: None };
+
+    let mut spp_done = 0u64;
+    let mut passes_done = 0u32;
+    let mut invalid = 0u64;
+    let mut iterations: Vec<GuidedIteration> = Vec::new();
+    let mut films: Vec<Film> = Vec::new();
+    let mut history: Vec<IterationOutcome> = Vec::new();
+    let mut prev_secs: Option<f64> = None;
+    let mut training_spp = 0u64;
+    let mut kept: Option<usize> = None;
+
+    // One pass of spp_per_pass samples into `film`.
+    let render_pass = |tree: &SdTree, record: bool, film: &mut Film, spp_done: u64, invalid: &mut u64| {
+        let nee = match params.nee {
+            GuidedNee::Never => false,
+            GuidedNee::Always => true,
+            GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
+        };
+        let ctx = GuideCtx {
+            tree,
+            nee,
+            indirect_only: params.nee == GuidedNee::Always,
+            kickstart: params.nee == GuidedNee::Kickstart && nee,
+            record,
+        };
+        let ctx = &ctx;
+        let est = |ray: Ray, rng: &mut Rng| match (scene.features.environment, scene.features.analytic_shapes) {
+            (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng),
+            (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng),
+            (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng),
+            (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng),
+        };
+        let base = spp_done * npix;
+        let prog = |p: Progress| {
+            let d = base + p.samples_done;
+            let total = match budget {
+                Budget::Spp(s) => s as u64 * npix,
+                Budget::Seconds(s) => (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64,
+            };
+            progress(Progress { samples_done: d, samples_total: total.max(d) })
+        };
+        let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
+        *invalid += st.invalid_samples;
+    };
+
+    let mut k = 0u32;
+    loop {
+        let elapsed = start.elapsed().as_secs_f64();
+        let Some(plan) = schedule::plan_iteration(k, budget, spp_per_pass, passes_done, elapsed, prev_secs) else {
+            break;
+        };
+        let remaining_before = match budget {
+            Budget::Spp(s) => (schedule::total_passes(s, spp_per_pass) - passes_done) as f64,
+            Budget::Seconds(s) => s - elapsed,
+        };
+        let record = !plan.is_last;
+        let stats_before = tree.stats();
+        let t0 = Instant::now();
+        let spp_before = spp_done;
+        let mut film = Film::new(scene.width, scene.height);
+        let mut passes = 0u32;
+        let mut last_pass = 0.0f64;
+        let mut until = plan.length;
+        let mut stopped = false;
+        loop {
+            match until {
+                IterationLength::Passes(p) if passes >= p => {}
+                IterationLength::UntilSeconds(s) if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
+                _ => {
+                    let tp = Instant::now();
+                    render_pass(&tree, record && !stopped, &mut film, spp_done, &mut invalid);
+                    if record && !stopped {
+                        tree.step_fractions();
+                    }
+                    last_pass = tp.elapsed().as_secs_f64();
+                    passes += 1;
+                    spp_done += spp_per_pass as u64;
+                    continue;
+                }
+            }
+            // The iteration's passes are done. Automatic combination may turn a training
+            // iteration into the final one: render the rest of the budget into its film.
+            if record && !stopped && params.sample_combination == GuidedCombination::Automatic {
+                let cost = match budget {
+                    Budget::Spp(_) => passes as f64,
+                    Budget::Seconds(_) => t0.elapsed().as_secs_f64(),
+                };
+                history.push(IterationOutcome { variance: film_variance(&film), cost, remaining_before, spp_before });
+                if schedule::automatic_should_stop(&history) {
+                    stopped = true;
+                    training_spp += spp_done - spp_before;
+                    until = match budget {
+                        Budget::Spp(s) => IterationLength::Passes(schedule::total_passes(s, spp_per_pass) - passes_done),
+                        Budget::Seconds(s) => IterationLength::UntilSeconds(s),
+                    };
+                    continue;
+                }
+            }
+            break;
+        }
+        passes_done += passes;
+        let secs = t0.elapsed().as_secs_f64();
+        prev_secs = Some(secs);
+        let variance = film_variance(&film);
+        let training = record && !stopped;
+        if training {
+            training_spp += spp_done - spp_before;
+        }
+        tracing::debug!("guided iteration {k}: {passes} passes, training {training}");
+        iterations.push(GuidedIteration {
+            index: k,
+            spp: (spp_done - spp_before) as u32,
+            nodes: stats_before.spatial_nodes,
+            leaves: stats_before.leaves,
+            variance,
+            seconds: secs,
+            training,
+        });
+        on_iteration(iterations.last().unwrap());
+        films.push(film);
+        if !training {
+            kept = Some(films.len() - 1);
+            break;
+        }
+        tree.refine(k);
+        k += 1;
+    }
+
+    let n = films.len();
+    let weights = match params.sample_combination {
+        GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(&iterations.iter().map(|i| i.variance).collect::<Vec<_>>()),
+        _ => {
+            let mut w = vec![0.0; n];
+            if n > 0 {
+                w[kept.unwrap_or(n - 1)] = 1.0;
+            }
+            w
+        }
+    };
+    let film = if n == 0 {
+        Film::new(scene.width, scene.height)
+    } else if params.sample_combination == GuidedCombination::InverseVar {
+        let refs: Vec<&Film> = films.iter().collect();
+        combine_films(&refs, &weights)
+    } else {
+        films.swap_remove(kept.unwrap_or(n - 1))
+    };
+    let stats = GuidedStats {
+        iterations,
+        spp: spp_done as u32,
+        training_fraction: if spp_done > 0 { training_spp as f64 / spp_done as f64 } else { 0.0 },
+        tree_memory_bytes: tree.stats().memory_bytes,
+        weights,
+        wall: start.elapsed(),
+        invalid_samples: invalid,
+    };
+    (film, stats, tree)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    #[test]
+    fn combined_films_are_the_weighted_mean_of_the_films() {
+        // Exact arithmetic check (no statistics): per pixel the combination is
+        // sum_k w_k mean_k, whatever each film's filter-weight sum.
+        let mut a = Film::new(2, 1);
+        let mut b = Film::new(2, 1);
+        a.pixels[0].add(1.0, Vec3::splat(1.0));
+        a.pixels[0].add(1.0, Vec3::splat(3.0));
+        a.pixels[1].add(0.5, Vec3::new(4.0, 2.0, 0.0));
+        b.pixels[0].add(0.25, Vec3::splat(6.0));
+        b.pixels[1].add(2.0, Vec3::new(0.0, 2.0, 8.0));
+        b.pixels[1].add(2.0, Vec3::new(0.0, 2.0, 8.0));
+        let c = combine_films(&[&a, &b], &[0.75, 0.25]);
+        let m = c.mean_rgb();
+        for (got, want) in m[0].iter().zip([0.75 * 2.0 + 0.25 * 6.0; 3]) {
+            assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        }
+        for (got, want) in m[1].iter().zip([3.0, 2.0, 2.0]) {
+            assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        }
+        assert_eq!(c.pixels[0].count, 0);
+        // A weight of 1 on one film reproduces its mean.
+        assert_eq!(combine_films(&[&a, &b], &[0.0, 1.0]).mean_rgb(), b.mean_rgb());
+    }
+}
