@@ -1,6 +1,7 @@
 //! `pathfarm`: the command line.
 
 mod cpu_time;
+mod guide_cmd;
 mod render_cmd;
 
 use anyhow::Result;
@@ -19,6 +20,9 @@ enum Command {
     Render(render_cmd::RenderArgs),
     /// Load a scene and print what it contains and which effects it uses.
     Info(render_cmd::InfoArgs),
+    /// Path-guiding tools: train and save an SD-tree, its statistics, pictures.
+    #[command(subcommand)]
+    Guide(guide_cmd::GuideCommand),
 }
 
 fn main() {
@@ -31,6 +35,7 @@ fn main() {
     let result: Result<()> = match cli.command {
         Command::Render(a) => render_cmd::render(a),
         Command::Info(a) => render_cmd::info(a),
+        Command::Guide(c) => guide_cmd::run(c),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -49,7 +49,7 @@ pub struct InfoArgs {
     pub defines: Vec<String>,
 }
 
-fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
+pub fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
     defs.iter()
         .map(|d| match d.split_once('=') {
             Some((k, v)) if !k.is_empty() => Ok((k.to_string(), v.to_string())),

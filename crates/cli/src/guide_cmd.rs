@@ -1,0 +1,254 @@
+//! `pathfarm guide`: train and save an SD-tree, print its statistics, and
+//! draw the pictures people expect from path guiding (a quadtree's learned
+//! distribution at a point; BSDF-sampled next to guided scatter directions at
+//! the first bounce of a pixel).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use glam::{Vec2, Vec3};
+use pathfarm_guide::{mapping, viz, DTree, SdTree};
+use pathfarm_render::guided::{self, Budget};
+use pathfarm_render::integrator::guided_path::{sample_mixture, VertexGuide};
+use pathfarm_render::rng::Rng;
+use pathfarm_render::{RenderSettings, Scene};
+use pathfarm_scene::{load_scene, GuidedParams, IntegratorDesc};
+
+use crate::render_cmd::parse_defines;
+
+#[derive(Subcommand)]
+pub enum GuideCommand {
+    /// Train a guide on a scene (the guided integrator's training iterations)
+    /// and save the SD-tree.
+    Train(TrainArgs),
+    /// Print a saved tree's statistics: nodes, leaves, depth histogram, memory.
+    Stats(StatsArgs),
+    /// Draw the learned directional distribution (the quadtree) at a point.
+    Show(ShowArgs),
+    /// Draw the directions sampled at the first bounce of a pixel: BSDF
+    /// sampling, guided (mixture) sampling, and the learned quadtree.
+    Scatter(ScatterArgs),
+}
+
+#[derive(Args)]
+pub struct TrainArgs {
+    pub scene: PathBuf,
+    /// Where to write the tree (pathfarm's versioned, checksummed format).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Total samples per pixel (training and final iteration).
+    #[arg(long, default_value_t = 64)]
+    pub spp: u32,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Guiding configuration when the scene's integrator is not guided_path.
+    #[arg(long, default_value = "2019")]
+    pub preset: String,
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub defines: Vec<String>,
+}
+
+#[derive(Args)]
+pub struct StatsArgs {
+    pub tree: PathBuf,
+}
+
+#[derive(Args)]
+pub struct ShowArgs {
+    pub tree: PathBuf,
+    /// World-space point "x,y,z" whose spatial leaf to draw.
+    #[arg(long, allow_hyphen_values = true)]
+    pub point: String,
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Image width (height is half of it: u across, v down).
+    #[arg(long, default_value_t = 512)]
+    pub width: usize,
+}
+
+#[derive(Args)]
+pub struct ScatterArgs {
+    pub scene: PathBuf,
+    /// Pixel "x,y" whose centre ray's first hit is examined.
+    #[arg(long)]
+    pub pixel: String,
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// A tree saved by `guide train`; trained now (64 spp, 2019 preset) if absent.
+    #[arg(long)]
+    pub tree: Option<PathBuf>,
+    /// Directions drawn per strategy.
+    #[arg(long, default_value_t = 200_000)]
+    pub samples: u32,
+    /// Panel width (height is half of it).
+    #[arg(long, default_value_t = 256)]
+    pub width: usize,
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub defines: Vec<String>,
+}
+
+pub fn run(cmd: GuideCommand) -> Result<()> {
+    match cmd {
+        GuideCommand::Train(a) => train(a),
+        GuideCommand::Stats(a) => stats(a),
+        GuideCommand::Show(a) => show(a),
+        GuideCommand::Scatter(a) => scatter(a),
+    }
+}
+
+fn parse_floats<const N: usize>(s: &str, what: &str) -> Result<[f32; N]> {
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().with_context(|| format!("{what}: expected {N} comma-separated numbers, got '{s}'"))?;
+    if v.len() != N || v.iter().any(|x| !x.is_finite()) {
+        bail!("{what}: expected {N} comma-separated finite numbers, got '{s}'");
+    }
+    Ok(std::array::from_fn(|i| v[i]))
+}
+
+fn load(scene: &Path, defines: &[String]) -> Result<(Scene, GuidedParams)> {
+    let desc = load_scene(scene, &parse_defines(defines)?).with_context(|| format!("loading {}", scene.display()))?;
+    let params = match &desc.integrator {
+        IntegratorDesc::GuidedPath(g) => g.clone(),
+        IntegratorDesc::Path(p) => GuidedParams { path: *p, ..GuidedParams::preset_2019() },
+    };
+    Ok((Scene::build(&desc)?, params))
+}
+
+fn train_tree(scene: &Scene, params: &GuidedParams, spp: u32, seed: u64) -> SdTree {
+    let settings = RenderSettings::new(Some(spp), None, seed);
+    let on_iteration = |it: &guided::GuidedIteration| tracing::info!("iteration {}: spp={} nodes={} leaves={} time={:.3}s", it.index, it.spp, it.nodes, it.leaves, it.seconds);
+    guided::render_guided_with(scene, params, Budget::Spp(spp), &settings, &|_| {}, &on_iteration).2
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+fn read_tree(path: &Path) -> Result<SdTree> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    SdTree::decode(&bytes).with_context(|| format!("{}: not a valid pathfarm SD-tree", path.display()))
+}
+
+fn train(a: TrainArgs) -> Result<()> {
+    let (scene, mut params) = load(&a.scene, &a.defines)?;
+    match a.preset.as_str() {
+        "2017" | "2019" => {}
+        p => bail!("--preset must be 2017 or 2019, got '{p}'"),
+    }
+    if a.preset == "2017" && !matches!(load_scene(&a.scene, &parse_defines(&a.defines)?)?.integrator, IntegratorDesc::GuidedPath(_)) {
+        params = GuidedParams { path: params.path, ..GuidedParams::preset_2017() };
+    }
+    let tree = train_tree(&scene, &params, a.spp, a.seed);
+    write_atomic(&a.output, &tree.encode())?;
+    print_stats(&tree);
+    Ok(())
+}
+
+fn print_stats(tree: &SdTree) {
+    let s = tree.stats();
+    println!("spatial nodes: {}", s.spatial_nodes);
+    println!("spatial leaves: {}", s.leaves);
+    println!("leaves per depth: {:?}", s.depth_histogram);
+    println!("quadtree nodes (sampling / building): {} / {}", s.sampling_dtree_nodes, s.building_dtree_nodes);
+    println!("deepest quadtree: {}", s.max_dtree_depth);
+    println!("memory: {:.3} MiB", s.memory_bytes as f64 / 1048576.0);
+    println!("fixed-point overflow events: {}", s.overflow_events);
+}
+
+fn stats(a: StatsArgs) -> Result<()> {
+    print_stats(&read_tree(&a.tree)?);
+    Ok(())
+}
+
+/// Writes an RGB image of display values in [0, 1] as an 8-bit PNG.
+fn write_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
+    let bytes: Vec<u8> = rgb.iter().map(|&c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+    let tmp = path.with_extension("tmp.png");
+    image::save_buffer_with_format(&tmp, &bytes, width as u32, height as u32, image::ExtendedColorType::Rgb8, image::ImageFormat::Png)
+        .with_context(|| format!("writing {}", path.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+fn quadtree_image(tree: &DTree, width: usize) -> Vec<f32> {
+    viz::rasterize_pdf(tree, width, width / 2, true)
+}
+
+fn show(a: ShowArgs) -> Result<()> {
+    let tree = read_tree(&a.tree)?;
+    let p = Vec3::from(parse_floats::<3>(&a.point, "--point")?);
+    let leaf = tree.leaf(tree.leaf_index(p));
+    let w = a.width.max(16);
+    write_png(&a.output, w, w / 2, &quadtree_image(&leaf.sampling, w))?;
+    println!("quadtree at {p}: {} nodes; u (across) = (cos theta + 1) / 2 of the world z axis, v (down) = phi / 2pi", leaf.sampling.node_count());
+    Ok(())
+}
+
+/// Histogram of directions over the cylindrical (u, v) map, as heat colours.
+fn histogram_image(dirs: &[Vec3], width: usize) -> Vec<f32> {
+    let height = width / 2;
+    let mut counts = vec![0u32; width * height];
+    for d in dirs {
+        let uv = mapping::dir_to_uv(*d);
+        let x = ((uv.x * width as f32) as usize).min(width - 1);
+        let y = ((uv.y * height as f32) as usize).min(height - 1);
+        counts[y * width + x] += 1;
+    }
+    let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
+    counts.iter().flat_map(|&c| viz::heat(c as f32 / max)).collect()
+}
+
+fn scatter(a: ScatterArgs) -> Result<()> {
+    let (scene, params) = load(&a.scene, &a.defines)?;
+    let [px, py] = parse_floats::<2>(&a.pixel, "--pixel")?;
+    if px < 0.0 || py < 0.0 || px >= scene.width as f32 || py >= scene.height as f32 {
+        bail!("--pixel {},{} is outside the {}x{} image", px, py, scene.width, scene.height);
+    }
+    let tree = match &a.tree {
+        Some(t) => read_tree(t)?,
+        None => train_tree(&scene, &params, 64, 0),
+    };
+    let ray = scene.camera.ray(Vec2::new(px.floor() + 0.5, py.floor() + 0.5));
+    let Some(hit) = scene.accel.intersect::<true>(&ray) else {
+        bail!("the ray through pixel {},{} hits nothing", px, py);
+    };
+    let si = scene.accel.interaction(&ray, &hit);
+    let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
+    let wi = frame.to_local(-ray.d);
+    let guide = VertexGuide::at(&tree, si.p, bsdf.flags().smooth);
+    let mut rng = Rng::new(7, 11);
+    let mut from_bsdf = Vec::new();
+    let mut from_mixture = Vec::new();
+    for _ in 0..a.samples {
+        if let Some(s) = bsdf.sample(wi, rng.next_f32(), rng.next_2d()) {
+            from_bsdf.push(frame.to_world(s.wo));
+        }
+        if let Some(s) = sample_mixture(&tree, &guide, &bsdf, &frame, wi, &mut rng) {
+            from_mixture.push(s.wo_world);
+        }
+    }
+    let w = a.width.max(16);
+    let h = w / 2;
+    let panels = [histogram_image(&from_bsdf, w), histogram_image(&from_mixture, w), quadtree_image(&tree.leaf(tree.leaf_index(si.p)).sampling, w)];
+    let gap = 4;
+    let total_w = 3 * w + 2 * gap;
+    let mut img = vec![0.5f32; total_w * h * 3];
+    for (i, panel) in panels.iter().enumerate() {
+        let x0 = i * (w + gap);
+        for y in 0..h {
+            let dst = (y * total_w + x0) * 3;
+            img[dst..dst + w * 3].copy_from_slice(&panel[y * w * 3..(y + 1) * w * 3]);
+        }
+    }
+    write_png(&a.output, total_w, h, &img)?;
+    println!(
+        "first hit at {} (shape {}), bsdf-sampling fraction {:.3}; panels: BSDF sampling ({} dirs) | guided mixture ({} dirs) | learned quadtree; u across = (cos theta + 1) / 2 of world z, v down = phi / 2pi",
+        si.p,
+        si.shape,
+        if guide.guided { guide.alpha } else { 1.0 },
+        from_bsdf.len(),
+        from_mixture.len()
+    );
+    Ok(())
+}
