@@ -11,12 +11,18 @@ use pathfarm_scene::load_scene;
 
 /// The repository root (tests run from the cli crate's directory).
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").canonicalize().expect("repo root")
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../..")
+        .canonicalize()
+        .expect("repo root")
 }
 
 /// `../shared/scenes/NAME/scene.xml`, beside the repository.
 pub fn shared_scene(name: &str) -> PathBuf {
-    repo_root().join("../shared/scenes").join(name).join("scene.xml")
+    repo_root()
+        .join("../shared/scenes")
+        .join(name)
+        .join("scene.xml")
 }
 
 pub fn project_scene(name: &str) -> PathBuf {
@@ -26,7 +32,12 @@ pub fn project_scene(name: &str) -> PathBuf {
 /// A fresh, empty directory for one test.
 pub fn temp_dir(tag: &str) -> PathBuf {
     static N: AtomicU32 = AtomicU32::new(0);
-    let d = std::env::temp_dir().join(format!("pathfarm-it-{}-{}-{}", std::process::id(), tag, N.fetch_add(1, Ordering::Relaxed)));
+    let d = std::env::temp_dir().join(format!(
+        "pathfarm-it-{}-{}-{}",
+        std::process::id(),
+        tag,
+        N.fetch_add(1, Ordering::Relaxed)
+    ));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).expect("temp dir");
     d
@@ -41,7 +52,10 @@ pub fn write_scene(tag: &str, xml: &str) -> PathBuf {
 
 /// Loads and renders a scene file in-process.
 pub fn render_file(path: &Path, defines: &[(&str, &str)], spp: u32, seed: u64) -> Film {
-    let defs: Vec<(String, String)> = defines.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+    let defs: Vec<(String, String)> = defines
+        .iter()
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .collect();
     let desc = load_scene(path, &defs).unwrap_or_else(|e| panic!("{e}"));
     let scene = Scene::build(&desc).expect("build");
     render(&scene, &RenderSettings::new(Some(spp), None, seed), &|_| {}).0
@@ -53,11 +67,22 @@ pub fn render_xml(tag: &str, xml: &str, spp: u32, seed: u64) -> Film {
 
 /// Runs the `pathfarm` binary.
 pub fn pathfarm(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pathfarm")).args(args).env("RUST_LOG", "warn").output().expect("run pathfarm")
+    Command::new(env!("CARGO_BIN_EXE_pathfarm"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run pathfarm")
 }
 
 /// A minimal scene: camera at (0,0,`cam_z`) looking down -z, given body.
-pub fn scene_xml(width: u32, height: u32, fov: f32, cam_z: f32, integrator: &str, body: &str) -> String {
+pub fn scene_xml(
+    width: u32,
+    height: u32,
+    fov: f32,
+    cam_z: f32,
+    integrator: &str,
+    body: &str,
+) -> String {
     format!(
         r#"<scene version="3.0.0">
     {integrator}

@@ -30,11 +30,18 @@ fn assert_matches_constant(film: &pathfarm_render::Film, expected: [f32; 3], wha
         fails += bad as usize;
     }
     let n = mean.len() as f64;
-    assert!(fails as f64 <= 0.01 * n, "{what}: {fails} of {n} pixels differ from {expected:?} at the 0.001 level: {examples:?}");
+    assert!(
+        fails as f64 <= 0.01 * n,
+        "{what}: {fails} of {n} pixels differ from {expected:?} at the 0.001 level: {examples:?}"
+    );
     for c in 0..3 {
         let m = sum[c] / n;
         let se = (sum_var[c]).sqrt() / n;
-        assert!((m - expected[c] as f64).abs() <= 4.0 * se + 1e-6, "{what}: image mean {m} vs {} (se {se})", expected[c]);
+        assert!(
+            (m - expected[c] as f64).abs() <= 4.0 * se + 1e-6,
+            "{what}: image mean {m} vs {} (se {se})",
+            expected[c]
+        );
     }
 }
 
@@ -53,7 +60,14 @@ fn white_furnace_diffuse_and_glass_are_invisible() {
             <bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>
         <shape type="cube"><transform name="to_world"><scale value="0.3"/><translate x="0" y="-0.9" z="0"/></transform>
             <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></shape>"#;
-    let xml = scene_xml(24, 24, 40.0, 5.0, r#"<integrator type="path"><integer name="max_depth" value="-1"/></integrator>"#, body);
+    let xml = scene_xml(
+        24,
+        24,
+        40.0,
+        5.0,
+        r#"<integrator type="path"><integer name="max_depth" value="-1"/></integrator>"#,
+        body,
+    );
     let film = render_xml("furnace", &xml, 64, 7);
     assert_matches_constant(&film, [1.0; 3], "white furnace");
 }
@@ -66,7 +80,14 @@ fn diffuse_plane_under_uniform_sky_reflects_albedo_times_sky() {
         <emitter type="constant"><rgb name="radiance" value="2, 1, 0.5"/></emitter>
         <shape type="rectangle"><transform name="to_world"><scale value="100"/></transform>
             <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.25, 0.8"/></bsdf></shape>"#;
-    let xml = scene_xml(12, 12, 20.0, 3.0, r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#, body);
+    let xml = scene_xml(
+        12,
+        12,
+        20.0,
+        3.0,
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
+        body,
+    );
     let film = render_xml("sky-plane", &xml, 64, 3);
     assert_matches_constant(&film, [1.0, 0.25, 0.4], "plane under sky");
 }
@@ -79,7 +100,14 @@ fn point_light_over_diffuse_plane_matches_inverse_square_law() {
         <emitter type="point"><point name="position" x="0" y="0" z="2"/><rgb name="intensity" value="10"/></emitter>
         <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
             <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"#;
-    let xml = scene_xml(5, 5, 0.5, 10.0, r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#, body);
+    let xml = scene_xml(
+        5,
+        5,
+        0.5,
+        10.0,
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
+        body,
+    );
     let film = render_xml("point", &xml, 16, 1);
     let c = film.mean_rgb()[2 * 5 + 2];
     let expected = 0.5 / std::f32::consts::PI * 10.0 / 4.0;
@@ -96,16 +124,33 @@ fn max_depth_one_shows_only_emitters_and_hide_emitters_hides_them() {
             <emitter type="area"><rgb name="radiance" value="3, 2, 1"/></emitter></shape>
         <shape type="rectangle"><transform name="to_world"><scale value="10"/><translate z="-1"/></transform>
             <bsdf type="diffuse"/></shape>"#;
-    let xml = scene_xml(9, 9, 30.0, 4.0, r#"<integrator type="path"><integer name="max_depth" value="1"/></integrator>"#, body);
+    let xml = scene_xml(
+        9,
+        9,
+        30.0,
+        4.0,
+        r#"<integrator type="path"><integer name="max_depth" value="1"/></integrator>"#,
+        body,
+    );
     let film = render_xml("depth1", &xml, 4, 1);
     let m = film.mean_rgb();
     assert_eq!(m[4 * 9 + 4], [3.0, 2.0, 1.0], "the emitter itself");
     assert_eq!(m[0], [0.0; 3], "a lit diffuse wall is black at max_depth 1");
 
-    let hidden = scene_xml(9, 9, 30.0, 4.0, r#"<integrator type="path"><boolean name="hide_emitters" value="true"/></integrator>"#, body);
+    let hidden = scene_xml(
+        9,
+        9,
+        30.0,
+        4.0,
+        r#"<integrator type="path"><boolean name="hide_emitters" value="true"/></integrator>"#,
+        body,
+    );
     let film = render_xml("hidden", &hidden, 16, 1);
     let c = film.mean_rgb()[4 * 9 + 4];
-    assert!(c[0] < 1.0 && c[0] > 0.0, "the emitter is hidden and the wall behind it shows through: {c:?}");
+    assert!(
+        c[0] < 1.0 && c[0] > 0.0,
+        "the emitter is hidden and the wall behind it shows through: {c:?}"
+    );
 }
 
 #[test]
@@ -115,7 +160,14 @@ fn directional_light_on_diffuse_plane_gives_lambert_cosine_law() {
         <emitter type="directional"><vector name="direction" x="0.8660254" y="0" z="-0.5"/><rgb name="irradiance" value="4"/></emitter>
         <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
             <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"#;
-    let xml = scene_xml(5, 5, 10.0, 5.0, r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#, body);
+    let xml = scene_xml(
+        5,
+        5,
+        10.0,
+        5.0,
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
+        body,
+    );
     let film = render_xml("sun", &xml, 4, 1);
     let expected = 0.6 / std::f32::consts::PI * 4.0 * 0.5;
     for p in film.mean_rgb() {
@@ -154,7 +206,11 @@ fn disk_light_over_diffuse_plane_matches_the_closed_form() {
     let sd = film.variance_rgb()[4][0].sqrt();
     // The footprint of the centre pixel is ~1e-4 wide: its irradiance varies
     // by < 1e-6. Allow 4 standard errors (two-sided ~6e-5) plus that.
-    assert!((m[0] - expected).abs() < 4.0 * sd + 1e-5, "{} vs {expected} (sd {sd})", m[0]);
+    assert!(
+        (m[0] - expected).abs() < 4.0 * sd + 1e-5,
+        "{} vs {expected} (sd {sd})",
+        m[0]
+    );
 }
 
 #[test]
@@ -170,7 +226,14 @@ fn envmap_of_constant_radiance_lights_like_a_constant_sky() {
             <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>"#,
         env.display()
     );
-    let xml = scene_xml(8, 8, 20.0, 3.0, r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#, &body);
+    let xml = scene_xml(
+        8,
+        8,
+        20.0,
+        3.0,
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
+        &body,
+    );
     let path = dir.join("scene.xml");
     std::fs::write(&path, xml).unwrap();
     let film = render_file(&path, &[], 64, 9);

@@ -25,7 +25,11 @@ fn crosscheck(scene: &std::path::Path, extra: &[&str]) {
         .expect("python3 must be installed to run the Mitsuba cross-check");
     let stdout = String::from_utf8_lossy(&o.stdout);
     let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "cross-check failed for {}:\n{stdout}\n{stderr}", scene.display());
+    assert!(
+        o.status.success(),
+        "cross-check failed for {}:\n{stdout}\n{stderr}",
+        scene.display()
+    );
 }
 
 #[test]

@@ -6,14 +6,24 @@ use pathfarm_scene::load_scene;
 use crate::common::*;
 
 fn cornell(defines: &[(&str, &str)]) -> Scene {
-    let defs: Vec<(String, String)> = defines.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+    let defs: Vec<(String, String)> = defines
+        .iter()
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .collect();
     Scene::build(&load_scene(&shared_scene("cornell-box"), &defs).expect("load")).expect("build")
 }
 
 fn bits(film: &pathfarm_render::Film) -> Vec<u64> {
     film.pixels
         .iter()
-        .flat_map(|p| [p.sum_w, p.sum_w2].into_iter().chain(p.sum_wl).chain(p.sum_w2l).chain(p.sum_w2l2).map(|x| x.to_bits()))
+        .flat_map(|p| {
+            [p.sum_w, p.sum_w2]
+                .into_iter()
+                .chain(p.sum_wl)
+                .chain(p.sum_w2l)
+                .chain(p.sum_w2l2)
+                .map(|x| x.to_bits())
+        })
         .collect()
 }
 
@@ -21,23 +31,45 @@ fn bits(film: &pathfarm_render::Film) -> Vec<u64> {
 fn image_is_bit_identical_across_threads_and_work_splits() {
     let scene = cornell(&[("resx", "40"), ("resy", "30")]);
     let base = RenderSettings::new(Some(6), None, 11);
-    let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
     let one = pool(1).install(|| render(&scene, &base, &|_| {}).0);
     let two = pool(2).install(|| render(&scene, &base, &|_| {}).0);
     assert_eq!(bits(&one), bits(&two), "1 vs 2 threads");
-    let odd_tiles = RenderSettings { tile_size: 7, ..base.clone() };
-    assert_eq!(bits(&one), bits(&render(&scene, &odd_tiles, &|_| {}).0), "tile size 16 vs 7");
+    let odd_tiles = RenderSettings {
+        tile_size: 7,
+        ..base.clone()
+    };
+    assert_eq!(
+        bits(&one),
+        bits(&render(&scene, &odd_tiles, &|_| {}).0),
+        "tile size 16 vs 7"
+    );
     // Passes are part of the job: splitting 6 spp into 6 passes adds the same
     // samples in another order, so the image agrees to rounding, not bits.
-    let passes = RenderSettings { pass_spp: Some(1), ..base.clone() };
+    let passes = RenderSettings {
+        pass_spp: Some(1),
+        ..base.clone()
+    };
     let split = render(&scene, &passes, &|_| {}).0;
     for (a, b) in one.mean_rgb().iter().zip(split.mean_rgb()) {
         for c in 0..3 {
-            assert!((a[c] - b[c]).abs() <= 1e-5 * a[c].abs().max(1e-3), "one pass vs six: {a:?} {b:?}");
+            assert!(
+                (a[c] - b[c]).abs() <= 1e-5 * a[c].abs().max(1e-3),
+                "one pass vs six: {a:?} {b:?}"
+            );
         }
     }
     let other_seed = RenderSettings { seed: 12, ..base };
-    assert_ne!(bits(&one), bits(&render(&scene, &other_seed, &|_| {}).0), "a different seed changes the image");
+    assert_ne!(
+        bits(&one),
+        bits(&render(&scene, &other_seed, &|_| {}).0),
+        "a different seed changes the image"
+    );
 }
 
 #[test]
@@ -47,10 +79,27 @@ fn cli_output_is_identical_for_one_and_two_threads() {
     let mut outs = Vec::new();
     for t in ["1", "2"] {
         let out = dir.join(format!("t{t}.exr"));
-        let o = pathfarm(&["render", scene.to_str().unwrap(), "-o", out.to_str().unwrap(), "--spp", "4", "--threads", t, "-D", "resx=32", "-D", "resy=32", "--aovs"]);
+        let o = pathfarm(&[
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--spp",
+            "4",
+            "--threads",
+            t,
+            "-D",
+            "resx=32",
+            "-D",
+            "resy=32",
+            "--aovs",
+        ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let stdout = String::from_utf8_lossy(&o.stdout);
-        assert!(stdout.contains("summary: resolution=32x32 spp=4"), "{stdout}");
+        assert!(
+            stdout.contains("summary: resolution=32x32 spp=4"),
+            "{stdout}"
+        );
         outs.push(std::fs::read(&out).unwrap());
         assert!(out.with_extension("png").exists());
     }

@@ -5,18 +5,29 @@ use std::process::Command;
 
 use pathfarm_render::guided::{render_guided, Budget, GuidedStats, SdTree};
 use pathfarm_render::{render, Film, RenderSettings, Scene};
-use pathfarm_scene::{load_scene, GuidedCombination, GuidedFractionLoss, GuidedSpatialFilter, IntegratorDesc};
+use pathfarm_scene::{
+    load_scene, GuidedCombination, GuidedFractionLoss, GuidedSpatialFilter, IntegratorDesc,
+};
 
 use crate::common::*;
 
 fn load(path: &std::path::Path, defines: &[(&str, &str)]) -> Scene {
-    let defs: Vec<(String, String)> = defines.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+    let defs: Vec<(String, String)> = defines
+        .iter()
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .collect();
     Scene::build(&load_scene(path, &defs).unwrap_or_else(|e| panic!("{e}"))).expect("build")
 }
 
 fn guided(scene: &Scene, spp: u32, seed: u64) -> (Film, GuidedStats, SdTree) {
     let params = scene.guided.clone().expect("a guided_path scene");
-    render_guided(scene, &params, Budget::Spp(spp), &RenderSettings::new(Some(spp), None, seed), &|_| {})
+    render_guided(
+        scene,
+        &params,
+        Budget::Spp(spp),
+        &RenderSettings::new(Some(spp), None, seed),
+        &|_| {},
+    )
 }
 
 /// Per-pixel test of an image against a known value at the two-sided 0.001 level: at most
@@ -33,15 +44,22 @@ fn assert_matches_constant(film: &Film, expected: f32, what: &str) {
             sum += m[c] as f64;
             sum_var += v[c] as f64;
             let d = (m[c] - expected) as f64;
-            bad |= d.abs() > 1e-5 * expected.max(1.0) as f64 && (v[c] <= 0.0 || d.abs() / (v[c] as f64).sqrt() > z);
+            bad |= d.abs() > 1e-5 * expected.max(1.0) as f64
+                && (v[c] <= 0.0 || d.abs() / (v[c] as f64).sqrt() > z);
         }
         fails += bad as usize;
     }
     let n = mean.len() as f64;
-    assert!(fails as f64 <= 0.01 * n, "{what}: {fails} of {n} pixels differ from {expected}");
+    assert!(
+        fails as f64 <= 0.01 * n,
+        "{what}: {fails} of {n} pixels differ from {expected}"
+    );
     let m = sum / (3.0 * n);
     let se = sum_var.sqrt() / (3.0 * n);
-    assert!((m - expected as f64).abs() <= 4.0 * se + 1e-6, "{what}: image mean {m} vs {expected} (se {se})");
+    assert!(
+        (m - expected as f64).abs() <= 4.0 * se + 1e-6,
+        "{what}: image mean {m} vs {expected} (se {se})"
+    );
 }
 
 fn furnace(integrator: &str) -> String {
@@ -73,12 +91,19 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
                <string name="sample_combination" value="discard"/><integer name="spp_per_pass" value="2"/></integrator>"#,
             256,
         ),
-        ("learned-2019", r#"<integrator type="guided_path"><string name="preset" value="2019"/></integrator>"#, 64),
+        (
+            "learned-2019",
+            r#"<integrator type="guided_path"><string name="preset" value="2019"/></integrator>"#,
+            64,
+        ),
     ];
     for (tag, integ, spp) in cases {
         let scene = load(&write_scene(tag, &furnace(integ)), &[]);
         let (film, stats, tree) = guided(&scene, spp, 5);
-        assert!(stats.iterations.len() >= 3 && tree.is_built(), "{tag}: the tree was trained: {stats:?}");
+        assert!(
+            stats.iterations.len() >= 3 && tree.is_built(),
+            "{tag}: the tree was trained: {stats:?}"
+        );
         assert_eq!(stats.spp, spp);
         assert_matches_constant(&film, 1.0, tag);
     }
@@ -86,8 +111,13 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
 
 /// The Cornell box with a box filter (independent pixels), at low resolution.
 fn cornell_box_filter(integrator: &str) -> std::path::PathBuf {
-    let xml = std::fs::read_to_string(project_scene("cornell-box")).unwrap().replace(r#"<rfilter type="tent" />"#, r#"<rfilter type="box" />"#);
-    assert!(!xml.contains("filename"), "the test scene must be self-contained (it is copied to a temp dir)");
+    let xml = std::fs::read_to_string(project_scene("cornell-box"))
+        .unwrap()
+        .replace(r#"<rfilter type="tent" />"#, r#"<rfilter type="box" />"#);
+    assert!(
+        !xml.contains("filename"),
+        "the test scene must be self-contained (it is copied to a temp dir)"
+    );
     write_scene(&format!("cornell-{integrator}"), &xml)
 }
 
@@ -104,11 +134,21 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     gdefs.push(("integrator", "guided_path"));
     let guided_scene = load(&cornell_box_filter("guided"), &gdefs);
     let spp = 256;
-    let reference = render(&path_scene, &RenderSettings::new(Some(spp), None, 1), &|_| {}).0;
+    let reference = render(
+        &path_scene,
+        &RenderSettings::new(Some(spp), None, 1),
+        &|_| {},
+    )
+    .0;
     let (film, stats, _) = guided(&guided_scene, spp, 2);
     assert_eq!(stats.spp, spp);
     let z = z_two_sided(0.001);
-    let (mg, vg, mp, vp) = (film.mean_rgb(), film.variance_rgb(), reference.mean_rgb(), reference.variance_rgb());
+    let (mg, vg, mp, vp) = (
+        film.mean_rgb(),
+        film.variance_rgb(),
+        reference.mean_rgb(),
+        reference.variance_rgb(),
+    );
     let mut fails = 0;
     let (mut dsum, mut vsum) = (0.0f64, 0.0f64);
     for i in 0..mg.len() {
@@ -123,14 +163,28 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
         fails += bad as usize;
     }
     let n = mg.len() as f64;
-    assert!(fails as f64 <= 0.01 * n, "{fails} of {n} pixels disagree at the 0.001 level");
-    assert!(dsum.abs() <= 4.0 * vsum.sqrt(), "image means differ: sum of differences {dsum}, se {}", vsum.sqrt());
+    assert!(
+        fails as f64 <= 0.01 * n,
+        "{fails} of {n} pixels disagree at the 0.001 level"
+    );
+    assert!(
+        dsum.abs() <= 4.0 * vsum.sqrt(),
+        "image means differ: sum of differences {dsum}, se {}",
+        vsum.sqrt()
+    );
 }
 
 fn bits(film: &Film) -> Vec<u64> {
     film.pixels
         .iter()
-        .flat_map(|p| [p.sum_w, p.sum_w2].into_iter().chain(p.sum_wl).chain(p.sum_w2l).chain(p.sum_w2l2).map(|x| x.to_bits()))
+        .flat_map(|p| {
+            [p.sum_w, p.sum_w2]
+                .into_iter()
+                .chain(p.sum_wl)
+                .chain(p.sum_w2l)
+                .chain(p.sum_w2l2)
+                .map(|x| x.to_bits())
+        })
         .collect()
 }
 
@@ -141,8 +195,20 @@ fn guided_image_and_tree_are_bit_identical_on_one_and_two_threads() {
     let xml = std::fs::read_to_string(project_scene("cornell-box"))
         .unwrap()
         .replace(r#"<integer name="max_depth" value="$max_depth" />"#, r#"<integer name="max_depth" value="$max_depth" /><string name="preset" value="2019"/><string name="nee" value="kickstart"/><float name="s_tree_threshold" value="300"/>"#);
-    let scene = load(&write_scene("det", &xml), &[("integrator", "guided_path"), ("resx", "24"), ("resy", "20")]);
-    let pool = |n| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+    let scene = load(
+        &write_scene("det", &xml),
+        &[
+            ("integrator", "guided_path"),
+            ("resx", "24"),
+            ("resy", "20"),
+        ],
+    );
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
     let (f1, s1, t1) = pool(1).install(|| guided(&scene, 24, 9));
     let (f2, s2, t2) = pool(2).install(|| guided(&scene, 24, 9));
     assert!(t1.stats().leaves > 1, "the tree was refined");
@@ -159,7 +225,9 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
     let integ = r#"<integrator type="guided_path"><string name="preset" value="2019"/><integer name="spp_per_pass" value="2"/>
         <string name="spatial_filter" value="box"/><integer name="max_depth" value="7"/></integrator>"#;
     let desc = load_scene(&write_scene("params", &furnace(integ)), &[]).unwrap();
-    let IntegratorDesc::GuidedPath(p) = desc.integrator else { panic!("not guided") };
+    let IntegratorDesc::GuidedPath(p) = desc.integrator else {
+        panic!("not guided")
+    };
     assert_eq!(p.spp_per_pass, 2);
     assert_eq!(p.spatial_filter, GuidedSpatialFilter::Box);
     assert_eq!(p.sample_combination, GuidedCombination::InverseVar);
@@ -171,7 +239,9 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="preset" value="2018"/></integrator>"#,
     ] {
-        let err = load_scene(&write_scene("bad-params", &furnace(bad)), &[]).expect_err(bad).to_string();
+        let err = load_scene(&write_scene("bad-params", &furnace(bad)), &[])
+            .expect_err(bad)
+            .to_string();
         assert!(err.contains("scene.xml:"), "{err}");
     }
 }
@@ -182,16 +252,43 @@ fn cli_renders_the_shared_scene_guided_and_reports_iterations() {
     let out = dir.join("v.exr");
     let scene = shared_scene("veach-ajar");
     let o = Command::new(env!("CARGO_BIN_EXE_pathfarm"))
-        .args(["render", scene.to_str().unwrap(), "-o", out.to_str().unwrap(), "--spp", "16", "-D", "integrator=guided_path", "-D", "resx=32", "-D", "resy=18"])
+        .args([
+            "render",
+            scene.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--spp",
+            "16",
+            "-D",
+            "integrator=guided_path",
+            "-D",
+            "resx=32",
+            "-D",
+            "resy=18",
+        ])
         .env("RUST_LOG", "info")
         .env("NO_COLOR", "1")
         .output()
         .expect("run pathfarm");
-    let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
     assert!(o.status.success(), "{stderr}");
     let logs = format!("{stdout}{stderr}");
-    assert!(logs.contains("iteration 0: spp=4 nodes=1 leaves=1 variance="), "{logs}");
+    assert!(
+        logs.contains("iteration 0: spp=4 nodes=1 leaves=1 variance="),
+        "{logs}"
+    );
     assert!(logs.contains("training_fraction="), "{logs}");
-    assert!(stdout.trim_end().lines().last().unwrap().starts_with("summary: resolution=32x18 spp=16"), "{stdout}");
+    assert!(
+        stdout
+            .trim_end()
+            .lines()
+            .last()
+            .unwrap()
+            .starts_with("summary: resolution=32x18 spp=16"),
+        "{stdout}"
+    );
     assert!(out.exists());
 }

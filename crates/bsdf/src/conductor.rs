@@ -15,11 +15,19 @@ pub struct Conductor {
 
 impl Conductor {
     pub fn new(eta: Vec3, k: Vec3, specular_reflectance: Vec3) -> Self {
-        Self { eta, k, specular_reflectance }
+        Self {
+            eta,
+            k,
+            specular_reflectance,
+        }
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: false, delta: true, transmission: false }
+        BsdfFlags {
+            smooth: false,
+            delta: true,
+            transmission: false,
+        }
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, _u: Vec2) -> Option<BsdfSample> {
@@ -27,7 +35,16 @@ impl Conductor {
             return None;
         }
         let f = fresnel_conductor_rgb(wi.z, self.eta, self.k) * self.specular_reflectance;
-        Some(BsdfSample { wo: reflect(wi), pdf: 1.0, weight: f, eta: 1.0, lobe: Lobe { delta: true, transmission: false } })
+        Some(BsdfSample {
+            wo: reflect(wi),
+            pdf: 1.0,
+            weight: f,
+            eta: 1.0,
+            lobe: Lobe {
+                delta: true,
+                transmission: false,
+            },
+        })
     }
 
     pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {

@@ -15,11 +15,19 @@ pub struct Dielectric {
 
 impl Dielectric {
     pub fn new(eta: f32, specular_reflectance: Vec3, specular_transmittance: Vec3) -> Self {
-        Self { eta, specular_reflectance, specular_transmittance }
+        Self {
+            eta,
+            specular_reflectance,
+            specular_transmittance,
+        }
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: false, delta: true, transmission: true }
+        BsdfFlags {
+            smooth: false,
+            delta: true,
+            transmission: true,
+        }
     }
 
     /// Works from both sides (`wi.z < 0` is inside). Transmitted samples carry
@@ -37,7 +45,10 @@ impl Dielectric {
                 pdf: r,
                 weight: self.specular_reflectance,
                 eta: 1.0,
-                lobe: Lobe { delta: true, transmission: false },
+                lobe: Lobe {
+                    delta: true,
+                    transmission: false,
+                },
             })
         } else {
             if !(t > 0.0) {
@@ -48,7 +59,10 @@ impl Dielectric {
                 pdf: t,
                 weight: self.specular_transmittance * (eta_ti * eta_ti),
                 eta: eta_it,
-                lobe: Lobe { delta: true, transmission: true },
+                lobe: Lobe {
+                    delta: true,
+                    transmission: true,
+                },
             })
         }
     }

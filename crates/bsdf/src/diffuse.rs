@@ -16,7 +16,11 @@ impl Diffuse {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: true, delta: false, transmission: false }
+        BsdfFlags {
+            smooth: true,
+            delta: false,
+            transmission: false,
+        }
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
@@ -28,7 +32,16 @@ impl Diffuse {
         if !(pdf > 0.0) {
             return None;
         }
-        Some(BsdfSample { wo, pdf, weight: self.reflectance, eta: 1.0, lobe: Lobe { delta: false, transmission: false } })
+        Some(BsdfSample {
+            wo,
+            pdf,
+            weight: self.reflectance,
+            eta: 1.0,
+            lobe: Lobe {
+                delta: false,
+                transmission: false,
+            },
+        })
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {

@@ -35,7 +35,11 @@ impl Frame {
     /// The same frame seen from the other side (z negated, still right-handed).
     #[inline]
     pub fn flipped(&self) -> Self {
-        Self { s: self.t, t: self.s, n: -self.n }
+        Self {
+            s: self.t,
+            t: self.s,
+            n: -self.n,
+        }
     }
 }
 
@@ -45,10 +49,18 @@ mod tests {
 
     #[test]
     fn frame_is_orthonormal_and_round_trips() {
-        for n in [Vec3::Z, -Vec3::Z, Vec3::X, Vec3::new(0.3, -0.5, 0.81).normalize(), Vec3::new(1e-8, 0.0, -1.0).normalize()] {
+        for n in [
+            Vec3::Z,
+            -Vec3::Z,
+            Vec3::X,
+            Vec3::new(0.3, -0.5, 0.81).normalize(),
+            Vec3::new(1e-8, 0.0, -1.0).normalize(),
+        ] {
             let f = Frame::from_normal(n);
             assert!((f.s.length() - 1.0).abs() < 1e-5 && (f.t.length() - 1.0).abs() < 1e-5);
-            assert!(f.s.dot(f.t).abs() < 1e-5 && f.s.dot(f.n).abs() < 1e-5 && f.t.dot(f.n).abs() < 1e-5);
+            assert!(
+                f.s.dot(f.t).abs() < 1e-5 && f.s.dot(f.n).abs() < 1e-5 && f.t.dot(f.n).abs() < 1e-5
+            );
             assert!(f.s.cross(f.t).dot(f.n) > 0.99);
             let v = Vec3::new(0.2, 0.7, -0.4);
             assert!((f.to_world(f.to_local(v)) - v).length() < 1e-5);

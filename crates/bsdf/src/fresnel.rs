@@ -14,7 +14,11 @@ use glam::Vec3;
 pub fn fresnel_dielectric(cos_theta_i: f32, eta: f32) -> (f32, f32, f32, f32) {
     let outside = cos_theta_i >= 0.0;
     let rcp_eta = 1.0 / eta;
-    let (eta_it, eta_ti) = if outside { (eta, rcp_eta) } else { (rcp_eta, eta) };
+    let (eta_it, eta_ti) = if outside {
+        (eta, rcp_eta)
+    } else {
+        (rcp_eta, eta)
+    };
     let cos_theta_t_sqr = 1.0 - (1.0 - cos_theta_i * cos_theta_i) * (eta_ti * eta_ti);
     let ci = cos_theta_i.abs();
     let ct = cos_theta_t_sqr.max(0.0).sqrt();
@@ -112,7 +116,12 @@ mod tests {
     #[test]
     fn dielectric_fresnel_normal_incidence_and_tir() {
         let (r, ct, eit, eti) = fresnel_dielectric(1.0, 1.5);
-        assert!((r - 0.04).abs() < 1e-6 && (ct + 1.0).abs() < 1e-6 && eit == 1.5 && (eti - 1.0 / 1.5).abs() < 1e-7);
+        assert!(
+            (r - 0.04).abs() < 1e-6
+                && (ct + 1.0).abs() < 1e-6
+                && eit == 1.5
+                && (eti - 1.0 / 1.5).abs() < 1e-7
+        );
         // From inside at 60 degrees: sin = 0.866 * 1.5 > 1 -> total internal reflection.
         let (r, ct, ..) = fresnel_dielectric(-0.5, 1.5);
         assert_eq!((r, ct), (1.0, 0.0));

@@ -141,7 +141,12 @@ impl Bsdf<'_> {
     /// the direction. `None` means no valid sample (the path is absorbed).
     pub fn sample(&self, wi: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
         let s = dispatch!(self, b => b.sample(wi, u_lobe, u))?;
-        if s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0 && s.wo.is_finite() && s.weight.max_element() > 0.0 {
+        if s.weight.is_finite()
+            && s.pdf.is_finite()
+            && s.pdf > 0.0
+            && s.wo.is_finite()
+            && s.weight.max_element() > 0.0
+        {
             Some(s)
         } else {
             None

@@ -28,7 +28,12 @@ pub struct Microfacet {
 impl Microfacet {
     /// Roughness values are clamped to at least 1e-4 (as Mitsuba).
     pub fn new(kind: MicrofacetType, alpha_u: f32, alpha_v: f32, sample_visible: bool) -> Self {
-        Self { kind, alpha_u: alpha_u.max(1e-4), alpha_v: alpha_v.max(1e-4), sample_visible }
+        Self {
+            kind,
+            alpha_u: alpha_u.max(1e-4),
+            alpha_v: alpha_v.max(1e-4),
+            sample_visible,
+        }
     }
 
     #[inline]
@@ -53,7 +58,11 @@ impl Microfacet {
                 let e = (sq(m.x / self.alpha_u) + sq(m.y / self.alpha_v)) / cos2;
                 (-e).exp() / (PI * alpha_uv * cos2 * cos2)
             }
-            MicrofacetType::Ggx => 1.0 / (PI * alpha_uv * sq(sq(m.x / self.alpha_u) + sq(m.y / self.alpha_v) + m.z * m.z)),
+            MicrofacetType::Ggx => {
+                1.0 / (PI
+                    * alpha_uv
+                    * sq(sq(m.x / self.alpha_u) + sq(m.y / self.alpha_v) + m.z * m.z))
+            }
         };
         // Also rejects NaN (m.z == 0) and the lower hemisphere.
         if result * m.z > 1e-20 && result.is_finite() {
@@ -67,7 +76,11 @@ impl Microfacet {
     #[inline]
     pub fn pdf(&self, wi: Vec3, m: Vec3) -> f32 {
         let d = self.eval(m);
-        let r = if self.sample_visible { d * self.smith_g1(wi, m) * wi.dot(m).abs() / wi.z } else { d * m.z };
+        let r = if self.sample_visible {
+            d * self.smith_g1(wi, m) * wi.dot(m).abs() / wi.z
+        } else {
+            d * m.z
+        };
         if r.is_finite() {
             r
         } else {
@@ -109,7 +122,10 @@ impl Microfacet {
                 }
             }
             let sin_theta = (1.0 - cos_theta * cos_theta).max(0.0).sqrt();
-            (Vec3::new(cos_phi * sin_theta, sin_phi * sin_theta, cos_theta), pdf)
+            (
+                Vec3::new(cos_phi * sin_theta, sin_phi * sin_theta, cos_theta),
+                pdf,
+            )
         } else {
             // Stretch wi to the unit-roughness configuration.
             let wi_p = Vec3::new(self.alpha_u * wi.x, self.alpha_v * wi.y, wi.z).normalize();
@@ -176,7 +192,8 @@ impl Microfacet {
                 u = u.clamp(Vec2::splat(1e-6), Vec2::splat(1.0 - 1e-6));
                 let mut x = maxval - (maxval + 1.0) * erf((-u.x.ln()).sqrt());
                 let inv_sqrt_pi = 0.564_189_6_f32;
-                u.x *= 1.0 + maxval + inv_sqrt_pi * tan_theta_i * (-cot_theta_i * cot_theta_i).exp();
+                u.x *=
+                    1.0 + maxval + inv_sqrt_pi * tan_theta_i * (-cot_theta_i * cot_theta_i).exp();
                 for _ in 0..3 {
                     let slope = erfinv(x);
                     let value = 1.0 + x + inv_sqrt_pi * tan_theta_i * (-slope * slope).exp() - u.x;
@@ -227,7 +244,9 @@ pub fn erf(x: f32) -> f32 {
                 + t * (0.37409196
                     + t * (0.09678418
                         + t * (-0.18628806
-                            + t * (0.27886807 + t * (-1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
+                            + t * (0.27886807
+                                + t * (-1.13520398
+                                    + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277)))))))))
             .exp();
     let erfc = if x >= 0.0 { ans } else { 2.0 - ans };
     (1.0 - erfc) as f32
@@ -305,7 +324,10 @@ mod tests {
                     }
                 }
                 let integral = sum / nt as f64 * std::f64::consts::TAU / np as f64;
-                assert!((integral - 1.0).abs() < 5e-3, "{kind:?} {au} {av}: {integral}");
+                assert!(
+                    (integral - 1.0).abs() < 5e-3,
+                    "{kind:?} {au} {av}: {integral}"
+                );
             }
         }
     }

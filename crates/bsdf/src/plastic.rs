@@ -30,7 +30,13 @@ pub struct Plastic {
 }
 
 impl Plastic {
-    pub fn new(eta: f32, diffuse_reflectance: Vec3, specular_reflectance: Vec3, nonlinear: bool, specular_sampling_weight: f32) -> Self {
+    pub fn new(
+        eta: f32,
+        diffuse_reflectance: Vec3,
+        specular_reflectance: Vec3,
+        nonlinear: bool,
+        specular_sampling_weight: f32,
+    ) -> Self {
         Self {
             eta,
             diffuse_reflectance,
@@ -43,13 +49,21 @@ impl Plastic {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: true, delta: true, transmission: false }
+        BsdfFlags {
+            smooth: true,
+            delta: true,
+            transmission: false,
+        }
     }
 
     #[inline]
     fn substrate(&self) -> Vec3 {
         let d = self.diffuse_reflectance;
-        let denom = if self.nonlinear { Vec3::ONE - d * self.fdr_int } else { Vec3::splat(1.0 - self.fdr_int) };
+        let denom = if self.nonlinear {
+            Vec3::ONE - d * self.fdr_int
+        } else {
+            Vec3::splat(1.0 - self.fdr_int)
+        };
         d / denom
     }
 
@@ -74,7 +88,16 @@ impl Plastic {
             if !weight.is_finite() {
                 return None;
             }
-            Some(BsdfSample { wo: reflect(wi), pdf: prob_specular, weight, eta: 1.0, lobe: Lobe { delta: true, transmission: false } })
+            Some(BsdfSample {
+                wo: reflect(wi),
+                pdf: prob_specular,
+                weight,
+                eta: 1.0,
+                lobe: Lobe {
+                    delta: true,
+                    transmission: false,
+                },
+            })
         } else {
             let wo = square_to_cosine_hemisphere(u);
             let pdf = prob_diffuse * square_to_cosine_hemisphere_pdf(wo);
@@ -82,11 +105,21 @@ impl Plastic {
                 return None;
             }
             let f_o = fresnel_dielectric(wo.z, self.eta).0;
-            let weight = self.substrate() * (self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o) / prob_diffuse);
+            let weight =
+                self.substrate() * (self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o) / prob_diffuse);
             if !weight.is_finite() {
                 return None;
             }
-            Some(BsdfSample { wo, pdf, weight, eta: 1.0, lobe: Lobe { delta: false, transmission: false } })
+            Some(BsdfSample {
+                wo,
+                pdf,
+                weight,
+                eta: 1.0,
+                lobe: Lobe {
+                    delta: false,
+                    transmission: false,
+                },
+            })
         }
     }
 
@@ -97,7 +130,8 @@ impl Plastic {
         }
         let f_i = fresnel_dielectric(wi.z, self.eta).0;
         let f_o = fresnel_dielectric(wo.z, self.eta).0;
-        let v = self.substrate() * (square_to_cosine_hemisphere_pdf(wo) * self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o));
+        let v = self.substrate()
+            * (square_to_cosine_hemisphere_pdf(wo) * self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o));
         if v.is_finite() {
             v
         } else {

@@ -29,16 +29,33 @@ impl RoughConductor {
         k: Vec3,
         specular_reflectance: Vec3,
     ) -> Self {
-        Self { distribution, alpha_u, alpha_v, sample_visible, eta, k, specular_reflectance }
+        Self {
+            distribution,
+            alpha_u,
+            alpha_v,
+            sample_visible,
+            eta,
+            k,
+            specular_reflectance,
+        }
     }
 
     #[inline]
     fn distr(&self) -> Microfacet {
-        Microfacet::new(self.distribution, self.alpha_u, self.alpha_v, self.sample_visible)
+        Microfacet::new(
+            self.distribution,
+            self.alpha_u,
+            self.alpha_v,
+            self.sample_visible,
+        )
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: true, delta: false, transmission: false }
+        BsdfFlags {
+            smooth: true,
+            delta: false,
+            transmission: false,
+        }
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
@@ -51,14 +68,27 @@ impl RoughConductor {
         if !(pdf_m > 0.0) || !(wo.z > 0.0) {
             return None;
         }
-        let weight = if self.sample_visible { distr.smith_g1(wo, m) } else { distr.g(wi, wo, m) * wi.dot(m) / (wi.z * m.z) };
+        let weight = if self.sample_visible {
+            distr.smith_g1(wo, m)
+        } else {
+            distr.g(wi, wo, m) * wi.dot(m) / (wi.z * m.z)
+        };
         let pdf = pdf_m / (4.0 * wo.dot(m));
         let f = fresnel_conductor_rgb(wi.dot(m), self.eta, self.k);
         let weight = f * self.specular_reflectance * weight;
         if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || weight == Vec3::ZERO {
             return None;
         }
-        Some(BsdfSample { wo, pdf, weight, eta: 1.0, lobe: Lobe { delta: false, transmission: false } })
+        Some(BsdfSample {
+            wo,
+            pdf,
+            weight,
+            eta: 1.0,
+            lobe: Lobe {
+                delta: false,
+                transmission: false,
+            },
+        })
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
@@ -86,8 +116,11 @@ impl RoughConductor {
             return 0.0;
         }
         let distr = self.distr();
-        let r =
-            if self.sample_visible { distr.eval(m) * distr.smith_g1(wi, m) / (4.0 * wi.z) } else { distr.pdf(wi, m) / (4.0 * wo.dot(m)) };
+        let r = if self.sample_visible {
+            distr.eval(m) * distr.smith_g1(wi, m) / (4.0 * wi.z)
+        } else {
+            distr.pdf(wi, m) / (4.0 * wo.dot(m))
+        };
         if r.is_finite() {
             r
         } else {

@@ -28,12 +28,25 @@ impl RoughDielectric {
         specular_reflectance: Vec3,
         specular_transmittance: Vec3,
     ) -> Self {
-        Self { distribution, alpha_u, alpha_v, sample_visible, eta, specular_reflectance, specular_transmittance }
+        Self {
+            distribution,
+            alpha_u,
+            alpha_v,
+            sample_visible,
+            eta,
+            specular_reflectance,
+            specular_transmittance,
+        }
     }
 
     #[inline]
     fn distr(&self) -> Microfacet {
-        Microfacet::new(self.distribution, self.alpha_u, self.alpha_v, self.sample_visible)
+        Microfacet::new(
+            self.distribution,
+            self.alpha_u,
+            self.alpha_v,
+            self.sample_visible,
+        )
     }
 
     /// The distribution used for sampling (Walter's roughness scaling trick
@@ -48,7 +61,11 @@ impl RoughDielectric {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: true, delta: false, transmission: true }
+        BsdfFlags {
+            smooth: true,
+            delta: false,
+            transmission: true,
+        }
     }
 
     /// Two-sided; transmitted samples carry the radiance-mode factor
@@ -102,12 +119,26 @@ impl RoughDielectric {
             // use the exact ratio instead (deviation from Mitsuba, only for
             // sample_visible = false).
             let p = self.pdf(wi, wo);
-            weight = if p > 0.0 { self.eval(wi, wo) / p } else { Vec3::ZERO };
+            weight = if p > 0.0 {
+                self.eval(wi, wo) / p
+            } else {
+                Vec3::ZERO
+            };
         }
-        if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || !(weight.max_element() > 0.0) {
+        if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || !(weight.max_element() > 0.0)
+        {
             return None;
         }
-        Some(BsdfSample { wo, pdf, weight, eta, lobe: Lobe { delta: false, transmission: !selected_r } })
+        Some(BsdfSample {
+            wo,
+            pdf,
+            weight,
+            eta,
+            lobe: Lobe {
+                delta: false,
+                transmission: !selected_r,
+            },
+        })
     }
 
     /// Generalised half vector (upper hemisphere), whether the pair is a
@@ -145,7 +176,8 @@ impl RoughDielectric {
         } else {
             let inv_eta = 1.0 / eta;
             let scale = inv_eta * inv_eta;
-            let val = (scale * (1.0 - f) * d * g * eta * eta * wi.dot(m) * wo.dot(m)) / (cos_theta_i * sq(wi.dot(m) + eta * wo.dot(m)));
+            let val = (scale * (1.0 - f) * d * g * eta * eta * wi.dot(m) * wo.dot(m))
+                / (cos_theta_i * sq(wi.dot(m) + eta * wo.dot(m)));
             self.specular_transmittance * val.abs()
         };
         if v.is_finite() {
@@ -166,7 +198,11 @@ impl RoughDielectric {
         if !(wi.dot(m) * wi.z > 0.0 && wo.dot(m) * wo.z > 0.0) {
             return 0.0;
         }
-        let dwh_dwo = if reflect { 1.0 / (4.0 * wo.dot(m)) } else { (eta * eta * wo.dot(m)) / sq(wi.dot(m) + eta * wo.dot(m)) };
+        let dwh_dwo = if reflect {
+            1.0 / (4.0 * wo.dot(m))
+        } else {
+            (eta * eta * wo.dot(m)) / sq(wi.dot(m) + eta * wo.dot(m))
+        };
         let sdistr = self.sample_distr(cos_theta_i);
         let wi_up = if cos_theta_i < 0.0 { -wi } else { wi };
         let mut prob = sdistr.pdf(wi_up, m);

@@ -39,9 +39,16 @@ impl RoughPlasticTable {
         static CACHE: Mutex<Vec<RoughPlasticTable>> = Mutex::new(Vec::new());
         let alpha_c = alpha.max(1e-4);
         let hit = |t: &&RoughPlasticTable| {
-            t.distribution == distribution && t.alpha.to_bits() == alpha_c.to_bits() && t.eta.to_bits() == eta.to_bits()
+            t.distribution == distribution
+                && t.alpha.to_bits() == alpha_c.to_bits()
+                && t.eta.to_bits() == eta.to_bits()
         };
-        if let Some(t) = CACHE.lock().unwrap_or_else(|e| e.into_inner()).iter().find(hit) {
+        if let Some(t) = CACHE
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .find(hit)
+        {
             return t.clone();
         }
         let t = Self::compute(distribution, alpha, eta);
@@ -56,7 +63,9 @@ impl RoughPlasticTable {
     pub fn compute(distribution: MicrofacetType, alpha: f32, eta: f32) -> Self {
         let distr = Microfacet::new(distribution, alpha, alpha, true);
         let res = ROUGH_TRANSMITTANCE_RES;
-        let mus: Vec<f32> = (0..res).map(|i| (i as f32 / (res - 1) as f32).max(1e-6)).collect();
+        let mus: Vec<f32> = (0..res)
+            .map(|i| (i as f32 / (res - 1) as f32).max(1e-6))
+            .collect();
         let q_t = GaussLegendre::new(if eta > 1.0 { 32 } else { 128 });
         let inv_eta = 1.0 / eta;
         let q_r = GaussLegendre::new(if inv_eta > 1.0 { 32 } else { 128 });
@@ -64,11 +73,20 @@ impl RoughPlasticTable {
         // (deterministic, the per-row sums are done sequentially).
         let rows: Vec<(f32, f32)> = parallel_map(&mus, |&mu| {
             let wi = Vec3::new((1.0 - mu * mu).sqrt(), 0.0, mu);
-            (eval_transmittance(&distr, &q_t, wi, eta), eval_reflectance(&distr, &q_r, wi, inv_eta) * mu)
+            (
+                eval_transmittance(&distr, &q_t, wi, eta),
+                eval_reflectance(&distr, &q_r, wi, inv_eta) * mu,
+            )
         });
         let external_transmittance = rows.iter().map(|r| r.0).collect();
         let internal_reflectance = rows.iter().map(|r| r.1).sum::<f32>() / res as f32 * 2.0;
-        Self { distribution, alpha: distr.alpha_u, eta, external_transmittance, internal_reflectance }
+        Self {
+            distribution,
+            alpha: distr.alpha_u,
+            eta,
+            external_transmittance,
+            internal_reflectance,
+        }
     }
 
     /// Linear interpolation in the transmittance table (Mitsuba's `lerp_gather`).
@@ -77,13 +95,22 @@ impl RoughPlasticTable {
         let n = self.external_transmittance.len();
         let x = cos_theta.clamp(0.0, 1.0) * (n - 1) as f32;
         let i = (x as usize).min(n - 2);
-        let (v0, v1) = (self.external_transmittance[i], self.external_transmittance[i + 1]);
+        let (v0, v1) = (
+            self.external_transmittance[i],
+            self.external_transmittance[i + 1],
+        );
         v0 + (v1 - v0) * (x - i as f32)
     }
 }
 
-fn parallel_map<T: Sync, R: Send + Copy + Default>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1).clamp(1, 8);
+fn parallel_map<T: Sync, R: Send + Copy + Default>(
+    items: &[T],
+    f: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let threads = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1)
+        .clamp(1, 8);
     let mut out = vec![R::default(); items.len()];
     if threads == 1 {
         for (o, it) in out.iter_mut().zip(items) {
@@ -205,16 +232,32 @@ impl<'a> RoughPlastic<'a> {
         specular_sampling_weight: f32,
         sample_visible: bool,
     ) -> Self {
-        Self { table, diffuse_reflectance, specular_reflectance, nonlinear, specular_sampling_weight, sample_visible }
+        Self {
+            table,
+            diffuse_reflectance,
+            specular_reflectance,
+            nonlinear,
+            specular_sampling_weight,
+            sample_visible,
+        }
     }
 
     #[inline]
     fn distr(&self) -> Microfacet {
-        Microfacet::new(self.table.distribution, self.table.alpha, self.table.alpha, self.sample_visible)
+        Microfacet::new(
+            self.table.distribution,
+            self.table.alpha,
+            self.table.alpha,
+            self.sample_visible,
+        )
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: true, delta: false, transmission: false }
+        BsdfFlags {
+            smooth: true,
+            delta: false,
+            transmission: false,
+        }
     }
 
     #[inline]
@@ -249,7 +292,16 @@ impl<'a> RoughPlastic<'a> {
         if !weight.is_finite() {
             return None;
         }
-        Some(BsdfSample { wo, pdf, weight, eta: 1.0, lobe: Lobe { delta: false, transmission: false } })
+        Some(BsdfSample {
+            wo,
+            pdf,
+            weight,
+            eta: 1.0,
+            lobe: Lobe {
+                delta: false,
+                transmission: false,
+            },
+        })
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
@@ -266,7 +318,11 @@ impl<'a> RoughPlastic<'a> {
         let t_o = self.table.transmittance(wo.z);
         let diff = self.diffuse_reflectance;
         let ri = self.table.internal_reflectance;
-        let denom = if self.nonlinear { Vec3::ONE - diff * ri } else { Vec3::splat(1.0 - ri) };
+        let denom = if self.nonlinear {
+            Vec3::ONE - diff * ri
+        } else {
+            Vec3::splat(1.0 - ri)
+        };
         let eta = self.table.eta;
         let v = spec + diff / denom * (FRAC_1_PI / (eta * eta) * wo.z * t_i * t_o);
         if v.is_finite() {
@@ -285,8 +341,11 @@ impl<'a> RoughPlastic<'a> {
         let prob_diffuse = 1.0 - prob_specular;
         let h = (wo + wi).normalize();
         let distr = self.distr();
-        let spec =
-            if self.sample_visible { distr.eval(h) * distr.smith_g1(wi, h) / (4.0 * wi.z) } else { distr.pdf(wi, h) / (4.0 * wo.dot(h)) };
+        let spec = if self.sample_visible {
+            distr.eval(h) * distr.smith_g1(wi, h) / (4.0 * wi.z)
+        } else {
+            distr.pdf(wi, h) / (4.0 * wo.dot(h))
+        };
         let r = prob_specular * spec + prob_diffuse * square_to_cosine_hemisphere_pdf(wo);
         if r.is_finite() {
             r

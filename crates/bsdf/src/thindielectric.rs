@@ -15,11 +15,19 @@ pub struct ThinDielectric {
 
 impl ThinDielectric {
     pub fn new(eta: f32, specular_reflectance: Vec3, specular_transmittance: Vec3) -> Self {
-        Self { eta, specular_reflectance, specular_transmittance }
+        Self {
+            eta,
+            specular_reflectance,
+            specular_transmittance,
+        }
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags { smooth: false, delta: true, transmission: true }
+        BsdfFlags {
+            smooth: false,
+            delta: true,
+            transmission: true,
+        }
     }
 
     /// Slab reflectance 2R/(1+R) at |cos theta_i|.
@@ -43,7 +51,10 @@ impl ThinDielectric {
                 pdf: r,
                 weight: self.specular_reflectance,
                 eta: 1.0,
-                lobe: Lobe { delta: true, transmission: false },
+                lobe: Lobe {
+                    delta: true,
+                    transmission: false,
+                },
             })
         } else {
             if !(t > 0.0) {
@@ -54,7 +65,10 @@ impl ThinDielectric {
                 pdf: t,
                 weight: self.specular_transmittance,
                 eta: 1.0,
-                lobe: Lobe { delta: true, transmission: true },
+                lobe: Lobe {
+                    delta: true,
+                    transmission: true,
+                },
             })
         }
     }

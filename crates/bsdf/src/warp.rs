@@ -43,8 +43,17 @@ mod tests {
 
     #[test]
     fn concentric_disk_maps_square_corners_and_center_onto_disk() {
-        assert_eq!(square_to_uniform_disk_concentric(Vec2::splat(0.5)), Vec2::ZERO);
-        for u in [Vec2::new(0.0, 0.0), Vec2::new(1.0, 0.0), Vec2::new(1.0, 1.0), Vec2::new(0.0, 1.0), Vec2::new(1.0, 0.5)] {
+        assert_eq!(
+            square_to_uniform_disk_concentric(Vec2::splat(0.5)),
+            Vec2::ZERO
+        );
+        for u in [
+            Vec2::new(0.0, 0.0),
+            Vec2::new(1.0, 0.0),
+            Vec2::new(1.0, 1.0),
+            Vec2::new(0.0, 1.0),
+            Vec2::new(1.0, 0.5),
+        ] {
             assert!((square_to_uniform_disk_concentric(u).length() - 1.0).abs() < 1e-5);
         }
         let v = square_to_cosine_hemisphere(Vec2::new(0.3, 0.8));

@@ -98,7 +98,11 @@ pub fn run(cmd: GuideCommand) -> Result<()> {
 }
 
 fn parse_floats<const N: usize>(s: &str, what: &str) -> Result<[f32; N]> {
-    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>()).collect::<Result<_, _>>().with_context(|| format!("{what}: expected {N} comma-separated numbers, got '{s}'"))?;
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("{what}: expected {N} comma-separated numbers, got '{s}'"))?;
     if v.len() != N || v.iter().any(|x| !x.is_finite()) {
         bail!("{what}: expected {N} comma-separated finite numbers, got '{s}'");
     }
@@ -106,18 +110,39 @@ fn parse_floats<const N: usize>(s: &str, what: &str) -> Result<[f32; N]> {
 }
 
 fn load(scene: &Path, defines: &[String]) -> Result<(Scene, GuidedParams)> {
-    let desc = load_scene(scene, &parse_defines(defines)?).with_context(|| format!("loading {}", scene.display()))?;
+    let desc = load_scene(scene, &parse_defines(defines)?)
+        .with_context(|| format!("loading {}", scene.display()))?;
     let params = match &desc.integrator {
         IntegratorDesc::GuidedPath(g) => g.clone(),
-        IntegratorDesc::Path(p) => GuidedParams { path: *p, ..GuidedParams::preset_2019() },
+        IntegratorDesc::Path(p) => GuidedParams {
+            path: *p,
+            ..GuidedParams::preset_2019()
+        },
     };
     Ok((Scene::build(&desc)?, params))
 }
 
 fn train_tree(scene: &Scene, params: &GuidedParams, spp: u32, seed: u64) -> SdTree {
     let settings = RenderSettings::new(Some(spp), None, seed);
-    let on_iteration = |it: &guided::GuidedIteration| tracing::info!("iteration {}: spp={} nodes={} leaves={} time={:.3}s", it.index, it.spp, it.nodes, it.leaves, it.seconds);
-    guided::render_guided_with(scene, params, Budget::Spp(spp), &settings, &|_| {}, &on_iteration).2
+    let on_iteration = |it: &guided::GuidedIteration| {
+        tracing::info!(
+            "iteration {}: spp={} nodes={} leaves={} time={:.3}s",
+            it.index,
+            it.spp,
+            it.nodes,
+            it.leaves,
+            it.seconds
+        )
+    };
+    guided::render_guided_with(
+        scene,
+        params,
+        Budget::Spp(spp),
+        &settings,
+        &|_| {},
+        &on_iteration,
+    )
+    .2
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
@@ -128,7 +153,8 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 
 fn read_tree(path: &Path) -> Result<SdTree> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    SdTree::decode(&bytes).with_context(|| format!("{}: not a valid pathfarm SD-tree", path.display()))
+    SdTree::decode(&bytes)
+        .with_context(|| format!("{}: not a valid pathfarm SD-tree", path.display()))
 }
 
 fn train(a: TrainArgs) -> Result<()> {
@@ -137,8 +163,16 @@ fn train(a: TrainArgs) -> Result<()> {
         "2017" | "2019" => {}
         p => bail!("--preset must be 2017 or 2019, got '{p}'"),
     }
-    if a.preset == "2017" && !matches!(load_scene(&a.scene, &parse_defines(&a.defines)?)?.integrator, IntegratorDesc::GuidedPath(_)) {
-        params = GuidedParams { path: params.path, ..GuidedParams::preset_2017() };
+    if a.preset == "2017"
+        && !matches!(
+            load_scene(&a.scene, &parse_defines(&a.defines)?)?.integrator,
+            IntegratorDesc::GuidedPath(_)
+        )
+    {
+        params = GuidedParams {
+            path: params.path,
+            ..GuidedParams::preset_2017()
+        };
     }
     let tree = train_tree(&scene, &params, a.spp, a.seed);
     write_atomic(&a.output, &tree.encode())?;
@@ -151,7 +185,10 @@ fn print_stats(tree: &SdTree) {
     println!("spatial nodes: {}", s.spatial_nodes);
     println!("spatial leaves: {}", s.leaves);
     println!("leaves per depth: {:?}", s.depth_histogram);
-    println!("quadtree nodes (sampling / building): {} / {}", s.sampling_dtree_nodes, s.building_dtree_nodes);
+    println!(
+        "quadtree nodes (sampling / building): {} / {}",
+        s.sampling_dtree_nodes, s.building_dtree_nodes
+    );
     println!("deepest quadtree: {}", s.max_dtree_depth);
     println!("memory: {:.3} MiB", s.memory_bytes as f64 / 1048576.0);
     println!("fixed-point overflow events: {}", s.overflow_events);
@@ -164,10 +201,20 @@ fn stats(a: StatsArgs) -> Result<()> {
 
 /// Writes an RGB image of display values in [0, 1] as an 8-bit PNG.
 fn write_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
-    let bytes: Vec<u8> = rgb.iter().map(|&c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+    let bytes: Vec<u8> = rgb
+        .iter()
+        .map(|&c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect();
     let tmp = path.with_extension("tmp.png");
-    image::save_buffer_with_format(&tmp, &bytes, width as u32, height as u32, image::ExtendedColorType::Rgb8, image::ImageFormat::Png)
-        .with_context(|| format!("writing {}", path.display()))?;
+    image::save_buffer_with_format(
+        &tmp,
+        &bytes,
+        width as u32,
+        height as u32,
+        image::ExtendedColorType::Rgb8,
+        image::ImageFormat::Png,
+    )
+    .with_context(|| format!("writing {}", path.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
@@ -196,20 +243,31 @@ fn histogram_image(dirs: &[Vec3], width: usize) -> Vec<f32> {
         counts[y * width + x] += 1;
     }
     let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
-    counts.iter().flat_map(|&c| viz::heat(c as f32 / max)).collect()
+    counts
+        .iter()
+        .flat_map(|&c| viz::heat(c as f32 / max))
+        .collect()
 }
 
 fn scatter(a: ScatterArgs) -> Result<()> {
     let (scene, params) = load(&a.scene, &a.defines)?;
     let [px, py] = parse_floats::<2>(&a.pixel, "--pixel")?;
     if px < 0.0 || py < 0.0 || px >= scene.width as f32 || py >= scene.height as f32 {
-        bail!("--pixel {},{} is outside the {}x{} image", px, py, scene.width, scene.height);
+        bail!(
+            "--pixel {},{} is outside the {}x{} image",
+            px,
+            py,
+            scene.width,
+            scene.height
+        );
     }
     let tree = match &a.tree {
         Some(t) => read_tree(t)?,
         None => train_tree(&scene, &params, 64, 0),
     };
-    let ray = scene.camera.ray(Vec2::new(px.floor() + 0.5, py.floor() + 0.5));
+    let ray = scene
+        .camera
+        .ray(Vec2::new(px.floor() + 0.5, py.floor() + 0.5));
     let Some(hit) = scene.accel.intersect::<true>(&ray) else {
         bail!("the ray through pixel {},{} hits nothing", px, py);
     };
@@ -230,7 +288,11 @@ fn scatter(a: ScatterArgs) -> Result<()> {
     }
     let w = a.width.max(16);
     let h = w / 2;
-    let panels = [histogram_image(&from_bsdf, w), histogram_image(&from_mixture, w), quadtree_image(&tree.leaf(tree.leaf_index(si.p)).sampling, w)];
+    let panels = [
+        histogram_image(&from_bsdf, w),
+        histogram_image(&from_mixture, w),
+        quadtree_image(&tree.leaf(tree.leaf_index(si.p)).sampling, w),
+    ];
     let gap = 4;
     let total_w = 3 * w + 2 * gap;
     let mut img = vec![0.5f32; total_w * h * 3];

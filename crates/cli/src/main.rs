@@ -8,7 +8,11 @@ use anyhow::Result;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "pathfarm", version, about = "A path-guiding render farm: renders Mitsuba 3 XML scenes")]
+#[command(
+    name = "pathfarm",
+    version,
+    about = "A path-guiding render farm: renders Mitsuba 3 XML scenes"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -28,7 +32,9 @@ enum Command {
 fn main() {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
         .with_target(false)
         .init();
     let cli = Cli::parse();

@@ -59,11 +59,22 @@ pub fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {
-    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?).with_context(|| format!("loading {}", args.scene.display()))?;
+    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?)
+        .with_context(|| format!("loading {}", args.scene.display()))?;
     let scene = Scene::build(&desc)?;
     println!("scene: {}", args.scene.display());
-    println!("film: {}x{}, {} spp, integrator {:?}", scene.width, scene.height, scene.sample_count, desc.integrator);
-    println!("shapes: {}, triangles: {}, bsdfs: {}, textures: {}, lights: {}", desc.shapes.len(), scene.triangle_count, desc.bsdfs.len(), desc.textures.len(), scene.lights.lights.len());
+    println!(
+        "film: {}x{}, {} spp, integrator {:?}",
+        scene.width, scene.height, scene.sample_count, desc.integrator
+    );
+    println!(
+        "shapes: {}, triangles: {}, bsdfs: {}, textures: {}, lights: {}",
+        desc.shapes.len(),
+        scene.triangle_count,
+        desc.bsdfs.len(),
+        desc.textures.len(),
+        scene.lights.lights.len()
+    );
     println!("features: {:?}", desc.features);
     Ok(())
 }
@@ -73,7 +84,10 @@ pub fn render(args: RenderArgs) -> Result<()> {
         if n == 0 {
             bail!("--threads must be at least 1");
         }
-        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("configuring the thread pool")?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build_global()
+            .context("configuring the thread pool")?;
     }
     if let Some(t) = args.time {
         if !(t.is_finite() && t > 0.0) {
@@ -83,12 +97,17 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if args.spp == Some(0) {
         bail!("--spp must be at least 1");
     }
-    let ext_ok = args.output.extension().map(|e| e.eq_ignore_ascii_case("exr")).unwrap_or(false);
+    let ext_ok = args
+        .output
+        .extension()
+        .map(|e| e.eq_ignore_ascii_case("exr"))
+        .unwrap_or(false);
     if !ext_ok {
         bail!("{}: the output must be an .exr file", args.output.display());
     }
     let t_load = Instant::now();
-    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?).with_context(|| format!("loading {}", args.scene.display()))?;
+    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?)
+        .with_context(|| format!("loading {}", args.scene.display()))?;
     for w in &desc.warnings {
         tracing::warn!("{w}");
     }
@@ -105,13 +124,20 @@ pub fn render(args: RenderArgs) -> Result<()> {
         desc.features
     );
     let settings = RenderSettings::new(
-        args.spp.or(if args.time.is_some() { None } else { Some(scene.sample_count) }),
+        args.spp.or(if args.time.is_some() {
+            None
+        } else {
+            Some(scene.sample_count)
+        }),
         args.time.map(Duration::from_secs_f64),
         args.seed.unwrap_or(scene.seed),
     );
     let bar = ProgressBar::new(1);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {wide_bar} {percent}% ({eta} left)").unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {percent}% ({eta} left)",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let cpu0 = process_cpu_time();
     let progress = |p: pathfarm_render::Progress| {
@@ -141,7 +167,14 @@ pub fn render(args: RenderArgs) -> Result<()> {
                     )
                 })
             };
-            let (film, gs, _tree) = guided::render_guided_with(&scene, params, budget, &settings, &progress, &on_iteration);
+            let (film, gs, _tree) = guided::render_guided_with(
+                &scene,
+                params,
+                budget,
+                &settings,
+                &progress,
+                &on_iteration,
+            );
             bar.suspend(|| {
                 tracing::info!(
                     "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?}",
@@ -150,13 +183,23 @@ pub fn render(args: RenderArgs) -> Result<()> {
                     gs.weights
                 )
             });
-            (film, pathfarm_render::RenderStats { spp: gs.spp, wall: gs.wall, invalid_samples: gs.invalid_samples })
+            (
+                film,
+                pathfarm_render::RenderStats {
+                    spp: gs.spp,
+                    wall: gs.wall,
+                    invalid_samples: gs.invalid_samples,
+                },
+            )
         }
     };
     let cpu = (process_cpu_time() - cpu0).as_secs_f64();
     bar.finish_and_clear();
     if stats.invalid_samples > 0 {
-        tracing::warn!("{} samples were NaN or infinite and counted as zero", stats.invalid_samples);
+        tracing::warn!(
+            "{} samples were NaN or infinite and counted as zero",
+            stats.invalid_samples
+        );
     }
     output::write_exr(&args.output, &film, args.aovs)?;
     if !args.no_png {

@@ -40,9 +40,7 @@ impl DNode {
     /// Sum of the four quadrants (exact, wrapping).
     #[inline]
     pub fn total(&self) -> u128 {
-        self.sums
-            .iter()
-            .fold(0u128, |a, s| a.wrapping_add(s.get()))
+        self.sums.iter().fold(0u128, |a, s| a.wrapping_add(s.get()))
     }
     #[inline]
     fn sums_f64(&self) -> [f64; 4] {
@@ -322,7 +320,11 @@ impl DTree {
         }
         SCRATCH.with(|sc| {
             let mut sc = sc.borrow_mut();
-            let Scratch { cells, areas, parts } = &mut *sc;
+            let Scratch {
+                cells,
+                areas,
+                parts,
+            } = &mut *sc;
             self.box_overlaps(uv, size, cells, areas);
             if cells.is_empty() {
                 self.deposit(uv, amount, overflow);
@@ -337,7 +339,13 @@ impl DTree {
 
     /// Leaf cells `(node, quadrant)` overlapped by the wrapped box of side `size` centred on
     /// `uv`, with their overlap areas (u extended at the borders, v periodic).
-    pub fn box_overlaps(&self, uv: Vec2, size: f64, cells: &mut Vec<(u32, u8)>, areas: &mut Vec<f64>) {
+    pub fn box_overlaps(
+        &self,
+        uv: Vec2,
+        size: f64,
+        cells: &mut Vec<(u32, u8)>,
+        areas: &mut Vec<f64>,
+    ) {
         let h = (size * 0.5).clamp(0.0, 0.5);
         let (u, v) = ((uv.x as f64).clamp(0.0, 1.0), (uv.y as f64).clamp(0.0, 1.0));
         let (u0, u1) = (u - h, u + h);
@@ -355,8 +363,16 @@ impl DTree {
                 let co = quadrant_origin(o, s, q);
                 let cs = s * 0.5;
                 // u overlap with borders extended to infinity
-                let lo = if co[0] <= 0.0 { f64::NEG_INFINITY } else { co[0] };
-                let hi = if co[0] + cs >= 1.0 { f64::INFINITY } else { co[0] + cs };
+                let lo = if co[0] <= 0.0 {
+                    f64::NEG_INFINITY
+                } else {
+                    co[0]
+                };
+                let hi = if co[0] + cs >= 1.0 {
+                    f64::INFINITY
+                } else {
+                    co[0] + cs
+                };
                 let ou = (u1.min(hi) - u0.max(lo)).max(0.0);
                 if ou <= 0.0 {
                     continue;

@@ -65,7 +65,8 @@ impl GradAccum {
     pub fn add_from(&self, pos: u128, neg: u128, weight: u128, overflow: &mut u64) {
         self.pos.set(add_counted(self.pos.get(), pos, overflow));
         self.neg.set(add_counted(self.neg.get(), neg, overflow));
-        self.weight.set(add_counted(self.weight.get(), weight, overflow));
+        self.weight
+            .set(add_counted(self.weight.get(), weight, overflow));
     }
 }
 
@@ -80,7 +81,12 @@ pub fn dloss_dalpha(
     pdf_guide: f32,
     pdf_sample: f32,
 ) -> Option<f64> {
-    let (f, pb, pg, ps) = (product as f64, pdf_bsdf as f64, pdf_guide as f64, pdf_sample as f64);
+    let (f, pb, pg, ps) = (
+        product as f64,
+        pdf_bsdf as f64,
+        pdf_guide as f64,
+        pdf_sample as f64,
+    );
     if !(f > 0.0 && f.is_finite() && pb >= 0.0 && pb.is_finite() && pg >= 0.0 && pg.is_finite())
         || !(ps > 0.0 && ps.is_finite())
     {
@@ -123,7 +129,11 @@ impl GradAccum {
             return None;
         }
         let (p, n) = (self.pos.get(), self.neg.get());
-        let num = if p >= n { from_fixed(p - n) } else { -from_fixed(n - p) };
+        let num = if p >= n {
+            from_fixed(p - n)
+        } else {
+            -from_fixed(n - p)
+        };
         Some(num / from_fixed(w))
     }
 }

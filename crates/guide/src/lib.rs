@@ -47,7 +47,9 @@ pub mod stree;
 pub mod viz;
 pub mod wire;
 
-pub use config::{AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
+pub use config::{
+    AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
+};
 pub use dtree::{Cell, DTree};
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;

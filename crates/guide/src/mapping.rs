@@ -63,9 +63,13 @@ mod tests {
     fn round_trip_direction_uv_direction() {
         let mut s = 12345u64;
         for _ in 0..10000 {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let a = ((s >> 40) as f32) / (1u64 << 24) as f32;
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let b = ((s >> 40) as f32) / (1u64 << 24) as f32;
             let uv = Vec2::new(a, b);
             let d = uv_to_dir(uv);

@@ -40,7 +40,13 @@ pub struct Record {
 
 impl Record {
     /// A record with only the radiance part (fraction fields zero: no fraction gradient).
-    pub fn radiance_only(position: Vec3, direction: Vec3, radiance: f32, pdf_mix: f32, weight: f32) -> Self {
+    pub fn radiance_only(
+        position: Vec3,
+        direction: Vec3,
+        radiance: f32,
+        pdf_mix: f32,
+        weight: f32,
+    ) -> Self {
         Self {
             position,
             direction,

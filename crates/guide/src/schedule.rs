@@ -106,7 +106,10 @@ pub fn plan_iteration(
                 return None;
             }
             let (p, is_last) = iteration_passes(k, remaining);
-            Some(IterationPlan { length: IterationLength::Passes(p), is_last })
+            Some(IterationPlan {
+                length: IterationLength::Passes(p),
+                is_last,
+            })
         }
         Budget::Seconds(s) => {
             let remaining = s - elapsed_seconds;
@@ -115,11 +118,16 @@ pub fn plan_iteration(
             }
             let passes = if k >= 31 { u32::MAX } else { 1u32 << k };
             match previous_iteration_seconds {
-                Some(prev) if time_iteration_is_last(remaining, 2.0 * prev) => Some(IterationPlan {
-                    length: IterationLength::UntilSeconds(s),
-                    is_last: true,
+                Some(prev) if time_iteration_is_last(remaining, 2.0 * prev) => {
+                    Some(IterationPlan {
+                        length: IterationLength::UntilSeconds(s),
+                        is_last: true,
+                    })
+                }
+                _ => Some(IterationPlan {
+                    length: IterationLength::Passes(passes),
+                    is_last: false,
                 }),
-                _ => Some(IterationPlan { length: IterationLength::Passes(passes), is_last: false }),
             }
         }
     }
@@ -178,7 +186,9 @@ pub fn automatic_should_stop(history: &[IterationOutcome]) -> bool {
 
 /// Index of the iteration at which `Automatic` stops on a sequence of outcomes, if any.
 pub fn automatic_stop_index(history: &[IterationOutcome]) -> Option<usize> {
-    (1..=history.len()).find(|&n| automatic_should_stop(&history[..n])).map(|n| n - 1)
+    (1..=history.len())
+        .find(|&n| automatic_should_stop(&history[..n]))
+        .map(|n| n - 1)
 }
 
 /// Inverse-variance weights for iterations with the given variances: the last (up to) 4 get
@@ -247,7 +257,12 @@ pub fn combine_inverse_variance(images: &[&[f32]], variances: &[f64]) -> Vec<f32
 pub fn image_variance(weight_sum: &[f64], sum: &[f64], sum_sq: &[f64], count: &[f64]) -> f64 {
     let mut acc = 0.0;
     let mut n = 0usize;
-    for i in 0..weight_sum.len().min(sum.len()).min(sum_sq.len()).min(count.len()) {
+    for i in 0..weight_sum
+        .len()
+        .min(sum.len())
+        .min(sum_sq.len())
+        .min(count.len())
+    {
         let (ws, c) = (weight_sum[i], count[i]);
         if !(ws > 0.0) || !(c >= 2.0) {
             continue;

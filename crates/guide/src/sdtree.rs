@@ -272,7 +272,15 @@ impl SdTree {
         }
     }
 
-    fn deposit_leaf(&self, leaf: u32, uv: glam::Vec2, qv: u128, qw: u128, w_share: f64, rec: &Record) {
+    fn deposit_leaf(
+        &self,
+        leaf: u32,
+        uv: glam::Vec2,
+        qv: u128,
+        qw: u128,
+        w_share: f64,
+        rec: &Record,
+    ) {
         let l = &self.leaves[leaf as usize];
         l.building.add_weight(qw, &self.overflow);
         if qv != 0 {
@@ -306,7 +314,10 @@ impl SdTree {
     /// the schedule, e.g. at the end of every pass, so training is deterministic. No-op in
     /// fixed-fraction mode. Returns the number of leaves stepped.
     pub fn step_fractions(&mut self) -> usize {
-        if !matches!(self.config.bsdf_sampling_fraction, FractionMode::Learned { .. }) {
+        if !matches!(
+            self.config.bsdf_sampling_fraction,
+            FractionMode::Learned { .. }
+        ) {
             return 0;
         }
         let adam = self.config.adam;
@@ -443,7 +454,7 @@ impl SdTree {
             structure_hash: self.structure_hash(),
             overflow_events: self.overflow.swap(0, Relaxed),
             leaves: Vec::new(),
-        }; 
+        };
         for (i, l) in self.leaves.iter().enumerate() {
             let mut ls = LeafStats {
                 leaf: i as u32,
@@ -454,12 +465,22 @@ impl SdTree {
                 nodes: Vec::new(),
             };
             for (ni, n) in l.building.nodes.iter().enumerate() {
-                let s = [n.sums[0].take(), n.sums[1].take(), n.sums[2].take(), n.sums[3].take()];
+                let s = [
+                    n.sums[0].take(),
+                    n.sums[1].take(),
+                    n.sums[2].take(),
+                    n.sums[3].take(),
+                ];
                 if s.iter().any(|&x| x != 0) {
                     ls.nodes.push((ni as u32, s));
                 }
             }
-            if ls.weight != 0 || ls.grad_pos != 0 || ls.grad_neg != 0 || ls.grad_weight != 0 || !ls.nodes.is_empty() {
+            if ls.weight != 0
+                || ls.grad_pos != 0
+                || ls.grad_neg != 0
+                || ls.grad_weight != 0
+                || !ls.nodes.is_empty()
+            {
                 out.leaves.push(ls);
             }
         }
@@ -477,15 +498,22 @@ impl SdTree {
             let Some(l) = self.leaves.get(ls.leaf as usize) else {
                 return Err(StatsError::IndexOutOfRange);
             };
-            if ls.nodes.iter().any(|&(n, _)| n as usize >= l.building.nodes.len()) {
+            if ls
+                .nodes
+                .iter()
+                .any(|&(n, _)| n as usize >= l.building.nodes.len())
+            {
                 return Err(StatsError::IndexOutOfRange);
             }
         }
         let mut of = 0u64;
         for ls in &s.leaves {
             let l = &self.leaves[ls.leaf as usize];
-            l.building.weight.set(add_counted(l.building.weight.get(), ls.weight, &mut of));
-            l.grad.add_from(ls.grad_pos, ls.grad_neg, ls.grad_weight, &mut of);
+            l.building
+                .weight
+                .set(add_counted(l.building.weight.get(), ls.weight, &mut of));
+            l.grad
+                .add_from(ls.grad_pos, ls.grad_neg, ls.grad_weight, &mut of);
             for &(n, sums) in &ls.nodes {
                 let node = &l.building.nodes[n as usize];
                 for q in 0..4 {

@@ -153,7 +153,10 @@ pub fn split_exact(q: u128, weights: &[f64], out: &mut Vec<u128>) {
     if weights.is_empty() {
         return;
     }
-    let max = weights.iter().cloned().fold(0.0f64, |a, b| if b > a { b } else { a });
+    let max = weights
+        .iter()
+        .cloned()
+        .fold(0.0f64, |a, b| if b > a { b } else { a });
     out.resize(weights.len(), 0);
     if !(max > 0.0) || !max.is_finite() {
         out[0] = q;
@@ -163,7 +166,11 @@ pub fn split_exact(q: u128, weights: &[f64], out: &mut Vec<u128>) {
     let mut t: u128 = 0;
     let mut imax = 0usize;
     for (i, &w) in weights.iter().enumerate() {
-        let x = if w > 0.0 { ((w / max) * 4294967295.0).round() as u128 } else { 0 };
+        let x = if w > 0.0 {
+            ((w / max) * 4294967295.0).round() as u128
+        } else {
+            0
+        };
         if x > wi.get(imax).copied().unwrap_or(0) {
             imax = i;
         }

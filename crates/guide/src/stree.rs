@@ -192,7 +192,11 @@ impl STree {
             let mut vol = 1.0f64;
             for a in 0..3 {
                 let l = if o[a] <= 0.0 { f64::NEG_INFINITY } else { o[a] };
-                let h = if o[a] + e[a] >= 1.0 { f64::INFINITY } else { o[a] + e[a] };
+                let h = if o[a] + e[a] >= 1.0 {
+                    f64::INFINITY
+                } else {
+                    o[a] + e[a]
+                };
                 let ov = ((hi[a] as f64).min(h) - (lo[a] as f64).max(l)).max(0.0);
                 vol *= ov;
             }

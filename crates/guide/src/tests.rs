@@ -27,7 +27,9 @@ impl Pcg {
     }
     fn next_u32(&mut self) -> u32 {
         let old = self.0;
-        self.0 = old.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        self.0 = old
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
         let rot = (old >> 59) as u32;
         xorshifted.rotate_right(rot)
@@ -94,9 +96,18 @@ fn random_dtree(seed: u64, kind: TreeKind) -> DTree {
         .map(|_| (rng.f64(), rng.f64(), 10f64.powf(-1.0 - 4.0 * rng.f64())))
         .collect();
     let a = [rng.f64() * 0.5, rng.f64() * 0.5];
-    let rect = [a[0], a[1], a[0] + 0.05 + rng.f64() * 0.4, a[1] + 0.05 + rng.f64() * 0.4];
+    let rect = [
+        a[0],
+        a[1],
+        a[0] + 0.05 + rng.f64() * 0.4,
+        a[1] + 0.05 + rng.f64() * 0.4,
+    ];
     let mut t = DTree::new();
-    let rounds = if matches!(kind, TreeKind::Peak) { 9 } else { 1 + rng.below(6) };
+    let rounds = if matches!(kind, TreeKind::Peak) {
+        9
+    } else {
+        1 + rng.below(6)
+    };
     for round in 0..=rounds {
         for _ in 0..2000 {
             let uv = random_uv(&mut rng, kind, &centres, rect);
@@ -162,7 +173,9 @@ fn bin_index(edges: &[f64], x: f64) -> usize {
 fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
     // Overall significance 0.01 over all (tree, binning) pairs, Šidák corrected.
     let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
-    let trees: Vec<(u64, TreeKind)> = (0..12u64).map(|i| (1000 + i, kinds[i as usize % 3])).collect();
+    let trees: Vec<(u64, TreeKind)> = (0..12u64)
+        .map(|i| (1000 + i, kinds[i as usize % 3]))
+        .collect();
     let m = trees.len() * 2;
     let level = sidak(0.01, m);
     let n_samples = 60_000;
@@ -184,10 +197,19 @@ fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
                 ((th.cos() + 1.0) * 0.5).clamp(0.0, 1.0)
             })
             .collect();
-        let exp_uv: Vec<f64> = bin_masses(&t, &u_edges, nv).iter().map(|m| m * n_samples as f64).collect();
-        let exp_sp: Vec<f64> = bin_masses(&t, &t_edges, nv).iter().map(|m| m * n_samples as f64).collect();
+        let exp_uv: Vec<f64> = bin_masses(&t, &u_edges, nv)
+            .iter()
+            .map(|m| m * n_samples as f64)
+            .collect();
+        let exp_sp: Vec<f64> = bin_masses(&t, &t_edges, nv)
+            .iter()
+            .map(|m| m * n_samples as f64)
+            .collect();
         let total: f64 = exp_uv.iter().sum();
-        assert!((total - n_samples as f64).abs() < 1e-6 * n_samples as f64, "mass {total}");
+        assert!(
+            (total - n_samples as f64).abs() < 1e-6 * n_samples as f64,
+            "mass {total}"
+        );
         let mut obs_uv = vec![0.0; nu * nv];
         let mut obs_sp = vec![0.0; nt * nv];
         let mut rng = Pcg::new(seed ^ 0xABCD);
@@ -195,7 +217,10 @@ fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
             let (uv, pdf) = t.sample_with_pdf(&mut rng.rng());
             assert!(pdf > 0.0, "sampled a zero-pdf point");
             let p2 = t.pdf(uv);
-            assert!((pdf - p2).abs() <= 1e-4 * pdf, "sample pdf {pdf} vs pdf {p2}");
+            assert!(
+                (pdf - p2).abs() <= 1e-4 * pdf,
+                "sample pdf {pdf} vs pdf {p2}"
+            );
             let iu = bin_index(&u_edges, uv.x as f64);
             let iv = ((uv.y as f64 * nv as f64) as usize).min(nv - 1);
             obs_uv[iu * nv + iv] += 1.0;
@@ -212,13 +237,22 @@ fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
             obs_sp[(nt - 1 - it) * nv + ip] += 1.0;
         }
         let p_uv = chi2_test(&obs_uv, &exp_uv);
-        assert!(p_uv > level, "tree {seed} {kind:?}: uv chi2 p = {p_uv:e} (level {level:e})");
+        assert!(
+            p_uv > level,
+            "tree {seed} {kind:?}: uv chi2 p = {p_uv:e} (level {level:e})"
+        );
         // For directions exactly on a theta-bin border, float rounding may move the bin; the
         // expected masses treat bins as half-open in u, which is measure-zero different.
         let p_sp = chi2_test(&obs_sp, &exp_sp);
-        assert!(p_sp > level, "tree {seed} {kind:?}: sphere chi2 p = {p_sp:e} (level {level:e})");
+        assert!(
+            p_sp > level,
+            "tree {seed} {kind:?}: sphere chi2 p = {p_sp:e} (level {level:e})"
+        );
     }
-    assert_eq!(max_depth_seen, MAX_DEPTH, "random trees must reach depth 20");
+    assert_eq!(
+        max_depth_seen, MAX_DEPTH,
+        "random trees must reach depth 20"
+    );
     assert!(saw_zero_cell, "random trees must contain zero-energy cells");
 }
 
@@ -231,12 +265,16 @@ fn chi_square_detects_a_wrong_sampler() {
     let nv = 16;
     let u_edges: Vec<f64> = (0..=16).map(|i| i as f64 / 16.0).collect();
     let n = 20_000;
-    let exp: Vec<f64> = bin_masses(&other, &u_edges, nv).iter().map(|m| m * n as f64).collect();
+    let exp: Vec<f64> = bin_masses(&other, &u_edges, nv)
+        .iter()
+        .map(|m| m * n as f64)
+        .collect();
     let mut obs = vec![0.0; 16 * nv];
     let mut rng = Pcg::new(5);
     for _ in 0..n {
         let uv = t.sample(&mut rng.rng());
-        obs[bin_index(&u_edges, uv.x as f64) * nv + ((uv.y * nv as f32) as usize).min(nv - 1)] += 1.0;
+        obs[bin_index(&u_edges, uv.x as f64) * nv + ((uv.y * nv as f32) as usize).min(nv - 1)] +=
+            1.0;
     }
     assert!(chi2_test(&obs, &exp) < 1e-6);
 }
@@ -269,15 +307,23 @@ fn quadtree_pdf_integrates_to_one_in_uv_and_on_the_sphere() {
 fn sdtree_sample_returns_unit_directions_whose_pdf_round_trips() {
     let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), GuideConfig::default());
     let mut rng = Pcg::new(3);
-    assert!(tree.sample(Vec3::ZERO, &mut rng.rng()).is_none(), "no sampling before refine");
+    assert!(
+        tree.sample(Vec3::ZERO, &mut rng.rng()).is_none(),
+        "no sampling before refine"
+    );
     assert_eq!(tree.pdf(Vec3::ZERO, Vec3::Z), 0.0);
     for _ in 0..5000 {
         let d = uv_to_dir(Vec2::new(0.6 + 0.3 * rng.f32(), 0.2 * rng.f32()));
-        tree.record(&Record::radiance_only(Vec3::ZERO, d, 1.0, 1.0, 1.0), &mut rng.rng());
+        tree.record(
+            &Record::radiance_only(Vec3::ZERO, d, 1.0, 1.0, 1.0),
+            &mut rng.rng(),
+        );
     }
     tree.refine(0);
     for _ in 0..2000 {
-        let (d, p) = tree.sample(Vec3::new(0.1, 0.2, 0.3), &mut rng.rng()).unwrap();
+        let (d, p) = tree
+            .sample(Vec3::new(0.1, 0.2, 0.3), &mut rng.rng())
+            .unwrap();
         assert!((d.length() - 1.0).abs() < 1e-5);
         let p2 = tree.pdf(Vec3::new(0.1, 0.2, 0.3), d);
         assert!((p - p2).abs() <= 2e-3 * p, "{p} {p2} {d}");
@@ -310,22 +356,47 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
         let p = (uv.x as f64 + 0.5) / (4.0 * PI);
         let rad = l(d);
         vals.push(rad / p);
-        tree.record(&Record::radiance_only(Vec3::ZERO, d, rad as f32, p as f32, 1.0), &mut rng.rng());
+        tree.record(
+            &Record::radiance_only(Vec3::ZERO, d, rad as f32, p as f32, 1.0),
+            &mut rng.rng(),
+        );
     }
     // Zero-radiance, negative and NaN radiance records only add to W; invalid weights add nothing.
     let leaf = &tree.leaves()[0];
-    let sums_before: Vec<u128> = leaf.building.nodes().iter().flat_map(|n| n.sums.iter().map(|s| s.get())).collect();
+    let sums_before: Vec<u128> = leaf
+        .building
+        .nodes()
+        .iter()
+        .flat_map(|n| n.sums.iter().map(|s| s.get()))
+        .collect();
     let w_before = leaf.building.weight_fixed();
     for rad in [0.0f32, -1.0, f32::NAN, f32::INFINITY] {
-        tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, rad, 1.0, 1.0), &mut rng.rng());
+        tree.record(
+            &Record::radiance_only(Vec3::ZERO, Vec3::Z, rad, 1.0, 1.0),
+            &mut rng.rng(),
+        );
     }
     for w in [0.0f32, -1.0, f32::NAN] {
-        tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 1.0, w), &mut rng.rng());
+        tree.record(
+            &Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 1.0, w),
+            &mut rng.rng(),
+        );
     }
-    tree.record(&Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 0.0, 1.0), &mut rng.rng());
+    tree.record(
+        &Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 0.0, 1.0),
+        &mut rng.rng(),
+    );
     let leaf = &tree.leaves()[0];
-    let sums_after: Vec<u128> = leaf.building.nodes().iter().flat_map(|n| n.sums.iter().map(|s| s.get())).collect();
-    assert_eq!(sums_before, sums_after, "zero / invalid radiance must not change sums");
+    let sums_after: Vec<u128> = leaf
+        .building
+        .nodes()
+        .iter()
+        .flat_map(|n| n.sums.iter().map(|s| s.get()))
+        .collect();
+    assert_eq!(
+        sums_before, sums_after,
+        "zero / invalid radiance must not change sums"
+    );
     assert_eq!(leaf.building.weight_fixed(), w_before + 4 * FIXED_ONE);
 
     tree.refine(0);
@@ -337,13 +408,21 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
     let se = (var / n as f64).sqrt();
     // 5 standard errors: two-sided significance ~6e-7 per check (normal approximation).
     let est = t.total() / n as f64;
-    assert!((est - 4.0 * PI).abs() < 5.0 * se, "integral {est} vs {}", 4.0 * PI);
+    assert!(
+        (est - 4.0 * PI).abs() < 5.0 * se,
+        "integral {est} vs {}",
+        4.0 * PI
+    );
     assert!((t.mean() * 4.0 * PI * w / n as f64 - est).abs() < 1e-9);
     // Per root quadrant: q0 (z<0, y>0) = pi/2, q1 (z>0, y>0) = 2 pi, q2 = 0, q3 = 1.5 pi.
     let expect = [0.5 * PI, 2.0 * PI, 0.0, 1.5 * PI];
     for q in 0..4 {
         let s = t.nodes()[0].sums[q].get_f64() / n as f64;
-        assert!((s - expect[q]).abs() < 5.0 * se, "quadrant {q}: {s} vs {}", expect[q]);
+        assert!(
+            (s - expect[q]).abs() < 5.0 * se,
+            "quadrant {q}: {s} vs {}",
+            expect[q]
+        );
     }
     assert_eq!(t.nodes()[0].sums[2].get(), 0);
 }
@@ -358,7 +437,10 @@ fn old_mass(t: &DTree, origin: [f64; 2], size: f64) -> f64 {
     loop {
         let h = s * 0.5;
         let q = ((origin[0] >= o[0] + h) as usize) | (((origin[1] >= o[1] + h) as usize) << 1);
-        let qo = [o[0] + if q & 1 != 0 { h } else { 0.0 }, o[1] + if q & 2 != 0 { h } else { 0.0 }];
+        let qo = [
+            o[0] + if q & 1 != 0 { h } else { 0.0 },
+            o[1] + if q & 2 != 0 { h } else { 0.0 },
+        ];
         let c = t.nodes()[node].children[q];
         let sum = t.nodes()[node].sums[q].get_f64();
         if size >= h || c == 0 {
@@ -386,10 +468,17 @@ fn reset_refines_exactly_where_energy_fraction_exceeds_rho() {
             while let Some((n, o, s, d)) = stack.pop() {
                 for q in 0..4 {
                     let h = s * 0.5;
-                    let qo = [o[0] + if q & 1 != 0 { h } else { 0.0 }, o[1] + if q & 2 != 0 { h } else { 0.0 }];
+                    let qo = [
+                        o[0] + if q & 1 != 0 { h } else { 0.0 },
+                        o[1] + if q & 2 != 0 { h } else { 0.0 },
+                    ];
                     let f = old_mass(&old, qo, h) / total;
                     let c = t.nodes()[n].children[q];
-                    assert_eq!(c != 0, f > rho && d < MAX_DEPTH, "cell {qo:?} size {h} f {f} depth {d}");
+                    assert_eq!(
+                        c != 0,
+                        f > rho && d < MAX_DEPTH,
+                        "cell {qo:?} size {h} f {f} depth {d}"
+                    );
                     assert_eq!(t.nodes()[n].sums[q].get(), 0);
                     checked += 1;
                     if c != 0 {
@@ -439,9 +528,17 @@ fn clustered_records(rng: &mut Pcg, n: usize) -> Vec<Record> {
     (0..n)
         .map(|_| {
             let p = if rng.below(2) == 0 {
-                Vec3::new(-0.8 + 0.3 * rng.f32(), -0.7 + 0.2 * rng.f32(), 0.5 + 0.4 * rng.f32())
+                Vec3::new(
+                    -0.8 + 0.3 * rng.f32(),
+                    -0.7 + 0.2 * rng.f32(),
+                    0.5 + 0.4 * rng.f32(),
+                )
             } else {
-                Vec3::new(rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0)
+                Vec3::new(
+                    rng.f32() * 2.0 - 1.0,
+                    rng.f32() * 2.0 - 1.0,
+                    rng.f32() * 2.0 - 1.0,
+                )
             };
             let d = uv_to_dir(Vec2::new(rng.f32(), rng.f32()));
             let pb = 0.1 + rng.f32();
@@ -491,13 +588,20 @@ fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
             let s = st.domain_size();
             m + Vec3::new((i & 1) as f32, ((i >> 1) & 1) as f32, ((i >> 2) & 1) as f32) * s
         } else {
-            Vec3::new(rng.f32() * 2.4 - 1.2, rng.f32() * 2.4 - 1.2, rng.f32() * 2.4 - 1.2)
+            Vec3::new(
+                rng.f32() * 2.4 - 1.2,
+                rng.f32() * 2.4 - 1.2,
+                rng.f32() * 2.4 - 1.2,
+            )
         };
         let l = st.lookup(p);
         let x = st.normalise(p);
         let (o, e) = st.node_box_normalised(l.node);
         for a in 0..3 {
-            assert!(x[a] >= o[a] && (x[a] < o[a] + e[a] || (x[a] == 1.0 && o[a] + e[a] == 1.0)), "point {p} box {o:?} {e:?}");
+            assert!(
+                x[a] >= o[a] && (x[a] < o[a] + e[a] || (x[a] == 1.0 && o[a] + e[a] == 1.0)),
+                "point {p} box {o:?} {e:?}"
+            );
             assert!((l.extent[a] - e[a] * st.domain_size()).abs() < 1e-6);
             assert!((l.min[a] - (st.domain_min()[a] + o[a] * st.domain_size())).abs() < 1e-5);
         }
@@ -510,7 +614,11 @@ fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
         if n.is_leaf() {
             let (o, e) = st.node_box_normalised(i as u32);
             let o3 = Vec3::from_array(o);
-            assert_eq!(st.lookup_normalised(o3).node, i as u32, "lower corner of leaf {i}");
+            assert_eq!(
+                st.lookup_normalised(o3).node,
+                i as u32,
+                "lower corner of leaf {i}"
+            );
             let c = o3 + Vec3::from_array(e) * 0.5;
             assert_eq!(st.lookup_normalised(c).node, i as u32);
         }
@@ -548,7 +656,10 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
         if n.is_leaf() {
             assert!(t.leaves()[n.leaf as usize].sampling.weight() <= thr);
         } else {
-            assert!(sub_w(&t, i as u32) > thr, "node {i} split below the threshold");
+            assert!(
+                sub_w(&t, i as u32) > thr,
+                "node {i} split below the threshold"
+            );
             inner += 1;
         }
     }
@@ -566,7 +677,10 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     assert!(t2.stats().spatial_nodes <= 5);
     assert_eq!(t2.stats().leaves, 3);
     // a zero threshold does not split without bound (floor of one record weight)
-    let zero = GuideConfig { s_tree_threshold: 0.0, ..GuideConfig::default() };
+    let zero = GuideConfig {
+        s_tree_threshold: 0.0,
+        ..GuideConfig::default()
+    };
     let mut t3 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), zero);
     for r in recs.iter().take(50) {
         t3.record(r, &mut rng.rng());
@@ -579,7 +693,9 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
 fn stree_children_inherit_the_whole_payload() {
     let cfg = GuideConfig {
         s_tree_threshold: 1000.0,
-        bsdf_sampling_fraction: FractionMode::Learned { loss: FractionLoss::Kl },
+        bsdf_sampling_fraction: FractionMode::Learned {
+            loss: FractionLoss::Kl,
+        },
         ..GuideConfig::default()
     };
     let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
@@ -595,7 +711,9 @@ fn stree_children_inherit_the_whole_payload() {
     assert!(pending.pos.get() > 0 && pending.neg.get() > 0 && pending.weight.get() > 0);
     t.refine(0);
     // the pending fraction batch is split exactly between the children
-    let sum = |f: fn(&crate::fraction::GradAccum) -> u128| t.leaves().iter().map(|l| f(&l.grad)).sum::<u128>();
+    let sum = |f: fn(&crate::fraction::GradAccum) -> u128| {
+        t.leaves().iter().map(|l| f(&l.grad)).sum::<u128>()
+    };
     assert_eq!(sum(|g| g.pos.get()), pending.pos.get());
     assert_eq!(sum(|g| g.neg.get()), pending.neg.get());
     assert_eq!(sum(|g| g.weight.get()), pending.weight.get());
@@ -605,12 +723,19 @@ fn stree_children_inherit_the_whole_payload() {
     }
     assert!(t.leaves().len() >= 2);
     for l in t.leaves() {
-        assert_eq!(l.sampling.nodes(), expected.nodes(), "sampling tree not inherited");
+        assert_eq!(
+            l.sampling.nodes(),
+            expected.nodes(),
+            "sampling tree not inherited"
+        );
         assert_eq!(l.fraction.theta, 0.75);
         assert_eq!(l.fraction.m, 0.125);
         let mut reset = expected.clone();
         reset.reset(0.01, MAX_DEPTH);
-        assert_eq!(l.building, reset, "building tree not reset from the inherited tree");
+        assert_eq!(
+            l.building, reset,
+            "building tree not reset from the inherited tree"
+        );
     }
     let ws: f64 = t.leaves().iter().map(|l| l.sampling.weight()).sum();
     assert!((ws - expected.weight()).abs() < 1e-9);
@@ -619,7 +744,14 @@ fn stree_children_inherit_the_whole_payload() {
 #[test]
 fn sample_and_pdf_read_only_the_frozen_sampling_tree() {
     let mut t = warmed_tree(GuideConfig::default(), 8, 3000, 1);
-    let dirs: Vec<Vec3> = (0..64).map(|i| uv_to_dir(Vec2::new((i % 8) as f32 / 8.0 + 0.01, (i / 8) as f32 / 8.0 + 0.01))).collect();
+    let dirs: Vec<Vec3> = (0..64)
+        .map(|i| {
+            uv_to_dir(Vec2::new(
+                (i % 8) as f32 / 8.0 + 0.01,
+                (i / 8) as f32 / 8.0 + 0.01,
+            ))
+        })
+        .collect();
     let before: Vec<f32> = dirs.iter().map(|&d| t.pdf(Vec3::ZERO, d)).collect();
     let mut rng = Pcg::new(1);
     let s_before = t.sample(Vec3::ZERO, &mut Pcg::new(2).rng());
@@ -656,8 +788,18 @@ fn box_splats_conserve_mass_exactly() {
     for i in 0..200 {
         let v = if i % 2 == 0 { 0.9999 } else { 0.0001 };
         let u = [0.0001f32, 0.5, 0.9999][i % 3];
-        let c = if i % 4 == 0 { Vec3::splat(1.0) } else { Vec3::splat(-1.0) };
-        recs.push(Record::radiance_only(c, uv_to_dir(Vec2::new(u, v)), 1.5, 0.3, 1.0));
+        let c = if i % 4 == 0 {
+            Vec3::splat(1.0)
+        } else {
+            Vec3::splat(-1.0)
+        };
+        recs.push(Record::radiance_only(
+            c,
+            uv_to_dir(Vec2::new(u, v)),
+            1.5,
+            0.3,
+            1.0,
+        ));
     }
     let mut expect_sum = 0u128;
     let mut expect_w = 0u128;
@@ -683,11 +825,21 @@ fn box_splats_conserve_mass_exactly() {
     let mut t2 = t.clone();
     let _ = t2.take_stats();
     let p = Vec3::new(-0.62, -0.6, 0.7);
-    t2.record(&Record::radiance_only(p, uv_to_dir(Vec2::new(0.3, 0.9995)), 1.0, 1.0, 1.0), &mut rng.rng());
+    t2.record(
+        &Record::radiance_only(p, uv_to_dir(Vec2::new(0.3, 0.9995)), 1.0, 1.0, 1.0),
+        &mut rng.rng(),
+    );
     let s = t2.take_stats();
     assert!(s.leaves.len() > 1, "box splat hit only one leaf");
-    assert!(s.leaves.iter().any(|l| l.nodes.len() > 1 || l.nodes.iter().any(|n| n.1.iter().filter(|&&x| x > 0).count() > 1)));
-    let tot: u128 = s.leaves.iter().flat_map(|l| l.nodes.iter().flat_map(|n| n.1.iter())).sum();
+    assert!(s.leaves.iter().any(|l| l.nodes.len() > 1
+        || l.nodes
+            .iter()
+            .any(|n| n.1.iter().filter(|&&x| x > 0).count() > 1)));
+    let tot: u128 = s
+        .leaves
+        .iter()
+        .flat_map(|l| l.nodes.iter().flat_map(|n| n.1.iter()))
+        .sum();
     assert_eq!(tot, FIXED_ONE);
 }
 
@@ -742,8 +894,15 @@ fn mean_of_stochastic_splats_equals_the_box_splat() {
         }
         b.record(&rec, &mut rng.rng());
         let obs: Vec<f64> = a.leaves().iter().map(|l| l.building.weight()).collect();
-        let exp: Vec<f64> = b.leaves().iter().map(|l| l.building.weight() * m as f64).collect();
-        assert!(exp.iter().filter(|&&e| e > 0.0).count() >= 2, "box must overlap several leaves: {exp:?} {l:?}");
+        let exp: Vec<f64> = b
+            .leaves()
+            .iter()
+            .map(|l| l.building.weight() * m as f64)
+            .collect();
+        assert!(
+            exp.iter().filter(|&&e| e > 0.0).count() >= 2,
+            "box must overlap several leaves: {exp:?} {l:?}"
+        );
         let pv = chi2_test(&obs, &exp);
         assert!(pv > level, "p = {pv}");
     }
@@ -783,8 +942,12 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
         let alpha_opt = 1.0 / (1.0 + (-(0.5 * (lo + hi))).exp());
         // Without the L2 term the optimum is exactly 0.3 (q = F); L2 pulls it towards 0.5.
         assert!(alpha_opt > 0.3 && alpha_opt < 0.45, "optimum {alpha_opt}");
-        let unreg = toy_expected_grad(-(1.0f64 / 0.3 - 1.0).ln(), p) - 0.01 * -(1.0f64 / 0.3 - 1.0).ln();
-        assert!(unreg.abs() < 1e-6, "unregularised gradient at alpha = 0.3: {unreg}");
+        let unreg =
+            toy_expected_grad(-(1.0f64 / 0.3 - 1.0).ln(), p) - 0.01 * -(1.0f64 / 0.3 - 1.0).ln();
+        assert!(
+            unreg.abs() < 1e-6,
+            "unregularised gradient at alpha = 0.3: {unreg}"
+        );
         let cfg = GuideConfig {
             s_tree_threshold: 1e15,
             bsdf_sampling_fraction: FractionMode::Learned { loss },
@@ -797,7 +960,11 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
         for s in 0..steps {
             let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
             for _ in 0..128 {
-                let x = if rng.f64() < alpha { rng.f64() } else { rng.f64().sqrt() };
+                let x = if rng.f64() < alpha {
+                    rng.f64()
+                } else {
+                    rng.f64().sqrt()
+                };
                 let (pb, pg) = (1.0, 2.0 * x);
                 let rec = Record {
                     position: Vec3::ZERO,
@@ -818,7 +985,10 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
             }
         }
         let alpha_end = tail / 300.0;
-        assert!((alpha_end - alpha_opt).abs() < 0.02, "{loss:?}: learned {alpha_end} vs optimum {alpha_opt}");
+        assert!(
+            (alpha_end - alpha_opt).abs() < 0.02,
+            "{loss:?}: learned {alpha_end} vs optimum {alpha_opt}"
+        );
     }
 }
 
@@ -833,7 +1003,10 @@ fn fixed_fraction_and_clamped_learned_fraction() {
     l.leaves[0].fraction.theta = -20.0;
     assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.05);
     // theta stays within [-20, 20] under huge gradients
-    let mut f = crate::fraction::FractionState { theta: 19.999, ..Default::default() };
+    let mut f = crate::fraction::FractionState {
+        theta: 19.999,
+        ..Default::default()
+    };
     for _ in 0..100 {
         f.adam_step(-1e30, &AdamConfig::default());
     }
@@ -870,18 +1043,33 @@ fn schedule_doubles_passes_and_last_iteration_absorbs_the_remainder() {
     assert_eq!(iteration_passes(3, 20), (20, true));
     assert_eq!(
         plan_iteration(7, Budget::Spp(1024), 4, 127, 0.0, None),
-        Some(IterationPlan { length: IterationLength::Passes(129), is_last: true })
+        Some(IterationPlan {
+            length: IterationLength::Passes(129),
+            is_last: true
+        })
     );
-    assert_eq!(plan_iteration(8, Budget::Spp(1024), 4, 256, 0.0, None), None);
+    assert_eq!(
+        plan_iteration(8, Budget::Spp(1024), 4, 256, 0.0, None),
+        None
+    );
     assert_eq!(
         plan_iteration(3, Budget::Seconds(100.0), 1, 7, 10.0, Some(5.0)),
-        Some(IterationPlan { length: IterationLength::Passes(8), is_last: false })
+        Some(IterationPlan {
+            length: IterationLength::Passes(8),
+            is_last: false
+        })
     );
     assert_eq!(
         plan_iteration(4, Budget::Seconds(100.0), 1, 15, 60.0, Some(10.0)),
-        Some(IterationPlan { length: IterationLength::UntilSeconds(100.0), is_last: true })
+        Some(IterationPlan {
+            length: IterationLength::UntilSeconds(100.0),
+            is_last: true
+        })
     );
-    assert_eq!(plan_iteration(4, Budget::Seconds(100.0), 1, 15, 100.0, Some(10.0)), None);
+    assert_eq!(
+        plan_iteration(4, Budget::Seconds(100.0), 1, 15, 100.0, Some(10.0)),
+        None
+    );
     assert!(time_iteration_is_last(100.0, 40.0));
     assert!(!time_iteration_is_last(100.0, 30.0));
 }
@@ -895,14 +1083,21 @@ fn automatic_combination_stops_when_extrapolated_variance_worsens_after_256_spp(
         let mut h = Vec::new();
         for (k, &v) in vars.iter().enumerate() {
             let cost = (1u64 << k) as f64;
-            h.push(IterationOutcome { variance: v, cost, remaining_before: remaining, spp_before: spp });
+            h.push(IterationOutcome {
+                variance: v,
+                cost,
+                remaining_before: remaining,
+                spp_before: spp,
+            });
             remaining -= cost;
             spp += cost as u64;
         }
         h
     };
     // variance halves (extrapolation improves) until iteration 9, then stalls
-    let mut vars: Vec<f64> = (0..9).map(|k| 1.0 / (1u64 << k) as f64 / (1.0 + k as f64)).collect();
+    let mut vars: Vec<f64> = (0..9)
+        .map(|k| 1.0 / (1u64 << k) as f64 / (1.0 + k as f64))
+        .collect();
     vars.push(vars[8] * 0.9); // k = 9: 512 passes; worse extrapolation? check below
     let h = mk(&vars);
     let e8 = extrapolated_final_variance(h[8].variance, h[8].cost, h[8].remaining_before);
@@ -915,7 +1110,12 @@ fn automatic_combination_stops_when_extrapolated_variance_worsens_after_256_spp(
     let he = mk(&early);
     assert_eq!(automatic_stop_index(&he[..3]), None);
     // a budget that cannot afford the next iteration stops
-    let tight = vec![IterationOutcome { variance: 1.0, cost: 64.0, remaining_before: 100.0, spp_before: 63 }];
+    let tight = vec![IterationOutcome {
+        variance: 1.0,
+        cost: 64.0,
+        remaining_before: 100.0,
+        spp_before: 63,
+    }];
     assert!(automatic_should_stop(&tight));
     assert!((extrapolated_final_variance(2.0, 4.0, 16.0) - 0.5).abs() < 1e-12);
 }
@@ -929,7 +1129,10 @@ fn inverse_variance_weights_combine_synthetic_images_optimally() {
     for i in 0..4 {
         assert!((w[2 + i] - inv[i] / s).abs() < 1e-12);
     }
-    assert_eq!(inverse_variance_weights(&[3.0, 0.0, 2.0]), vec![0.0, 1.0, 0.0]);
+    assert_eq!(
+        inverse_variance_weights(&[3.0, 0.0, 2.0]),
+        vec![0.0, 1.0, 0.0]
+    );
     assert_eq!(inverse_variance_weights(&[f64::NAN]), vec![1.0]);
     // synthetic noisy images of a known truth
     let mut rng = Pcg::new(7);
@@ -938,12 +1141,22 @@ fn inverse_variance_weights_combine_synthetic_images_optimally() {
     let sig = [2.0f64, 1.5, 1.0, 0.8, 0.6, 0.5];
     let imgs: Vec<Vec<f32>> = sig
         .iter()
-        .map(|&s| truth.iter().map(|&t| (t as f64 + s * rng.gauss()) as f32).collect())
+        .map(|&s| {
+            truth
+                .iter()
+                .map(|&t| (t as f64 + s * rng.gauss()) as f32)
+                .collect()
+        })
         .collect();
     let vars: Vec<f64> = sig.iter().map(|s| s * s).collect();
     let refs: Vec<&[f32]> = imgs.iter().map(|v| v.as_slice()).collect();
     let comb = combine_inverse_variance(&refs, &vars);
-    let mse: f64 = comb.iter().zip(&truth).map(|(&c, &t)| ((c - t) as f64).powi(2)).sum::<f64>() / npx as f64;
+    let mse: f64 = comb
+        .iter()
+        .zip(&truth)
+        .map(|(&c, &t)| ((c - t) as f64).powi(2))
+        .sum::<f64>()
+        / npx as f64;
     let ideal = 1.0 / vars[2..].iter().map(|v| 1.0 / v).sum::<f64>();
     // relative sd of the MSE estimate is sqrt(2/npx) = 1%; 5% is ~5 sigma
     assert!((mse / ideal - 1.0).abs() < 0.05, "mse {mse} ideal {ideal}");
@@ -954,7 +1167,12 @@ fn inverse_variance_weights_combine_synthetic_images_optimally() {
 fn image_variance_estimator_is_unbiased_on_synthetic_pixels() {
     let mut rng = Pcg::new(17);
     let (npx, n, sigma) = (5000usize, 16usize, 0.7f64);
-    let (mut ws, mut s1, mut s2, mut cnt) = (vec![0.0; npx], vec![0.0; npx], vec![0.0; npx], vec![0.0; npx]);
+    let (mut ws, mut s1, mut s2, mut cnt) = (
+        vec![0.0; npx],
+        vec![0.0; npx],
+        vec![0.0; npx],
+        vec![0.0; npx],
+    );
     for i in 0..npx {
         for _ in 0..n {
             let x = 3.0 + sigma * rng.gauss();
@@ -974,7 +1192,11 @@ fn image_variance_estimator_is_unbiased_on_synthetic_pixels() {
 
 fn det_records(n: usize, seed: u64) -> Vec<(Record, u64)> {
     let mut rng = Pcg::new(seed);
-    clustered_records(&mut rng, n).into_iter().enumerate().map(|(i, r)| (r, seed * 1_000_003 + i as u64)).collect()
+    clustered_records(&mut rng, n)
+        .into_iter()
+        .enumerate()
+        .map(|(i, r)| (r, seed * 1_000_003 + i as u64))
+        .collect()
 }
 
 fn record_all(t: &SdTree, recs: &[(Record, u64)]) {
@@ -1017,7 +1239,9 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
         s_tree_threshold: 300.0,
         spatial_filter: SpatialFilter::Box,
         directional_filter: DirectionalFilter::Box,
-        bsdf_sampling_fraction: FractionMode::Learned { loss: FractionLoss::Var },
+        bsdf_sampling_fraction: FractionMode::Learned {
+            loss: FractionLoss::Var,
+        },
         ..GuideConfig::default()
     };
     let base = warmed_tree(cfg, 61, 4000, 2);
@@ -1050,7 +1274,10 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
     applied.refine(2);
     assert_eq!(applied.encode(), one.encode());
     // statistics of another structure are refused
-    assert!(matches!(one.apply_stats(&merged), Err(crate::wire::StatsError::StructureMismatch)));
+    assert!(matches!(
+        one.apply_stats(&merged),
+        Err(crate::wire::StatsError::StructureMismatch)
+    ));
 }
 
 #[test]
@@ -1089,7 +1316,10 @@ fn wire_round_trips_and_detects_corruption() {
         for _ in 0..50 {
             let n = rng.below(buf.len() as u32) as usize;
             let e = decode(&buf[..n]).unwrap_err();
-            assert!(matches!(e, WireError::Truncated | WireError::BadMagic(_)), "{e:?}");
+            assert!(
+                matches!(e, WireError::Truncated | WireError::BadMagic(_)),
+                "{e:?}"
+            );
         }
         let mut c = buf.clone();
         c[0] = b'X';
@@ -1100,9 +1330,15 @@ fn wire_round_trips_and_detects_corruption() {
         let mut c = buf.clone();
         let mid = c.len() / 2;
         c[mid] ^= 0x10;
-        assert!(matches!(decode(&c), Err(WireError::ChecksumMismatch { .. })));
+        assert!(matches!(
+            decode(&c),
+            Err(WireError::ChecksumMismatch { .. })
+        ));
     }
-    assert!(matches!(SdTree::decode(&sbytes), Err(WireError::BadMagic(_))));
+    assert!(matches!(
+        SdTree::decode(&sbytes),
+        Err(WireError::BadMagic(_))
+    ));
 }
 
 #[test]
@@ -1115,7 +1351,10 @@ fn frozen_sampling_cache_gives_bit_identical_samples_and_pdfs() {
         for _ in 0..2000 {
             let a = t.sample_with_pdf(&mut r1.rng());
             let b = f.sample_with_pdf(&mut r2.rng());
-            assert_eq!(a.0.to_array().map(f32::to_bits), b.0.to_array().map(f32::to_bits));
+            assert_eq!(
+                a.0.to_array().map(f32::to_bits),
+                b.0.to_array().map(f32::to_bits)
+            );
             assert_eq!(a.1.to_bits(), b.1.to_bits());
             assert_eq!(t.pdf(a.0).to_bits(), f.pdf(a.0).to_bits());
         }
@@ -1124,7 +1363,15 @@ fn frozen_sampling_cache_gives_bit_identical_samples_and_pdfs() {
 
 #[test]
 fn stats_report_sizes_and_depth_histogram() {
-    let t = warmed_tree(GuideConfig { s_tree_threshold: 200.0, ..GuideConfig::default() }, 81, 4000, 2);
+    let t = warmed_tree(
+        GuideConfig {
+            s_tree_threshold: 200.0,
+            ..GuideConfig::default()
+        },
+        81,
+        4000,
+        2,
+    );
     let s = t.stats();
     assert_eq!(s.leaves, t.leaves().len());
     assert_eq!(s.depth_histogram.iter().sum::<usize>(), s.leaves);
@@ -1143,11 +1390,24 @@ fn viz_rasterises_the_pdf_with_its_peak_brightest() {
     t.build();
     let img = crate::viz::rasterize_pdf(&t, 64, 32, false);
     assert_eq!(img.len(), 64 * 32 * 3);
-    let px = |x: usize, y: usize| [img[(y * 64 + x) * 3], img[(y * 64 + x) * 3 + 1], img[(y * 64 + x) * 3 + 2]];
+    let px = |x: usize, y: usize| {
+        [
+            img[(y * 64 + x) * 3],
+            img[(y * 64 + x) * 3 + 1],
+            img[(y * 64 + x) * 3 + 2],
+        ]
+    };
     assert_eq!(px(20, 25), [1.0, 1.0, 1.0], "peak cell must be white");
     let dim = px(60, 2);
-    assert!(dim.iter().sum::<f32>() > 0.0 && dim.iter().sum::<f32>() < 1.0, "{dim:?}");
+    assert!(
+        dim.iter().sum::<f32>() > 0.0 && dim.iter().sum::<f32>() < 1.0,
+        "{dim:?}"
+    );
     assert_eq!(px(5, 5), [0.0, 0.0, 0.0], "zero-pdf cell must be black");
     let o = crate::viz::rasterize_pdf(&t, 64, 64, true);
-    assert_eq!(&o[(8 * 64 + 8) * 3..(8 * 64 + 8) * 3 + 3], &[0.0, 1.0, 0.0], "cell corner outlined");
+    assert_eq!(
+        &o[(8 * 64 + 8) * 3..(8 * 64 + 8) * 3 + 3],
+        &[0.0, 1.0, 0.0],
+        "cell corner outlined"
+    );
 }

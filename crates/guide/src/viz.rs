@@ -5,7 +5,11 @@ use glam::Vec2;
 
 /// False-colour map of `t` in `[0, 1]`: black -> blue -> red -> yellow -> white.
 pub fn heat(t: f32) -> [f32; 3] {
-    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 };
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     let stops: [[f32; 3]; 5] = [
         [0.0, 0.0, 0.0],
         [0.1, 0.1, 0.8],
@@ -17,7 +21,11 @@ pub fn heat(t: f32) -> [f32; 3] {
     let i = (x.floor() as usize).min(3);
     let f = x - i as f32;
     let (a, b) = (stops[i], stops[i + 1]);
-    [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f]
+    [
+        a[0] + (b[0] - a[0]) * f,
+        a[1] + (b[1] - a[1]) * f,
+        a[2] + (b[2] - a[2]) * f,
+    ]
 }
 
 /// Rasterises the pdf over `(u, v)` of `tree` into a `width * height` RGB image, row major,
@@ -29,7 +37,10 @@ pub fn rasterize_pdf(tree: &DTree, width: usize, height: usize, outlines: bool) 
     let mut max = 0.0f32;
     for y in 0..height {
         for x in 0..width {
-            let uv = Vec2::new((x as f32 + 0.5) / width as f32, (y as f32 + 0.5) / height as f32);
+            let uv = Vec2::new(
+                (x as f32 + 0.5) / width as f32,
+                (y as f32 + 0.5) / height as f32,
+            );
             let p = tree.pdf(uv);
             pdf[y * width + x] = p;
             max = max.max(p);

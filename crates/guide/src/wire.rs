@@ -72,7 +72,11 @@ const fn crc_table() -> [u32; 256] {
         let mut c = i as u32;
         let mut k = 0;
         while k < 8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
             k += 1;
         }
         t[i] = c;
@@ -271,7 +275,15 @@ fn put_config(w: &mut W, c: &GuideConfig) {
     w.f32(c.fraction_clamp.0);
     w.f32(c.fraction_clamp.1);
     let a = &c.adam;
-    for v in [a.learning_rate, a.beta1, a.beta2, a.epsilon, a.l2, a.min_batch_weight, a.gradient_clamp] {
+    for v in [
+        a.learning_rate,
+        a.beta1,
+        a.beta2,
+        a.epsilon,
+        a.l2,
+        a.min_batch_weight,
+        a.gradient_clamp,
+    ] {
         w.f64(v);
     }
     w.u64(c.max_nodes.map(|n| n as u64).unwrap_or(u64::MAX));
@@ -328,7 +340,11 @@ fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
         bsdf_sampling_fraction,
         fraction_clamp,
         adam,
-        max_nodes: if mn == u64::MAX { None } else { Some(mn as usize) },
+        max_nodes: if mn == u64::MAX {
+            None
+        } else {
+            Some(mn as usize)
+        },
     })
 }
 
@@ -368,7 +384,15 @@ fn put_dtree(w: &mut W, t: &DTree) {
         for &c in &n.children {
             w.u32(c);
         }
-        put_sums(w, &[n.sums[0].get(), n.sums[1].get(), n.sums[2].get(), n.sums[3].get()]);
+        put_sums(
+            w,
+            &[
+                n.sums[0].get(),
+                n.sums[1].get(),
+                n.sums[2].get(),
+                n.sums[3].get(),
+            ],
+        );
     }
 }
 
@@ -580,8 +604,10 @@ impl IterationStats {
         let mut out = Vec::with_capacity(a.len().max(other.leaves.len()));
         let (mut i, mut j) = (0, 0);
         while i < a.len() || j < other.leaves.len() {
-            let take_a = j >= other.leaves.len() || (i < a.len() && a[i].leaf < other.leaves[j].leaf);
-            let take_b = i >= a.len() || (j < other.leaves.len() && other.leaves[j].leaf < a[i].leaf);
+            let take_a =
+                j >= other.leaves.len() || (i < a.len() && a[i].leaf < other.leaves[j].leaf);
+            let take_b =
+                i >= a.len() || (j < other.leaves.len() && other.leaves[j].leaf < a[i].leaf);
             if take_a {
                 out.push(a[i].clone());
                 i += 1;
@@ -608,7 +634,9 @@ impl IterationStats {
     }
 
     /// Merges many statistics (e.g. one per worker) into one.
-    pub fn merge_all<'a>(parts: impl IntoIterator<Item = &'a IterationStats>) -> Result<IterationStats, StatsError> {
+    pub fn merge_all<'a>(
+        parts: impl IntoIterator<Item = &'a IterationStats>,
+    ) -> Result<IterationStats, StatsError> {
         let mut it = parts.into_iter();
         let Some(first) = it.next() else {
             return Ok(IterationStats::default());
@@ -683,7 +711,11 @@ impl IterationStats {
     }
 }
 
-fn merge_nodes(a: &[(u32, [u128; 4])], b: &[(u32, [u128; 4])], of: &mut u64) -> Vec<(u32, [u128; 4])> {
+fn merge_nodes(
+    a: &[(u32, [u128; 4])],
+    b: &[(u32, [u128; 4])],
+    of: &mut u64,
+) -> Vec<(u32, [u128; 4])> {
     let mut out = Vec::with_capacity(a.len().max(b.len()));
     let (mut i, mut j) = (0, 0);
     while i < a.len() || j < b.len() {

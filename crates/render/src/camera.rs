@@ -69,11 +69,20 @@ impl Camera {
         let sx = p.x / self.width;
         let sy = p.y / self.height;
         // Camera space: +z forward, +x left, +y up (Mitsuba's convention).
-        let local = Vec3::new((1.0 - 2.0 * sx) * self.tan_half_x, (1.0 - 2.0 * sy) * self.tan_half_y, 1.0);
+        let local = Vec3::new(
+            (1.0 - 2.0 * sx) * self.tan_half_x,
+            (1.0 - 2.0 * sy) * self.tan_half_y,
+            1.0,
+        );
         let inv_len = local.length_recip();
         let d = self.to_world.transform_vector3(local * inv_len).normalize();
         // Mitsuba clips at near/far along the ray: t in [near/cos, far/cos].
         let cos = inv_len; // local.z == 1
-        Ray { o: self.origin, d, tmin: self.near_clip / cos, tmax: self.far_clip / cos }
+        Ray {
+            o: self.origin,
+            d,
+            tmin: self.near_clip / cos,
+            tmax: self.far_clip / cos,
+        }
     }
 }

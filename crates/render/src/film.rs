@@ -72,7 +72,11 @@ pub struct Film {
 
 impl Film {
     pub fn new(width: u32, height: u32) -> Self {
-        Self { width, height, pixels: vec![PixelStats::default(); (width * height) as usize] }
+        Self {
+            width,
+            height,
+            pixels: vec![PixelStats::default(); (width * height) as usize],
+        }
     }
 
     pub fn mean_rgb(&self) -> Vec<[f32; 3]> {

@@ -11,10 +11,16 @@ use pathfarm_scene::RFilter;
 
 #[derive(Clone, Copy, Debug)]
 pub enum Filter {
-    Box { radius: f32 },
-    Tent { radius: f32 },
+    Box {
+        radius: f32,
+    },
+    Tent {
+        radius: f32,
+    },
     /// Mitsuba's windowed gaussian: support 4 standard deviations.
-    Gaussian { stddev: f32 },
+    Gaussian {
+        stddev: f32,
+    },
 }
 
 impl Filter {

@@ -23,11 +23,12 @@
 use std::time::{Duration, Instant};
 
 pub use pathfarm_guide::schedule::Budget;
-pub use pathfarm_guide::SdTree;
 use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome};
+pub use pathfarm_guide::SdTree;
 use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use pathfarm_scene::{
-    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee, GuidedParams, GuidedSpatialFilter,
+    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee,
+    GuidedParams, GuidedSpatialFilter,
 };
 
 use crate::film::Film;
@@ -93,8 +94,12 @@ pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
         },
         bsdf_sampling_fraction: match params.bsdf_sampling_fraction_loss {
             GuidedFractionLoss::None => FractionMode::Fixed(params.bsdf_sampling_fraction),
-            GuidedFractionLoss::Kl => FractionMode::Learned { loss: FractionLoss::Kl },
-            GuidedFractionLoss::Var => FractionMode::Learned { loss: FractionLoss::Var },
+            GuidedFractionLoss::Kl => FractionMode::Learned {
+                loss: FractionLoss::Kl,
+            },
+            GuidedFractionLoss::Var => FractionMode::Learned {
+                loss: FractionLoss::Var,
+            },
         },
         max_nodes: params.max_nodes.map(|n| n as usize),
         ..GuideConfig::default()
@@ -114,7 +119,11 @@ pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
 /// sample_count spp, or 300 seconds).
 pub fn params_budget(params: &GuidedParams, scene: &Scene) -> Budget {
     match params.budget_type {
-        GuidedBudgetType::Spp => Budget::Spp(params.budget.map_or(scene.sample_count, |b| (b.ceil() as u32).max(1))),
+        GuidedBudgetType::Spp => Budget::Spp(
+            params
+                .budget
+                .map_or(scene.sample_count, |b| (b.ceil() as u32).max(1)),
+        ),
         GuidedBudgetType::Seconds => Budget::Seconds(params.budget.unwrap_or(300.0)),
     }
 }
@@ -125,7 +134,10 @@ pub fn film_variance(film: &Film) -> f64 {
     if v.is_empty() {
         return 0.0;
     }
-    v.iter().map(|p| p.iter().map(|&x| x as f64).sum::<f64>()).sum::<f64>() / (3 * v.len()) as f64
+    v.iter()
+        .map(|p| p.iter().map(|&x| x as f64).sum::<f64>())
+        .sum::<f64>()
+        / (3 * v.len()) as f64
 }
 
 /// Weighted combination of films: per pixel, film k's sample weights are scaled by
@@ -184,7 +196,13 @@ pub fn render_guided_with(
     let spp_per_pass = params.spp_per_pass.max(1);
     let npix = scene.width as u64 * scene.height as u64;
     let start = Instant::now();
-    let pass_settings = RenderSettings { spp: Some(spp_per_pass), time_limit: None, seed: settings.seed, tile_size: settings.tile_size, pass_spp: None };
+    let pass_settings = RenderSettings {
+        spp: Some(spp_per_pass),
+        time_limit: None,
+        seed: settings.seed,
+        tile_size: settings.tile_size,
+        pass_spp: None,
+    };
 
     let mut spp_done = 0u64;
     let mut passes_done = 0u32;
@@ -197,43 +215,54 @@ pub fn render_guided_with(
     let mut kept: Option<usize> = None;
 
     // One pass of spp_per_pass samples into `film`.
-    let render_pass = |tree: &SdTree, record: bool, film: &mut Film, spp_done: u64, invalid: &mut u64| {
-        let nee = match params.nee {
-            GuidedNee::Never => false,
-            GuidedNee::Always => true,
-            GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
-        };
-        let ctx = GuideCtx {
-            tree,
-            nee,
-            indirect_only: params.nee == GuidedNee::Always,
-            kickstart: params.nee == GuidedNee::Kickstart && nee,
-            record,
-        };
-        let ctx = &ctx;
-        let est = |ray: Ray, rng: &mut Rng| match (scene.features.environment, scene.features.analytic_shapes) {
-            (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng),
-            (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng),
-            (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng),
-            (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng),
-        };
-        let base = spp_done * npix;
-        let prog = |p: Progress| {
-            let d = base + p.samples_done;
-            let total = match budget {
-                Budget::Spp(s) => s as u64 * npix,
-                Budget::Seconds(s) => (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64,
+    let render_pass =
+        |tree: &SdTree, record: bool, film: &mut Film, spp_done: u64, invalid: &mut u64| {
+            let nee = match params.nee {
+                GuidedNee::Never => false,
+                GuidedNee::Always => true,
+                GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
             };
-            progress(Progress { samples_done: d, samples_total: total.max(d) })
+            let ctx = GuideCtx {
+                tree,
+                nee,
+                indirect_only: params.nee == GuidedNee::Always,
+                kickstart: params.nee == GuidedNee::Kickstart && nee,
+                record,
+            };
+            let ctx = &ctx;
+            let est = |ray: Ray, rng: &mut Rng| match (
+                scene.features.environment,
+                scene.features.analytic_shapes,
+            ) {
+                (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng),
+                (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng),
+                (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng),
+                (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng),
+            };
+            let base = spp_done * npix;
+            let prog = |p: Progress| {
+                let d = base + p.samples_done;
+                let total = match budget {
+                    Budget::Spp(s) => s as u64 * npix,
+                    Budget::Seconds(s) => {
+                        (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
+                    }
+                };
+                progress(Progress {
+                    samples_done: d,
+                    samples_total: total.max(d),
+                })
+            };
+            let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
+            *invalid += st.invalid_samples;
         };
-        let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
-        *invalid += st.invalid_samples;
-    };
 
     let mut k = 0u32;
     loop {
         let elapsed = start.elapsed().as_secs_f64();
-        let Some(plan) = schedule::plan_iteration(k, budget, spp_per_pass, passes_done, elapsed, prev_secs) else {
+        let Some(plan) =
+            schedule::plan_iteration(k, budget, spp_per_pass, passes_done, elapsed, prev_secs)
+        else {
             break;
         };
         let remaining_before = match budget {
@@ -252,7 +281,8 @@ pub fn render_guided_with(
         loop {
             match until {
                 IterationLength::Passes(p) if passes >= p => {}
-                IterationLength::UntilSeconds(s) if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
+                IterationLength::UntilSeconds(s)
+                    if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
                 _ => {
                     let tp = Instant::now();
                     render_pass(&tree, record && !stopped, &mut film, spp_done, &mut invalid);
@@ -272,12 +302,19 @@ pub fn render_guided_with(
                     Budget::Spp(_) => passes as f64,
                     Budget::Seconds(_) => t0.elapsed().as_secs_f64(),
                 };
-                history.push(IterationOutcome { variance: film_variance(&film), cost, remaining_before, spp_before });
+                history.push(IterationOutcome {
+                    variance: film_variance(&film),
+                    cost,
+                    remaining_before,
+                    spp_before,
+                });
                 if schedule::automatic_should_stop(&history) {
                     stopped = true;
                     training_spp += spp_done - spp_before;
                     until = match budget {
-                        Budget::Spp(s) => IterationLength::Passes(schedule::total_passes(s, spp_per_pass) - passes_done),
+                        Budget::Spp(s) => IterationLength::Passes(
+                            schedule::total_passes(s, spp_per_pass) - passes_done,
+                        ),
                         Budget::Seconds(s) => IterationLength::UntilSeconds(s),
                     };
                     continue;
@@ -315,7 +352,9 @@ pub fn render_guided_with(
 
     let n = films.len();
     let weights = match params.sample_combination {
-        GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(&iterations.iter().map(|i| i.variance).collect::<Vec<_>>()),
+        GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(
+            &iterations.iter().map(|i| i.variance).collect::<Vec<_>>(),
+        ),
         _ => {
             let mut w = vec![0.0; n];
             if n > 0 {
@@ -335,7 +374,11 @@ pub fn render_guided_with(
     let stats = GuidedStats {
         iterations,
         spp: spp_done as u32,
-        training_fraction: if spp_done > 0 { training_spp as f64 / spp_done as f64 } else { 0.0 },
+        training_fraction: if spp_done > 0 {
+            training_spp as f64 / spp_done as f64
+        } else {
+            0.0
+        },
         tree_memory_bytes: tree.stats().memory_bytes,
         weights,
         wall: start.elapsed(),
@@ -371,6 +414,9 @@ mod tests {
         }
         assert_eq!(c.pixels[0].count, 0);
         // A weight of 1 on one film reproduces its mean.
-        assert_eq!(combine_films(&[&a, &b], &[0.0, 1.0]).mean_rgb(), b.mean_rgb());
+        assert_eq!(
+            combine_films(&[&a, &b], &[0.0, 1.0]).mean_rgb(),
+            b.mean_rgb()
+        );
     }
 }

@@ -11,14 +11,14 @@
 //! - This crate does no network I/O.
 
 pub mod camera;
-pub mod filter;
 pub mod film;
+pub mod filter;
 pub mod geometry;
+pub mod guided;
 pub mod integrator;
 pub mod light;
 pub mod material;
 pub mod output;
-pub mod guided;
 mod render;
 pub mod rng;
 pub mod sampling;
@@ -35,5 +35,8 @@ pub enum RenderError {
     #[error("unsupported: {0}")]
     Unsupported(String),
     #[error("{path}: cannot write image: {message}")]
-    Output { path: std::path::PathBuf, message: String },
+    Output {
+        path: std::path::PathBuf,
+        message: String,
+    },
 }

@@ -4,17 +4,26 @@
 
 use std::path::{Path, PathBuf};
 
-use exr::prelude::{read_first_flat_layer_from_file, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, Text, WritableImage};
+use exr::prelude::{
+    read_first_flat_layer_from_file, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer,
+    LayerAttributes, Text, WritableImage,
+};
 
 use crate::film::Film;
 use crate::RenderError;
 
 fn err(path: &Path, e: impl std::fmt::Display) -> RenderError {
-    RenderError::Output { path: path.to_path_buf(), message: e.to_string() }
+    RenderError::Output {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
 }
 
 fn temp_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
+    let mut name = path
+        .file_name()
+        .map(|n| n.to_os_string())
+        .unwrap_or_default();
     name.push(format!(".tmp{}", std::process::id()));
     path.with_file_name(name)
 }
@@ -26,20 +35,41 @@ pub fn write_exr(path: &Path, film: &Film, aovs: bool) -> Result<(), RenderError
     let mean = film.mean_rgb();
     let mut list: Vec<AnyChannel<FlatSamples>> = Vec::new();
     for (c, name) in ["R", "G", "B"].iter().enumerate() {
-        list.push(AnyChannel::new(*name, FlatSamples::F32(mean.iter().map(|p| p[c]).collect())));
+        list.push(AnyChannel::new(
+            *name,
+            FlatSamples::F32(mean.iter().map(|p| p[c]).collect()),
+        ));
     }
     if aovs {
         let var = film.variance_rgb();
-        for (c, name) in ["variance.R", "variance.G", "variance.B"].iter().enumerate() {
-            list.push(AnyChannel::new(*name, FlatSamples::F32(var.iter().map(|p| p[c]).collect())));
+        for (c, name) in ["variance.R", "variance.G", "variance.B"]
+            .iter()
+            .enumerate()
+        {
+            list.push(AnyChannel::new(
+                *name,
+                FlatSamples::F32(var.iter().map(|p| p[c]).collect()),
+            ));
         }
-        list.push(AnyChannel::new("spp", FlatSamples::F32(film.pixels.iter().map(|p| p.count as f32).collect())));
+        list.push(AnyChannel::new(
+            "spp",
+            FlatSamples::F32(film.pixels.iter().map(|p| p.count as f32).collect()),
+        ));
     }
     let channels = AnyChannels::sort(list.into());
-    let layer = Layer::new((w, h), LayerAttributes::default(), Encoding::SMALL_LOSSLESS, channels);
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::SMALL_LOSSLESS,
+        channels,
+    );
     let image = Image::from_layer(layer);
     let tmp = temp_path(path);
-    let result = image.write().to_file(&tmp).map_err(|e| err(path, e)).and_then(|_| std::fs::rename(&tmp, path).map_err(|e| err(path, e)));
+    let result = image
+        .write()
+        .to_file(&tmp)
+        .map_err(|e| err(path, e))
+        .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| err(path, e)));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -67,9 +97,16 @@ pub fn write_png(path: &Path, film: &Film) -> Result<(), RenderError> {
         }
     }
     let tmp = temp_path(path);
-    let result = image::save_buffer_with_format(&tmp, &bytes, film.width, film.height, image::ExtendedColorType::Rgb8, image::ImageFormat::Png)
-        .map_err(|e| err(path, e))
-        .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| err(path, e)));
+    let result = image::save_buffer_with_format(
+        &tmp,
+        &bytes,
+        film.width,
+        film.height,
+        image::ExtendedColorType::Rgb8,
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| err(path, e))
+    .and_then(|_| std::fs::rename(&tmp, path).map_err(|e| err(path, e)));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -82,11 +119,21 @@ pub fn read_exr_rgb(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), RenderErro
     let image = read_first_flat_layer_from_file(path).map_err(|e| err(path, e))?;
     let layer = &image.layer_data;
     let (w, h) = (layer.size.0, layer.size.1);
-    let find = |name: &str| layer.channel_data.list.iter().find(|c| c.name == Text::from(name));
+    let find = |name: &str| {
+        layer
+            .channel_data
+            .list
+            .iter()
+            .find(|c| c.name == Text::from(name))
+    };
     let get = |name: &str| -> Result<Vec<f32>, RenderError> {
         let c = find(name).ok_or_else(|| err(path, format!("no channel {name}")))?;
         Ok(c.sample_data.values_as_f32().collect())
     };
     let (r, g, b) = (get("R")?, get("G")?, get("B")?);
-    Ok((w as u32, h as u32, (0..w * h).map(|i| [r[i], g[i], b[i]]).collect()))
+    Ok((
+        w as u32,
+        h as u32,
+        (0..w * h).map(|i| [r[i], g[i], b[i]]).collect(),
+    ))
 }

@@ -35,7 +35,13 @@ pub struct RenderSettings {
 
 impl RenderSettings {
     pub fn new(spp: Option<u32>, time_limit: Option<Duration>, seed: u64) -> Self {
-        Self { spp, time_limit, seed, tile_size: DEFAULT_TILE, pass_spp: None }
+        Self {
+            spp,
+            time_limit,
+            seed,
+            tile_size: DEFAULT_TILE,
+            pass_spp: None,
+        }
     }
 }
 
@@ -73,9 +79,16 @@ const PASS_BUFFER_BYTES: usize = 256 << 20;
 /// order (source pixel, then sample index), the samples within its filter's
 /// support. Pixels only depend on their own gather, so the image is the same
 /// for any thread count or tile size.
-pub fn render(scene: &Scene, settings: &RenderSettings, progress: &(dyn Fn(Progress) + Sync)) -> (Film, RenderStats) {
+pub fn render(
+    scene: &Scene,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> (Film, RenderStats) {
     let mut film = Film::new(scene.width, scene.height);
-    let estimator = |ray: Ray, rng: &mut Rng| match (scene.features.environment, scene.features.analytic_shapes) {
+    let estimator = |ray: Ray, rng: &mut Rng| match (
+        scene.features.environment,
+        scene.features.analytic_shapes,
+    ) {
         (false, false) => path::li::<false, false>(scene, ray, rng),
         (true, false) => path::li::<true, false>(scene, ray, rng),
         (false, true) => path::li::<false, true>(scene, ray, rng),
@@ -110,19 +123,26 @@ where
         (None, None) => scene.sample_count,
     };
     let npix = (w as usize) * (h as usize);
-    let max_pass = ((PASS_BUFFER_BYTES / (npix.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1);
+    let max_pass =
+        ((PASS_BUFFER_BYTES / (npix.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1);
     let tile = settings.tile_size.max(1) as usize;
     let done = AtomicU64::new(0);
     let invalid = AtomicU64::new(0);
     let mut spp_done = 0u32;
-    let mut pass = if settings.time_limit.is_some() { 1 } else { settings.pass_spp.unwrap_or(target_spp) };
+    let mut pass = if settings.time_limit.is_some() {
+        1
+    } else {
+        settings.pass_spp.unwrap_or(target_spp)
+    };
     let mut buffer: Vec<SampleRec> = Vec::new();
     while spp_done < target_spp {
         let s0 = spp_done;
         let s1 = s0.saturating_add(pass.clamp(1, max_pass)).min(target_spp);
         let n = (s1 - s0) as usize;
         let total = if settings.time_limit.is_some() && settings.spp.is_none() {
-            let rate = (done.load(Ordering::Relaxed) as f64 / start.elapsed().as_secs_f64().max(1e-3)).max(1.0);
+            let rate = (done.load(Ordering::Relaxed) as f64
+                / start.elapsed().as_secs_f64().max(1e-3))
+            .max(1.0);
             (rate * settings.time_limit.unwrap().as_secs_f64()) as u64
         } else {
             npix as u64 * target_spp as u64
@@ -130,51 +150,68 @@ where
         // Phase 1: samples, in tiles of `tile` pixels along each row.
         buffer.clear();
         buffer.resize(npix * n, SampleRec::default());
-        buffer.par_chunks_mut(tile * n).enumerate().for_each(|(chunk, out)| {
-            let first = chunk * tile;
-            let mut bad = 0u64;
-            for (i, recs) in out.chunks_mut(n).enumerate() {
-                let pixel = first + i;
-                let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
-                for (k, rec) in recs.iter_mut().enumerate() {
-                    let (offset, mut value) = sample(scene, settings.seed, x, y, pixel as u64, first_sample + (s0 as usize + k) as u64, estimator);
-                    if !value.is_finite() {
-                        bad += 1;
-                        value = glam::Vec3::ZERO;
+        buffer
+            .par_chunks_mut(tile * n)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                let first = chunk * tile;
+                let mut bad = 0u64;
+                for (i, recs) in out.chunks_mut(n).enumerate() {
+                    let pixel = first + i;
+                    let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
+                    for (k, rec) in recs.iter_mut().enumerate() {
+                        let (offset, mut value) = sample(
+                            scene,
+                            settings.seed,
+                            x,
+                            y,
+                            pixel as u64,
+                            first_sample + (s0 as usize + k) as u64,
+                            estimator,
+                        );
+                        if !value.is_finite() {
+                            bad += 1;
+                            value = glam::Vec3::ZERO;
+                        }
+                        *rec = SampleRec { offset, value };
                     }
-                    *rec = SampleRec { offset, value };
                 }
-            }
-            invalid.fetch_add(bad, Ordering::Relaxed);
-            let m = (out.len()) as u64;
-            let d = done.fetch_add(m, Ordering::Relaxed) + m;
-            progress(Progress { samples_done: d, samples_total: total.max(d) });
-        });
+                invalid.fetch_add(bad, Ordering::Relaxed);
+                let m = (out.len()) as u64;
+                let d = done.fetch_add(m, Ordering::Relaxed) + m;
+                progress(Progress {
+                    samples_done: d,
+                    samples_total: total.max(d),
+                });
+            });
         // Phase 2: splat by gathering.
         let filter = scene.filter;
         let reach = filter.reach();
         let buf = &buffer;
-        film.pixels.par_chunks_mut(w as usize).enumerate().for_each(|(y, row)| {
-            let y = y as i32;
-            for (x, stats) in row.iter_mut().enumerate() {
-                let x = x as i32;
-                stats.count += n as u32;
-                let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
-                for qy in (y - reach).max(0)..=(y + reach).min(h as i32 - 1) {
-                    for qx in (x - reach).max(0)..=(x + reach).min(w as i32 - 1) {
-                        let q = qy as usize * w as usize + qx as usize;
-                        let base = Vec2::new(qx as f32, qy as f32) - centre;
-                        for rec in &buf[q * n..(q + 1) * n] {
-                            let d = base + rec.offset;
-                            let wt = filter.eval(d.x) * filter.eval(d.y);
-                            if wt > 0.0 {
-                                stats.add(wt, rec.value);
+        film.pixels
+            .par_chunks_mut(w as usize)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let y = y as i32;
+                for (x, stats) in row.iter_mut().enumerate() {
+                    let x = x as i32;
+                    stats.count += n as u32;
+                    let centre = Vec2::new(x as f32 + 0.5, y as f32 + 0.5);
+                    for qy in (y - reach).max(0)..=(y + reach).min(h as i32 - 1) {
+                        for qx in (x - reach).max(0)..=(x + reach).min(w as i32 - 1) {
+                            let q = qy as usize * w as usize + qx as usize;
+                            let base = Vec2::new(qx as f32, qy as f32) - centre;
+                            for rec in &buf[q * n..(q + 1) * n] {
+                                let d = base + rec.offset;
+                                let wt = filter.eval(d.x) * filter.eval(d.y);
+                                if wt > 0.0 {
+                                    stats.add(wt, rec.value);
+                                }
                             }
                         }
                     }
                 }
-            }
-        });
+            });
         spp_done = s1;
         if let Some(limit) = settings.time_limit {
             let elapsed = start.elapsed();
@@ -190,14 +227,26 @@ where
             pass = ((left.min(1.0) / per_spp).floor() as u32).max(1);
         }
     }
-    RenderStats { spp: spp_done, wall: start.elapsed(), invalid_samples: invalid.load(Ordering::Relaxed) }
+    RenderStats {
+        spp: spp_done,
+        wall: start.elapsed(),
+        invalid_samples: invalid.load(Ordering::Relaxed),
+    }
 }
 
 /// One camera sample of pixel (x, y): its own random stream, a position
 /// uniformly inside the pixel (returned as the offset from the pixel's
 /// corner), and the integrator's estimate.
 #[inline]
-fn sample<E: Fn(Ray, &mut Rng) -> glam::Vec3>(scene: &Scene, seed: u64, x: u32, y: u32, pixel: u64, index: u64, estimator: &E) -> (Vec2, glam::Vec3) {
+fn sample<E: Fn(Ray, &mut Rng) -> glam::Vec3>(
+    scene: &Scene,
+    seed: u64,
+    x: u32,
+    y: u32,
+    pixel: u64,
+    index: u64,
+    estimator: &E,
+) -> (Vec2, glam::Vec3) {
     let mut rng = Rng::for_sample(seed, pixel, index);
     let offset = rng.next_2d();
     let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + offset);

@@ -33,7 +33,10 @@ impl Rng {
 
     #[inline]
     pub fn new(init_state: u64, init_seq: u64) -> Self {
-        let mut r = Rng { state: 0, inc: (init_seq << 1) | 1 };
+        let mut r = Rng {
+            state: 0,
+            inc: (init_seq << 1) | 1,
+        };
         r.next_u32();
         r.state = r.state.wrapping_add(init_state);
         r.next_u32();

@@ -18,7 +18,11 @@ impl Distribution1D {
         let mut acc = 0.0f64;
         cdf.push(0.0);
         for &w in weights {
-            acc += if w.is_finite() && w > 0.0 { w as f64 } else { 0.0 };
+            acc += if w.is_finite() && w > 0.0 {
+                w as f64
+            } else {
+                0.0
+            };
             cdf.push(acc as f32);
         }
         if acc > 0.0 {
@@ -56,7 +60,11 @@ impl Distribution1D {
         let n = self.len();
         let i = (self.cdf.partition_point(|&c| c <= u).max(1) - 1).min(n - 1);
         let (c0, c1) = (self.cdf[i], self.cdf[i + 1]);
-        let r = if c1 > c0 { ((u - c0) / (c1 - c0)).clamp(0.0, 1.0 - f32::EPSILON) } else { 0.5 };
+        let r = if c1 > c0 {
+            ((u - c0) / (c1 - c0)).clamp(0.0, 1.0 - f32::EPSILON)
+        } else {
+            0.5
+        };
         (i, r)
     }
 }
@@ -111,7 +119,9 @@ mod tests {
     #[test]
     fn distribution_picks_bins_in_proportion() {
         let d = Distribution1D::new(&[1.0, 0.0, 3.0]);
-        assert!((d.pmf(0) - 0.25).abs() < 1e-6 && d.pmf(1) == 0.0 && (d.pmf(2) - 0.75).abs() < 1e-6);
+        assert!(
+            (d.pmf(0) - 0.25).abs() < 1e-6 && d.pmf(1) == 0.0 && (d.pmf(2) - 0.75).abs() < 1e-6
+        );
         assert_eq!(d.sample(0.1).0, 0);
         assert_eq!(d.sample(0.25).0, 2);
         assert_eq!(d.sample(0.999).0, 2);

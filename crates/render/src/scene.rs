@@ -2,7 +2,10 @@
 //! lights, camera, built once from a [`SceneDesc`].
 
 use pathfarm_bsdf::{frame::Frame, Bsdf};
-use pathfarm_scene::{EmitterDesc, Features, Geometry, GuidedParams, IntegratorDesc, PathParams, SceneDesc, TextureDesc};
+use pathfarm_scene::{
+    EmitterDesc, Features, Geometry, GuidedParams, IntegratorDesc, PathParams, SceneDesc,
+    TextureDesc,
+};
 
 use crate::camera::Camera;
 use crate::filter::Filter;
@@ -42,13 +45,32 @@ impl Scene {
             .iter()
             .map(|s| match &s.geometry {
                 Geometry::Mesh(m) => ShapeGeom::Mesh(m.clone()),
-                Geometry::Sphere { center, radius, flip_normals } => {
-                    ShapeGeom::Analytic(Analytic::Sphere { center: *center, radius: *radius, flip: *flip_normals })
-                }
-                Geometry::Disk { to_world, flip_normals } => ShapeGeom::Analytic(Analytic::disk(*to_world, *flip_normals)),
+                Geometry::Sphere {
+                    center,
+                    radius,
+                    flip_normals,
+                } => ShapeGeom::Analytic(Analytic::Sphere {
+                    center: *center,
+                    radius: *radius,
+                    flip: *flip_normals,
+                }),
+                Geometry::Disk {
+                    to_world,
+                    flip_normals,
+                } => ShapeGeom::Analytic(Analytic::disk(*to_world, *flip_normals)),
             })
             .collect();
-        let triangle_count = desc.shapes.iter().map(|s| if let Geometry::Mesh(m) = &s.geometry { m.indices.len() } else { 0 }).sum();
+        let triangle_count = desc
+            .shapes
+            .iter()
+            .map(|s| {
+                if let Geometry::Mesh(m) = &s.geometry {
+                    m.indices.len()
+                } else {
+                    0
+                }
+            })
+            .sum();
         let accel = Accel::build(geoms);
 
         let mut lights = Vec::new();
@@ -62,23 +84,56 @@ impl Scene {
         let mut env_count = 0;
         for e in &desc.emitters {
             lights.push(match e {
-                EmitterDesc::Point { position, intensity } => Light::Point { position: *position, intensity: *intensity },
-                EmitterDesc::Directional { direction, irradiance } => Light::Directional { direction: direction.normalize(), irradiance: *irradiance },
+                EmitterDesc::Point {
+                    position,
+                    intensity,
+                } => Light::Point {
+                    position: *position,
+                    intensity: *intensity,
+                },
+                EmitterDesc::Directional {
+                    direction,
+                    irradiance,
+                } => Light::Directional {
+                    direction: direction.normalize(),
+                    irradiance: *irradiance,
+                },
                 EmitterDesc::Constant { radiance } => {
                     env_count += 1;
-                    Light::Constant { radiance: *radiance }
+                    Light::Constant {
+                        radiance: *radiance,
+                    }
                 }
-                EmitterDesc::EnvMap { width, height, texels, scale, to_world } => {
+                EmitterDesc::EnvMap {
+                    width,
+                    height,
+                    texels,
+                    scale,
+                    to_world,
+                } => {
                     env_count += 1;
-                    Light::EnvMap(EnvMap::new(*width, *height, texels.clone(), *scale, *to_world))
+                    Light::EnvMap(EnvMap::new(
+                        *width,
+                        *height,
+                        texels.clone(),
+                        *scale,
+                        *to_world,
+                    ))
                 }
             });
         }
         if env_count > 1 {
-            return Err(RenderError::Unsupported(format!("{}: more than one environment emitter (Mitsuba allows one)", desc.source.display())));
+            return Err(RenderError::Unsupported(format!(
+                "{}: more than one environment emitter (Mitsuba allows one)",
+                desc.source.display()
+            )));
         }
 
-        let materials = desc.bsdfs.iter().map(|b| Material::new(b, &desc.bsdfs, &desc.textures)).collect();
+        let materials = desc
+            .bsdfs
+            .iter()
+            .map(|b| Material::new(b, &desc.bsdfs, &desc.textures))
+            .collect();
         let shape_material = desc.shapes.iter().map(|s| s.bsdf as u32).collect();
         let path = desc.integrator.path_params();
         let guided = match &desc.integrator {

@@ -15,7 +15,11 @@ pub fn eval(textures: &[TextureDesc], r: TexRef, uv: Vec2) -> Vec3 {
 pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
     match t {
         TextureDesc::Bitmap(b) => eval_bitmap(b, b.to_uv.apply(uv)),
-        TextureDesc::Checkerboard { color0, color1, to_uv } => {
+        TextureDesc::Checkerboard {
+            color0,
+            color1,
+            to_uv,
+        } => {
             let q = to_uv.apply(uv);
             let mx = q.x - q.x.floor() > 0.5;
             let my = q.y - q.y.floor() > 0.5;
@@ -51,9 +55,14 @@ pub fn eval_bitmap(b: &BitmapDesc, uv: Vec2) -> Vec3 {
     if !uv.is_finite() {
         return Vec3::ZERO;
     }
-    let texel = |x: i64, y: i64| b.texels[wrap(y, b.height, b.wrap) * b.width as usize + wrap(x, b.width, b.wrap)];
+    let texel = |x: i64, y: i64| {
+        b.texels[wrap(y, b.height, b.wrap) * b.width as usize + wrap(x, b.width, b.wrap)]
+    };
     match b.filter {
-        TexFilter::Nearest => texel((uv.x * b.width as f32).floor() as i64, (uv.y * b.height as f32).floor() as i64),
+        TexFilter::Nearest => texel(
+            (uv.x * b.width as f32).floor() as i64,
+            (uv.y * b.height as f32).floor() as i64,
+        ),
         TexFilter::Bilinear => {
             let px = uv.x * b.width as f32 - 0.5;
             let py = uv.y * b.height as f32 - 0.5;
@@ -76,7 +85,14 @@ mod tests {
     fn bitmap(filter: TexFilter, wrap: WrapMode) -> BitmapDesc {
         // 2x2: top row red, green; bottom row blue, white.
         let texels = vec![Vec3::X, Vec3::Y, Vec3::Z, Vec3::ONE];
-        BitmapDesc { width: 2, height: 2, texels: Arc::new(texels), filter, wrap, to_uv: UvTransform::default() }
+        BitmapDesc {
+            width: 2,
+            height: 2,
+            texels: Arc::new(texels),
+            filter,
+            wrap,
+            to_uv: UvTransform::default(),
+        }
     }
 
     #[test]
@@ -101,7 +117,11 @@ mod tests {
 
     #[test]
     fn checkerboard_alternates_like_mitsuba() {
-        let t = TextureDesc::Checkerboard { color0: Vec3::ONE, color1: Vec3::ZERO, to_uv: UvTransform::default() };
+        let t = TextureDesc::Checkerboard {
+            color0: Vec3::ONE,
+            color1: Vec3::ZERO,
+            to_uv: UvTransform::default(),
+        };
         assert_eq!(eval_texture(&t, Vec2::new(0.25, 0.25)), Vec3::ONE);
         assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.25)), Vec3::ZERO);
         assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.75)), Vec3::ONE);

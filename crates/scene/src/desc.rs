@@ -236,7 +236,11 @@ pub struct PathParams {
 
 impl Default for PathParams {
     fn default() -> Self {
-        Self { max_depth: -1, rr_depth: 5, hide_emitters: false }
+        Self {
+            max_depth: -1,
+            rr_depth: 5,
+            hide_emitters: false,
+        }
     }
 }
 
@@ -309,7 +313,10 @@ pub struct UvTransform {
 
 impl Default for UvTransform {
     fn default() -> Self {
-        Self { m: glam::Mat2::IDENTITY, t: Vec2::ZERO }
+        Self {
+            m: glam::Mat2::IDENTITY,
+            t: Vec2::ZERO,
+        }
     }
 }
 
@@ -437,7 +444,11 @@ pub enum Geometry {
     Mesh(Arc<TriangleMesh>),
     /// Analytic sphere (Mitsuba `sphere`: `center`, `radius`, or a
     /// similarity `to_world`).
-    Sphere { center: Vec3, radius: f32, flip_normals: bool },
+    Sphere {
+        center: Vec3,
+        radius: f32,
+        flip_normals: bool,
+    },
     /// Analytic unit disk in the local xy plane (normal +z), mapped by
     /// `to_world`.
     Disk { to_world: Mat4, flip_normals: bool },

@@ -11,5 +11,9 @@ pub enum SceneError {
         source: std::io::Error,
     },
     #[error("{file}:{line}: {message}")]
-    Invalid { file: PathBuf, line: u32, message: String },
+    Invalid {
+        file: PathBuf,
+        line: u32,
+        message: String,
+    },
 }

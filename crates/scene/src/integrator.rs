@@ -4,8 +4,8 @@
 
 use crate::context::Ctx;
 use crate::desc::{
-    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee, GuidedParams, GuidedSpatialFilter,
-    IntegratorDesc, PathParams,
+    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee,
+    GuidedParams, GuidedSpatialFilter, IntegratorDesc, PathParams,
 };
 use crate::error::SceneError;
 use crate::props::{Props, Resolved};
@@ -40,47 +40,107 @@ fn path_params(p: &Props) -> Result<PathParams, SceneError> {
 }
 
 /// A string parameter that must be one of `choices` (name, value).
-fn choice<T: Clone>(p: &Props, name: &str, default: T, choices: &[(&str, T)]) -> Result<T, SceneError> {
+fn choice<T: Clone>(
+    p: &Props,
+    name: &str,
+    default: T,
+    choices: &[(&str, T)],
+) -> Result<T, SceneError> {
     let Some((s, loc)) = p.string_opt(name)? else {
         return Ok(default);
     };
     let key = s.to_ascii_lowercase();
-    choices.iter().find(|(n, _)| *n == key).map(|(_, v)| v.clone()).ok_or_else(|| {
-        let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
-        invalid(&loc, format!("parameter '{name}' of {} must be one of {} (got '{s}')", p.what(), names.join(", ")))
-    })
+    choices
+        .iter()
+        .find(|(n, _)| *n == key)
+        .map(|(_, v)| v.clone())
+        .ok_or_else(|| {
+            let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+            invalid(
+                &loc,
+                format!(
+                    "parameter '{name}' of {} must be one of {} (got '{s}')",
+                    p.what(),
+                    names.join(", ")
+                ),
+            )
+        })
 }
 
 /// A float parameter that must be finite and within `[min, max]`.
 fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f64, SceneError> {
     match p.float_opt(name)? {
         None => Ok(default),
-        Some(v) if (v as f64) < min || (v as f64) > max => {
-            Err(invalid(p.loc(), format!("parameter '{name}' of {} must be in [{min}, {max}] (got {v})", p.what())))
-        }
+        Some(v) if (v as f64) < min || (v as f64) > max => Err(invalid(
+            p.loc(),
+            format!(
+                "parameter '{name}' of {} must be in [{min}, {max}] (got {v})",
+                p.what()
+            ),
+        )),
         Some(v) => Ok(v as f64),
     }
 }
 
 /// `guided_path`: the `path` parameters plus the SD-tree guide's (see [`GuidedParams`]).
 fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
-    let d = choice(p, "preset", GuidedParams::preset_2017(), &[("2017", GuidedParams::preset_2017()), ("2019", GuidedParams::preset_2019())])?;
+    let d = choice(
+        p,
+        "preset",
+        GuidedParams::preset_2017(),
+        &[
+            ("2017", GuidedParams::preset_2017()),
+            ("2019", GuidedParams::preset_2019()),
+        ],
+    )?;
     let path = path_params(p)?;
-    let budget_type = choice(p, "budget_type", d.budget_type, &[("spp", GuidedBudgetType::Spp), ("seconds", GuidedBudgetType::Seconds)])?;
+    let budget_type = choice(
+        p,
+        "budget_type",
+        d.budget_type,
+        &[
+            ("spp", GuidedBudgetType::Spp),
+            ("seconds", GuidedBudgetType::Seconds),
+        ],
+    )?;
     let budget = match p.float_opt("budget")? {
         None => None,
-        Some(b) if !(b > 0.0) => return Err(invalid(p.loc(), format!("parameter 'budget' of {} must be positive (got {b})", p.what()))),
+        Some(b) if !(b > 0.0) => {
+            return Err(invalid(
+                p.loc(),
+                format!(
+                    "parameter 'budget' of {} must be positive (got {b})",
+                    p.what()
+                ),
+            ))
+        }
         Some(b) => Some(b as f64),
     };
     let max_memory_mb = match p.float_opt("max_memory_mb")? {
         None => None,
-        Some(m) if !(m > 0.0) => return Err(invalid(p.loc(), format!("parameter 'max_memory_mb' of {} must be positive (got {m})", p.what()))),
+        Some(m) if !(m > 0.0) => {
+            return Err(invalid(
+                p.loc(),
+                format!(
+                    "parameter 'max_memory_mb' of {} must be positive (got {m})",
+                    p.what()
+                ),
+            ))
+        }
         Some(m) => Some(m as f64),
     };
     let max_nodes = p.int_opt("max_nodes")?;
     let max_nodes = match max_nodes {
         None => None,
-        Some((n, loc)) if n < 1 => return Err(invalid(&loc, format!("parameter 'max_nodes' of {} must be at least 1 (got {n})", p.what()))),
+        Some((n, loc)) if n < 1 => {
+            return Err(invalid(
+                &loc,
+                format!(
+                    "parameter 'max_nodes' of {} must be at least 1 (got {n})",
+                    p.what()
+                ),
+            ))
+        }
         Some((n, _)) => Some(n as u64),
     };
     Ok(GuidedParams {
@@ -90,31 +150,61 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
         spp_per_pass: p.int_in("spp_per_pass", d.spp_per_pass as i64, 1, 1 << 20)? as u32,
         s_tree_threshold: float_in(p, "s_tree_threshold", d.s_tree_threshold, 1e-6, f64::MAX)?,
         d_tree_threshold: float_in(p, "d_tree_threshold", d.d_tree_threshold, 0.0, 1.0)?,
-        nee: choice(p, "nee", d.nee, &[("never", GuidedNee::Never), ("always", GuidedNee::Always), ("kickstart", GuidedNee::Kickstart)])?,
+        nee: choice(
+            p,
+            "nee",
+            d.nee,
+            &[
+                ("never", GuidedNee::Never),
+                ("always", GuidedNee::Always),
+                ("kickstart", GuidedNee::Kickstart),
+            ],
+        )?,
         sample_combination: choice(
             p,
             "sample_combination",
             d.sample_combination,
-            &[("discard", GuidedCombination::Discard), ("automatic", GuidedCombination::Automatic), ("inversevar", GuidedCombination::InverseVar)],
+            &[
+                ("discard", GuidedCombination::Discard),
+                ("automatic", GuidedCombination::Automatic),
+                ("inversevar", GuidedCombination::InverseVar),
+            ],
         )?,
         spatial_filter: choice(
             p,
             "spatial_filter",
             d.spatial_filter,
-            &[("nearest", GuidedSpatialFilter::Nearest), ("stochastic", GuidedSpatialFilter::Stochastic), ("box", GuidedSpatialFilter::Box)],
+            &[
+                ("nearest", GuidedSpatialFilter::Nearest),
+                ("stochastic", GuidedSpatialFilter::Stochastic),
+                ("box", GuidedSpatialFilter::Box),
+            ],
         )?,
         directional_filter: choice(
             p,
             "directional_filter",
             d.directional_filter,
-            &[("nearest", GuidedDirectionalFilter::Nearest), ("box", GuidedDirectionalFilter::Box)],
+            &[
+                ("nearest", GuidedDirectionalFilter::Nearest),
+                ("box", GuidedDirectionalFilter::Box),
+            ],
         )?,
-        bsdf_sampling_fraction: float_in(p, "bsdf_sampling_fraction", d.bsdf_sampling_fraction as f64, 0.0, 1.0)? as f32,
+        bsdf_sampling_fraction: float_in(
+            p,
+            "bsdf_sampling_fraction",
+            d.bsdf_sampling_fraction as f64,
+            0.0,
+            1.0,
+        )? as f32,
         bsdf_sampling_fraction_loss: choice(
             p,
             "bsdf_sampling_fraction_loss",
             d.bsdf_sampling_fraction_loss,
-            &[("none", GuidedFractionLoss::None), ("kl", GuidedFractionLoss::Kl), ("var", GuidedFractionLoss::Var)],
+            &[
+                ("none", GuidedFractionLoss::None),
+                ("kl", GuidedFractionLoss::Kl),
+                ("var", GuidedFractionLoss::Var),
+            ],
         )?,
         max_memory_mb,
         max_nodes,

@@ -143,7 +143,11 @@ mod tests {
         // Tabulated 99% quantiles: dof 1 -> 6.635, dof 10 -> 23.209, dof 100 -> 135.807;
         // 95%: dof 10 -> 18.307.
         for (dof, q) in [(1usize, 6.6349), (10, 23.2093), (100, 135.8067)] {
-            assert!((chi2_quantile(0.99, dof) - q).abs() < 2e-3, "dof {dof}: {}", chi2_quantile(0.99, dof));
+            assert!(
+                (chi2_quantile(0.99, dof) - q).abs() < 2e-3,
+                "dof {dof}: {}",
+                chi2_quantile(0.99, dof)
+            );
             assert!((chi2_sf(q, dof) - 0.01).abs() < 1e-5);
         }
         assert!((chi2_sf(18.307_038, 10) - 0.05).abs() < 1e-6);

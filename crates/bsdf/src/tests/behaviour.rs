@@ -18,24 +18,58 @@ const AU_K: Vec3 = Vec3::new(3.983, 2.385, 1.603);
 /// Smooth (non-delta-only) models, with the tables they borrow.
 fn smooth_models(tables: &[RoughPlasticTable]) -> Vec<(String, Bsdf<'_>)> {
     let mut v: Vec<(String, Bsdf)> = vec![
-        ("diffuse".into(), Bsdf::Diffuse(Diffuse::new(Vec3::new(0.7, 0.5, 0.2)))),
+        (
+            "diffuse".into(),
+            Bsdf::Diffuse(Diffuse::new(Vec3::new(0.7, 0.5, 0.2))),
+        ),
         (
             "plastic".into(),
-            Bsdf::Plastic(Plastic::new(1.5, Vec3::new(0.8, 0.3, 0.1), Vec3::ONE, false, specular_sampling_weight(0.4, 1.0))),
+            Bsdf::Plastic(Plastic::new(
+                1.5,
+                Vec3::new(0.8, 0.3, 0.1),
+                Vec3::ONE,
+                false,
+                specular_sampling_weight(0.4, 1.0),
+            )),
         ),
-        ("plastic nonlinear".into(), Bsdf::Plastic(Plastic::new(1.33, Vec3::new(0.9, 0.3, 0.1), Vec3::splat(0.8), true, 0.5))),
+        (
+            "plastic nonlinear".into(),
+            Bsdf::Plastic(Plastic::new(
+                1.33,
+                Vec3::new(0.9, 0.3, 0.1),
+                Vec3::splat(0.8),
+                true,
+                0.5,
+            )),
+        ),
     ];
     for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
         for (au, av) in [(0.05f32, 0.05f32), (0.3, 0.3), (0.1, 0.4)] {
             for vis in [true, false] {
                 v.push((
                     format!("roughconductor {kind:?} {au}/{av} vis {vis}"),
-                    Bsdf::RoughConductor(RoughConductor::new(kind, au, av, vis, AU, AU_K, Vec3::ONE)),
+                    Bsdf::RoughConductor(RoughConductor::new(
+                        kind,
+                        au,
+                        av,
+                        vis,
+                        AU,
+                        AU_K,
+                        Vec3::ONE,
+                    )),
                 ));
                 for eta in [1.5f32, 1.0 / 1.33] {
                     v.push((
                         format!("roughdielectric {kind:?} {au}/{av} vis {vis} eta {eta}"),
-                        Bsdf::RoughDielectric(RoughDielectric::new(kind, au, av, vis, eta, Vec3::splat(0.9), Vec3::splat(0.8))),
+                        Bsdf::RoughDielectric(RoughDielectric::new(
+                            kind,
+                            au,
+                            av,
+                            vis,
+                            eta,
+                            Vec3::splat(0.9),
+                            Vec3::splat(0.8),
+                        )),
                     ));
                 }
             }
@@ -45,7 +79,14 @@ fn smooth_models(tables: &[RoughPlasticTable]) -> Vec<(String, Bsdf<'_>)> {
         for vis in [true, false] {
             v.push((
                 format!("roughplastic {:?} {} vis {vis}", t.distribution, t.alpha),
-                Bsdf::RoughPlastic(RoughPlastic::new(t, Vec3::new(0.8, 0.3, 0.1), Vec3::ONE, vis, specular_sampling_weight(0.4, 1.0), vis)),
+                Bsdf::RoughPlastic(RoughPlastic::new(
+                    t,
+                    Vec3::new(0.8, 0.3, 0.1),
+                    Vec3::ONE,
+                    vis,
+                    specular_sampling_weight(0.4, 1.0),
+                    vis,
+                )),
             ));
         }
     }
@@ -53,7 +94,10 @@ fn smooth_models(tables: &[RoughPlasticTable]) -> Vec<(String, Bsdf<'_>)> {
 }
 
 fn tables() -> Vec<RoughPlasticTable> {
-    vec![RoughPlasticTable::new(MicrofacetType::Ggx, 0.3, 1.5), RoughPlasticTable::new(MicrofacetType::Beckmann, 0.1, 1.33)]
+    vec![
+        RoughPlasticTable::new(MicrofacetType::Ggx, 0.3, 1.5),
+        RoughPlasticTable::new(MicrofacetType::Beckmann, 0.1, 1.33),
+    ]
 }
 
 fn rel_close(a: f32, b: f32, tol: f32) -> bool {
@@ -74,13 +118,20 @@ fn sampled_weight_and_pdf_agree_with_eval_and_pdf() {
             if !b.flags().transmission && wi.z < 0.0 {
                 wi.z = -wi.z;
             }
-            let Some(s) = b.sample(wi, rng.f32(), rng.vec2()) else { continue };
+            let Some(s) = b.sample(wi, rng.f32(), rng.vec2()) else {
+                continue;
+            };
             if s.lobe.delta {
                 continue;
             }
             let pdf = b.pdf(wi, s.wo);
             let f = b.eval(wi, s.wo);
-            assert!(rel_close(s.pdf, pdf, 1e-3), "{name}: wi {wi} wo {}: sample pdf {} vs pdf {pdf}", s.wo, s.pdf);
+            assert!(
+                rel_close(s.pdf, pdf, 1e-3),
+                "{name}: wi {wi} wo {}: sample pdf {} vs pdf {pdf}",
+                s.wo,
+                s.pdf
+            );
             for c in 0..3 {
                 assert!(
                     rel_close(s.weight[c], f[c] / pdf, 1e-3),
@@ -102,7 +153,11 @@ fn albedo(b: &Bsdf, wi: Vec3, n: usize, radiance_scaling: bool) -> Vec3 {
     let mut sum = Vec3::ZERO;
     for _ in 0..n {
         if let Some(s) = b.sample(wi, rng.f32(), rng.vec2()) {
-            sum += if radiance_scaling { s.weight } else { s.weight * (s.eta * s.eta) };
+            sum += if radiance_scaling {
+                s.weight
+            } else {
+                s.weight * (s.eta * s.eta)
+            };
         }
     }
     sum / n as f32
@@ -114,7 +169,9 @@ fn diffuse_with_unit_reflectance_has_albedo_exactly_one() {
     let mut rng = Pcg32::new(3, 3);
     for _ in 0..10_000 {
         let wi = sph(80.0 * rng.f32(), 360.0 * rng.f32());
-        let s = b.sample(wi, rng.f32(), rng.vec2()).expect("diffuse always samples");
+        let s = b
+            .sample(wi, rng.f32(), rng.vec2())
+            .expect("diffuse always samples");
         assert_eq!(s.weight, Vec3::ONE);
     }
 }
@@ -125,10 +182,22 @@ fn white_models_do_not_create_energy() {
     // A perfectly reflecting conductor: eta = 0, k = 1 gives F = 1 exactly.
     let (w_eta, w_k) = (Vec3::ZERO, Vec3::ONE);
     let mut models: Vec<(String, Bsdf)> = vec![
-        ("conductor".into(), Bsdf::Conductor(Conductor::new(w_eta, w_k, Vec3::ONE))),
-        ("dielectric".into(), Bsdf::Dielectric(Dielectric::new(1.5, Vec3::ONE, Vec3::ONE))),
-        ("thindielectric".into(), Bsdf::ThinDielectric(ThinDielectric::new(1.5, Vec3::ONE, Vec3::ONE))),
-        ("plastic".into(), Bsdf::Plastic(Plastic::new(1.5, Vec3::ONE, Vec3::ONE, false, 0.5))),
+        (
+            "conductor".into(),
+            Bsdf::Conductor(Conductor::new(w_eta, w_k, Vec3::ONE)),
+        ),
+        (
+            "dielectric".into(),
+            Bsdf::Dielectric(Dielectric::new(1.5, Vec3::ONE, Vec3::ONE)),
+        ),
+        (
+            "thindielectric".into(),
+            Bsdf::ThinDielectric(ThinDielectric::new(1.5, Vec3::ONE, Vec3::ONE)),
+        ),
+        (
+            "plastic".into(),
+            Bsdf::Plastic(Plastic::new(1.5, Vec3::ONE, Vec3::ONE, false, 0.5)),
+        ),
     ];
     for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
         for a in [0.05f32, 0.3, 1.0] {
@@ -138,12 +207,23 @@ fn white_models_do_not_create_energy() {
             ));
             models.push((
                 format!("roughdielectric {kind:?} {a}"),
-                Bsdf::RoughDielectric(RoughDielectric::new(kind, a, a, true, 1.5, Vec3::ONE, Vec3::ONE)),
+                Bsdf::RoughDielectric(RoughDielectric::new(
+                    kind,
+                    a,
+                    a,
+                    true,
+                    1.5,
+                    Vec3::ONE,
+                    Vec3::ONE,
+                )),
             ));
         }
     }
     for t in &tables {
-        models.push(("roughplastic".into(), Bsdf::RoughPlastic(RoughPlastic::new(t, Vec3::ONE, Vec3::ONE, false, 0.5, true))));
+        models.push((
+            "roughplastic".into(),
+            Bsdf::RoughPlastic(RoughPlastic::new(t, Vec3::ONE, Vec3::ONE, false, 0.5, true)),
+        ));
     }
     for (name, b) in &models {
         for theta in [0.0f32, 30.0, 60.0, 85.0, 100.0, 150.0] {
@@ -153,26 +233,48 @@ fn white_models_do_not_create_energy() {
             let wi = sph(theta, 20.0);
             // Without the radiance-mode eta^2 factor of refraction: <= 1.
             let a = albedo(b, wi, 200_000, false);
-            assert!(a.max_element() <= 1.0 + 5e-3, "{name} theta {theta}: albedo {a}");
+            assert!(
+                a.max_element() <= 1.0 + 5e-3,
+                "{name} theta {theta}: albedo {a}"
+            );
             // With it, from outside (entering the denser medium): still <= 1.
             if theta < 90.0 {
                 let a = albedo(b, wi, 200_000, true);
-                assert!(a.max_element() <= 1.0 + 5e-3, "{name} theta {theta}: radiance albedo {a}");
+                assert!(
+                    a.max_element() <= 1.0 + 5e-3,
+                    "{name} theta {theta}: radiance albedo {a}"
+                );
             }
         }
     }
     // Smooth white dielectric: every sample carries exactly eta_ti^2.
     let b = Bsdf::Dielectric(Dielectric::new(1.5, Vec3::ONE, Vec3::ONE));
-    assert!((albedo(&b, sph(40.0, 0.0), 10_000, false) - Vec3::ONE).abs().max_element() < 1e-5);
+    assert!(
+        (albedo(&b, sph(40.0, 0.0), 10_000, false) - Vec3::ONE)
+            .abs()
+            .max_element()
+            < 1e-5
+    );
 }
 
 #[test]
 fn smooth_white_rough_conductor_reflects_almost_everything() {
     for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
-        let b = Bsdf::RoughConductor(RoughConductor::new(kind, 0.02, 0.02, true, Vec3::ZERO, Vec3::ONE, Vec3::ONE));
+        let b = Bsdf::RoughConductor(RoughConductor::new(
+            kind,
+            0.02,
+            0.02,
+            true,
+            Vec3::ZERO,
+            Vec3::ONE,
+            Vec3::ONE,
+        ));
         for theta in [0.0f32, 45.0, 70.0] {
             let a = albedo(&b, sph(theta, 10.0), 100_000, true);
-            assert!(a.min_element() > 0.98 && a.max_element() <= 1.0 + 1e-4, "{kind:?} theta {theta}: {a}");
+            assert!(
+                a.min_element() > 0.98 && a.max_element() <= 1.0 + 1e-4,
+                "{kind:?} theta {theta}: {a}"
+            );
         }
     }
 }
@@ -182,9 +284,33 @@ fn diffuse_and_rough_reflection_are_reciprocal() {
     let mut rng = Pcg32::new(5, 5);
     let models = [
         Bsdf::Diffuse(Diffuse::new(Vec3::new(0.3, 0.6, 0.9))),
-        Bsdf::RoughConductor(RoughConductor::new(MicrofacetType::Ggx, 0.3, 0.3, true, AU, AU_K, Vec3::ONE)),
-        Bsdf::RoughConductor(RoughConductor::new(MicrofacetType::Beckmann, 0.1, 0.4, true, AU, AU_K, Vec3::ONE)),
-        Bsdf::RoughDielectric(RoughDielectric::new(MicrofacetType::Ggx, 0.3, 0.3, true, 1.5, Vec3::ONE, Vec3::ONE)),
+        Bsdf::RoughConductor(RoughConductor::new(
+            MicrofacetType::Ggx,
+            0.3,
+            0.3,
+            true,
+            AU,
+            AU_K,
+            Vec3::ONE,
+        )),
+        Bsdf::RoughConductor(RoughConductor::new(
+            MicrofacetType::Beckmann,
+            0.1,
+            0.4,
+            true,
+            AU,
+            AU_K,
+            Vec3::ONE,
+        )),
+        Bsdf::RoughDielectric(RoughDielectric::new(
+            MicrofacetType::Ggx,
+            0.3,
+            0.3,
+            true,
+            1.5,
+            Vec3::ONE,
+            Vec3::ONE,
+        )),
     ];
     for b in &models {
         for _ in 0..2000 {
@@ -194,7 +320,10 @@ fn diffuse_and_rough_reflection_are_reciprocal() {
             let (wi, wo) = (wi.normalize(), wo.normalize());
             let f1 = b.eval(wi, wo) / wo.z;
             let f2 = b.eval(wo, wi) / wi.z;
-            assert!((f1 - f2).abs().max_element() <= 1e-3 * f1.max_element().max(1e-3), "{b:?}: {f1} vs {f2}");
+            assert!(
+                (f1 - f2).abs().max_element() <= 1e-3 * f1.max_element().max(1e-3),
+                "{b:?}: {f1} vs {f2}"
+            );
         }
     }
 }
@@ -216,21 +345,67 @@ fn no_model_produces_nan_or_infinity_anywhere() {
     ];
     for eta in [1.0f32, 1.5, 1.0 / 1.5] {
         models.push(Bsdf::Dielectric(Dielectric::new(eta, Vec3::ONE, Vec3::ONE)));
-        models.push(Bsdf::ThinDielectric(ThinDielectric::new(eta, Vec3::ONE, Vec3::ONE)));
-        models.push(Bsdf::Plastic(Plastic::new(eta, Vec3::ONE, Vec3::ONE, true, 0.5)));
-        models.push(Bsdf::Plastic(Plastic::new(eta, Vec3::ZERO, Vec3::ZERO, false, 0.0)));
+        models.push(Bsdf::ThinDielectric(ThinDielectric::new(
+            eta,
+            Vec3::ONE,
+            Vec3::ONE,
+        )));
+        models.push(Bsdf::Plastic(Plastic::new(
+            eta,
+            Vec3::ONE,
+            Vec3::ONE,
+            true,
+            0.5,
+        )));
+        models.push(Bsdf::Plastic(Plastic::new(
+            eta,
+            Vec3::ZERO,
+            Vec3::ZERO,
+            false,
+            0.0,
+        )));
         for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
             for (au, av) in [(0.0f32, 0.0f32), (1e-4, 1e-4), (1.0, 1.0), (1e-4, 1.0)] {
                 for vis in [true, false] {
-                    models.push(Bsdf::RoughConductor(RoughConductor::new(kind, au, av, vis, AU, AU_K, Vec3::ONE)));
-                    models.push(Bsdf::RoughDielectric(RoughDielectric::new(kind, au, av, vis, eta, Vec3::ONE, Vec3::ONE)));
+                    models.push(Bsdf::RoughConductor(RoughConductor::new(
+                        kind,
+                        au,
+                        av,
+                        vis,
+                        AU,
+                        AU_K,
+                        Vec3::ONE,
+                    )));
+                    models.push(Bsdf::RoughDielectric(RoughDielectric::new(
+                        kind,
+                        au,
+                        av,
+                        vis,
+                        eta,
+                        Vec3::ONE,
+                        Vec3::ONE,
+                    )));
                 }
             }
         }
     }
     for t in &tables {
-        models.push(Bsdf::RoughPlastic(RoughPlastic::new(t, Vec3::ONE, Vec3::ONE, true, 0.5, true)));
-        models.push(Bsdf::RoughPlastic(RoughPlastic::new(t, Vec3::ONE, Vec3::ONE, false, 1.0, false)));
+        models.push(Bsdf::RoughPlastic(RoughPlastic::new(
+            t,
+            Vec3::ONE,
+            Vec3::ONE,
+            true,
+            0.5,
+            true,
+        )));
+        models.push(Bsdf::RoughPlastic(RoughPlastic::new(
+            t,
+            Vec3::ONE,
+            Vec3::ONE,
+            false,
+            1.0,
+            false,
+        )));
     }
     let mut dirs = vec![
         Vec3::Z,
@@ -251,7 +426,10 @@ fn no_model_produces_nan_or_infinity_anywhere() {
             for &wo in &dirs {
                 let f = b.eval(wi, wo);
                 let p = b.pdf(wi, wo);
-                assert!(f.is_finite() && f.min_element() >= 0.0 && p.is_finite() && p >= 0.0, "{b:?} {wi} {wo}: {f} {p}");
+                assert!(
+                    f.is_finite() && f.min_element() >= 0.0 && p.is_finite() && p >= 0.0,
+                    "{b:?} {wi} {wo}: {f} {p}"
+                );
             }
             for &a in &us {
                 for &x in &us {
@@ -273,7 +451,10 @@ fn no_model_produces_nan_or_infinity_anywhere() {
             }
             for _ in 0..50 {
                 if let Some(s) = b.sample(wi, rng.f32(), rng.vec2()) {
-                    assert!(s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0, "{b:?} {wi}: {s:?}");
+                    assert!(
+                        s.weight.is_finite() && s.pdf.is_finite() && s.pdf > 0.0,
+                        "{b:?} {wi}: {s:?}"
+                    );
                 }
             }
         }

@@ -26,15 +26,28 @@ fn run(name: &str, cases: Vec<(String, Bsdf, Vec3)>) {
             ));
         }
     }
-    eprintln!("{name}: {} cases, per-test alpha {alpha_1:.2e}, min p-value {min_p:.3e}", cases.len());
-    assert!(failures.is_empty(), "{name}: {} of {} failed:\n{}", failures.len(), cases.len(), failures.join("\n"));
+    eprintln!(
+        "{name}: {} cases, per-test alpha {alpha_1:.2e}, min p-value {min_p:.3e}",
+        cases.len()
+    );
+    assert!(
+        failures.is_empty(),
+        "{name}: {} of {} failed:\n{}",
+        failures.len(),
+        cases.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]
 fn diffuse_sampling_matches_its_pdf() {
     let mut cases = Vec::new();
     for t in THETAS {
-        cases.push((format!("diffuse theta {t}"), Bsdf::Diffuse(Diffuse::new(Vec3::new(0.7, 0.5, 0.2))), sph(t, 30.0)));
+        cases.push((
+            format!("diffuse theta {t}"),
+            Bsdf::Diffuse(Diffuse::new(Vec3::new(0.7, 0.5, 0.2))),
+            sph(t, 30.0),
+        ));
     }
     run("diffuse", cases);
 }
@@ -59,12 +72,28 @@ fn rough_conductor_sampling_matches_its_pdf() {
         for (au, av) in ALPHAS {
             for t in THETAS {
                 for visible in [true, false] {
-                    let wanted = if visible { visible_ok(kind, (au, av), t) } else { kind == MicrofacetType::Beckmann || au == 0.2 };
+                    let wanted = if visible {
+                        visible_ok(kind, (au, av), t)
+                    } else {
+                        kind == MicrofacetType::Beckmann || au == 0.2
+                    };
                     if !wanted {
                         continue;
                     }
-                    let b = Bsdf::RoughConductor(RoughConductor::new(kind, au, av, visible, eta, k, Vec3::ONE));
-                    cases.push((format!("{kind:?} alpha {au}/{av} visible {visible} theta {t}"), b, sph(t, 30.0)));
+                    let b = Bsdf::RoughConductor(RoughConductor::new(
+                        kind,
+                        au,
+                        av,
+                        visible,
+                        eta,
+                        k,
+                        Vec3::ONE,
+                    ));
+                    cases.push((
+                        format!("{kind:?} alpha {au}/{av} visible {visible} theta {t}"),
+                        b,
+                        sph(t, 30.0),
+                    ));
                 }
             }
         }
@@ -87,14 +116,38 @@ fn rough_dielectric_sampling_matches_its_pdf_on_both_sides() {
                     if kind == MicrofacetType::Beckmann && eta == 1.33 && !visible {
                         continue;
                     }
-                    let b = Bsdf::RoughDielectric(RoughDielectric::new(kind, au, av, visible, eta, Vec3::ONE, Vec3::ONE));
-                    cases.push((format!("{kind:?} alpha {au}/{av} eta {eta} visible {visible} theta {t}"), b, sph(t, 30.0)));
+                    let b = Bsdf::RoughDielectric(RoughDielectric::new(
+                        kind,
+                        au,
+                        av,
+                        visible,
+                        eta,
+                        Vec3::ONE,
+                        Vec3::ONE,
+                    ));
+                    cases.push((
+                        format!("{kind:?} alpha {au}/{av} eta {eta} visible {visible} theta {t}"),
+                        b,
+                        sph(t, 30.0),
+                    ));
                 }
             }
             if kind == MicrofacetType::Ggx && au == 0.2 {
                 for t in [45.0f32, 135.0] {
-                    let b = Bsdf::RoughDielectric(RoughDielectric::new(kind, au, av, false, 1.5, Vec3::ONE, Vec3::ONE));
-                    cases.push((format!("{kind:?} alpha {au}/{av} eta 1.5 visible false theta {t}"), b, sph(t, 30.0)));
+                    let b = Bsdf::RoughDielectric(RoughDielectric::new(
+                        kind,
+                        au,
+                        av,
+                        false,
+                        1.5,
+                        Vec3::ONE,
+                        Vec3::ONE,
+                    ));
+                    cases.push((
+                        format!("{kind:?} alpha {au}/{av} eta 1.5 visible false theta {t}"),
+                        b,
+                        sph(t, 30.0),
+                    ));
                 }
             }
         }
@@ -108,7 +161,13 @@ fn plastic_diffuse_part_sampling_matches_its_pdf() {
     for eta in [1.33f32, 1.5] {
         for t in THETAS {
             let d = Vec3::new(0.8, 0.3, 0.1);
-            let b = Bsdf::Plastic(Plastic::new(eta, d, Vec3::ONE, false, specular_sampling_weight(0.4, 1.0)));
+            let b = Bsdf::Plastic(Plastic::new(
+                eta,
+                d,
+                Vec3::ONE,
+                false,
+                specular_sampling_weight(0.4, 1.0),
+            ));
             cases.push((format!("plastic eta {eta} theta {t}"), b, sph(t, 30.0)));
         }
     }
@@ -138,7 +197,10 @@ fn rough_plastic_sampling_matches_its_pdf() {
                 visible,
             ));
             cases.push((
-                format!("{:?} alpha {} eta {} visible {visible} theta {theta}", t.distribution, t.alpha, t.eta),
+                format!(
+                    "{:?} alpha {} eta {} visible {visible} theta {theta}",
+                    t.distribution, t.alpha, t.eta
+                ),
                 b,
                 sph(theta, 30.0),
             ));

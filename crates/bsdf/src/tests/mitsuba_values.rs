@@ -12,7 +12,11 @@ use glam::{Vec2, Vec3};
 
 fn d(theta: f64, phi: f64) -> Vec3 {
     let (t, p) = (theta.to_radians(), phi.to_radians());
-    Vec3::new((t.sin() * p.cos()) as f32, (t.sin() * p.sin()) as f32, t.cos() as f32)
+    Vec3::new(
+        (t.sin() * p.cos()) as f32,
+        (t.sin() * p.sin()) as f32,
+        t.cos() as f32,
+    )
 }
 
 const AIR: f32 = 1.000277;
@@ -37,9 +41,15 @@ fn check(name: &str, bsdf: &Bsdf, expected: &[([f32; 3], f32)], rel: f32) {
         let pdf = bsdf.pdf(wi, wo);
         let e = Vec3::from(*e);
         for c in 0..3 {
-            assert!(close(f[c], e[c], rel), "{name} {ti},{pi} -> {to},{po}: eval {f} vs mitsuba {e}");
+            assert!(
+                close(f[c], e[c], rel),
+                "{name} {ti},{pi} -> {to},{po}: eval {f} vs mitsuba {e}"
+            );
         }
-        assert!(close(pdf, *p, rel), "{name} {ti},{pi} -> {to},{po}: pdf {pdf} vs mitsuba {p}");
+        assert!(
+            close(pdf, *p, rel),
+            "{name} {ti},{pi} -> {to},{po}: pdf {pdf} vs mitsuba {p}"
+        );
     }
 }
 
@@ -62,8 +72,14 @@ fn rough_conductor_ggx_gold_matches_mitsuba() {
         "rc_ggx",
         &b,
         &[
-            ([0.831503689289093, 0.6901191473007202, 0.28225505352020264], 0.8740200996398926),
-            ([0.2614780366420746, 0.2170187532901764, 0.08938624709844589], 0.27150458097457886),
+            (
+                [0.831503689289093, 0.6901191473007202, 0.28225505352020264],
+                0.8740200996398926,
+            ),
+            (
+                [0.2614780366420746, 0.2170187532901764, 0.08938624709844589],
+                0.27150458097457886,
+            ),
             Z,
             Z,
             Z,
@@ -89,8 +105,18 @@ fn rough_conductor_beckmann_anisotropic_matches_mitsuba() {
         "rc_beck",
         &b,
         &[
-            ([1.0320624113082886, 0.6679179668426514, 0.5698191523551941], 1.084930658340454),
-            ([2.0968657565845206e-07, 1.3576250523783528e-07, 1.1594732285402642e-07], 2.2051182213544962e-07),
+            (
+                [1.0320624113082886, 0.6679179668426514, 0.5698191523551941],
+                1.084930658340454,
+            ),
+            (
+                [
+                    2.0968657565845206e-07,
+                    1.3576250523783528e-07,
+                    1.1594732285402642e-07,
+                ],
+                2.2051182213544962e-07,
+            ),
             Z,
             Z,
             Z,
@@ -104,13 +130,30 @@ fn rough_plastic_ggx_matches_mitsuba() {
     // {'type':'roughplastic','distribution':'ggx','alpha':0.2,'int_ior':1.5,
     //  'diffuse_reflectance':rgb[0.8,0.3,0.1]}  (specular weight 1/(1+0.4))
     let t = RoughPlasticTable::new(MicrofacetType::Ggx, 0.2, 1.5 / AIR);
-    let b = Bsdf::RoughPlastic(RoughPlastic::new(&t, Vec3::new(0.8, 0.3, 0.1), Vec3::ONE, false, specular_sampling_weight(0.4, 1.0), true));
+    let b = Bsdf::RoughPlastic(RoughPlastic::new(
+        &t,
+        Vec3::new(0.8, 0.3, 0.1),
+        Vec3::ONE,
+        false,
+        specular_sampling_weight(0.4, 1.0),
+        true,
+    ));
     check(
         "rp_ggx",
         &b,
         &[
-            ([0.22181914746761322, 0.1268993765115738, 0.08893146365880966], 0.39918625354766846),
-            ([0.18640929460525513, 0.07525576651096344, 0.03079434111714363], 0.2753608822822571),
+            (
+                [0.22181914746761322, 0.1268993765115738, 0.08893146365880966],
+                0.39918625354766846,
+            ),
+            (
+                [
+                    0.18640929460525513,
+                    0.07525576651096344,
+                    0.03079434111714363,
+                ],
+                0.2753608822822571,
+            ),
             Z,
             Z,
             Z,
@@ -124,20 +167,58 @@ fn rough_plastic_beckmann_nonlinear_matches_mitsuba() {
     // {'type':'roughplastic','distribution':'beckmann','alpha':0.4,'int_ior':1.33,
     //  'diffuse_reflectance':rgb[0.5,0.5,0.5],'nonlinear':True}
     let t = RoughPlasticTable::new(MicrofacetType::Beckmann, 0.4, 1.33 / AIR);
-    let b = Bsdf::RoughPlastic(RoughPlastic::new(&t, Vec3::splat(0.5), Vec3::ONE, true, specular_sampling_weight(0.5, 1.0), true));
-    check("rp_beck", &b, &[([0.09168869256973267; 3], 0.2588920295238495), ([0.10473747551441193; 3], 0.3214828670024872), Z, Z, Z], 1e-3);
+    let b = Bsdf::RoughPlastic(RoughPlastic::new(
+        &t,
+        Vec3::splat(0.5),
+        Vec3::ONE,
+        true,
+        specular_sampling_weight(0.5, 1.0),
+        true,
+    ));
+    check(
+        "rp_beck",
+        &b,
+        &[
+            ([0.09168869256973267; 3], 0.2588920295238495),
+            ([0.10473747551441193; 3], 0.3214828670024872),
+            Z,
+            Z,
+            Z,
+        ],
+        1e-3,
+    );
 }
 
 #[test]
 fn plastic_matches_mitsuba() {
     // {'type':'plastic','int_ior':1.5,'diffuse_reflectance':rgb[0.8,0.3,0.1]}
-    let b = Bsdf::Plastic(Plastic::new(1.5 / AIR, Vec3::new(0.8, 0.3, 0.1), Vec3::ONE, false, specular_sampling_weight(0.4, 1.0)));
+    let b = Bsdf::Plastic(Plastic::new(
+        1.5 / AIR,
+        Vec3::new(0.8, 0.3, 0.1),
+        Vec3::ONE,
+        false,
+        specular_sampling_weight(0.4, 1.0),
+    ));
     check(
         "plastic",
         &b,
         &[
-            ([0.19668716192245483, 0.07375768572092056, 0.024585895240306854], 0.22004066407680511),
-            ([0.23059161007404327, 0.08647185564041138, 0.02882395125925541], 0.2403305470943451),
+            (
+                [
+                    0.19668716192245483,
+                    0.07375768572092056,
+                    0.024585895240306854,
+                ],
+                0.22004066407680511,
+            ),
+            (
+                [
+                    0.23059161007404327,
+                    0.08647185564041138,
+                    0.02882395125925541,
+                ],
+                0.2403305470943451,
+            ),
             Z,
             Z,
             Z,
@@ -149,7 +230,15 @@ fn plastic_matches_mitsuba() {
 #[test]
 fn rough_dielectric_ggx_matches_mitsuba_on_both_sides() {
     // {'type':'roughdielectric','distribution':'ggx','alpha':0.3,'int_ior':1.5}
-    let b = Bsdf::RoughDielectric(RoughDielectric::new(MicrofacetType::Ggx, 0.3, 0.3, true, 1.5 / AIR, Vec3::ONE, Vec3::ONE));
+    let b = Bsdf::RoughDielectric(RoughDielectric::new(
+        MicrofacetType::Ggx,
+        0.3,
+        0.3,
+        true,
+        1.5 / AIR,
+        Vec3::ONE,
+        Vec3::ONE,
+    ));
     check(
         "rd_ggx",
         &b,
@@ -167,7 +256,15 @@ fn rough_dielectric_ggx_matches_mitsuba_on_both_sides() {
 #[test]
 fn rough_dielectric_beckmann_matches_mitsuba_on_both_sides() {
     // {'type':'roughdielectric','distribution':'beckmann','alpha':0.2,'int_ior':1.33}
-    let b = Bsdf::RoughDielectric(RoughDielectric::new(MicrofacetType::Beckmann, 0.2, 0.2, true, 1.33 / AIR, Vec3::ONE, Vec3::ONE));
+    let b = Bsdf::RoughDielectric(RoughDielectric::new(
+        MicrofacetType::Beckmann,
+        0.2,
+        0.2,
+        true,
+        1.33 / AIR,
+        Vec3::ONE,
+        Vec3::ONE,
+    ));
     check(
         "rd_beck",
         &b,
@@ -188,23 +285,46 @@ fn delta_models_match_mitsuba_samples_at_45_degrees() {
     // dielectric int_ior 1.5: reflection pdf (= Fresnel) 0.050181858, weight 1.
     let b = Bsdf::Dielectric(Dielectric::new(1.5 / AIR, Vec3::ONE, Vec3::ONE));
     let s = b.sample(wi, 0.01, Vec2::splat(0.5)).unwrap();
-    assert!(close(s.pdf, 0.050181858241558075, 1e-5) && close(s.weight.x, 1.0, 1e-6) && !s.lobe.transmission);
+    assert!(
+        close(s.pdf, 0.050181858241558075, 1e-5)
+            && close(s.weight.x, 1.0, 1e-6)
+            && !s.lobe.transmission
+    );
     // refraction: pdf 0.94981813, wo (-0.471535, 0, -0.881847), weight 0.444691, eta 1.49958
     let s = b.sample(wi, 0.99, Vec2::splat(0.5)).unwrap();
-    assert!(close(s.pdf, 0.9498181343078613, 1e-5) && close(s.weight.x, 0.444691, 1e-5) && close(s.eta, 1.4995845556259155, 1e-6));
+    assert!(
+        close(s.pdf, 0.9498181343078613, 1e-5)
+            && close(s.weight.x, 0.444691, 1e-5)
+            && close(s.eta, 1.4995845556259155, 1e-6)
+    );
     assert!((s.wo - Vec3::new(-0.471535, 0.0, -0.881847)).length() < 1e-5 && s.lobe.transmission);
     // leaving the glass at theta = 150 deg: pdf 0.94489914, weight 2.24875, eta 0.66685134
     let s = b.sample(d(150., 0.), 0.99, Vec2::splat(0.5)).unwrap();
-    assert!(close(s.pdf, 0.9448991417884827, 1e-5) && close(s.weight.x, 2.24875, 1e-5) && close(s.eta, 0.6668513417243958, 1e-6));
+    assert!(
+        close(s.pdf, 0.9448991417884827, 1e-5)
+            && close(s.weight.x, 2.24875, 1e-5)
+            && close(s.eta, 0.6668513417243958, 1e-6)
+    );
     assert!((s.wo - Vec3::new(-0.749792, 0.0, 0.661673)).length() < 1e-5);
     // thindielectric int_ior 1.5: reflection probability 0.095567942
     let b = Bsdf::ThinDielectric(ThinDielectric::new(1.5 / AIR, Vec3::ONE, Vec3::ONE));
     let s = b.sample(wi, 0.01, Vec2::splat(0.5)).unwrap();
     assert!(close(s.pdf, 0.09556794166564941, 1e-5));
     // conductor (Au-ish): weight (0.965302, 0.801435, 0.33586)
-    let b = Bsdf::Conductor(Conductor::new(Vec3::new(0.143, 0.374, 1.442), Vec3::new(3.983, 2.385, 1.603), Vec3::ONE));
+    let b = Bsdf::Conductor(Conductor::new(
+        Vec3::new(0.143, 0.374, 1.442),
+        Vec3::new(3.983, 2.385, 1.603),
+        Vec3::ONE,
+    ));
     let s = b.sample(wi, 0.01, Vec2::splat(0.5)).unwrap();
-    assert!((s.weight - Vec3::new(0.965302, 0.801435, 0.33586)).abs().max_element() < 2e-6, "{}", s.weight);
+    assert!(
+        (s.weight - Vec3::new(0.965302, 0.801435, 0.33586))
+            .abs()
+            .max_element()
+            < 2e-6,
+        "{}",
+        s.weight
+    );
 }
 
 /// `bs, w = b.sample(mi.BSDFContext(), si, u1, [u2, u3])` in Mitsuba (same
@@ -212,18 +332,102 @@ fn delta_models_match_mitsuba_samples_at_45_degrees() {
 /// pdf 0 means Mitsuba produced no sample.
 #[allow(clippy::type_complexity)]
 const SAMPLES: [(&str, (f64, f64), (f32, f32, f32), [f32; 3], f32, [f32; 3]); 12] = [
-    ("rc_beck_aniso", (30., 10.), (0.3, 0.2, 0.7), [-0.36158, -0.04396159, 0.9313039], 1.3634657, [0.9517585, 0.61570919, 0.52453744]),
-    ("rc_beck_aniso", (70., 100.), (0.8, 0.9, 0.35), [0.150637, -0.9787284, 0.1392814], 4.9941268, [0.6768961, 0.49746186, 0.45376912]),
-    ("rc_beck_aniso", (160., 40.), (0.6, 0.45, 0.1), [0., 0., 0.], 0., [0., 0., 0.]),
-    ("rc_ggx_nv", (30., 10.), (0.3, 0.2, 0.7), [-0.5694414, -0.2053726, 0.7959639], 1.3717998, [0.90225846, 0.58384764, 0.49793267]),
-    ("rc_ggx_nv", (70., 100.), (0.8, 0.9, 0.35), [-0.4100673, -0.5309158, 0.7416017], 0.046098154, [2.0137765, 1.3091973, 1.1248295]),
-    ("rc_ggx_nv", (160., 40.), (0.6, 0.45, 0.1), [0., 0., 0.], 0., [0., 0., 0.]),
-    ("rd_ggx", (30., 10.), (0.3, 0.2, 0.7), [-0.2951144, -0.1218993, -0.9476539], 11.044722, [0.44356057, 0.44356057, 0.44356057]),
-    ("rd_ggx", (70., 100.), (0.8, 0.9, 0.35), [-0.07823979, -0.7932747, -0.6038161], 1.0898288, [0.42849994, 0.42849994, 0.42849994]),
-    ("rd_ggx", (160., 40.), (0.6, 0.45, 0.1), [-0.2350114, -0.170366, 0.9569457], 1.5399364, [2.2441175, 2.2441175, 2.2441175]),
-    ("rp_beck", (30., 10.), (0.3, 0.2, 0.7), [-0.5196153, 0.3, 0.8], 0.26430753, [0.35111097, 0.35111097, 0.35111097]),
-    ("rp_beck", (70., 100.), (0.8, 0.9, 0.35), [0.7655522, -0.2322277, 0.6000001], 0.15673293, [0.35811725, 0.35811725, 0.35811725]),
-    ("rp_beck", (160., 40.), (0.6, 0.45, 0.1), [0., 0., 0.], 0., [0., 0., 0.]),
+    (
+        "rc_beck_aniso",
+        (30., 10.),
+        (0.3, 0.2, 0.7),
+        [-0.36158, -0.04396159, 0.9313039],
+        1.3634657,
+        [0.9517585, 0.61570919, 0.52453744],
+    ),
+    (
+        "rc_beck_aniso",
+        (70., 100.),
+        (0.8, 0.9, 0.35),
+        [0.150637, -0.9787284, 0.1392814],
+        4.9941268,
+        [0.6768961, 0.49746186, 0.45376912],
+    ),
+    (
+        "rc_beck_aniso",
+        (160., 40.),
+        (0.6, 0.45, 0.1),
+        [0., 0., 0.],
+        0.,
+        [0., 0., 0.],
+    ),
+    (
+        "rc_ggx_nv",
+        (30., 10.),
+        (0.3, 0.2, 0.7),
+        [-0.5694414, -0.2053726, 0.7959639],
+        1.3717998,
+        [0.90225846, 0.58384764, 0.49793267],
+    ),
+    (
+        "rc_ggx_nv",
+        (70., 100.),
+        (0.8, 0.9, 0.35),
+        [-0.4100673, -0.5309158, 0.7416017],
+        0.046098154,
+        [2.0137765, 1.3091973, 1.1248295],
+    ),
+    (
+        "rc_ggx_nv",
+        (160., 40.),
+        (0.6, 0.45, 0.1),
+        [0., 0., 0.],
+        0.,
+        [0., 0., 0.],
+    ),
+    (
+        "rd_ggx",
+        (30., 10.),
+        (0.3, 0.2, 0.7),
+        [-0.2951144, -0.1218993, -0.9476539],
+        11.044722,
+        [0.44356057, 0.44356057, 0.44356057],
+    ),
+    (
+        "rd_ggx",
+        (70., 100.),
+        (0.8, 0.9, 0.35),
+        [-0.07823979, -0.7932747, -0.6038161],
+        1.0898288,
+        [0.42849994, 0.42849994, 0.42849994],
+    ),
+    (
+        "rd_ggx",
+        (160., 40.),
+        (0.6, 0.45, 0.1),
+        [-0.2350114, -0.170366, 0.9569457],
+        1.5399364,
+        [2.2441175, 2.2441175, 2.2441175],
+    ),
+    (
+        "rp_beck",
+        (30., 10.),
+        (0.3, 0.2, 0.7),
+        [-0.5196153, 0.3, 0.8],
+        0.26430753,
+        [0.35111097, 0.35111097, 0.35111097],
+    ),
+    (
+        "rp_beck",
+        (70., 100.),
+        (0.8, 0.9, 0.35),
+        [0.7655522, -0.2322277, 0.6000001],
+        0.15673293,
+        [0.35811725, 0.35811725, 0.35811725],
+    ),
+    (
+        "rp_beck",
+        (160., 40.),
+        (0.6, 0.45, 0.1),
+        [0., 0., 0.],
+        0.,
+        [0., 0., 0.],
+    ),
 ];
 
 #[test]
@@ -234,21 +438,68 @@ fn sampling_routines_reproduce_mitsuba_samples_for_the_same_random_numbers() {
     let (eta, k) = (Vec3::new(0.2, 0.9, 1.1), Vec3::new(3.9, 2.4, 2.2));
     for (name, (ti, pi), (u1, u2, u3), wo, pdf, w) in SAMPLES {
         let b = match name {
-            "rc_beck_aniso" => Bsdf::RoughConductor(RoughConductor::new(MicrofacetType::Beckmann, 0.1, 0.4, true, eta, k, Vec3::ONE)),
-            "rc_ggx_nv" => Bsdf::RoughConductor(RoughConductor::new(MicrofacetType::Ggx, 0.3, 0.15, false, eta, k, Vec3::ONE)),
-            "rd_ggx" => Bsdf::RoughDielectric(RoughDielectric::new(MicrofacetType::Ggx, 0.3, 0.3, true, 1.5 / AIR, Vec3::ONE, Vec3::ONE)),
-            _ => Bsdf::RoughPlastic(RoughPlastic::new(&t, Vec3::splat(0.5), Vec3::ONE, true, specular_sampling_weight(0.5, 1.0), true)),
+            "rc_beck_aniso" => Bsdf::RoughConductor(RoughConductor::new(
+                MicrofacetType::Beckmann,
+                0.1,
+                0.4,
+                true,
+                eta,
+                k,
+                Vec3::ONE,
+            )),
+            "rc_ggx_nv" => Bsdf::RoughConductor(RoughConductor::new(
+                MicrofacetType::Ggx,
+                0.3,
+                0.15,
+                false,
+                eta,
+                k,
+                Vec3::ONE,
+            )),
+            "rd_ggx" => Bsdf::RoughDielectric(RoughDielectric::new(
+                MicrofacetType::Ggx,
+                0.3,
+                0.3,
+                true,
+                1.5 / AIR,
+                Vec3::ONE,
+                Vec3::ONE,
+            )),
+            _ => Bsdf::RoughPlastic(RoughPlastic::new(
+                &t,
+                Vec3::splat(0.5),
+                Vec3::ONE,
+                true,
+                specular_sampling_weight(0.5, 1.0),
+                true,
+            )),
         };
         let s = b.sample(d(ti, pi), u1, Vec2::new(u2, u3));
         if pdf == 0.0 {
-            assert!(s.is_none(), "{name} {ti} {pi}: expected no sample, got {s:?}");
+            assert!(
+                s.is_none(),
+                "{name} {ti} {pi}: expected no sample, got {s:?}"
+            );
             continue;
         }
         let s = s.unwrap_or_else(|| panic!("{name} {ti} {pi}: no sample"));
-        assert!((s.wo - Vec3::from(wo)).length() < 2e-4, "{name} {ti} {pi}: wo {} vs {:?}", s.wo, wo);
-        assert!(close(s.pdf, pdf, 2e-3), "{name} {ti} {pi}: pdf {} vs {pdf}", s.pdf);
+        assert!(
+            (s.wo - Vec3::from(wo)).length() < 2e-4,
+            "{name} {ti} {pi}: wo {} vs {:?}",
+            s.wo,
+            wo
+        );
+        assert!(
+            close(s.pdf, pdf, 2e-3),
+            "{name} {ti} {pi}: pdf {} vs {pdf}",
+            s.pdf
+        );
         for c in 0..3 {
-            assert!(close(s.weight[c], w[c], 2e-3), "{name} {ti} {pi}: weight {} vs {w:?}", s.weight);
+            assert!(
+                close(s.weight[c], w[c], 2e-3),
+                "{name} {ti} {pi}: weight {} vs {w:?}",
+                s.weight
+            );
         }
     }
 }

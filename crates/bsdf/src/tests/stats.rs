@@ -13,7 +13,10 @@ pub struct Pcg32 {
 
 impl Pcg32 {
     pub fn new(seed: u64, seq: u64) -> Self {
-        let mut r = Self { state: 0, inc: (seq << 1) | 1 };
+        let mut r = Self {
+            state: 0,
+            inc: (seq << 1) | 1,
+        };
         r.next_u32();
         r.state = r.state.wrapping_add(seed);
         r.next_u32();
@@ -72,15 +75,49 @@ fn simpson(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64) -> 
 }
 
 #[allow(clippy::too_many_arguments)]
-fn adaptive(f: &impl Fn(f64, f64) -> f64, z0: f64, z1: f64, p0: f64, p1: f64, whole: f64, tol: f64, depth: u32, min_depth: u32) -> f64 {
+fn adaptive(
+    f: &impl Fn(f64, f64) -> f64,
+    z0: f64,
+    z1: f64,
+    p0: f64,
+    p1: f64,
+    whole: f64,
+    tol: f64,
+    depth: u32,
+    min_depth: u32,
+) -> f64 {
     let (zm, pm) = (0.5 * (z0 + z1), 0.5 * (p0 + p1));
-    let quads = [(z0, zm, p0, pm), (zm, z1, p0, pm), (z0, zm, pm, p1), (zm, z1, pm, p1)];
-    let parts: Vec<f64> = quads.iter().map(|q| simpson(f, q.0, q.1, q.2, q.3)).collect();
+    let quads = [
+        (z0, zm, p0, pm),
+        (zm, z1, p0, pm),
+        (z0, zm, pm, p1),
+        (zm, z1, pm, p1),
+    ];
+    let parts: Vec<f64> = quads
+        .iter()
+        .map(|q| simpson(f, q.0, q.1, q.2, q.3))
+        .collect();
     let sum: f64 = parts.iter().sum();
     if depth == 0 || (min_depth == 0 && (sum - whole).abs() <= 15.0 * tol) {
         return sum + (sum - whole) / 15.0;
     }
-    quads.iter().zip(parts).map(|(q, w)| adaptive(f, q.0, q.1, q.2, q.3, w, tol / 4.0, depth - 1, min_depth.saturating_sub(1))).sum()
+    quads
+        .iter()
+        .zip(parts)
+        .map(|(q, w)| {
+            adaptive(
+                f,
+                q.0,
+                q.1,
+                q.2,
+                q.3,
+                w,
+                tol / 4.0,
+                depth - 1,
+                min_depth.saturating_sub(1),
+            )
+        })
+        .sum()
 }
 
 /// Result of one goodness-of-fit test.
@@ -119,7 +156,10 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
     // Expected counts: adaptive Simpson in (theta, phi) over each bin (theta
     // rather than cos(theta) coordinates resolve narrow lobes at the poles).
     let pdf_theta = |theta: f64, phi: f64| bsdf.pdf(wi, dir(theta.cos(), phi)) as f64 * theta.sin();
-    let (dz, dp) = (2.0 / THETA_BINS as f64, std::f64::consts::TAU / PHI_BINS as f64);
+    let (dz, dp) = (
+        2.0 / THETA_BINS as f64,
+        std::f64::consts::TAU / PHI_BINS as f64,
+    );
     let tol = 0.5 / n as f64;
     let mut exp = vec![0f64; nb];
     for i in 0..THETA_BINS {
@@ -127,7 +167,8 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
             let (z0, p0) = (-1.0 + i as f64 * dz, j as f64 * dp);
             let (t0, t1) = ((z0 + dz).min(1.0).acos(), z0.max(-1.0).acos());
             let whole = simpson(&pdf_theta, t0, t1, p0, p0 + dp);
-            exp[i * PHI_BINS + j] = adaptive(&pdf_theta, t0, t1, p0, p0 + dp, whole, tol, 8, 2).max(0.0) * n as f64;
+            exp[i * PHI_BINS + j] =
+                adaptive(&pdf_theta, t0, t1, p0, p0 + dp, whole, tol, 8, 2).max(0.0) * n as f64;
         }
     }
     // Refine the bins with a large deviation: integrate them again with a
@@ -143,7 +184,19 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
             let (z0, p0) = (-1.0 + i as f64 * dz, j as f64 * dp);
             let (t0, t1) = ((z0 + dz).min(1.0).acos(), z0.max(-1.0).acos());
             let whole = simpson(&pdf_theta, t0, t1, p0, p0 + dp);
-            exp[k] = adaptive(&pdf_theta, t0, t1, p0, p0 + dp, whole, 0.02 / n as f64, 14, 5).max(0.0) * n as f64;
+            exp[k] = adaptive(
+                &pdf_theta,
+                t0,
+                t1,
+                p0,
+                p0 + dp,
+                whole,
+                0.02 / n as f64,
+                14,
+                5,
+            )
+            .max(0.0)
+                * n as f64;
         }
     }
     let total: f64 = exp.iter().sum();
@@ -164,7 +217,12 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
         kept.push((pool_o, pool_e));
     } else if pool_o > 0.0 || pool_e > 0.0 {
         // Merge into the smallest kept cell.
-        let k = kept.iter().enumerate().min_by(|a, b| a.1 .1.partial_cmp(&b.1 .1).unwrap()).unwrap().0;
+        let k = kept
+            .iter()
+            .enumerate()
+            .min_by(|a, b| a.1 .1.partial_cmp(&b.1 .1).unwrap())
+            .unwrap()
+            .0;
         kept[k].0 += pool_o;
         kept[k].1 += pool_e;
     }
@@ -181,7 +239,16 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
         })
         .sum();
     let dof = kept.len().saturating_sub(1).max(1);
-    Chi2Result { stat, dof, p_value: if stat.is_finite() { chi2_sf(stat, dof) } else { 0.0 }, leftover: leftover_obs / n as f64 }
+    Chi2Result {
+        stat,
+        dof,
+        p_value: if stat.is_finite() {
+            chi2_sf(stat, dof)
+        } else {
+            0.0
+        },
+        leftover: leftover_obs / n as f64,
+    }
 }
 
 /// Direction at polar angle `theta_deg` (measured from +z; > 90 is below
@@ -190,4 +257,3 @@ pub fn sph(theta_deg: f32, phi_deg: f32) -> Vec3 {
     let (t, p) = (theta_deg.to_radians(), phi_deg.to_radians());
     Vec3::new(t.sin() * p.cos(), t.sin() * p.sin(), t.cos())
 }
-

@@ -9,14 +9,26 @@ fn rough_plastic_table_is_deterministic_and_cached() {
             let a = RoughPlasticTable::compute(kind, alpha, eta);
             let dt = t0.elapsed();
             let b = RoughPlasticTable::new(kind, alpha, eta);
-            eprintln!("{kind:?} alpha {alpha} eta {eta}: {:.2} ms, Ri {}", dt.as_secs_f64() * 1e3, a.internal_reflectance);
+            eprintln!(
+                "{kind:?} alpha {alpha} eta {eta}: {:.2} ms, Ri {}",
+                dt.as_secs_f64() * 1e3,
+                a.internal_reflectance
+            );
             assert_eq!(a, b);
             let t1 = Instant::now();
             let c = RoughPlasticTable::new(kind, alpha, eta);
             assert_eq!(a, c);
-            assert!(t1.elapsed().as_secs_f64() < 5e-3, "a cached table must be cheap");
-            assert!(a.external_transmittance.iter().all(|t| t.is_finite() && (0.0..=1.0).contains(t)));
-            assert!(a.internal_reflectance.is_finite() && (0.0..1.0).contains(&a.internal_reflectance));
+            assert!(
+                t1.elapsed().as_secs_f64() < 5e-3,
+                "a cached table must be cheap"
+            );
+            assert!(a
+                .external_transmittance
+                .iter()
+                .all(|t| t.is_finite() && (0.0..=1.0).contains(t)));
+            assert!(
+                a.internal_reflectance.is_finite() && (0.0..1.0).contains(&a.internal_reflectance)
+            );
         }
     }
 }

@@ -49,7 +49,11 @@ impl Accel {
                             lo = lo.min(p);
                             hi = hi.max(p);
                         }
-                        tris.push(Triangle { v0: v[0].into(), v1: v[1].into(), v2: v[2].into() });
+                        tris.push(Triangle {
+                            v0: v[0].into(),
+                            v1: v[1].into(),
+                            v2: v[2].into(),
+                        });
                         refs.push((s as u32, t as u32));
                     }
                 }
@@ -64,16 +68,35 @@ impl Accel {
         let (bvh, tris, tri_ref) = if tris.is_empty() {
             (CwBvh::default(), Vec::new(), Vec::new())
         } else {
-            let bvh = build_cwbvh_from_tris(&tris, BvhBuildParams::slow_build(), &mut Duration::default());
-            let ordered: Vec<RtTriangle> = bvh.primitive_indices.iter().map(|&i| RtTriangle::from(&tris[i as usize])).collect();
-            let ordered_refs = bvh.primitive_indices.iter().map(|&i| refs[i as usize]).collect();
+            let bvh = build_cwbvh_from_tris(
+                &tris,
+                BvhBuildParams::slow_build(),
+                &mut Duration::default(),
+            );
+            let ordered: Vec<RtTriangle> = bvh
+                .primitive_indices
+                .iter()
+                .map(|&i| RtTriangle::from(&tris[i as usize]))
+                .collect();
+            let ordered_refs = bvh
+                .primitive_indices
+                .iter()
+                .map(|&i| refs[i as usize])
+                .collect();
             (bvh, ordered, ordered_refs)
         };
         if lo.x > hi.x {
             lo = Vec3::ZERO;
             hi = Vec3::ZERO;
         }
-        Self { bvh, tris, tri_ref, analytic, shapes, bounds: (lo, hi) }
+        Self {
+            bvh,
+            tris,
+            tri_ref,
+            analytic,
+            shapes,
+            bounds: (lo, hi),
+        }
     }
 
     /// Axis-aligned bounds of the whole scene.
@@ -98,9 +121,16 @@ impl Accel {
         let mut tmax = ray.tmax;
         if !self.tris.is_empty() {
             let mut hit = RayHit::none();
-            if self.bvh.ray_traverse(Self::bray(ray), &mut hit, |r, id| self.tris[id].intersect(r)) {
+            if self.bvh.ray_traverse(Self::bray(ray), &mut hit, |r, id| {
+                self.tris[id].intersect(r)
+            }) {
                 let (shape, prim) = self.tri_ref[hit.primitive_id as usize];
-                best = Some(Hit { t: hit.t, shape, prim, bvh_prim: hit.primitive_id });
+                best = Some(Hit {
+                    t: hit.t,
+                    shape,
+                    prim,
+                    bvh_prim: hit.primitive_id,
+                });
                 tmax = hit.t;
             }
         }
@@ -111,7 +141,12 @@ impl Accel {
                 let t = a.intersect(&r);
                 if t < r.tmax {
                     r.tmax = t;
-                    best = Some(Hit { t, shape: *s, prim: 0, bvh_prim: u32::MAX });
+                    best = Some(Hit {
+                        t,
+                        shape: *s,
+                        prim: 0,
+                        bvh_prim: u32::MAX,
+                    });
                 }
             }
         }
@@ -121,7 +156,11 @@ impl Accel {
     /// True when nothing blocks the ray in (tmin, tmax).
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
-        if !self.tris.is_empty() && !self.bvh.ray_traverse_miss(Self::bray(ray), |r, id| self.tris[id].intersect(r)) {
+        if !self.tris.is_empty()
+            && !self
+                .bvh
+                .ray_traverse_miss(Self::bray(ray), |r, id| self.tris[id].intersect(r))
+        {
             return false;
         }
         if ANALYTIC {
@@ -151,6 +190,13 @@ impl Accel {
             }
             ShapeGeom::Analytic(a) => a.shade(p),
         };
-        SurfaceInteraction { p, t: hit.t, ng, ns, uv, shape: hit.shape }
+        SurfaceInteraction {
+            p,
+            t: hit.t,
+            ng,
+            ns,
+            uv,
+            shape: hit.shape,
+        }
     }
 }

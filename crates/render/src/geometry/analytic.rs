@@ -8,14 +8,32 @@ use super::Ray;
 
 #[derive(Clone, Debug)]
 pub enum Analytic {
-    Sphere { center: Vec3, radius: f32, flip: bool },
-    Disk { to_world: Mat4, to_local: Mat4, normal: Vec3, flip: bool },
+    Sphere {
+        center: Vec3,
+        radius: f32,
+        flip: bool,
+    },
+    Disk {
+        to_world: Mat4,
+        to_local: Mat4,
+        normal: Vec3,
+        flip: bool,
+    },
 }
 
 impl Analytic {
     pub fn disk(to_world: Mat4, flip: bool) -> Self {
-        let normal = to_world.inverse().transpose().transform_vector3(Vec3::Z).normalize();
-        Analytic::Disk { to_world, to_local: to_world.inverse(), normal, flip }
+        let normal = to_world
+            .inverse()
+            .transpose()
+            .transform_vector3(Vec3::Z)
+            .normalize();
+        Analytic::Disk {
+            to_world,
+            to_local: to_world.inverse(),
+            normal,
+            flip,
+        }
     }
 
     /// Distance to the nearest intersection in (ray.tmin, ray.tmax), or infinity.
@@ -71,10 +89,18 @@ impl Analytic {
                 if phi < 0.0 {
                     phi += 2.0 * std::f32::consts::PI;
                 }
-                let uv = Vec2::new(phi / (2.0 * std::f32::consts::PI), l.z.clamp(-1.0, 1.0).acos() / std::f32::consts::PI);
+                let uv = Vec2::new(
+                    phi / (2.0 * std::f32::consts::PI),
+                    l.z.clamp(-1.0, 1.0).acos() / std::f32::consts::PI,
+                );
                 (n, n, uv)
             }
-            Analytic::Disk { to_local, normal, flip, .. } => {
+            Analytic::Disk {
+                to_local,
+                normal,
+                flip,
+                ..
+            } => {
                 let q = to_local.transform_point3(p);
                 let n = if *flip { -*normal } else { *normal };
                 let r = (q.x * q.x + q.y * q.y).sqrt();
@@ -89,7 +115,10 @@ impl Analytic {
 
     pub fn bounds(&self) -> (Vec3, Vec3) {
         match self {
-            Analytic::Sphere { center, radius, .. } => (*center - Vec3::splat(*radius), *center + Vec3::splat(*radius)),
+            Analytic::Sphere { center, radius, .. } => (
+                *center - Vec3::splat(*radius),
+                *center + Vec3::splat(*radius),
+            ),
             Analytic::Disk { to_world, .. } => {
                 let mut lo = Vec3::splat(f32::INFINITY);
                 let mut hi = Vec3::splat(f32::NEG_INFINITY);

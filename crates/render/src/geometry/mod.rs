@@ -56,7 +56,12 @@ pub fn offset_origin(p: Vec3, ng: Vec3, d: Vec3) -> Vec3 {
 /// A ray leaving surface point `p` in direction `d`.
 #[inline]
 pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3) -> Ray {
-    Ray { o: offset_origin(p, ng, d), d, tmin: 0.0, tmax: f32::INFINITY }
+    Ray {
+        o: offset_origin(p, ng, d),
+        d,
+        tmin: 0.0,
+        tmax: f32::INFINITY,
+    }
 }
 
 /// A shadow ray from surface point `p` towards `target` (stopping just short
@@ -66,5 +71,10 @@ pub fn spawn_ray_to(p: Vec3, ng: Vec3, target: Vec3) -> Ray {
     let o = offset_origin(p, ng, target - p);
     let v = target - o;
     let dist = v.length();
-    Ray { o, d: v / dist, tmin: 0.0, tmax: dist * (1.0 - 1.0e-4) }
+    Ray {
+        o,
+        d: v / dist,
+        tmin: 0.0,
+        tmax: dist * (1.0 - 1.0e-4),
+    }
 }

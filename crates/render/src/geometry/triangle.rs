@@ -33,7 +33,8 @@ pub fn shade(mesh: &TriangleMesh, tri: usize, bc: Vec2, ng: Vec3) -> (Vec3, Vec3
     let mut ng = ng.normalize_or_zero();
     let b0 = 1.0 - bc.x - bc.y;
     let mut ns = match &mesh.normals {
-        Some(n) => (n[i0 as usize] * b0 + n[i1 as usize] * bc.x + n[i2 as usize] * bc.y).normalize_or_zero(),
+        Some(n) => (n[i0 as usize] * b0 + n[i1 as usize] * bc.x + n[i2 as usize] * bc.y)
+            .normalize_or_zero(),
         None => ng,
     };
     if ns == Vec3::ZERO {
@@ -59,7 +60,11 @@ mod tests {
 
     #[test]
     fn obvhs_barycentrics_weight_vertices_one_and_two() {
-        let (a, b, c) = (Vec3::new(0.0, 0.0, 0.0), Vec3::new(2.0, 0.0, 0.1), Vec3::new(0.3, 1.5, -0.2));
+        let (a, b, c) = (
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(2.0, 0.0, 0.1),
+            Vec3::new(0.3, 1.5, -0.2),
+        );
         let t = RtTriangle::new(a.into(), b.into(), c.into());
         let p = a * 0.2 + b * 0.5 + c * 0.3;
         let o = Vec3::new(0.1, 0.2, 3.0);
@@ -72,6 +77,11 @@ mod tests {
         assert!((bc - barycentrics(p, a, b, c)).length() < 1e-5);
         assert!(t.intersect(&ray).is_finite());
         // -ng is the winding-order normal.
-        assert!(Vec3::from(-t.ng).normalize().dot((b - a).cross(c - a).normalize()) > 0.9999);
+        assert!(
+            Vec3::from(-t.ng)
+                .normalize()
+                .dot((b - a).cross(c - a).normalize())
+                > 0.9999
+        );
     }
 }

@@ -89,17 +89,40 @@ impl VertexGuide {
     pub fn at(tree: &SdTree, p: Vec3, smooth: bool) -> Self {
         let leaf = tree.leaf_index(p);
         let guided = smooth && tree.is_built();
-        let alpha = if guided { tree.bsdf_sampling_fraction_leaf(leaf) } else { 1.0 };
-        Self { leaf, guided, alpha }
+        let alpha = if guided {
+            tree.bsdf_sampling_fraction_leaf(leaf)
+        } else {
+            1.0
+        };
+        Self {
+            leaf,
+            guided,
+            alpha,
+        }
     }
 
     /// `p_mix` of the world direction `wo_world` (local `wo`) and its parts
     /// `(p_mix, p_bsdf, p_guide)`: what NEE weighs against.
     #[inline]
-    pub fn pdf(&self, tree: &SdTree, bsdf: &Bsdf, wi: Vec3, wo: Vec3, wo_world: Vec3) -> (f32, f32, f32) {
+    pub fn pdf(
+        &self,
+        tree: &SdTree,
+        bsdf: &Bsdf,
+        wi: Vec3,
+        wo: Vec3,
+        wo_world: Vec3,
+    ) -> (f32, f32, f32) {
         let p_bsdf = bsdf.pdf(wi, wo);
-        let p_guide = if self.guided { tree.pdf_leaf(self.leaf, wo_world) } else { 0.0 };
-        (mixture_pdf(self.guided, self.alpha, p_bsdf, p_guide), p_bsdf, p_guide)
+        let p_guide = if self.guided {
+            tree.pdf_leaf(self.leaf, wo_world)
+        } else {
+            0.0
+        };
+        (
+            mixture_pdf(self.guided, self.alpha, p_bsdf, p_guide),
+            p_bsdf,
+            p_guide,
+        )
     }
 }
 
@@ -144,7 +167,14 @@ fn crossing_eta(bsdf: &Bsdf, wi: Vec3, wo: Vec3) -> f32 {
 
 /// Samples the mixture at one vertex. `None` means the path is absorbed.
 #[inline]
-pub fn sample_mixture(tree: &SdTree, g: &VertexGuide, bsdf: &Bsdf, frame: &Frame, wi: Vec3, rng: &mut Rng) -> Option<MixtureSample> {
+pub fn sample_mixture(
+    tree: &SdTree,
+    g: &VertexGuide,
+    bsdf: &Bsdf,
+    frame: &Frame,
+    wi: Vec3,
+    rng: &mut Rng,
+) -> Option<MixtureSample> {
     let use_bsdf = !g.guided || rng.next_f32() < g.alpha;
     if use_bsdf {
         let bs = bsdf.sample(wi, rng.next_f32(), rng.next_2d())?;
@@ -183,12 +213,28 @@ pub fn sample_mixture(tree: &SdTree, g: &VertexGuide, bsdf: &Bsdf, frame: &Frame
         let wo = frame.to_local(wo_world);
         let fcos = bsdf.eval(wi, wo);
         let (p_mix, p_bsdf, p_guide) = g.pdf(tree, bsdf, wi, wo, wo_world);
-        finish(wo, wo_world, fcos, p_mix, p_bsdf, p_guide, crossing_eta(bsdf, wi, wo))
+        finish(
+            wo,
+            wo_world,
+            fcos,
+            p_mix,
+            p_bsdf,
+            p_guide,
+            crossing_eta(bsdf, wi, wo),
+        )
     }
 }
 
 #[inline]
-fn finish(wo: Vec3, wo_world: Vec3, fcos: Vec3, p_mix: f32, p_bsdf: f32, p_guide: f32, eta: f32) -> Option<MixtureSample> {
+fn finish(
+    wo: Vec3,
+    wo_world: Vec3,
+    fcos: Vec3,
+    p_mix: f32,
+    p_bsdf: f32,
+    p_guide: f32,
+    eta: f32,
+) -> Option<MixtureSample> {
     if !(p_mix > 0.0) || !(fcos.max_element() > 0.0) {
         return None;
     }
@@ -196,7 +242,17 @@ fn finish(wo: Vec3, wo_world: Vec3, fcos: Vec3, p_mix: f32, p_bsdf: f32, p_guide
     if !weight.is_finite() {
         return None;
     }
-    Some(MixtureSample { wo, wo_world, weight, fcos, p_mix, p_bsdf, p_guide, delta: false, eta })
+    Some(MixtureSample {
+        wo,
+        wo_world,
+        weight,
+        fcos,
+        p_mix,
+        p_bsdf,
+        p_guide,
+        delta: false,
+        eta,
+    })
 }
 
 /// One recorded path vertex (doc section 2).
@@ -220,7 +276,11 @@ impl RecVertex {
     /// `L_i = R_i / T_i` per channel where `T_i p_mix > 1e-4`, else 0.
     pub fn incident_radiance(&self) -> Vec3 {
         let f = |r: f32, t: f32| if t * self.p_mix > 1e-4 { r / t } else { 0.0 };
-        Vec3::new(f(self.acc.x, self.throughput.x), f(self.acc.y, self.throughput.y), f(self.acc.z, self.throughput.z))
+        Vec3::new(
+            f(self.acc.x, self.throughput.x),
+            f(self.acc.y, self.throughput.y),
+            f(self.acc.z, self.throughput.z),
+        )
     }
 
     /// The guide record of this vertex (`learn_fraction`: fill the fraction-gradient fields).
@@ -233,7 +293,11 @@ impl RecVertex {
             radiance: mean(l),
             pdf_mix: self.p_mix,
             weight: self.weight,
-            product: if learn_fraction { mean(l * self.fcos) } else { 0.0 },
+            product: if learn_fraction {
+                mean(l * self.fcos)
+            } else {
+                0.0
+            },
             pdf_bsdf: self.p_bsdf,
             pdf_guide: self.p_guide,
             is_delta: false,
@@ -253,7 +317,11 @@ pub struct PathRecorder {
 
 impl Default for PathRecorder {
     fn default() -> Self {
-        Self { v: [RecVertex::default(); MAX_RECORDED_VERTICES], n: 0, last_is_previous: false }
+        Self {
+            v: [RecVertex::default(); MAX_RECORDED_VERTICES],
+            n: 0,
+            last_is_previous: false,
+        }
     }
 }
 
@@ -269,7 +337,10 @@ impl PathRecorder {
             self.last_is_previous = false;
             return false;
         }
-        self.v[self.n] = RecVertex { acc: Vec3::ZERO, ..v };
+        self.v[self.n] = RecVertex {
+            acc: Vec3::ZERO,
+            ..v
+        };
         self.n += 1;
         self.last_is_previous = true;
         true
@@ -293,7 +364,11 @@ impl PathRecorder {
     /// (`prev_nee`): it learns indirect light only.
     #[inline]
     pub fn add_emission(&mut self, c: Vec3, indirect_only: bool, prev_nee: bool) {
-        let end = if indirect_only && prev_nee && self.last_is_previous { self.n - 1 } else { self.n };
+        let end = if indirect_only && prev_nee && self.last_is_previous {
+            self.n - 1
+        } else {
+            self.n
+        };
         for v in &mut self.v[..end] {
             v.acc += c;
         }
@@ -308,12 +383,21 @@ impl PathRecorder {
 }
 
 /// Radiance along the camera ray `ray`, guided by `g.tree`.
-pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mut ray: Ray, rng: &mut Rng) -> Vec3 {
+pub fn li<const ENV: bool, const ANALYTIC: bool>(
+    scene: &Scene,
+    g: &GuideCtx,
+    mut ray: Ray,
+    rng: &mut Rng,
+) -> Vec3 {
     let params = &scene.path;
     if params.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = if params.max_depth < 0 { u32::MAX } else { params.max_depth as u32 };
+    let max_depth = if params.max_depth < 0 {
+        u32::MAX
+    } else {
+        params.max_depth as u32
+    };
     let accel = &scene.accel;
     let lights = &scene.lights;
     let tree = g.tree;
@@ -349,7 +433,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
         let Some(h) = hit else {
             if ENV {
                 let le = lights.environment_radiance(ray.d);
-                let w = if prev_delta || !prev_nee { 1.0 } else { mis_weight(prev_pdf, lights.environment_pdf(ray.d)) };
+                let w = if prev_delta || !prev_nee {
+                    1.0
+                } else {
+                    mis_weight(prev_pdf, lights.environment_pdf(ray.d))
+                };
                 let c = throughput * le * w;
                 result += c;
                 if g.record {
@@ -363,7 +451,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
         if let Some(light) = scene.shape_light[si.shape as usize] {
             let le = lights.area_radiance(light, si.ns, -ray.d);
             if le != Vec3::ZERO {
-                let w = if prev_delta || !prev_nee { 1.0 } else { mis_weight(prev_pdf, lights.area_pdf(light, prev_p, si.p, si.ns)) };
+                let w = if prev_delta || !prev_nee {
+                    1.0
+                } else {
+                    mis_weight(prev_pdf, lights.area_pdf(light, prev_p, si.p, si.ns))
+                };
                 let c = throughput * le * w;
                 result += c;
                 if g.record {
@@ -382,7 +474,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
         let vg = if flags.smooth {
             VertexGuide::at(tree, si.p, true)
         } else {
-            VertexGuide { leaf: LeafHandle(0), guided: false, alpha: 1.0 }
+            VertexGuide {
+                leaf: LeafHandle(0),
+                guided: false,
+                alpha: 1.0,
+            }
         };
 
         // Next-event estimation, weighted against the mixture pdf.
@@ -394,12 +490,21 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
                 let mut w_light = 0.0;
                 if f != Vec3::ZERO {
                     let shadow = if ls.infinite {
-                        Ray { o: offset_origin(si.p, si.ng, ls.wi), d: ls.wi, tmin: 0.0, tmax: f32::INFINITY }
+                        Ray {
+                            o: offset_origin(si.p, si.ng, ls.wi),
+                            d: ls.wi,
+                            tmin: 0.0,
+                            tmax: f32::INFINITY,
+                        }
                     } else {
                         spawn_ray_to(si.p, si.ng, ls.point)
                     };
                     if accel.unoccluded::<ANALYTIC>(&shadow) {
-                        w_light = if ls.delta { 1.0 } else { mis_weight(ls.pdf, vg.pdf(tree, &bsdf, wi, wo, ls.wi).0) };
+                        w_light = if ls.delta {
+                            1.0
+                        } else {
+                            mis_weight(ls.pdf, vg.pdf(tree, &bsdf, wi, wo, ls.wi).0)
+                        };
                         let c = throughput * f * ls.value * (w_light / ls.pdf);
                         result += c;
                         if g.record {
@@ -411,7 +516,8 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
                     // Kick-start: the light sample is a training record of its own
                     // (L = Le w_light, sampled with p_light, weight 0.5, no fraction gradient).
                     let l = ls.value * w_light;
-                    let r = Record::radiance_only(si.p, ls.wi, (l.x + l.y + l.z) / 3.0, ls.pdf, 0.5);
+                    let r =
+                        Record::radiance_only(si.p, ls.wi, (l.x + l.y + l.z) / 3.0, ls.pdf, 0.5);
                     tree.record(&r, &mut || rng.next_f32());
                 }
             }
@@ -476,7 +582,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, g: &GuideCtx, mu
 #[cfg(test)]
 mod tests {
     use super::*;
-    use pathfarm_bsdf::{Diffuse, RoughConductor, MicrofacetType};
+    use pathfarm_bsdf::{Diffuse, MicrofacetType, RoughConductor};
     use pathfarm_guide::GuideConfig;
 
     /// A built tree with a peaked distribution (records from one direction cone).
@@ -485,7 +591,9 @@ mod tests {
         let mut r = Rng::new(3, 4);
         for k in 0..2 {
             for _ in 0..4000 {
-                let d = (Vec3::new(0.3, 0.2, 1.0) + 0.3 * (Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) - 0.5)).normalize();
+                let d = (Vec3::new(0.3, 0.2, 1.0)
+                    + 0.3 * (Vec3::new(r.next_f32(), r.next_f32(), r.next_f32()) - 0.5))
+                    .normalize();
                 let rec = Record::radiance_only(Vec3::ZERO, d, 1.0 + r.next_f32(), 0.5, 1.0);
                 tree.record(&rec, &mut || r.next_f32());
             }
@@ -503,17 +611,35 @@ mod tests {
         let tree = trained_tree();
         let frame = Frame::from_normal(Vec3::new(0.1, 0.2, 1.0).normalize());
         let diffuse = Bsdf::Diffuse(Diffuse::new(Vec3::splat(0.8)));
-        let rough = Bsdf::RoughConductor(RoughConductor::new(MicrofacetType::Ggx, 0.3, 0.3, true, Vec3::splat(0.2), Vec3::splat(3.0), Vec3::ONE));
+        let rough = Bsdf::RoughConductor(RoughConductor::new(
+            MicrofacetType::Ggx,
+            0.3,
+            0.3,
+            true,
+            Vec3::splat(0.2),
+            Vec3::splat(3.0),
+            Vec3::ONE,
+        ));
         let wi = Vec3::new(0.3, -0.2, 0.9).normalize();
         let mut rng = Rng::new(9, 1);
         let mut checked = 0;
         for bsdf in [diffuse, rough] {
             for alpha in [0.1f32, 0.5, 0.9] {
-                let vg = VertexGuide { leaf: tree.leaf_index(Vec3::ZERO), guided: true, alpha };
+                let vg = VertexGuide {
+                    leaf: tree.leaf_index(Vec3::ZERO),
+                    guided: true,
+                    alpha,
+                };
                 for _ in 0..2000 {
-                    let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else { continue };
+                    let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else {
+                        continue;
+                    };
                     let (p_nee, p_b, p_g) = vg.pdf(&tree, &bsdf, wi, ms.wo, ms.wo_world);
-                    assert!((p_nee - ms.p_mix).abs() <= 1e-5 * ms.p_mix, "{p_nee} vs {}", ms.p_mix);
+                    assert!(
+                        (p_nee - ms.p_mix).abs() <= 1e-5 * ms.p_mix,
+                        "{p_nee} vs {}",
+                        ms.p_mix
+                    );
                     assert!((p_nee - (alpha * p_b + (1.0 - alpha) * p_g)).abs() <= 1e-6 * p_nee);
                     for p_light in [1e-3f32, 0.2, 1.0, 37.0] {
                         let s = mis_weight(p_light, p_nee) + mis_weight(p_nee, p_light);
@@ -535,12 +661,17 @@ mod tests {
         let bsdf = Bsdf::Diffuse(Diffuse::new(Vec3::splat(0.7)));
         let wi = Vec3::new(0.2, 0.1, 0.97).normalize();
         for alpha in [0.1f32, 0.5] {
-            let vg = VertexGuide { leaf: tree.leaf_index(Vec3::ZERO), guided: true, alpha };
+            let vg = VertexGuide {
+                leaf: tree.leaf_index(Vec3::ZERO),
+                guided: true,
+                alpha,
+            };
             let mut rng = Rng::new(17, alpha.to_bits() as u64);
             let n = 200_000;
             let (mut s, mut s2) = (0.0f64, 0.0f64);
             for _ in 0..n {
-                let w = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng).map_or(0.0, |m| m.weight.x as f64);
+                let w = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng)
+                    .map_or(0.0, |m| m.weight.x as f64);
                 s += w;
                 s2 += w * w;
             }
@@ -580,8 +711,16 @@ mod tests {
                     p_mix: 0.5 + u(),
                     recorded: u() < 0.8,
                     nee: u() < 0.7,
-                    n: if u() < 0.5 { Vec3::new(u(), u(), u()) } else { Vec3::ZERO },
-                    e: if u() < 0.5 { Vec3::new(u(), u(), u()) } else { Vec3::ZERO },
+                    n: if u() < 0.5 {
+                        Vec3::new(u(), u(), u())
+                    } else {
+                        Vec3::ZERO
+                    },
+                    e: if u() < 0.5 {
+                        Vec3::new(u(), u(), u())
+                    } else {
+                        Vec3::ZERO
+                    },
                 })
                 .collect();
             // Forward loop, as li does it: at vertex i, NEE (contribution T_{i-1} n_i),
@@ -594,7 +733,14 @@ mod tests {
                     rec.add(t * ev.n);
                 }
                 t *= ev.b;
-                let v = RecVertex { position: Vec3::ZERO, direction: Vec3::Z, throughput: t, p_mix: ev.p_mix, weight: 1.0, ..Default::default() };
+                let v = RecVertex {
+                    position: Vec3::ZERO,
+                    direction: Vec3::Z,
+                    throughput: t,
+                    p_mix: ev.p_mix,
+                    weight: 1.0,
+                    ..Default::default()
+                };
                 if !(ev.recorded && rec.push(v)) {
                     rec.skip();
                 }
@@ -615,12 +761,25 @@ mod tests {
             }
             let expected: Vec<Vec3> = (0..len)
                 .filter(|&i| evs[i].recorded)
-                .map(|i| if indirect_only && evs[i].nee { full[i] - evs[i].e } else { full[i] })
+                .map(|i| {
+                    if indirect_only && evs[i].nee {
+                        full[i] - evs[i].e
+                    } else {
+                        full[i]
+                    }
+                })
                 .collect();
-            let got: Vec<Vec3> = rec.vertices().iter().map(|v| v.incident_radiance()).collect();
+            let got: Vec<Vec3> = rec
+                .vertices()
+                .iter()
+                .map(|v| v.incident_radiance())
+                .collect();
             assert_eq!(got.len(), expected.len().min(MAX_RECORDED_VERTICES));
             for (g, e) in got.iter().zip(&expected) {
-                assert!((*g - *e).abs().max_element() <= 1e-4 * e.abs().max_element().max(1e-3), "path {path}: {g:?} vs {e:?}");
+                assert!(
+                    (*g - *e).abs().max_element() <= 1e-4 * e.abs().max_element().max(1e-3),
+                    "path {path}: {g:?} vs {e:?}"
+                );
             }
         }
     }

@@ -15,12 +15,20 @@ use crate::sampling::power_heuristic;
 use crate::scene::Scene;
 
 /// Radiance along the camera ray `ray`.
-pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, mut ray: Ray, rng: &mut Rng) -> Vec3 {
+pub fn li<const ENV: bool, const ANALYTIC: bool>(
+    scene: &Scene,
+    mut ray: Ray,
+    rng: &mut Rng,
+) -> Vec3 {
     let params = &scene.path;
     if params.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = if params.max_depth < 0 { u32::MAX } else { params.max_depth as u32 };
+    let max_depth = if params.max_depth < 0 {
+        u32::MAX
+    } else {
+        params.max_depth as u32
+    };
     let accel = &scene.accel;
     let lights = &scene.lights;
 
@@ -53,7 +61,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, mut ray: Ray, rn
         let Some(h) = hit else {
             if ENV {
                 let le = lights.environment_radiance(ray.d);
-                let w = if prev_delta { 1.0 } else { power_heuristic(prev_bsdf_pdf, lights.environment_pdf(ray.d)) };
+                let w = if prev_delta {
+                    1.0
+                } else {
+                    power_heuristic(prev_bsdf_pdf, lights.environment_pdf(ray.d))
+                };
                 result += throughput * le * w;
             }
             break;
@@ -64,7 +76,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, mut ray: Ray, rn
         if let Some(light) = scene.shape_light[si.shape as usize] {
             let le = lights.area_radiance(light, si.ns, -ray.d);
             if le != Vec3::ZERO {
-                let w = if prev_delta { 1.0 } else { power_heuristic(prev_bsdf_pdf, lights.area_pdf(light, prev_p, si.p, si.ns)) };
+                let w = if prev_delta {
+                    1.0
+                } else {
+                    power_heuristic(prev_bsdf_pdf, lights.area_pdf(light, prev_p, si.p, si.ns))
+                };
                 result += throughput * le * w;
             }
         }
@@ -84,12 +100,21 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, mut ray: Ray, rn
                 let f = bsdf.eval(wi, wo);
                 if f != Vec3::ZERO {
                     let shadow = if ls.infinite {
-                        Ray { o: offset_origin(si.p, si.ng, ls.wi), d: ls.wi, tmin: 0.0, tmax: f32::INFINITY }
+                        Ray {
+                            o: offset_origin(si.p, si.ng, ls.wi),
+                            d: ls.wi,
+                            tmin: 0.0,
+                            tmax: f32::INFINITY,
+                        }
                     } else {
                         spawn_ray_to(si.p, si.ng, ls.point)
                     };
                     if accel.unoccluded::<ANALYTIC>(&shadow) {
-                        let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, bsdf.pdf(wi, wo)) };
+                        let w = if ls.delta {
+                            1.0
+                        } else {
+                            power_heuristic(ls.pdf, bsdf.pdf(wi, wo))
+                        };
                         result += throughput * f * ls.value * (w / ls.pdf);
                     }
                 }

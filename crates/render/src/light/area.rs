@@ -45,7 +45,9 @@ impl AreaLight {
                 let total = d.total() as f32;
                 (d, total)
             }
-            ShapeGeom::Analytic(Analytic::Sphere { radius, .. }) => (Distribution1D::default(), 4.0 * PI * radius * radius),
+            ShapeGeom::Analytic(Analytic::Sphere { radius, .. }) => {
+                (Distribution1D::default(), 4.0 * PI * radius * radius)
+            }
             ShapeGeom::Analytic(Analytic::Disk { to_world, .. }) => {
                 let x = to_world.transform_vector3(Vec3::X);
                 let y = to_world.transform_vector3(Vec3::Y);
@@ -59,12 +61,23 @@ impl AreaLight {
                 .map(|t| {
                     let [a, b, c] = t.map(|i| m.positions[i as usize]);
                     let n = (b - a).cross(c - a).normalize_or_zero();
-                    EmitterTri { v0: a, e1: b - a, e2: c - a, n: if m.flip_normals { -n } else { n } }
+                    EmitterTri {
+                        v0: a,
+                        e1: b - a,
+                        e2: c - a,
+                        n: if m.flip_normals { -n } else { n },
+                    }
                 })
                 .collect(),
             _ => Vec::new(),
         };
-        Self { shape, tri_data, radiance, tris, area }
+        Self {
+            shape,
+            tri_data,
+            radiance,
+            tris,
+            area,
+        }
     }
 
     /// A uniformly distributed point on the surface with its shading normal.
@@ -84,10 +97,17 @@ impl AreaLight {
                 let (t, ux) = self.tris.sample(u.x);
                 let b = uniform_triangle(Vec2::new(ux, u.y));
                 let [i0, i1, i2] = m.indices[t];
-                let (a, bb, c) = (m.positions[i0 as usize], m.positions[i1 as usize], m.positions[i2 as usize]);
+                let (a, bb, c) = (
+                    m.positions[i0 as usize],
+                    m.positions[i1 as usize],
+                    m.positions[i2 as usize],
+                );
                 let p = a * (1.0 - b.x - b.y) + bb * b.x + c * b.y;
                 let mut n = match &m.normals {
-                    Some(ns) => (ns[i0 as usize] * (1.0 - b.x - b.y) + ns[i1 as usize] * b.x + ns[i2 as usize] * b.y).normalize_or_zero(),
+                    Some(ns) => (ns[i0 as usize] * (1.0 - b.x - b.y)
+                        + ns[i1 as usize] * b.x
+                        + ns[i2 as usize] * b.y)
+                        .normalize_or_zero(),
                     None => (bb - a).cross(c - a).normalize_or_zero(),
                 };
                 if m.flip_normals {
@@ -95,7 +115,11 @@ impl AreaLight {
                 }
                 Some((p, n))
             }
-            ShapeGeom::Analytic(Analytic::Sphere { center, radius, flip }) => {
+            ShapeGeom::Analytic(Analytic::Sphere {
+                center,
+                radius,
+                flip,
+            }) => {
                 let n = uniform_sphere(u);
                 Some((*center + n * *radius, if *flip { -n } else { n }))
             }
@@ -126,7 +150,14 @@ impl AreaLight {
         if !pdf.is_finite() {
             return None;
         }
-        Some(LightSample { wi, point: p, infinite: false, value: self.radiance, pdf, delta: false })
+        Some(LightSample {
+            wi,
+            point: p,
+            infinite: false,
+            value: self.radiance,
+            pdf,
+            delta: false,
+        })
     }
 
     /// Solid-angle density of `sample` producing point `p` (normal `n`) seen

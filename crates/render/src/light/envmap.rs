@@ -27,7 +27,13 @@ fn luminance(c: Vec3) -> f32 {
 }
 
 impl EnvMap {
-    pub fn new(width: u32, height: u32, texels: Arc<Vec<Vec3>>, scale: f32, to_world: Mat4) -> Self {
+    pub fn new(
+        width: u32,
+        height: u32,
+        texels: Arc<Vec<Vec3>>,
+        scale: f32,
+        to_world: Mat4,
+    ) -> Self {
         let (w, h) = (width as usize, height as usize);
         let lum: Vec<f32> = texels.iter().map(|&c| luminance(c).max(0.0)).collect();
         let mean = lum.iter().map(|&l| l as f64).sum::<f64>() as f32 / lum.len().max(1) as f32;
@@ -54,7 +60,16 @@ impl EnvMap {
             row_w.push(d.total() as f32);
             cols.push(d);
         }
-        Self { width, height, texels, scale, to_world, to_local: to_world.inverse(), rows: Distribution1D::new(&row_w), cols }
+        Self {
+            width,
+            height,
+            texels,
+            scale,
+            to_world,
+            to_local: to_world.inverse(),
+            rows: Distribution1D::new(&row_w),
+            cols,
+        }
     }
 
     fn lookup(&self, uv: Vec2) -> Vec3 {
@@ -87,7 +102,10 @@ impl EnvMap {
     pub fn sample(&self, u: Vec2) -> Option<LightSample> {
         let (y, uy) = self.rows.sample(u.y);
         let (x, ux) = self.cols[y].sample(u.x);
-        let uv = Vec2::new((x as f32 + ux) / self.width as f32, (y as f32 + uy) / self.height as f32);
+        let uv = Vec2::new(
+            (x as f32 + ux) / self.width as f32,
+            (y as f32 + uy) / self.height as f32,
+        );
         let theta = uv.y * PI;
         let phi = uv.x * 2.0 * PI;
         let sin_theta = theta.sin();
@@ -101,7 +119,14 @@ impl EnvMap {
         if !(pdf > 0.0 && pdf.is_finite()) {
             return None;
         }
-        Some(LightSample { wi, point: Vec3::ZERO, infinite: true, value: self.lookup(uv), pdf, delta: false })
+        Some(LightSample {
+            wi,
+            point: Vec3::ZERO,
+            infinite: true,
+            value: self.lookup(uv),
+            pdf,
+            delta: false,
+        })
     }
 
     pub fn pdf(&self, d: Vec3) -> f32 {
@@ -112,7 +137,8 @@ impl EnvMap {
         if sin_theta <= 0.0 {
             return 0.0;
         }
-        self.rows.pmf(y) * self.cols[y].pmf(x) * (self.width * self.height) as f32 / (2.0 * PI * PI * sin_theta)
+        self.rows.pmf(y) * self.cols[y].pmf(x) * (self.width * self.height) as f32
+            / (2.0 * PI * PI * sin_theta)
     }
 }
 
@@ -126,7 +152,15 @@ mod tests {
         // A map with a bright band: estimate the integral of luminance over the
         // sphere by importance sampling and by uniform sampling; they agree.
         let (w, h) = (32u32, 16u32);
-        let texels: Vec<Vec3> = (0..w * h).map(|i| if (i / w) == 5 && (i % w) < 8 { Vec3::splat(50.0) } else { Vec3::splat(0.5) }).collect();
+        let texels: Vec<Vec3> = (0..w * h)
+            .map(|i| {
+                if (i / w) == 5 && (i % w) < 8 {
+                    Vec3::splat(50.0)
+                } else {
+                    Vec3::splat(0.5)
+                }
+            })
+            .collect();
         let env = EnvMap::new(w, h, Arc::new(texels), 1.0, Mat4::IDENTITY);
         let mut rng = Rng::new(1, 2);
         let n = 400_000;
@@ -137,12 +171,20 @@ mod tests {
             // (the pdf has a 1/sin(theta) factor), so the tolerance grows there.
             let sin_theta = (1.0 - s.wi.y * s.wi.y).max(0.0).sqrt();
             let tol = 1e-4 / sin_theta.max(1e-3);
-            assert!((env.pdf(s.wi) - s.pdf).abs() <= tol.max(1e-3) * s.pdf, "{} vs {} at sin(theta) {sin_theta}", env.pdf(s.wi), s.pdf);
+            assert!(
+                (env.pdf(s.wi) - s.pdf).abs() <= tol.max(1e-3) * s.pdf,
+                "{} vs {} at sin(theta) {sin_theta}",
+                env.pdf(s.wi),
+                s.pdf
+            );
             is += (s.value.x / s.pdf) as f64;
             let d = crate::sampling::uniform_sphere(rng.next_2d());
             uni += (env.eval(d).x * 4.0 * PI) as f64;
         }
         let (is, uni) = (is / n as f64, uni / n as f64);
-        assert!((is - uni).abs() < 0.03 * uni, "importance {is} vs uniform {uni}");
+        assert!(
+            (is - uni).abs() < 0.03 * uni,
+            "importance {is} vs uniform {uni}"
+        );
     }
 }

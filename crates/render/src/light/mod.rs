@@ -51,9 +51,19 @@ pub struct Lights {
 
 impl Lights {
     pub fn new(lights: Vec<Light>) -> Self {
-        let environment = lights.iter().position(|l| matches!(l, Light::Constant { .. } | Light::EnvMap(_)));
-        let select_pdf = if lights.is_empty() { 0.0 } else { 1.0 / lights.len() as f32 };
-        Self { lights, environment, select_pdf }
+        let environment = lights
+            .iter()
+            .position(|l| matches!(l, Light::Constant { .. } | Light::EnvMap(_)));
+        let select_pdf = if lights.is_empty() {
+            0.0
+        } else {
+            1.0 / lights.len() as f32
+        };
+        Self {
+            lights,
+            environment,
+            select_pdf,
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -70,21 +80,46 @@ impl Lights {
         let i = ((u_select * n as f32) as usize).min(n - 1);
         let mut s = match &self.lights[i] {
             Light::Area(a) => a.sample(accel, p, u)?,
-            Light::Point { position, intensity } => {
+            Light::Point {
+                position,
+                intensity,
+            } => {
                 let v = *position - p;
                 let d2 = v.length_squared();
                 if d2 == 0.0 {
                     return None;
                 }
                 let wi = v / d2.sqrt();
-                LightSample { wi, point: *position, infinite: false, value: *intensity / d2, pdf: 1.0, delta: true }
+                LightSample {
+                    wi,
+                    point: *position,
+                    infinite: false,
+                    value: *intensity / d2,
+                    pdf: 1.0,
+                    delta: true,
+                }
             }
-            Light::Directional { direction, irradiance } => {
-                LightSample { wi: -*direction, point: Vec3::ZERO, infinite: true, value: *irradiance, pdf: 1.0, delta: true }
-            }
+            Light::Directional {
+                direction,
+                irradiance,
+            } => LightSample {
+                wi: -*direction,
+                point: Vec3::ZERO,
+                infinite: true,
+                value: *irradiance,
+                pdf: 1.0,
+                delta: true,
+            },
             Light::Constant { radiance } => {
                 let wi = uniform_sphere(u);
-                LightSample { wi, point: Vec3::ZERO, infinite: true, value: *radiance, pdf: 1.0 / (4.0 * PI), delta: false }
+                LightSample {
+                    wi,
+                    point: Vec3::ZERO,
+                    infinite: true,
+                    value: *radiance,
+                    pdf: 1.0 / (4.0 * PI),
+                    delta: false,
+                }
             }
             Light::EnvMap(e) => e.sample(u)?,
         };
