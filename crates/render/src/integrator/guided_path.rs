@@ -33,6 +33,7 @@ use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::Bsdf;
 use pathfarm_guide::{LeafHandle, Record, SdTree};
 
+use super::{camera_hit, depth_limit};
 use crate::geometry::{offset_origin, spawn_ray, spawn_ray_to, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
@@ -393,11 +394,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     if params.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = if params.max_depth < 0 {
-        u32::MAX
-    } else {
-        params.max_depth as u32
-    };
+    let max_depth = depth_limit(params.max_depth);
     let accel = &scene.accel;
     let lights = &scene.lights;
     let tree = g.tree;
@@ -414,20 +411,9 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     let mut prev_delta = true;
     let mut prev_nee = false;
 
-    let mut hit = accel.intersect::<ANALYTIC>(&ray);
-    if params.hide_emitters {
-        while let Some(h) = hit {
-            if scene.shape_light[h.shape as usize].is_none() {
-                break;
-            }
-            let si = accel.interaction(&ray, &h);
-            ray = spawn_ray(si.p, si.ng, ray.d);
-            hit = accel.intersect::<ANALYTIC>(&ray);
-        }
-        if hit.is_none() {
-            return Vec3::ZERO;
-        }
-    }
+    let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
+        return Vec3::ZERO;
+    };
 
     loop {
         let Some(h) = hit else {

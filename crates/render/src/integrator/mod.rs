@@ -2,3 +2,38 @@
 
 pub mod guided_path;
 pub mod path;
+
+use crate::geometry::{spawn_ray, Hit, Ray};
+use crate::scene::Scene;
+
+/// The longest path depth from Mitsuba's `max_depth` (-1 = unbounded).
+#[inline]
+pub fn depth_limit(max_depth: i32) -> u32 {
+    if max_depth < 0 {
+        u32::MAX
+    } else {
+        max_depth as u32
+    }
+}
+
+/// The first hit of a camera ray, with Mitsuba's `hide_emitters`: camera rays
+/// then pass through area emitters (advancing `ray`), and a camera ray that
+/// escapes shows nothing (Mitsuba's `valid_ray`, which hides the environment
+/// too). `None` means the sample is black; `Some(None)` a visible miss.
+#[inline]
+pub fn camera_hit<const ANALYTIC: bool>(scene: &Scene, ray: &mut Ray) -> Option<Option<Hit>> {
+    let accel = &scene.accel;
+    let mut hit = accel.intersect::<ANALYTIC>(ray);
+    if scene.path.hide_emitters {
+        while let Some(h) = hit {
+            if scene.shape_light[h.shape as usize].is_none() {
+                break;
+            }
+            let si = accel.interaction(ray, &h);
+            *ray = spawn_ray(si.p, si.ng, ray.d);
+            hit = accel.intersect::<ANALYTIC>(ray);
+        }
+        hit?;
+    }
+    Some(hit)
+}

@@ -9,6 +9,7 @@
 
 use glam::Vec3;
 
+use super::{camera_hit, depth_limit};
 use crate::geometry::{offset_origin, spawn_ray, spawn_ray_to, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
@@ -24,11 +25,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     if params.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = if params.max_depth < 0 {
-        u32::MAX
-    } else {
-        params.max_depth as u32
-    };
+    let max_depth = depth_limit(params.max_depth);
     let accel = &scene.accel;
     let lights = &scene.lights;
 
@@ -40,22 +37,9 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     let mut prev_bsdf_pdf = 1.0f32;
     let mut prev_delta = true;
 
-    let mut hit = accel.intersect::<ANALYTIC>(&ray);
-    if params.hide_emitters {
-        // Camera rays pass through area emitters; a camera ray that escapes
-        // shows nothing (Mitsuba's `valid_ray`), so the environment is hidden too.
-        while let Some(h) = hit {
-            if scene.shape_light[h.shape as usize].is_none() {
-                break;
-            }
-            let si = accel.interaction(&ray, &h);
-            ray = spawn_ray(si.p, si.ng, ray.d);
-            hit = accel.intersect::<ANALYTIC>(&ray);
-        }
-        if hit.is_none() {
-            return Vec3::ZERO;
-        }
-    }
+    let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
+        return Vec3::ZERO;
+    };
 
     loop {
         let Some(h) = hit else {
