@@ -201,6 +201,9 @@ pub fn render(args: RenderArgs) -> Result<()> {
             stats.invalid_samples
         );
     }
+    if let Some(dir) = args.output.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     output::write_exr(&args.output, &film, args.aovs)?;
     if !args.no_png {
         output::write_png(&args.output.with_extension("png"), &film)?;
