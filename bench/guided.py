@@ -1,0 +1,457 @@
+#!/usr/bin/env python3
+"""Path-guiding benchmark: pathfarm `path` / `guided_path` (2017, 2019 presets) vs Mitsuba 3 `path`.
+
+Usage (from anywhere):
+  python3 guided.py [--budgets 30 120] [--reps 3] [--threads 2] [--scenes veach-ajar cornell-box door-ajar]
+                    [--configs pf-path pf-2017 pf-2019 mi-path] [--resume] [--table-only]
+  python3 guided.py --make-door-reference      # (re)generate results/door-ajar-reference.exr
+
+Equal-time relMSE at CPU-second budgets (default 30 and 120). Same conventions as renderer.py:
+  - pathfarm: `pathfarm render --time budget/threads --threads threads` (wall-clock budget, so
+    30 CPU-s = --time 15 with 2 threads; for guided_path the budget covers training + final
+    rendering). CPU-s actually used, spp, training fraction and tree memory come from the
+    `summary:` / `guided:` lines. `path` runs on the scene file with -D integrator=path; the
+    two guided configurations use a wrapper XML in a temp dir (the scene file with its
+    <integrator> block replaced by <integrator type="guided_path"> + preset 2017 / 2019 +
+    max_depth; every other entry of the scene dir is symlinked beside it, so relative mesh and
+    texture paths resolve).
+  - Mitsuba 3 llvm_ad_rgb `path` (one subprocess per run): warm-up render (JIT), 3 throughput
+    renders of ~--rate-cpu CPU-s, spp = budget * median samples/CPU-s / pixels, then that render
+    (time.process_time(), i.e. CPU-s of all threads; default thread count = all cores).
+  - relMSE = mean((x-ref)^2/(ref^2+1e-2)); second column excludes pixels within 1 px of directly
+    visible emitters (renderer.emitter_edge_mask).  References: veach-ajar and cornell-box =
+    TungstenRender.exr box-downsampled 4x; door-ajar = results/door-ajar-reference.exr (Mitsuba
+    3.9.1 llvm_ad_rgb path, max_depth 13, 320x180, 8192 spp = 128 passes x 64 spp with seeds
+    0..127, averaged in float64; `--make-door-reference`).
+  - Each measurement waits until the machine is otherwise idle: 1-min load average < 1.5, or
+    (because our own previous run keeps the 1-min average up for a minute) the whole machine's
+    CPU use over a 5-s window < 15 % of all cores. Waits are logged. During each run the CPU
+    time of *other* processes is estimated (/proc/stat busy time minus our process' CPU time)
+    and stored ("other_cpu_s"; for pathfarm it includes its own scene loading, ~1.5-2 CPU-s on
+    veach-ajar, which is not part of the summary's render-phase cpu_s). Runs with other_cpu_s > 3
+    are contaminated: move them out of guided.jsonl and re-run with --resume.
+  - Repetitions use different seeds; the table shows medians over repetitions.
+Raw results: results/guided.jsonl (one line per run); table: results/guided.md; images:
+results/renders/guided-*.exr/.png (git-ignored).
+"""
+import argparse
+import json
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+import renderer as R  # noqa: E402  (load_image, reference, relmse, emitter_edge_mask, SUMMARY_RE)
+
+SHARED = R.SHARED
+PROJECT_SCENES = os.path.normpath(os.path.join(HERE, "..", "scenes"))
+RESULTS = os.path.join(HERE, "results")
+DOOR_REF = os.path.join(RESULTS, "door-ajar-reference.exr")
+# name: (xml, resx, resy, max_depth, reference)
+SCENES = {
+    "veach-ajar": (os.path.join(SHARED, "veach-ajar", "scene.xml"), 320, 180, 13, "tungsten"),
+    "cornell-box": (os.path.join(SHARED, "cornell-box", "scene.xml"), 256, 256, 30, "tungsten"),
+    "door-ajar": (os.path.join(PROJECT_SCENES, "door-ajar", "scene.xml"), 320, 180, 13, DOOR_REF),
+}
+CONFIGS = ["pf-path", "pf-2017", "pf-2019", "mi-path"]
+LABEL = {"pf-path": "pathfarm path", "pf-2017": "pathfarm guided 2017", "pf-2019": "pathfarm guided 2019",
+         "mi-path": "Mitsuba 3 path (llvm_ad_rgb)"}
+# Default plan: which configs per scene and budget (cornell-box only at the smallest budget).
+PLAN = {"veach-ajar": CONFIGS, "cornell-box": ["pf-path", "pf-2019", "mi-path"], "door-ajar": CONFIGS}
+PASS_SAMPLES = R.PASS_SAMPLES
+ANSI = re.compile(r"\x1b\[[0-9;]*m")
+GUIDED_RE = re.compile(r"guided: training_fraction=([\d.eE+-]+) tree_memory_mb=([\d.eE+-]+) weights=\[([^\]]*)\]")
+ITER_RE = re.compile(r"iteration (\d+): spp=(\d+) nodes=(\d+) leaves=(\d+) variance=([\d.eE+-]+|NaN|inf) time=([\d.]+)s")
+
+
+def log(msg):
+    print("[%s] %s" % (time.strftime("%H:%M:%S", time.gmtime()), msg), file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# idle check / other-load accounting
+# ----------------------------------------------------------------------------------------------
+def cpu_busy_s():
+    """Busy CPU seconds of the whole machine since boot (all cores), from /proc/stat."""
+    with open("/proc/stat") as f:
+        v = [int(x) for x in f.readline().split()[1:]]
+    idle = v[3] + v[4]
+    return (sum(v[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def wait_idle(max_load=1.5, max_busy=0.15):
+    t0 = time.time()
+    n = os.cpu_count()
+    while True:
+        l1 = os.getloadavg()[0]
+        if l1 < max_load:
+            how = "load1=%.2f" % l1
+            break
+        b0 = cpu_busy_s()
+        time.sleep(5)
+        busy = (cpu_busy_s() - b0) / (5 * n)
+        if busy < max_busy:
+            how = "load1=%.2f (our previous run), machine busy %.0f %% over 5 s" % (l1, 100 * busy)
+            break
+    waited = time.time() - t0
+    if waited > 5:
+        log("waited %.0f s for an idle machine (%s)" % (waited, how))
+    return waited
+
+
+# ----------------------------------------------------------------------------------------------
+# pathfarm
+# ----------------------------------------------------------------------------------------------
+def guided_wrapper(xml, preset, tmp):
+    """Write tmp/<preset>/scene.xml = xml with its <integrator> block replaced by guided_path."""
+    d = os.path.join(tmp, "%s-%s" % (os.path.basename(os.path.dirname(xml)), preset))
+    if os.path.exists(os.path.join(d, "scene.xml")):
+        return os.path.join(d, "scene.xml")
+    os.makedirs(d, exist_ok=True)
+    src_dir = os.path.dirname(os.path.abspath(xml))
+    for e in os.listdir(src_dir):
+        if e != os.path.basename(xml):
+            os.symlink(os.path.join(src_dir, e), os.path.join(d, e))
+    text = open(xml).read()
+    block = ('<integrator type="guided_path">\n\t\t<string name="preset" value="%s" />\n'
+             '\t\t<integer name="max_depth" value="$max_depth" />\n\t</integrator>' % preset)
+    new, n = re.subn(r"<integrator\b.*?</integrator>", block, text, count=1, flags=re.S)
+    if n != 1:
+        raise RuntimeError("no <integrator> block in %s" % xml)
+    with open(os.path.join(d, "scene.xml"), "w") as f:
+        f.write(new)
+    return os.path.join(d, "scene.xml")
+
+
+def run_pathfarm(a, xml, res, md, out, tlimit, seed, integrator=None):
+    args = [a.pathfarm, "render", xml, "-o", out, "--seed", str(seed), "--threads", str(a.threads),
+            "--time", "%.3f" % tlimit,
+            "-D", "resx=%d" % res[0], "-D", "resy=%d" % res[1], "-D", "max_depth=%d" % md]
+    if integrator:
+        args += ["-D", "integrator=%s" % integrator]
+    b0, c0 = cpu_busy_s(), time.time()
+    p = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    busy = cpu_busy_s() - b0
+    if p.returncode != 0:
+        raise RuntimeError("pathfarm failed (%d): %s\n%s" % (p.returncode, " ".join(args), p.stderr[-2000:]))
+    m = None
+    for line in p.stdout.splitlines():
+        m = R.SUMMARY_RE.search(line) or m
+    if not m:
+        raise RuntimeError("no summary line in pathfarm output:\n" + p.stdout[-2000:])
+    w, h, spp, wall, cpu, _ = m.groups()
+    r = {"spp": int(spp), "wall_s": float(wall), "cpu_s": float(cpu), "cmd": " ".join(args),
+         "other_cpu_s": max(0.0, busy - float(cpu)), "elapsed_s": time.time() - c0}
+    err = ANSI.sub("", p.stderr)
+    g = GUIDED_RE.search(err)
+    if g:
+        r["training_fraction"] = float(g.group(1))
+        r["tree_memory_mb"] = float(g.group(2))
+        r["weights"] = [float(x) for x in g.group(3).split(",") if x.strip()]
+        r["iterations"] = [{"index": int(i), "spp": int(s), "nodes": int(n), "leaves": int(l),
+                            "variance": float(v), "seconds": float(t)} for i, s, n, l, v, t in ITER_RE.findall(err)]
+        r["final_spp"] = r["iterations"][-1]["spp"] if r["iterations"] else None
+    return r
+
+
+# ----------------------------------------------------------------------------------------------
+# Mitsuba (subprocess per run)
+# ----------------------------------------------------------------------------------------------
+def mitsuba_worker(a):
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    scene = mi.load_file(a.scene, resx=a.res[0], resy=a.res[1], max_depth=a.max_depth, integrator="path")
+    pixels = a.res[0] * a.res[1]
+    pass_spp = max(1, PASS_SAMPLES // pixels)
+    seed = [a.seed]
+
+    def render(spp):
+        img = np.zeros((a.res[1], a.res[0], 3))
+        c0, t0 = time.process_time(), time.perf_counter()
+        left = spp
+        while left > 0:
+            n = min(pass_spp, left)
+            arr = np.array(mi.render(scene, spp=n, seed=seed[0]), dtype=np.float64)[..., :3]
+            seed[0] += 1
+            img += arr * (n / spp)
+            left -= n
+        return img, time.process_time() - c0, time.perf_counter() - t0
+
+    render(min(pass_spp, 4))                      # warm-up (JIT)
+    _, cpu, _ = render(pass_spp)                  # probe
+    rate_spp = max(1, int(round(a.rate_cpu * pixels * pass_spp / max(cpu, 1e-6) / pixels)))
+    rates = []
+    for _ in range(3):
+        _, cpu, _ = render(rate_spp)
+        rates.append(pixels * rate_spp / max(cpu, 1e-9))
+    rate = statistics.median(rates)
+    spp = max(1, int(round(a.budget * rate / pixels)))
+    print("EQUAL " + json.dumps({"rate": rate, "spp": spp}), flush=True)   # parent starts idle accounting
+    img, cpu, wall = render(spp)
+    np.save(a.out, img.astype(np.float32))
+    bmp = mi.Bitmap(img.astype(np.float32), pixel_format=mi.Bitmap.PixelFormat.RGB)
+    bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(a.out[:-4] + ".png")
+    print("RESULT " + json.dumps({"rate": rate, "rates": rates, "spp": spp, "cpu_s": cpu, "wall_s": wall}), flush=True)
+
+
+def run_mitsuba(a, xml, res, md, out, budget, seed):
+    args = [sys.executable, os.path.abspath(__file__), "_mitsuba_worker", "--scene", xml,
+            "--res", str(res[0]), str(res[1]), "--max-depth", str(md), "--rate-cpu", str(a.rate_cpu),
+            "--budget", str(budget), "--seed", str(seed), "--out", out]
+    c0 = time.time()
+    p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    b0 = None
+    res_ = None
+    for line in p.stdout:
+        if line.startswith("EQUAL "):
+            b0 = cpu_busy_s()
+        elif line.startswith("RESULT "):
+            busy = cpu_busy_s() - b0 if b0 is not None else float("nan")
+            res_ = json.loads(line[7:])
+    err = p.stderr.read()
+    p.wait()
+    if p.returncode != 0 or res_ is None:
+        raise RuntimeError("mitsuba worker failed:\n%s" % err[-3000:])
+    res_["other_cpu_s"] = max(0.0, busy - res_["cpu_s"])
+    res_["elapsed_s"] = time.time() - c0
+    res_["cmd"] = " ".join(args)
+    return res_
+
+
+# ----------------------------------------------------------------------------------------------
+def load_reference(name):
+    xml, rx, ry, md, ref = SCENES[name]
+    if ref == "tungsten":
+        return R.reference(xml, (rx, ry))
+    if not os.path.exists(ref):
+        raise RuntimeError("missing %s (run guided.py --make-door-reference)" % ref)
+    return R.load_image(ref)
+
+
+def make_door_reference(spp=8192, pass_spp=64):
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    xml, rx, ry, md, out = SCENES["door-ajar"]
+    scene = mi.load_file(xml, resx=rx, resy=ry, max_depth=md, integrator="path")
+    acc, n, t0 = None, spp // pass_spp, time.time()
+    for i in range(n):
+        arr = np.array(mi.render(scene, spp=pass_spp, seed=i), dtype=np.float64)[..., :3]
+        acc = arr if acc is None else acc + arr
+        if i % 8 == 0 or i == n - 1:
+            log("door-ajar reference: pass %d/%d (%d spp) %.0f s" % (i + 1, n, pass_spp, time.time() - t0))
+    mi.Bitmap((acc / n).astype(np.float32)).write(out)
+    log("wrote %s" % out)
+
+
+def fmt(x, f="%.4g"):
+    return "-" if x is None or (isinstance(x, float) and x != x) else f % x
+
+
+def med(rows, key):
+    v = [r[key] for r in rows if r.get(key) is not None]
+    return statistics.median(v) if v else None
+
+
+def write_table(a):
+    path = os.path.join(RESULTS, "guided.jsonl")
+    rows = [json.loads(l) for l in open(path)] if os.path.exists(path) else []
+    groups = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["budget"], r["config"]), []).append(r)
+    order = {s: i for i, s in enumerate(SCENES)}
+    keys = sorted(groups, key=lambda k: (order.get(k[0], 99), k[1], CONFIGS.index(k[2])))
+    lines = ["# Path-guiding benchmark", "",
+             "%s; pathfarm `--threads %d --time budget/%d` (wall-clock, so a 30 CPU-s budget is `--time %g`, 120 CPU-s is "
+             "`--time %g`); Mitsuba 3.9.1 `llvm_ad_rgb` `path` with spp = budget x its measured samples/CPU-s; %d CPUs. "
+             "Medians over repetitions (n = reps, different seeds)."
+             % (time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), a.threads, a.threads, 30 / a.threads,
+                120 / a.threads, os.cpu_count()),
+             "",
+             "relMSE = mean((x-ref)^2/(ref^2+1e-2)); references: veach-ajar / cornell-box = Tungsten box-downsampled 4x, "
+             "door-ajar = `results/door-ajar-reference.exr` (Mitsuba path, 8192 spp). \"excl. edges\" excludes pixels within "
+             "1 px of directly visible emitters (only cornell-box has any); the ratio vs Mitsuba uses that column. "
+             "spp = total spp (guided: training + final), final = spp of the last iteration. "
+             "other CPU-s = CPU time of other processes during the run (should be ~0).",
+             "",
+             "| scene | budget CPU-s | renderer | relMSE | relMSE excl. edges | ratio vs Mitsuba path | spp (final) | CPU-s used | "
+             "training fraction | tree MB | n | other CPU-s (max) |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    meds = {}
+    for k in keys:
+        g = groups[k]
+        meds[k] = {key: med(g, key) for key in ("relmse", "relmse_masked", "spp", "final_spp", "cpu_s",
+                                                 "training_fraction", "tree_memory_mb")}
+        meds[k]["n"] = len(g)
+        meds[k]["other"] = max(r.get("other_cpu_s", 0) or 0 for r in g)
+        meds[k]["all"] = [r["relmse_masked"] for r in g]
+    for k in keys:
+        m = meds[k]
+        mi_ = meds.get((k[0], k[1], "mi-path"))
+        ratio = m["relmse_masked"] / mi_["relmse_masked"] if mi_ and mi_["relmse_masked"] else None
+        spp = fmt(m["spp"], "%d") + (" (%s)" % fmt(m["final_spp"], "%d") if m["final_spp"] is not None else "")
+        lines.append("| %s | %g | %s | %s | %s | %s | %s | %s | %s | %s | %d | %s |" % (
+            k[0], k[1], LABEL[k[2]], fmt(m["relmse"]), fmt(m["relmse_masked"]), fmt(ratio, "%.3f"), spp,
+            fmt(m["cpu_s"], "%.1f"), fmt(m["training_fraction"], "%.3f"), fmt(m["tree_memory_mb"], "%.2f"),
+            m["n"], fmt(m["other"], "%.1f")))
+    lines += ["", "## Targets", ""]
+    for b in sorted({k[1] for k in keys}):
+        g, mi_ = meds.get(("veach-ajar", b, "pf-2019")), meds.get(("veach-ajar", b, "mi-path"))
+        if g and mi_:
+            f = mi_["relmse_masked"] / g["relmse_masked"]
+            lines.append("- veach-ajar @ %g CPU-s: Mitsuba path relMSE / guided 2019 relMSE = %.2f (target >= 5: %s%s)."
+                         % (b, f, "met" if f >= 5 else "MISSED", "" if f >= 5 else
+                            "; guided 2019 is %.2fx *higher*" % (1 / f) if f < 1 else ", %.1fx short" % (5 / f)))
+        g, p = meds.get(("cornell-box", b, "pf-2019")), meds.get(("cornell-box", b, "pf-path"))
+        if g and p:
+            f1 = g["relmse_masked"] / p["relmse_masked"]
+            f0 = g["relmse"] / p["relmse"]
+            lines.append("- cornell-box @ %g CPU-s: guided 2019 / pathfarm path relMSE = %.3f excl. emitter edges, %.3f plain "
+                         "(target <= 1.10: %s)." % (b, f1, f0, "met" if f1 <= 1.10 else "MISSED"))
+    lines += ["", "Per-repetition relMSE (excl. edges):", ""]
+    for k in keys:
+        lines.append("- %s %g %s: %s" % (k[0], k[1], k[2], ", ".join("%.4g" % x for x in meds[k]["all"])))
+    text = "\n".join(lines) + "\n"
+    with open(a.out, "w") as f:
+        f.write(text)
+    return text
+
+
+def contact_sheets(a):
+    """results/renders/guided-sheet-<scene>-<budget>.png: repetition 0 of every config side by side
+    (order pf-path, pf-2017, pf-2019, mi-path; reference last), sRGB, no exposure change."""
+    import mitsuba as mi
+    if not mi.variant():
+        mi.set_variant("scalar_rgb")
+    path = os.path.join(RESULTS, "guided.jsonl")
+    rows = [json.loads(l) for l in open(path)] if os.path.exists(path) else []
+    for name, b in sorted({(r["scene"], r["budget"]) for r in rows}):
+        ims = []
+        for c in CONFIGS:
+            stem = os.path.join(a.workdir, "guided-%s-%g-%s-r0" % (name, b, c))
+            for ext in (".exr", ".npy"):
+                if os.path.exists(stem + ext):
+                    ims.append(R.load_image(stem + ext))
+        if not ims:
+            continue
+        ims.append(load_reference(name))
+        sheet = np.concatenate([np.pad(x, ((0, 0), (0, 4), (0, 0))) for x in ims], 1).astype(np.float32)
+        bmp = mi.Bitmap(sheet, pixel_format=mi.Bitmap.PixelFormat.RGB)
+        bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True).write(
+            os.path.join(a.workdir, "guided-sheet-%s-%g.png" % (name, b)))
+
+
+def main():
+    if len(sys.argv) > 1 and sys.argv[1] == "_mitsuba_worker":
+        ap = argparse.ArgumentParser()
+        ap.add_argument("_w")
+        ap.add_argument("--scene", required=True)
+        ap.add_argument("--res", type=int, nargs=2, required=True)
+        ap.add_argument("--max-depth", type=int, required=True)
+        ap.add_argument("--rate-cpu", type=float, default=3.0)
+        ap.add_argument("--budget", type=float, required=True)
+        ap.add_argument("--seed", type=int, default=1000)
+        ap.add_argument("--out", required=True)
+        return mitsuba_worker(ap.parse_args())
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pathfarm", default=os.path.join(HERE, "..", "target", "release", "pathfarm"))
+    ap.add_argument("--budgets", type=float, nargs="+", default=[30, 120], help="CPU-second budgets")
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--rate-cpu", type=float, default=3.0, help="CPU-s of each Mitsuba throughput render")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES))
+    ap.add_argument("--configs", nargs="+", default=CONFIGS)
+    ap.add_argument("--cornell-all-budgets", action="store_true", help="also run cornell-box at budgets > the smallest")
+    ap.add_argument("--resume", action="store_true", help="keep results/guided.jsonl and skip runs already in it")
+    ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--no-wait", action="store_true", help="do not wait for an idle machine (testing only)")
+    ap.add_argument("--make-door-reference", action="store_true")
+    ap.add_argument("--workdir", default=os.path.join(RESULTS, "renders"))
+    ap.add_argument("--out", default=os.path.join(RESULTS, "guided.md"))
+    a = ap.parse_args()
+    if a.make_door_reference:
+        return make_door_reference()
+    if a.table_only:
+        contact_sheets(a)
+        print(write_table(a))
+        return 0
+    os.makedirs(a.workdir, exist_ok=True)
+    jl = os.path.join(RESULTS, "guided.jsonl")
+    done = set()
+    if a.resume and os.path.exists(jl):
+        for l in open(jl):
+            r = json.loads(l)
+            done.add((r["scene"], r["budget"], r["config"], r["rep"]))
+    elif os.path.exists(jl):
+        os.rename(jl, jl + ".old")
+    import hashlib
+    binary_sha = hashlib.sha256(open(a.pathfarm, "rb").read()).hexdigest()[:16]
+    log("pathfarm binary %s sha256 %s" % (a.pathfarm, binary_sha))
+    refs = {}
+    tmp = tempfile.mkdtemp(prefix="pathfarm-guided-")
+    t_start = time.time()
+    try:
+        for b in a.budgets:
+            for rep in range(a.reps):
+                for name in a.scenes:
+                    if name == "cornell-box" and b != min(a.budgets) and not a.cornell_all_budgets:
+                        continue
+                    xml, rx, ry, md, _ = SCENES[name]
+                    res = (rx, ry)
+                    if name not in refs:
+                        ref = load_reference(name)
+                        refs[name] = (ref, R.emitter_edge_mask(ref))
+                    ref, mask = refs[name]
+                    for c in PLAN[name]:
+                        if c not in a.configs or (name, b, c, rep) in done:
+                            continue
+                        stem = os.path.join(a.workdir, "guided-%s-%g-%s-r%d" % (name, b, c, rep))
+                        if not a.no_wait:
+                            wait_idle()
+                        t0 = time.time()
+                        try:
+                            if c == "mi-path":
+                                r = run_mitsuba(a, xml, res, md, stem + ".npy", b, seed=100000 * (rep + 1))
+                                img = R.load_image(stem + ".npy")
+                            else:
+                                if c == "pf-path":
+                                    x, integ = xml, "path"
+                                else:
+                                    x, integ = guided_wrapper(xml, c[3:], tmp), None
+                                r = run_pathfarm(a, x, res, md, stem + ".exr", b / a.threads, seed=100 + rep,
+                                                 integrator=integ)
+                                img = R.load_image(stem + ".exr")
+                        except Exception as e:
+                            log("[%s %g %s r%d] ERROR %s" % (name, b, c, rep, str(e)[:500]))
+                            continue
+                        r.update({"scene": name, "budget": b, "config": c, "rep": rep,
+                                  "relmse": R.relmse(img, ref), "relmse_masked": R.relmse(img, ref, mask),
+                                  "mean_rgb": [float(x) for x in img.reshape(-1, 3).mean(0)],
+                                  "ref_mean_rgb": [float(x) for x in ref.reshape(-1, 3).mean(0)],
+                                  "time_utc": time.strftime("%H:%M:%S", time.gmtime()),
+                                  "pathfarm_sha256": binary_sha})
+                        with open(jl, "a") as f:
+                            f.write(json.dumps(r) + "\n")
+                        log("[%s %g %s r%d] %.0fs: relMSE %.4g (excl. edges %.4g) spp %s cpu %.1f%s other %.1f"
+                            % (name, b, c, rep, time.time() - t0, r["relmse"], r["relmse_masked"], r["spp"], r["cpu_s"],
+                               " train %.3f tree %.2f MB" % (r["training_fraction"], r["tree_memory_mb"])
+                               if "training_fraction" in r else "", r.get("other_cpu_s", 0)))
+                write_table(a)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log("total %.0f s" % (time.time() - t_start))
+    contact_sheets(a)
+    print(write_table(a))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
