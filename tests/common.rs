@@ -111,3 +111,32 @@ pub fn z_two_sided(alpha: f64) -> f64 {
         _ => panic!("no quantile tabulated for {alpha}"),
     }
 }
+
+/// Every accumulator of every pixel as raw bits, for bit-identity checks.
+pub fn film_bits(film: &pathfarm_render::Film) -> Vec<u64> {
+    film.pixels
+        .iter()
+        .flat_map(|p| {
+            [p.sum_w, p.sum_w2]
+                .into_iter()
+                .chain(p.sum_wl)
+                .chain(p.sum_w2l)
+                .chain(p.sum_w2l2)
+                .map(|x| x.to_bits())
+        })
+        .collect()
+}
+
+/// White-furnace objects: two touching albedo-1 diffuse spheres, a lossless
+/// glass sphere and a two-sided albedo-1 cube in a constant environment of
+/// radiance 1. Every pixel must render as 1.
+pub const FURNACE_BODY: &str = r#"
+        <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+        <shape type="sphere"><point name="center" x="-0.6" y="0" z="0"/><float name="radius" value="0.6"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
+        <shape type="sphere"><point name="center" x="0.6" y="0" z="0"/><float name="radius" value="0.6"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
+        <shape type="sphere"><point name="center" x="0" y="0.9" z="0.2"/><float name="radius" value="0.4"/>
+            <bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>
+        <shape type="cube"><transform name="to_world"><scale value="0.3"/><translate x="0" y="-0.9" z="0"/></transform>
+            <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></shape>"#;

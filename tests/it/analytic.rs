@@ -50,23 +50,13 @@ fn white_furnace_diffuse_and_glass_are_invisible() {
     // Albedo-1 diffuse spheres (touching, so light inter-reflects) and a
     // lossless glass sphere in a uniform environment of radiance 1: every
     // pixel must be 1, however the paths bounce.
-    let body = r#"
-        <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
-        <shape type="sphere"><point name="center" x="-0.6" y="0" z="0"/><float name="radius" value="0.6"/>
-            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
-        <shape type="sphere"><point name="center" x="0.6" y="0" z="0"/><float name="radius" value="0.6"/>
-            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
-        <shape type="sphere"><point name="center" x="0" y="0.9" z="0.2"/><float name="radius" value="0.4"/>
-            <bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>
-        <shape type="cube"><transform name="to_world"><scale value="0.3"/><translate x="0" y="-0.9" z="0"/></transform>
-            <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></shape>"#;
     let xml = scene_xml(
         24,
         24,
         40.0,
         5.0,
         r#"<integrator type="path"><integer name="max_depth" value="-1"/></integrator>"#,
-        body,
+        FURNACE_BODY,
     );
     let film = render_xml("furnace", &xml, 64, 7);
     assert_matches_constant(&film, [1.0; 3], "white furnace");

@@ -13,20 +13,6 @@ fn cornell(defines: &[(&str, &str)]) -> Scene {
     Scene::build(&load_scene(&shared_scene("cornell-box"), &defs).expect("load")).expect("build")
 }
 
-fn bits(film: &pathfarm_render::Film) -> Vec<u64> {
-    film.pixels
-        .iter()
-        .flat_map(|p| {
-            [p.sum_w, p.sum_w2]
-                .into_iter()
-                .chain(p.sum_wl)
-                .chain(p.sum_w2l)
-                .chain(p.sum_w2l2)
-                .map(|x| x.to_bits())
-        })
-        .collect()
-}
-
 #[test]
 fn image_is_bit_identical_across_threads_and_work_splits() {
     let scene = cornell(&[("resx", "40"), ("resy", "30")]);
@@ -39,14 +25,14 @@ fn image_is_bit_identical_across_threads_and_work_splits() {
     };
     let one = pool(1).install(|| render(&scene, &base, &|_| {}).0);
     let two = pool(2).install(|| render(&scene, &base, &|_| {}).0);
-    assert_eq!(bits(&one), bits(&two), "1 vs 2 threads");
+    assert_eq!(film_bits(&one), film_bits(&two), "1 vs 2 threads");
     let odd_tiles = RenderSettings {
         tile_size: 7,
         ..base.clone()
     };
     assert_eq!(
-        bits(&one),
-        bits(&render(&scene, &odd_tiles, &|_| {}).0),
+        film_bits(&one),
+        film_bits(&render(&scene, &odd_tiles, &|_| {}).0),
         "tile size 16 vs 7"
     );
     // Passes are part of the job: splitting 6 spp into 6 passes adds the same
@@ -66,8 +52,8 @@ fn image_is_bit_identical_across_threads_and_work_splits() {
     }
     let other_seed = RenderSettings { seed: 12, ..base };
     assert_ne!(
-        bits(&one),
-        bits(&render(&scene, &other_seed, &|_| {}).0),
+        film_bits(&one),
+        film_bits(&render(&scene, &other_seed, &|_| {}).0),
         "a different seed changes the image"
     );
 }

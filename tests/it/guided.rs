@@ -63,17 +63,7 @@ fn assert_matches_constant(film: &Film, expected: f32, what: &str) {
 }
 
 fn furnace(integrator: &str) -> String {
-    let body = r#"
-        <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
-        <shape type="sphere"><point name="center" x="-0.6" y="0" z="0"/><float name="radius" value="0.6"/>
-            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
-        <shape type="sphere"><point name="center" x="0.6" y="0" z="0"/><float name="radius" value="0.6"/>
-            <bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></shape>
-        <shape type="sphere"><point name="center" x="0" y="0.9" z="0.2"/><float name="radius" value="0.4"/>
-            <bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>
-        <shape type="cube"><transform name="to_world"><scale value="0.3"/><translate x="0" y="-0.9" z="0"/></transform>
-            <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></shape>"#;
-    scene_xml(20, 20, 40.0, 5.0, integrator, body)
+    scene_xml(20, 20, 40.0, 5.0, integrator, FURNACE_BODY)
 }
 
 #[test]
@@ -174,20 +164,6 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     );
 }
 
-fn bits(film: &Film) -> Vec<u64> {
-    film.pixels
-        .iter()
-        .flat_map(|p| {
-            [p.sum_w, p.sum_w2]
-                .into_iter()
-                .chain(p.sum_wl)
-                .chain(p.sum_w2l)
-                .chain(p.sum_w2l2)
-                .map(|x| x.to_bits())
-        })
-        .collect()
-}
-
 #[test]
 fn guided_image_and_tree_are_bit_identical_on_one_and_two_threads() {
     // 2019 preset (stochastic spatial filter, learned fraction) with NEE kick-start: every
@@ -214,10 +190,14 @@ fn guided_image_and_tree_are_bit_identical_on_one_and_two_threads() {
     assert!(t1.stats().leaves > 1, "the tree was refined");
     assert_eq!(t1.structure_hash(), t2.structure_hash());
     assert_eq!(t1.encode(), t2.encode(), "tree bytes");
-    assert_eq!(bits(&f1), bits(&f2), "image bits");
+    assert_eq!(film_bits(&f1), film_bits(&f2), "image bits");
     assert_eq!(s1.weights, s2.weights);
     let (f3, _, _) = guided(&scene, 24, 10);
-    assert_ne!(bits(&f1), bits(&f3), "another seed changes the image");
+    assert_ne!(
+        film_bits(&f1),
+        film_bits(&f3),
+        "another seed changes the image"
+    );
 }
 
 #[test]
