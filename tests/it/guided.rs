@@ -77,7 +77,7 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
     let cases = [
         (
             "fixed-0.1",
-            r#"<integrator type="guided_path"><float name="bsdf_sampling_fraction" value="0.1"/><string name="nee" value="never"/>
+            r#"<integrator type="guided_path"><string name="preset" value="2017"/><float name="bsdf_sampling_fraction" value="0.1"/><string name="nee" value="never"/>
                <string name="sample_combination" value="discard"/><integer name="spp_per_pass" value="2"/></integrator>"#,
             256,
         ),
@@ -85,6 +85,11 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
             "learned-2019",
             r#"<integrator type="guided_path"><string name="preset" value="2019"/></integrator>"#,
             64,
+        ),
+        (
+            "pathfarm-guided-roulette",
+            r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><integer name="rr_depth" value="1"/></integrator>"#,
+            256,
         ),
     ];
     for (tag, integ, spp) in cases {
@@ -257,7 +262,7 @@ fn cli_renders_the_shared_scene_guided_and_reports_iterations() {
     assert!(o.status.success(), "{stderr}");
     let logs = format!("{stdout}{stderr}");
     assert!(
-        logs.contains("iteration 0: spp=4 nodes=1 leaves=1 variance="),
+        logs.contains("iteration 0: spp=1 nodes=1 leaves=1 variance="),
         "{logs}"
     );
     assert!(logs.contains("training_fraction="), "{logs}");

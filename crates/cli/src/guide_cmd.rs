@@ -43,7 +43,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Guiding configuration when the scene's integrator is not guided_path.
-    #[arg(long, default_value = "2019")]
+    #[arg(long, default_value = "pathfarm")]
     pub preset: String,
     #[arg(short = 'D', value_name = "NAME=VALUE")]
     pub defines: Vec<String>,
@@ -75,7 +75,7 @@ pub struct ScatterArgs {
     pub pixel: String,
     #[arg(short, long)]
     pub output: PathBuf,
-    /// A tree saved by `guide train`; trained now (64 spp, 2019 preset) if absent.
+    /// A tree saved by `guide train`; trained now (64 spp, pathfarm preset) if absent.
     #[arg(long)]
     pub tree: Option<PathBuf>,
     /// Directions drawn per strategy.
@@ -116,7 +116,7 @@ fn load(scene: &Path, defines: &[String]) -> Result<(Scene, GuidedParams)> {
         IntegratorDesc::GuidedPath(g) => g.clone(),
         IntegratorDesc::Path(p) => GuidedParams {
             path: *p,
-            ..GuidedParams::preset_2019()
+            ..GuidedParams::preset_pathfarm()
         },
     };
     Ok((Scene::build(&desc)?, params))
@@ -159,19 +159,19 @@ fn read_tree(path: &Path) -> Result<SdTree> {
 
 fn train(a: TrainArgs) -> Result<()> {
     let (scene, mut params) = load(&a.scene, &a.defines)?;
-    match a.preset.as_str() {
-        "2017" | "2019" => {}
-        p => bail!("--preset must be 2017 or 2019, got '{p}'"),
-    }
-    if a.preset == "2017"
-        && !matches!(
-            load_scene(&a.scene, &parse_defines(&a.defines)?)?.integrator,
-            IntegratorDesc::GuidedPath(_)
-        )
-    {
+    let preset = match a.preset.as_str() {
+        "2017" => GuidedParams::preset_2017(),
+        "2019" => GuidedParams::preset_2019(),
+        "pathfarm" => GuidedParams::preset_pathfarm(),
+        p => bail!("--preset must be 2017, 2019 or pathfarm, got '{p}'"),
+    };
+    if !matches!(
+        load_scene(&a.scene, &parse_defines(&a.defines)?)?.integrator,
+        IntegratorDesc::GuidedPath(_)
+    ) {
         params = GuidedParams {
             path: params.path,
-            ..GuidedParams::preset_2017()
+            ..preset
         };
     }
     let tree = train_tree(&scene, &params, a.spp, a.seed);

@@ -157,13 +157,14 @@ pub fn render(args: RenderArgs) -> Result<()> {
             let on_iteration = |it: &guided::GuidedIteration| {
                 bar.suspend(|| {
                     tracing::info!(
-                        "iteration {}: spp={} nodes={} leaves={} variance={:.6e} time={:.3}s",
+                        "iteration {}: spp={} nodes={} leaves={} variance={:.6e} time={:.3}s rays_per_sample={:.3}",
                         it.index,
                         it.spp,
                         it.nodes,
                         it.leaves,
                         it.variance,
-                        it.seconds
+                        it.seconds,
+                        it.rays_per_sample
                     )
                 })
             };

@@ -68,6 +68,50 @@ pub struct Cell {
     pub size: f64,
 }
 
+/// What sampling and pdf evaluation need of one node, derived from its four sums in one place
+/// ([`SampleNode::from_sums`]) so that the cached and the uncached paths agree bit for bit.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(crate) struct SampleNode {
+    /// Density factor `4 s_q / sum` per quadrant (exactly 0 for a zero quadrant).
+    factor: [f32; 4],
+    /// Probability of the left column (`(s0 + s2) / sum`).
+    p_col0: f32,
+    /// Probability of the lower row within each column (`s_c / (s_c + s_{c+2})`).
+    p_row0: [f32; 2],
+    /// Child node per quadrant (0 = leaf cell).
+    children: [u32; 4],
+    /// The node has mass (sum > 0).
+    live: bool,
+}
+
+impl SampleNode {
+    #[inline]
+    fn from_sums(s: [f64; 4], children: [u32; 4]) -> Self {
+        let tot = s[0] + s[1] + s[2] + s[3];
+        if !(tot > 0.0) {
+            return Self {
+                children,
+                ..Self::default()
+            };
+        }
+        let f = |x: f64| if x > 0.0 { (4.0 * x / tot) as f32 } else { 0.0 };
+        let row = |a: f64, b: f64| {
+            if a + b > 0.0 {
+                (a / (a + b)) as f32
+            } else {
+                0.5
+            }
+        };
+        Self {
+            factor: [f(s[0]), f(s[1]), f(s[2]), f(s[3])],
+            p_col0: ((s[0] + s[2]) / tot) as f32,
+            p_row0: [row(s[0], s[2]), row(s[1], s[3])],
+            children,
+            live: true,
+        }
+    }
+}
+
 /// Directional quadtree with fixed-point sums and a statistical weight.
 ///
 /// Equality compares the nodes (structure and sums) and W; the sampling cache is ignored.
@@ -75,9 +119,9 @@ pub struct Cell {
 pub struct DTree {
     pub(crate) nodes: Vec<DNode>,
     pub(crate) weight: Acc128,
-    /// Optional cache of the quadrant sums as f64 (exactly `from_fixed` of the sums) used by
-    /// sample and pdf; valid only when its length equals the node count (see [`DTree::freeze`]).
-    pub(crate) frozen: Vec<[f64; 4]>,
+    /// Optional cache of what sampling and pdf read per node (see [`SampleNode`]); valid only
+    /// when its length equals the node count (see [`DTree::freeze`]).
+    pub(crate) frozen: Vec<SampleNode>,
 }
 
 impl PartialEq for DTree {
@@ -115,7 +159,18 @@ fn to_f32_inside(x: f64, lo: f64, hi: f64) -> f32 {
     f
 }
 
-#[inline]
+/// A random number in `[0, 1)` (NaN maps to 0).
+#[inline(always)]
+fn unit_f32(rng: &mut impl FnMut() -> f32) -> f32 {
+    let r = rng();
+    if r >= 0.0 {
+        r.min(1.0 - f32::EPSILON / 2.0)
+    } else {
+        0.0
+    }
+}
+
+#[inline(always)]
 fn next_unit(rng: &mut impl FnMut() -> f32) -> f64 {
     let r = rng() as f64;
     if r.is_nan() {
@@ -140,7 +195,9 @@ impl DTree {
     /// later change of the sums must be followed by another `freeze` or an [`DTree::unfreeze`].
     /// Results are bit-identical with and without the cache.
     pub fn freeze(&mut self) {
-        self.frozen = self.nodes.iter().map(|n| n.sums_f64()).collect();
+        self.frozen = (0..self.nodes.len())
+            .map(|i| self.compute_node(i))
+            .collect();
     }
 
     /// Drops the sampling cache.
@@ -149,11 +206,17 @@ impl DTree {
     }
 
     #[inline]
-    fn node_sums(&self, idx: usize) -> [f64; 4] {
+    fn compute_node(&self, idx: usize) -> SampleNode {
+        let n = &self.nodes[idx];
+        SampleNode::from_sums(n.sums_f64(), n.children)
+    }
+
+    #[inline]
+    fn sample_node(&self, idx: usize) -> SampleNode {
         if self.frozen.len() == self.nodes.len() {
             self.frozen[idx]
         } else {
-            self.nodes[idx].sums_f64()
+            self.compute_node(idx)
         }
     }
 
@@ -214,7 +277,7 @@ impl DTree {
     /// Approximate heap memory of the tree in bytes.
     pub fn memory_bytes(&self) -> usize {
         self.nodes.capacity() * std::mem::size_of::<DNode>()
-            + self.frozen.capacity() * std::mem::size_of::<[f64; 4]>()
+            + self.frozen.capacity() * std::mem::size_of::<SampleNode>()
             + std::mem::size_of::<Self>()
     }
 
@@ -257,8 +320,7 @@ impl DTree {
     /// A tree is empty (samples uniformly) when its total sum is zero (mean <= 0).
     pub fn is_empty(&self) -> bool {
         if self.frozen.len() == self.nodes.len() {
-            let s = self.frozen[0];
-            return !(s[0] + s[1] + s[2] + s[3] > 0.0);
+            return !self.frozen[0].live;
         }
         self.total_fixed() == 0
     }
@@ -413,31 +475,32 @@ impl DTree {
 
     /// Density over `(u, v)` at `uv`: product of `4 s_i / sum` along the path, 0 as soon as a
     /// quadrant on the path is zero, 1 (uniform) for an empty tree. Divide by `4 pi` for solid angle.
+    /// The factors are f32, multiplied root first, exactly as [`DTree::sample_with_pdf`] does.
     pub fn pdf(&self, uv: Vec2) -> f32 {
         if self.is_empty() {
             return 1.0;
         }
-        let mut x = (uv.x as f64).clamp(0.0, 1.0);
-        let mut y = (uv.y as f64).clamp(0.0, 1.0);
+        let mut x = uv.x.clamp(0.0, 1.0);
+        let mut y = uv.y.clamp(0.0, 1.0);
         let mut idx = 0usize;
-        let mut pdf = 1.0f64;
+        let mut pdf = 1.0f32;
         loop {
-            let n = &self.nodes[idx];
+            let n = self.sample_node(idx);
             let bu = (x >= 0.5) as usize;
             let bv = (y >= 0.5) as usize;
             let q = bu | (bv << 1);
-            let s = self.node_sums(idx);
-            let tot = s[0] + s[1] + s[2] + s[3];
-            if !(s[q] > 0.0) || !(tot > 0.0) {
+            let f = n.factor[q];
+            if !(f > 0.0) {
                 return 0.0;
             }
-            pdf *= 4.0 * s[q] / tot;
+            pdf *= f;
             let c = n.children[q];
             if c == 0 {
-                return pdf as f32;
+                return pdf;
             }
-            x = x * 2.0 - bu as f64;
-            y = y * 2.0 - bv as f64;
+            // exact in f32: doubling and subtracting 0 or 1
+            x = x * 2.0 - bu as f32;
+            y = y * 2.0 - bv as f32;
             idx = c as usize;
         }
     }
@@ -452,7 +515,8 @@ impl DTree {
     /// At each node the column (u half) is chosen with probability `(s1 + s3) / sum`, then the
     /// row within it, using two fresh random numbers per level; two more place the point
     /// uniformly in the leaf cell. `rng` must return numbers in `[0, 1)`. An empty tree
-    /// samples uniformly with density 1.
+    /// samples uniformly with density 1. The density equals [`DTree::pdf`] of the returned
+    /// point bit for bit.
     pub fn sample_with_pdf(&self, rng: &mut impl FnMut() -> f32) -> (Vec2, f32) {
         if self.is_empty() {
             let a = next_unit(rng);
@@ -465,25 +529,19 @@ impl DTree {
         let mut idx = 0usize;
         let mut origin = [0.0f64; 2];
         let mut size = 1.0f64;
-        let mut pdf = 1.0f64;
+        let mut pdf = 1.0f32;
         loop {
-            let n = &self.nodes[idx];
-            let s = self.node_sums(idx);
-            let tot = s[0] + s[1] + s[2] + s[3];
-            let left = s[0] + s[2];
-            let r1 = next_unit(rng);
-            let mut col = if r1 * tot < left { 0 } else { 1 };
-            if !(s[col] + s[col + 2] > 0.0) {
+            let n = self.sample_node(idx);
+            let mut col = (unit_f32(rng) >= n.p_col0) as usize;
+            if !(n.factor[col] > 0.0 || n.factor[col + 2] > 0.0) {
                 col ^= 1; // rounding guard: never pick a zero-mass column
             }
-            let (a, b) = (s[col], s[col + 2]);
-            let r2 = next_unit(rng);
-            let mut row = if r2 * (a + b) < a { 0 } else { 1 };
-            if !(s[col | (row << 1)] > 0.0) {
+            let mut row = (unit_f32(rng) >= n.p_row0[col]) as usize;
+            if !(n.factor[col | (row << 1)] > 0.0) {
                 row ^= 1;
             }
             let q = col | (row << 1);
-            pdf *= 4.0 * s[q] / tot;
+            pdf *= n.factor[q];
             origin = quadrant_origin(origin, size, q);
             size *= 0.5;
             let c = n.children[q];
@@ -492,7 +550,7 @@ impl DTree {
                 let r4 = next_unit(rng);
                 let u = to_f32_inside(origin[0] + r3 * size, origin[0], origin[0] + size);
                 let v = to_f32_inside(origin[1] + r4 * size, origin[1], origin[1] + size);
-                return (Vec2::new(u, v), pdf as f32);
+                return (Vec2::new(u, v), pdf);
             }
             idx = c as usize;
         }

@@ -38,6 +38,10 @@ pub struct Leaf {
     pub fraction: FractionState,
     /// Exactly accumulated fraction gradients not yet stepped.
     pub grad: GradAccum,
+    /// Integral of the incident radiance over the sphere learned by `sampling`
+    /// (`total / W` of the building tree when it was frozen; split children inherit it):
+    /// `flux * pdf(direction)` estimates the incident radiance in that direction.
+    pub flux: f32,
 }
 
 impl Leaf {
@@ -48,6 +52,7 @@ impl Leaf {
             sampling: DTree::new(),
             fraction: FractionState::default(),
             grad: GradAccum::default(),
+            flux: 0.0,
         }
     }
 }
@@ -192,6 +197,18 @@ impl SdTree {
         pdf_uv_to_solid_angle(self.leaves[h.0 as usize].sampling.pdf(dir_to_uv(dir)))
     }
 
+    /// Estimated incident radiance (mean over RGB) arriving at leaf `h` from `dir`, given the
+    /// guide's solid-angle pdf of `dir` there (`pdf_leaf(h, dir)`): `flux * pdf`. Zero before
+    /// the first refinement. A renderer can use it to decide how much a path is worth
+    /// continuing (e.g. for Russian roulette) without another tree lookup.
+    #[inline]
+    pub fn incident_radiance_leaf(&self, h: LeafHandle, pdf: f32) -> f32 {
+        if !self.built {
+            return 0.0;
+        }
+        self.leaves[h.0 as usize].flux * pdf
+    }
+
     /// Probability alpha of sampling the BSDF rather than the guide at `p`.
     pub fn bsdf_sampling_fraction(&self, p: Vec3) -> f32 {
         self.bsdf_sampling_fraction_leaf(self.leaf_index(p))
@@ -203,7 +220,9 @@ impl SdTree {
         match self.config.bsdf_sampling_fraction {
             FractionMode::Fixed(a) => a,
             FractionMode::Learned { .. } => {
-                let a = self.leaves[h.0 as usize].fraction.alpha() as f32;
+                // f32 sigmoid: this runs at every path vertex.
+                let theta = self.leaves[h.0 as usize].fraction.theta as f32;
+                let a = 1.0 / (1.0 + (-theta).exp());
                 let (lo, hi) = self.config.fraction_clamp;
                 a.clamp(lo, hi)
             }
@@ -343,6 +362,12 @@ impl SdTree {
     pub fn refine(&mut self, k: u32) {
         for l in &mut self.leaves {
             l.building.build();
+            let w = l.building.weight();
+            l.flux = if w > 0.0 {
+                (l.building.total() / w) as f32
+            } else {
+                0.0
+            };
             l.sampling = l.building.clone();
             l.sampling.freeze();
         }

@@ -20,7 +20,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 1;
+pub const VERSION: u16 = 2;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -467,6 +467,7 @@ impl SdTree {
             w.u128(l.grad.pos.get());
             w.u128(l.grad.neg.get());
             w.u128(l.grad.weight.get());
+            w.f32(l.flux);
             put_dtree(&mut w, &l.building);
             put_dtree(&mut w, &l.sampling);
         }
@@ -538,6 +539,10 @@ impl SdTree {
                 neg: Acc128::from_u128(r.u128()?),
                 weight: Acc128::from_u128(r.u128()?),
             };
+            let flux = r.f32()?;
+            if !(flux >= 0.0 && flux.is_finite()) {
+                return Err(WireError::Malformed("leaf flux"));
+            }
             let building = get_dtree(&mut r)?;
             let mut sampling = get_dtree(&mut r)?;
             sampling.freeze();
@@ -546,6 +551,7 @@ impl SdTree {
                 sampling,
                 fraction,
                 grad,
+                flux,
             });
         }
         if r.p != payload.len() {

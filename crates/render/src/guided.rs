@@ -28,7 +28,7 @@ pub use pathfarm_guide::SdTree;
 use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use pathfarm_scene::{
     GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee,
-    GuidedParams, GuidedSpatialFilter,
+    GuidedParams, GuidedRoulette, GuidedSpatialFilter,
 };
 
 use crate::film::Film;
@@ -56,6 +56,9 @@ pub struct GuidedIteration {
     pub variance: f64,
     /// Wall time of the iteration.
     pub seconds: f64,
+    /// Rays traced per camera sample (camera, continuation and shadow rays): a measure of
+    /// the iteration's cost that does not depend on the machine's load.
+    pub rays_per_sample: f64,
     /// Training iteration (recorded into the tree) rather than final.
     pub training: bool,
 }
@@ -213,49 +216,67 @@ pub fn render_guided_with(
     let mut prev_secs: Option<f64> = None;
     let mut training_spp = 0u64;
     let mut kept: Option<usize> = None;
+    // Pixel estimates for guided Russian roulette: spp-weighted mean of the finished
+    // iterations' films (sum and spp so far), then blurred; empty until an iteration ended.
+    let roulette = params.russian_roulette == GuidedRoulette::Guided;
+    let mut est_sum: Vec<f64> = Vec::new();
+    let mut est_spp = 0u64;
+    let mut estimate: Vec<f32> = Vec::new();
 
     // One pass of spp_per_pass samples into `film`.
-    let render_pass =
-        |tree: &SdTree, record: bool, film: &mut Film, spp_done: u64, invalid: &mut u64| {
-            let nee = match params.nee {
-                GuidedNee::Never => false,
-                GuidedNee::Always => true,
-                GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
-            };
-            let ctx = GuideCtx {
-                tree,
-                nee,
-                indirect_only: params.nee == GuidedNee::Always,
-                kickstart: params.nee == GuidedNee::Kickstart && nee,
-                record,
-            };
-            let ctx = &ctx;
-            let est = |ray: Ray, rng: &mut Rng| match (
-                scene.features.environment,
-                scene.features.analytic_shapes,
-            ) {
-                (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng),
-                (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng),
-                (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng),
-                (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng),
-            };
-            let base = spp_done * npix;
-            let prog = |p: Progress| {
-                let d = base + p.samples_done;
-                let total = match budget {
-                    Budget::Spp(s) => s as u64 * npix,
-                    Budget::Seconds(s) => {
-                        (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
-                    }
-                };
-                progress(Progress {
-                    samples_done: d,
-                    samples_total: total.max(d),
-                })
-            };
-            let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
-            *invalid += st.invalid_samples;
+    let rays_counter = std::sync::atomic::AtomicU64::new(0);
+    let rays = &rays_counter;
+    let render_pass = |tree: &SdTree,
+                       estimate: &[f32],
+                       record: bool,
+                       film: &mut Film,
+                       spp_done: u64,
+                       invalid: &mut u64| {
+        let nee = match params.nee {
+            GuidedNee::Never => false,
+            GuidedNee::Always => true,
+            GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
         };
+        let ctx = GuideCtx {
+            tree,
+            nee,
+            indirect_only: params.nee == GuidedNee::Always,
+            kickstart: params.nee == GuidedNee::Kickstart && nee,
+            record,
+            rays: Some(rays),
+            pixel_estimate: if roulette && tree.is_built() && !estimate.is_empty() {
+                Some(estimate)
+            } else {
+                None
+            },
+        };
+        let ctx = &ctx;
+        let est = |ray: Ray, rng: &mut Rng, pixel: usize| match (
+            scene.features.environment,
+            scene.features.analytic_shapes,
+        ) {
+            (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng, pixel),
+            (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng, pixel),
+            (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng, pixel),
+            (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng, pixel),
+        };
+        let base = spp_done * npix;
+        let prog = |p: Progress| {
+            let d = base + p.samples_done;
+            let total = match budget {
+                Budget::Spp(s) => s as u64 * npix,
+                Budget::Seconds(s) => {
+                    (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
+                }
+            };
+            progress(Progress {
+                samples_done: d,
+                samples_total: total.max(d),
+            })
+        };
+        let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
+        *invalid += st.invalid_samples;
+    };
 
     let mut k = 0u32;
     loop {
@@ -272,6 +293,7 @@ pub fn render_guided_with(
         let record = !plan.is_last;
         let stats_before = tree.stats();
         let t0 = Instant::now();
+        let rays_before = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
         let spp_before = spp_done;
         let mut film = Film::new(scene.width, scene.height);
         let mut passes = 0u32;
@@ -285,7 +307,14 @@ pub fn render_guided_with(
                     if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
                 _ => {
                     let tp = Instant::now();
-                    render_pass(&tree, record && !stopped, &mut film, spp_done, &mut invalid);
+                    render_pass(
+                        &tree,
+                        &estimate,
+                        record && !stopped,
+                        &mut film,
+                        spp_done,
+                        &mut invalid,
+                    );
                     if record && !stopped {
                         tree.step_fractions();
                     }
@@ -338,9 +367,22 @@ pub fn render_guided_with(
             leaves: stats_before.leaves,
             variance,
             seconds: secs,
+            rays_per_sample: (rays_counter.load(std::sync::atomic::Ordering::Relaxed) - rays_before)
+                as f64
+                / ((spp_done - spp_before) as f64 * npix as f64).max(1.0),
             training,
         });
         on_iteration(iterations.last().unwrap());
+        if roulette {
+            let spp = spp_done - spp_before;
+            let means = film.mean_rgb();
+            est_sum.resize(means.len(), 0.0);
+            for (s, m) in est_sum.iter_mut().zip(&means) {
+                *s += spp as f64 * (m[0] as f64 + m[1] as f64 + m[2] as f64) / 3.0;
+            }
+            est_spp += spp;
+            estimate = pixel_estimate(&est_sum, est_spp, scene.width, scene.height);
+        }
         films.push(film);
         if !training {
             kept = Some(films.len() - 1);
@@ -387,10 +429,71 @@ pub fn render_guided_with(
     (film, stats, tree)
 }
 
+/// The per-pixel value estimate used by guided Russian roulette: the spp-weighted mean of the
+/// iterations so far (`sum / spp`), averaged over each pixel's 3x3 neighbourhood to tame the
+/// noise of early iterations, and floored at 1e-3 of the image mean (and 1e-6) so that dark
+/// pixels do not divide by zero.
+pub fn pixel_estimate(sum: &[f64], spp: u64, width: u32, height: u32) -> Vec<f32> {
+    let (w, h) = (width as usize, height as usize);
+    if spp == 0 || sum.len() != w * h || sum.is_empty() {
+        return Vec::new();
+    }
+    let inv = 1.0 / spp as f64;
+    let mean = sum.iter().sum::<f64>() * inv / sum.len() as f64;
+    let floor = (1e-3 * mean).max(1e-6);
+    let mut out = vec![0.0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut s, mut n) = (0.0f64, 0u32);
+            for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    let v = sum[yy * w + xx] * inv;
+                    if v.is_finite() {
+                        s += v;
+                        n += 1;
+                    }
+                }
+            }
+            let v = if n > 0 { s / n as f64 } else { 0.0 };
+            out[y * w + x] = v.max(floor) as f32;
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    #[test]
+    fn pixel_estimate_is_the_3x3_mean_per_spp_with_a_floor() {
+        // Deterministic arithmetic (no significance level). 3x2 image, sums over 4 spp.
+        let sum = [4.0, 8.0, 0.0, 0.0, 0.0, 12.0];
+        let e = pixel_estimate(&sum, 4, 3, 2);
+        assert_eq!(e.len(), 6);
+        // corner (0, 0): neighbours (0,0) (1,0) (0,1) (1,1) -> (1 + 2 + 0 + 0) / 4
+        assert!((e[0] - 0.75).abs() < 1e-6, "{e:?}");
+        // (1, 0): all six pixels -> (1 + 2 + 0 + 0 + 0 + 3) / 6
+        assert!((e[1] - 1.0).abs() < 1e-6, "{e:?}");
+        // (2, 0): (2 + 0 + 0 + 3) / 4
+        assert!((e[2] - 1.25).abs() < 1e-6, "{e:?}");
+        // a black image still gets a positive floor
+        let z = pixel_estimate(&[0.0; 6], 4, 3, 2);
+        assert!(z.iter().all(|&v| v > 0.0 && v <= 1e-6), "{z:?}");
+        // a dark pixel among bright ones: floored at 1e-3 of the image mean
+        let mut big = vec![0.0; 25 * 25];
+        big[0] = 625e6;
+        let b = pixel_estimate(&big, 1, 25, 25);
+        let mean = 625e6 / 625.0;
+        assert!(
+            (b[24 * 25 + 24] as f64 - 1e-3 * mean).abs() < 1e-3,
+            "{}",
+            b[624]
+        );
+        assert!(pixel_estimate(&sum, 0, 3, 2).is_empty());
+        assert!(pixel_estimate(&sum, 4, 2, 2).is_empty(), "size mismatch");
+    }
 
     #[test]
     fn combined_films_are_the_weighted_mean_of_the_films() {

@@ -85,7 +85,7 @@ pub fn render(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> (Film, RenderStats) {
     let mut film = Film::new(scene.width, scene.height);
-    let estimator = |ray: Ray, rng: &mut Rng| match (
+    let estimator = |ray: Ray, rng: &mut Rng, _pixel: usize| match (
         scene.features.environment,
         scene.features.analytic_shapes,
     ) {
@@ -102,8 +102,8 @@ pub fn render(
 /// into `film`. Sample `k` of this call uses the random stream of sample index
 /// `first_sample + k`, so successive calls (e.g. the passes of path-guiding
 /// iterations) draw fresh, deterministic streams. The estimator gets the
-/// camera ray and the sample's own generator (after the two pixel-offset
-/// numbers).
+/// camera ray, the sample's own generator (after the two pixel-offset
+/// numbers) and the pixel's index `y * width + x`.
 pub fn render_into<E>(
     scene: &Scene,
     settings: &RenderSettings,
@@ -113,7 +113,7 @@ pub fn render_into<E>(
     estimator: &E,
 ) -> RenderStats
 where
-    E: Fn(Ray, &mut Rng) -> glam::Vec3 + Sync,
+    E: Fn(Ray, &mut Rng, usize) -> glam::Vec3 + Sync,
 {
     let (w, h) = (scene.width, scene.height);
     let start = Instant::now();
@@ -238,7 +238,7 @@ where
 /// uniformly inside the pixel (returned as the offset from the pixel's
 /// corner), and the integrator's estimate.
 #[inline]
-fn sample<E: Fn(Ray, &mut Rng) -> glam::Vec3>(
+fn sample<E: Fn(Ray, &mut Rng, usize) -> glam::Vec3>(
     scene: &Scene,
     seed: u64,
     x: u32,
@@ -250,5 +250,5 @@ fn sample<E: Fn(Ray, &mut Rng) -> glam::Vec3>(
     let mut rng = Rng::for_sample(seed, pixel, index);
     let offset = rng.next_2d();
     let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + offset);
-    (offset, estimator(ray, &mut rng))
+    (offset, estimator(ray, &mut rng, pixel as usize))
 }

@@ -108,6 +108,19 @@ pub enum GuidedNee {
     Kickstart,
 }
 
+/// Russian roulette of `guided_path`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GuidedRoulette {
+    /// Mitsuba's: survival `min(max(throughput) eta^2, 0.95)` from `rr_depth` on.
+    Throughput,
+    /// Once the tree is built, at guided vertices from `rr_depth` on: survival
+    /// `clamp(E / I, 0.1, 1)` where `E` = throughput x the guide's incident-radiance estimate
+    /// along the sampled direction (the path's expected remaining contribution) and `I` =
+    /// the pixel's value estimated by the previous iterations (a weight window after Vorba
+    /// and Křivánek 2016, without splitting). Elsewhere as `Throughput`.
+    Guided,
+}
+
 /// How the training iterations' images become the final image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum GuidedCombination {
@@ -174,6 +187,8 @@ pub struct GuidedParams {
     pub bsdf_sampling_fraction: f32,
     /// `bsdf_sampling_fraction_loss`: "none" (default) | "kl" (2019) | "var".
     pub bsdf_sampling_fraction_loss: GuidedFractionLoss,
+    /// `russian_roulette`: "throughput" (Mitsuba's; 2017 and 2019 presets) | "guided".
+    pub russian_roulette: GuidedRoulette,
     /// `max_memory_mb`: approximate cap on the tree's memory (default none).
     pub max_memory_mb: Option<f64>,
     /// `max_nodes`: cap on the number of spatial nodes (default none).
@@ -196,6 +211,7 @@ impl GuidedParams {
             directional_filter: GuidedDirectionalFilter::Nearest,
             bsdf_sampling_fraction: 0.5,
             bsdf_sampling_fraction_loss: GuidedFractionLoss::None,
+            russian_roulette: GuidedRoulette::Throughput,
             max_memory_mb: None,
             max_nodes: None,
         }
@@ -214,11 +230,20 @@ impl GuidedParams {
             ..Self::preset_2017()
         }
     }
+
+    /// pathfarm's default: the 2019 configuration with guided Russian roulette
+    /// ([`GuidedRoulette::Guided`]).
+    pub fn preset_pathfarm() -> Self {
+        Self {
+            russian_roulette: GuidedRoulette::Guided,
+            ..Self::preset_2019()
+        }
+    }
 }
 
 impl Default for GuidedParams {
     fn default() -> Self {
-        Self::preset_2017()
+        Self::preset_pathfarm()
     }
 }
 

@@ -5,7 +5,7 @@
 use crate::context::Ctx;
 use crate::desc::{
     GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee,
-    GuidedParams, GuidedSpatialFilter, IntegratorDesc, PathParams,
+    GuidedParams, GuidedRoulette, GuidedSpatialFilter, IntegratorDesc, PathParams,
 };
 use crate::error::SceneError;
 use crate::props::{Props, Resolved};
@@ -87,10 +87,11 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
     let d = choice(
         p,
         "preset",
-        GuidedParams::preset_2017(),
+        GuidedParams::preset_pathfarm(),
         &[
             ("2017", GuidedParams::preset_2017()),
             ("2019", GuidedParams::preset_2019()),
+            ("pathfarm", GuidedParams::preset_pathfarm()),
         ],
     )?;
     let path = path_params(p)?;
@@ -150,6 +151,15 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
         spp_per_pass: p.int_in("spp_per_pass", d.spp_per_pass as i64, 1, 1 << 20)? as u32,
         s_tree_threshold: float_in(p, "s_tree_threshold", d.s_tree_threshold, 1e-6, f64::MAX)?,
         d_tree_threshold: float_in(p, "d_tree_threshold", d.d_tree_threshold, 0.0, 1.0)?,
+        russian_roulette: choice(
+            p,
+            "russian_roulette",
+            d.russian_roulette,
+            &[
+                ("throughput", GuidedRoulette::Throughput),
+                ("guided", GuidedRoulette::Guided),
+            ],
+        )?,
         nee: choice(
             p,
             "nee",
