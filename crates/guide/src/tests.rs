@@ -8,7 +8,7 @@ use crate::dtree::{DTree, MAX_DEPTH};
 use crate::mapping::{dir_to_uv, uv_to_dir, JACOBIAN};
 use crate::record::Record;
 use crate::schedule::*;
-use crate::sdtree::SdTree;
+use crate::sdtree::{LeafHandle, SdTree};
 use crate::stats::{to_fixed, FIXED_ONE};
 use crate::wire::{IterationStats, WireError};
 use glam::{Vec2, Vec3};
@@ -425,6 +425,61 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
         );
     }
     assert_eq!(t.nodes()[0].sums[2].get(), 0);
+}
+
+#[test]
+fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire() {
+    // Deterministic identities plus one statistical check (5 standard errors, ~6e-7).
+    use std::f64::consts::PI;
+    let cfg = GuideConfig {
+        s_tree_threshold: 1e12,
+        ..GuideConfig::default()
+    };
+    let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let h = LeafHandle(0);
+    assert_eq!(tree.incident_radiance_leaf(h, 1.0), 0.0, "unbuilt: no estimate");
+    // Uniform directions, L = 2 on the upper hemisphere (z > 0), 0 below: integral 4 pi.
+    let mut rng = Pcg::new(77);
+    let n = 100_000;
+    let p = (1.0 / (4.0 * PI)) as f32;
+    for _ in 0..n {
+        let d = uv_to_dir(Vec2::new(rng.f64() as f32, rng.f64() as f32));
+        let l = if d.z > 0.0 { 2.0 } else { 0.0 };
+        tree.record(&Record::radiance_only(Vec3::ZERO, d, l, p, 1.0), &mut rng.rng());
+    }
+    tree.refine(0);
+    let leaf = &tree.leaves()[0];
+    assert_eq!(leaf.flux, (leaf.sampling.total() / leaf.sampling.weight()) as f32);
+    // per-record value L / p has mean 4 pi and standard deviation 2 pi * sqrt(... ) <= 8 pi
+    let se = 8.0 * PI / (n as f64).sqrt();
+    assert!(((leaf.flux as f64) - 4.0 * PI).abs() < 5.0 * se, "flux {}", leaf.flux);
+    let up = Vec3::new(0.1, 0.2, 0.97).normalize();
+    let pdf = tree.pdf_leaf(h, up);
+    assert_eq!(tree.incident_radiance_leaf(h, pdf), leaf.flux * pdf);
+    let est = tree.incident_radiance_leaf(h, pdf) as f64;
+    assert!((est - 2.0).abs() < 0.2, "radiance estimate {est} vs 2");
+    assert_eq!(tree.incident_radiance_leaf(h, tree.pdf_leaf(h, -up)), 0.0);
+    // Splitting halves the sampling weight but children keep the parent's flux.
+    let flux = leaf.flux;
+    let mut split = SdTree::new(
+        Vec3::splat(-1.0),
+        Vec3::splat(1.0),
+        GuideConfig {
+            s_tree_threshold: 10.0,
+            ..GuideConfig::default()
+        },
+    );
+    for _ in 0..2000 {
+        let pos = Vec3::new(rng.f64() as f32, rng.f64() as f32, rng.f64() as f32) * 2.0 - 1.0;
+        split.record(&Record::radiance_only(pos, Vec3::Z, 3.0, p, 1.0), &mut rng.rng());
+    }
+    split.refine(0);
+    assert!(split.leaves().len() > 1);
+    let fl: Vec<f32> = split.leaves().iter().map(|l| l.flux).collect();
+    assert!(fl.iter().all(|&f| f == fl[0] && f > 0.0), "{fl:?}");
+    let back = SdTree::decode(&split.encode()).unwrap();
+    assert_eq!(back, split, "flux travels through the wire format");
+    assert_eq!(tree.leaves()[0].flux, flux);
 }
 
 // ------------------------------------------------------------------ 4. reset invariants
