@@ -4,9 +4,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use glam::{Vec3, Vec3A};
+use glam::{UVec2, Vec3, Vec3A};
+use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
 use obvhs::cwbvh::{builder::build_cwbvh_from_tris, CwBvh};
-use obvhs::ray::{Ray as BRay, RayHit};
+use obvhs::ray::Ray as BRay;
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
@@ -120,18 +121,32 @@ impl Accel {
         let mut best: Option<Hit> = None;
         let mut tmax = ray.tmax;
         if !self.tris.is_empty() {
-            let mut hit = RayHit::none();
-            if self.bvh.ray_traverse(Self::bray(ray), &mut hit, |r, id| {
-                self.tris[id].intersect(r)
-            }) {
-                let (shape, prim) = self.tri_ref[hit.primitive_id as usize];
+            let mut r = Self::bray(ray);
+            let mut prim = u32::MAX;
+            let mut state = self.bvh.new_traversal(r.direction);
+            let mut node: &CwBvhNode;
+            obvhs::traverse!(
+                self.bvh,
+                node,
+                state,
+                intersect_node(node, &r, state.oct_inv4),
+                {
+                    let t = self.tris[state.primitive_id as usize].intersect(&r);
+                    if t < r.tmax {
+                        prim = state.primitive_id;
+                        r.tmax = t;
+                    }
+                }
+            );
+            if prim != u32::MAX {
+                let (shape, tri) = self.tri_ref[prim as usize];
                 best = Some(Hit {
-                    t: hit.t,
+                    t: r.tmax,
                     shape,
-                    prim,
-                    bvh_prim: hit.primitive_id,
+                    prim: tri,
+                    bvh_prim: prim,
                 });
-                tmax = hit.t;
+                tmax = r.tmax;
             }
         }
         if ANALYTIC {
@@ -156,12 +171,28 @@ impl Accel {
     /// True when nothing blocks the ray in (tmin, tmax).
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
-        if !self.tris.is_empty()
-            && !self
-                .bvh
-                .ray_traverse_miss(Self::bray(ray), |r, id| self.tris[id].intersect(r))
-        {
-            return false;
+        if !self.tris.is_empty() {
+            let r = Self::bray(ray);
+            let mut state = self.bvh.new_traversal(r.direction);
+            let mut node: &CwBvhNode;
+            let mut blocked = false;
+            'any_hit: {
+                obvhs::traverse!(
+                    self.bvh,
+                    node,
+                    state,
+                    intersect_node(node, &r, state.oct_inv4),
+                    {
+                        if self.tris[state.primitive_id as usize].intersect(&r) < r.tmax {
+                            blocked = true;
+                            break 'any_hit;
+                        }
+                    }
+                );
+            }
+            if blocked {
+                return false;
+            }
         }
         if ANALYTIC {
             for (_, a) in &self.analytic {
@@ -199,4 +230,70 @@ impl Accel {
             shape: hit.shape,
         }
     }
+}
+
+/// Ray against the eight quantised child boxes of a CWBVH node: the hit mask
+/// that obvhs' `traverse!` expects (internal children in the high byte by
+/// traversal priority, leaf primitives in the low 24 bits).
+///
+/// Same arithmetic as obvhs' `CwBvhNode::intersect_ray` (the box planes in
+/// the node's quantised grid, mul then add, the same `tmin` floor of 1e-4),
+/// but written over all eight children at once so that it compiles to 8-wide
+/// vector code instead of two 4-wide halves with per-lane scalar int->float
+/// conversions and a branch per child.
+#[inline(always)]
+fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
+    /// obvhs' lower bound on the entry distance of a box.
+    const EPSILON: f32 = 0.0001;
+    let scale = node.compute_extent() * ray.inv_direction;
+    let orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
+    // Near and far planes per axis, by the sign of the direction.
+    let near_far = |lo: &[u8; 8], hi: &[u8; 8], neg: bool| {
+        if neg {
+            (*hi, *lo)
+        } else {
+            (*lo, *hi)
+        }
+    };
+    let (nx, fx) = near_far(&node.child_min_x, &node.child_max_x, ray.direction.x < 0.0);
+    let (ny, fy) = near_far(&node.child_min_y, &node.child_max_y, ray.direction.y < 0.0);
+    let (nz, fz) = near_far(&node.child_min_z, &node.child_max_z, ray.direction.z < 0.0);
+    // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up, one
+    // vmaxps (operands are finite: inv_direction is clamped by obvhs).
+    #[inline(always)]
+    fn max(a: f32, b: f32) -> f32 {
+        if a > b {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn min(a: f32, b: f32) -> f32 {
+        if a < b {
+            a
+        } else {
+            b
+        }
+    }
+    let mut hits = 0u32;
+    for i in 0..8 {
+        let t0x = nx[i] as f32 * scale.x + orig.x;
+        let t1x = fx[i] as f32 * scale.x + orig.x;
+        let t0y = ny[i] as f32 * scale.y + orig.y;
+        let t1y = fy[i] as f32 * scale.y + orig.y;
+        let t0z = nz[i] as f32 * scale.z + orig.z;
+        let t1z = fz[i] as f32 * scale.z + orig.z;
+        let tmin = max(max(t0x, max(t0y, t0z)), EPSILON);
+        let tmax = min(min(t1x, min(t1y, t1z)), ray.tmax);
+        hits |= ((tmin <= tmax) as u32) << i;
+    }
+    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+    let mut hit_mask = 0u32;
+    while hits != 0 {
+        let i = hits.trailing_zeros() as usize;
+        hits &= hits - 1;
+        hit_mask |= extract_byte64(child_bits8, i) << extract_byte64(bit_index8, i);
+    }
+    hit_mask
 }
