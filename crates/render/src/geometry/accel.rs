@@ -287,17 +287,6 @@ fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
     const EPSILON: f32 = 0.0001;
     let scale = node.compute_extent() * ray.inv_direction;
     let orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
-    // Near and far planes per axis, by the sign of the direction.
-    let near_far = |lo: &[u8; 8], hi: &[u8; 8], neg: bool| {
-        if neg {
-            (*hi, *lo)
-        } else {
-            (*lo, *hi)
-        }
-    };
-    let (nx, fx) = near_far(&node.child_min_x, &node.child_max_x, ray.direction.x < 0.0);
-    let (ny, fy) = near_far(&node.child_min_y, &node.child_max_y, ray.direction.y < 0.0);
-    let (nz, fz) = near_far(&node.child_min_z, &node.child_max_z, ray.direction.z < 0.0);
     // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up, one
     // vmaxps (operands are finite: inv_direction is clamped by obvhs).
     #[inline(always)]
@@ -316,16 +305,19 @@ fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
             b
         }
     }
+    // Slab distances of both planes per axis; near/far by min/max rather
+    // than by the direction's sign (the same values, and plain lane-wise
+    // code that vectorises the same way for every target CPU).
     let mut hits = 0u32;
     for i in 0..8 {
-        let t0x = nx[i] as f32 * scale.x + orig.x;
-        let t1x = fx[i] as f32 * scale.x + orig.x;
-        let t0y = ny[i] as f32 * scale.y + orig.y;
-        let t1y = fy[i] as f32 * scale.y + orig.y;
-        let t0z = nz[i] as f32 * scale.z + orig.z;
-        let t1z = fz[i] as f32 * scale.z + orig.z;
-        let tmin = max(max(t0x, max(t0y, t0z)), EPSILON);
-        let tmax = min(min(t1x, min(t1y, t1z)), ray.tmax);
+        let ax = node.child_min_x[i] as f32 * scale.x + orig.x;
+        let bx = node.child_max_x[i] as f32 * scale.x + orig.x;
+        let ay = node.child_min_y[i] as f32 * scale.y + orig.y;
+        let by = node.child_max_y[i] as f32 * scale.y + orig.y;
+        let az = node.child_min_z[i] as f32 * scale.z + orig.z;
+        let bz = node.child_max_z[i] as f32 * scale.z + orig.z;
+        let tmin = max(max(min(ax, bx), max(min(ay, by), min(az, bz))), EPSILON);
+        let tmax = min(min(max(ax, bx), min(max(ay, by), max(az, bz))), ray.tmax);
         hits |= ((tmin <= tmax) as u32) << i;
     }
     let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
