@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use glam::{Vec2, Vec3, Vec3A};
-use obvhs::cwbvh::node::{extract_byte64, CwBvhNode};
+use obvhs::cwbvh::node::CwBvhNode;
 use obvhs::cwbvh::{builder::build_cwbvh_from_tris, CwBvh};
 use obvhs::ray::Ray as BRay;
 use obvhs::rt_triangle::RtTriangle;
@@ -305,10 +305,14 @@ fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
             b
         }
     }
+    // Per child: its bits of the hit mask (obvhs' child bits shifted to
+    // the child's bit index), kept if the ray hits its box.
+    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
+    let (child_bits, bit_index) = (child_bits8.to_le_bytes(), bit_index8.to_le_bytes());
     // Slab distances of both planes per axis; near/far by min/max rather
     // than by the direction's sign (the same values, and plain lane-wise
     // code that vectorises the same way for every target CPU).
-    let mut hits = 0u32;
+    let mut hit_mask = 0u32;
     for i in 0..8 {
         let ax = node.child_min_x[i] as f32 * scale.x + orig.x;
         let bx = node.child_max_x[i] as f32 * scale.x + orig.x;
@@ -318,14 +322,8 @@ fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
         let bz = node.child_max_z[i] as f32 * scale.z + orig.z;
         let tmin = max(max(min(ax, bx), max(min(ay, by), min(az, bz))), EPSILON);
         let tmax = min(min(max(ax, bx), min(max(ay, by), max(az, bz))), ray.tmax);
-        hits |= ((tmin <= tmax) as u32) << i;
-    }
-    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
-    let mut hit_mask = 0u32;
-    while hits != 0 {
-        let i = hits.trailing_zeros() as usize;
-        hits &= hits - 1;
-        hit_mask |= extract_byte64(child_bits8, i) << extract_byte64(bit_index8, i);
+        let bits = (child_bits[i] as u32) << bit_index[i];
+        hit_mask |= if tmin <= tmax { bits } else { 0 };
     }
     hit_mask
 }
