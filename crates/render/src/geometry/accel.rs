@@ -13,7 +13,8 @@ use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
 use pathfarm_scene::TriangleMesh;
 
-use super::{triangle, Analytic, Hit, Ray, SurfaceInteraction};
+use super::triangle::{self, TriShade};
+use super::{Analytic, Hit, Ray, SurfaceInteraction};
 
 /// Geometry of one shape, as the renderer keeps it.
 #[derive(Clone, Debug)]
@@ -26,8 +27,9 @@ pub struct Accel {
     bvh: CwBvh,
     /// Triangles in BVH primitive order, for intersection in batches.
     tris: TriSoa,
-    /// (shape, triangle within shape) for each BVH primitive.
-    tri_ref: Vec<(u32, u32)>,
+    /// Shape, triangle within the shape and hit-independent shading data
+    /// of each BVH primitive.
+    prims: Vec<PrimInfo>,
     /// Analytic shapes with their shape index.
     analytic: Vec<(u32, Analytic)>,
     shapes: Vec<ShapeGeom>,
@@ -66,7 +68,7 @@ impl Accel {
                 }
             }
         }
-        let (bvh, tris, tri_ref) = if tris.is_empty() {
+        let (bvh, tris, prims) = if tris.is_empty() {
             (CwBvh::default(), TriSoa::default(), Vec::new())
         } else {
             let bvh = build_cwbvh_from_tris(
@@ -79,12 +81,22 @@ impl Accel {
                     .iter()
                     .map(|&i| RtTriangle::from(&tris[i as usize])),
             );
-            let ordered_refs = bvh
+            let prims = bvh
                 .primitive_indices
                 .iter()
-                .map(|&i| refs[i as usize])
+                .map(|&i| {
+                    let (shape, tri) = refs[i as usize];
+                    let ShapeGeom::Mesh(m) = &shapes[shape as usize] else {
+                        unreachable!("BVH primitives are mesh triangles")
+                    };
+                    PrimInfo {
+                        shape,
+                        tri,
+                        shade: TriShade::new(m, tri as usize),
+                    }
+                })
                 .collect();
-            (bvh, ordered, ordered_refs)
+            (bvh, ordered, prims)
         };
         if lo.x > hi.x {
             lo = Vec3::ZERO;
@@ -93,7 +105,7 @@ impl Accel {
         Self {
             bvh,
             tris,
-            tri_ref,
+            prims,
             analytic,
             shapes,
             bounds: (lo, hi),
@@ -124,11 +136,11 @@ impl Accel {
             let mut r = Self::bray(ray);
             let (prim, bary) = self.traverse::<false>(&mut r);
             if prim != u32::MAX {
-                let (shape, tri) = self.tri_ref[prim as usize];
+                let info = &self.prims[prim as usize];
                 best = Some(Hit {
                     t: r.tmax,
-                    shape,
-                    prim: tri,
+                    shape: info.shape,
+                    prim: info.tri,
                     bvh_prim: prim,
                     bary,
                 });
@@ -254,10 +266,9 @@ impl Accel {
         let p = ray.o + ray.d * hit.t;
         let (ng, ns, uv) = match &self.shapes[hit.shape as usize] {
             ShapeGeom::Mesh(m) => {
-                // The intersection test's barycentrics and its normal (obvhs
-                // layout: ng = (v0 - v1) x (v2 - v0), the opposite of the
-                // winding-order normal).
-                triangle::shade(m, hit.prim as usize, hit.bary, -self.tris.ng(hit.bvh_prim))
+                // The intersection test's barycentrics.
+                let pre = &self.prims[hit.bvh_prim as usize].shade;
+                triangle::shade(m, hit.prim as usize, hit.bary, pre)
             }
             ShapeGeom::Analytic(a) => a.shade(p),
         };
@@ -336,6 +347,14 @@ fn octant_inv4(d: Vec3A) -> u32 {
         | (if d.z < 0.0 { 0 } else { 0x0101_0101 })
 }
 
+/// A BVH primitive: its triangle and what shading needs of it.
+struct PrimInfo {
+    shape: u32,
+    /// Triangle index within the shape's mesh.
+    tri: u32,
+    shade: TriShade,
+}
+
 /// Batch width of the triangle test (8: measured faster than 4 on both
 /// benchmark scenes, with AVX2).
 const LANES: usize = 8;
@@ -372,13 +391,6 @@ impl TriSoa {
 
     fn is_empty(&self) -> bool {
         self.len == 0
-    }
-
-    /// The (unnormalised) `ng` of triangle `i`.
-    #[inline]
-    fn ng(&self, i: u32) -> Vec3 {
-        let (b, l) = (&self.blocks[i as usize / LANES].0, i as usize % LANES);
-        Vec3::new(b[9][l], b[10][l], b[11][l])
     }
 
     /// Tests the triangles of block `block` whose bit is set in `lanes`:
