@@ -284,8 +284,8 @@ impl Accel {
 }
 
 /// Ray against the eight quantised child boxes of a CWBVH node: the hit mask
-/// that obvhs' `traverse!` expects (internal children in the high byte by
-/// traversal priority, leaf primitives in the low 24 bits).
+/// in obvhs' encoding, as its `traverse!` uses it (internal children in the
+/// high byte by traversal priority, leaf primitives in the low 24 bits).
 ///
 /// Same arithmetic as obvhs' `CwBvhNode::intersect_ray` (the box planes in
 /// the node's quantised grid, mul then add, the same `tmin` floor of 1e-4),
