@@ -28,6 +28,10 @@ pub struct Hit {
     pub prim: u32,
     /// Index of the triangle in the BVH's order (u32::MAX for analytic shapes).
     pub bvh_prim: u32,
+    /// Barycentric coordinates of the hit on the triangle (the weights of
+    /// its vertices 1 and 2) as the intersection test found them; zero for
+    /// analytic shapes.
+    pub bary: Vec2,
 }
 
 /// Local geometry at a hit point.

@@ -23,27 +23,73 @@ pub fn barycentrics(p: Vec3, a: Vec3, b: Vec3, c: Vec3) -> Vec2 {
     Vec2::new(b1.clamp(0.0, 1.0), b2.clamp(0.0, 1.0))
 }
 
-/// Geometric normal, shading normal and uv on triangle `tri` at
-/// barycentrics `bc` (weights of vertices 1 and 2), given the unnormalised
-/// geometric normal `ng` (winding order v0, v1, v2).
+/// What shading needs of a triangle that does not depend on the hit point.
+#[derive(Clone, Copy, Debug)]
+pub struct TriShade {
+    /// Unit geometric normal (winding order v0, v1, v2; flip applied).
+    pub ng: Vec3,
+    /// The shading normal when it is the same over the whole triangle (no
+    /// vertex normals, or three equal ones as on `rectangle` and `cube`),
+    /// flip applied; `None` when the vertex normals must be interpolated.
+    pub flat_ns: Option<Vec3>,
+}
+
+impl TriShade {
+    pub fn new(mesh: &TriangleMesh, tri: usize) -> Self {
+        let [i0, i1, i2] = mesh.indices[tri];
+        let [a, b, c] = [i0, i1, i2].map(|i| mesh.positions[i as usize]);
+        let ng = (b - a).cross(c - a).normalize_or_zero();
+        let sign = if mesh.flip_normals { -1.0 } else { 1.0 };
+        let flat_ns = match &mesh.normals {
+            None => Some(ng),
+            Some(n) => {
+                let (n0, n1, n2) = (n[i0 as usize], n[i1 as usize], n[i2 as usize]);
+                (n0 == n1 && n0 == n2).then(|| {
+                    let ns = n0.normalize_or_zero();
+                    if ns == Vec3::ZERO {
+                        ng
+                    } else {
+                        ns
+                    }
+                })
+            }
+        };
+        Self {
+            ng: ng * sign,
+            flat_ns: flat_ns.map(|n| n * sign),
+        }
+    }
+}
+
+/// Geometric normal, shading normal and uv on triangle `tri` (with its
+/// precomputed `TriShade`) at barycentrics `bc` (weights of vertices 1 and 2).
 #[inline]
-pub fn shade(mesh: &TriangleMesh, tri: usize, bc: Vec2, ng: Vec3) -> (Vec3, Vec3, Vec2) {
-    let [i0, i1, i2] = mesh.indices[tri];
+pub fn shade(mesh: &TriangleMesh, tri: usize, bc: Vec2, pre: &TriShade) -> (Vec3, Vec3, Vec2) {
     let bc = bc.clamp(Vec2::ZERO, Vec2::ONE);
-    let mut ng = ng.normalize_or_zero();
     let b0 = 1.0 - bc.x - bc.y;
-    let mut ns = match &mesh.normals {
-        Some(n) => (n[i0 as usize] * b0 + n[i1 as usize] * bc.x + n[i2 as usize] * bc.y)
-            .normalize_or_zero(),
-        None => ng,
+    let ng = pre.ng;
+    let needs_indices = pre.flat_ns.is_none() || mesh.uvs.is_some();
+    let [i0, i1, i2] = if needs_indices {
+        mesh.indices[tri]
+    } else {
+        [0; 3]
     };
-    if ns == Vec3::ZERO {
-        ns = ng;
-    }
-    if mesh.flip_normals {
-        ng = -ng;
-        ns = -ns;
-    }
+    let ns = match (pre.flat_ns, &mesh.normals) {
+        (Some(ns), _) => ns,
+        (None, Some(n)) => {
+            let ns = (n[i0 as usize] * b0 + n[i1 as usize] * bc.x + n[i2 as usize] * bc.y)
+                .normalize_or_zero();
+            if ns == Vec3::ZERO {
+                ng
+            } else if mesh.flip_normals {
+                -ns
+            } else {
+                ns
+            }
+        }
+        // TriShade always has `flat_ns` for meshes without normals.
+        (None, None) => ng,
+    };
     let uv = match &mesh.uvs {
         Some(t) => t[i0 as usize] * b0 + t[i1 as usize] * bc.x + t[i2 as usize] * bc.y,
         None => bc,

@@ -13,13 +13,17 @@ struct EmitterTri {
     v0: Vec3,
     e1: Vec3,
     e2: Vec3,
-    /// Unit face normal (flip applied); used when the mesh has no vertex normals.
-    n: Vec3,
+    /// Normals at v0, v1, v2 (flip applied): the vertex normals, or the unit
+    /// face normal three times for meshes without vertex normals.
+    n: [Vec3; 3],
+    /// The normal is the same everywhere on the triangle (no vertex normals,
+    /// or equal ones, as on `rectangle` and `cube`): `n[0]`, unit length.
+    flat: bool,
 }
 
 pub struct AreaLight {
     pub shape: u32,
-    /// Prepared triangles (meshes without vertex normals only).
+    /// Prepared triangles (meshes only).
     tri_data: Vec<EmitterTri>,
     /// Emitted radiance (front side only).
     pub radiance: Vec3,
@@ -55,17 +59,29 @@ impl AreaLight {
             }
         };
         let tri_data = match accel.shape(shape) {
-            ShapeGeom::Mesh(m) if m.normals.is_none() => m
+            ShapeGeom::Mesh(m) => m
                 .indices
                 .iter()
                 .map(|t| {
                     let [a, b, c] = t.map(|i| m.positions[i as usize]);
-                    let n = (b - a).cross(c - a).normalize_or_zero();
+                    let sign = if m.flip_normals { -1.0 } else { 1.0 };
+                    let (n, flat) = match &m.normals {
+                        Some(ns) => {
+                            let n = t.map(|i| ns[i as usize] * sign);
+                            if n[0] == n[1] && n[0] == n[2] {
+                                ([n[0].normalize_or_zero(); 3], true)
+                            } else {
+                                (n, false)
+                            }
+                        }
+                        None => ([(b - a).cross(c - a).normalize_or_zero() * sign; 3], true),
+                    };
                     EmitterTri {
                         v0: a,
                         e1: b - a,
                         e2: c - a,
-                        n: if m.flip_normals { -n } else { n },
+                        n,
+                        flat,
                     }
                 })
                 .collect(),
@@ -84,37 +100,22 @@ impl AreaLight {
     #[inline]
     fn sample_point(&self, accel: &Accel, u: Vec2) -> Option<(Vec3, Vec3)> {
         if !self.tri_data.is_empty() {
+            if self.area <= 0.0 {
+                return None;
+            }
             let (t, ux) = self.tris.sample(u.x);
             let b = uniform_triangle(Vec2::new(ux, u.y));
             let tri = &self.tri_data[t];
-            return Some((tri.v0 + tri.e1 * b.x + tri.e2 * b.y, tri.n));
+            let n = if tri.flat {
+                tri.n[0]
+            } else {
+                (tri.n[0] * (1.0 - b.x - b.y) + tri.n[1] * b.x + tri.n[2] * b.y).normalize_or_zero()
+            };
+            return Some((tri.v0 + tri.e1 * b.x + tri.e2 * b.y, n));
         }
         match accel.shape(self.shape) {
-            ShapeGeom::Mesh(m) => {
-                if self.tris.is_empty() || self.area <= 0.0 {
-                    return None;
-                }
-                let (t, ux) = self.tris.sample(u.x);
-                let b = uniform_triangle(Vec2::new(ux, u.y));
-                let [i0, i1, i2] = m.indices[t];
-                let (a, bb, c) = (
-                    m.positions[i0 as usize],
-                    m.positions[i1 as usize],
-                    m.positions[i2 as usize],
-                );
-                let p = a * (1.0 - b.x - b.y) + bb * b.x + c * b.y;
-                let mut n = match &m.normals {
-                    Some(ns) => (ns[i0 as usize] * (1.0 - b.x - b.y)
-                        + ns[i1 as usize] * b.x
-                        + ns[i2 as usize] * b.y)
-                        .normalize_or_zero(),
-                    None => (bb - a).cross(c - a).normalize_or_zero(),
-                };
-                if m.flip_normals {
-                    n = -n;
-                }
-                Some((p, n))
-            }
+            // Meshes always have `tri_data`; an empty one has nothing to sample.
+            ShapeGeom::Mesh(_) => None,
             ShapeGeom::Analytic(Analytic::Sphere {
                 center,
                 radius,
@@ -132,6 +133,7 @@ impl AreaLight {
         }
     }
 
+    #[inline]
     pub fn sample(&self, accel: &Accel, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
         let (p, n) = self.sample_point(accel, u)?;
         let v = p - p_ref;

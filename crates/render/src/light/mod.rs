@@ -77,7 +77,12 @@ impl Lights {
         if n == 0 {
             return None;
         }
-        let i = ((u_select * n as f32) as usize).min(n - 1);
+        // (One light: skip the float-to-index conversion; same choice.)
+        let i = if n == 1 {
+            0
+        } else {
+            ((u_select * n as f32) as usize).min(n - 1)
+        };
         let mut s = match &self.lights[i] {
             Light::Area(a) => a.sample(accel, p, u)?,
             Light::Point {
