@@ -13,26 +13,52 @@ pub const JACOBIAN: f32 = 4.0 * std::f32::consts::PI;
 /// Maps a world-space direction to `(u, v)` in `[0, 1]^2` (`v` in `[0, 1)`).
 ///
 /// The direction need not be normalised for `v`, but `u` reads `d.z` directly, so pass unit
-/// vectors. A direction with a non-finite component maps to `(0, 0)`.
+/// vectors. A direction with a non-finite component maps to `(0, 0)`. `phi` comes from
+/// [`atan2_f32`] (error about 1e-7 rad, the size of f32 rounding), which is several times
+/// cheaper than libm's f64 `atan2` on the renderer's hot path.
+#[inline]
 pub fn dir_to_uv(d: Vec3) -> Vec2 {
     if !d.is_finite() {
         return Vec2::ZERO;
     }
-    let z = (d.z as f64).clamp(-1.0, 1.0);
-    let u = (z + 1.0) * 0.5;
-    let mut phi = (d.y as f64).atan2(d.x as f64);
+    let u = ((d.z.clamp(-1.0, 1.0) + 1.0) * 0.5).clamp(0.0, 1.0);
+    let mut phi = atan2_f32(d.y, d.x);
     if phi < 0.0 {
-        phi += 2.0 * PI;
+        phi += std::f32::consts::TAU;
     }
-    let mut v = phi / (2.0 * PI);
-    if !(v < 1.0) || !v.is_finite() {
-        v = 0.0;
+    let v = phi * (1.0 / std::f32::consts::TAU);
+    Vec2::new(u, if v >= 0.0 && v < 1.0 { v } else { 0.0 })
+}
+
+/// `atan2(y, x)` in f32 for finite arguments, in `[-pi, pi]`: a degree-15 odd minimax-fitted
+/// polynomial for `atan` on `[0, 1]` (max error 1.2e-7 rad evaluated in f32) with the usual
+/// octant reduction (overall within 4e-7 rad, under 2 f32 ulps at pi). `atan2_f32(0, 0) = 0`.
+#[inline]
+pub fn atan2_f32(y: f32, x: f32) -> f32 {
+    let (ax, ay) = (x.abs(), y.abs());
+    let (mn, mx) = if ax < ay { (ax, ay) } else { (ay, ax) };
+    let a = if mx > 0.0 { mn / mx } else { 0.0 };
+    let s = a * a;
+    let mut r = -0.004_055_998_6_f32;
+    r = r * s + 0.021_868_008;
+    r = r * s - 0.055_919_44;
+    r = r * s + 0.096_427_07;
+    r = r * s - 0.139_088_26;
+    r = r * s + 0.199_466_05;
+    r = r * s - 0.333_298_64;
+    r = r * s + 0.999_999_34;
+    r *= a;
+    if ay > ax {
+        r = std::f32::consts::FRAC_PI_2 - r;
     }
-    let mut vf = v as f32;
-    if vf >= 1.0 {
-        vf = 0.0;
+    if x < 0.0 {
+        r = std::f32::consts::PI - r;
     }
-    Vec2::new((u as f32).clamp(0.0, 1.0), vf)
+    if y < 0.0 {
+        -r
+    } else {
+        r
+    }
 }
 
 /// Maps `(u, v)` (expected in `[0, 1]^2`, clamped) to a unit world-space direction.
@@ -58,6 +84,36 @@ pub fn pdf_uv_to_solid_angle(p_uv: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn atan2_f32_matches_libm_within_about_one_f32_ulp_of_pi() {
+        // Deterministic sweep (no significance level): angles all around the circle, radii
+        // over many magnitudes, the axes, and signed zeros.
+        let mut worst = 0.0f64;
+        for i in 0..200_000 {
+            let t =
+                -std::f64::consts::PI + 2.0 * std::f64::consts::PI * (i as f64 + 0.5) / 200_000.0;
+            for r in [1e-20f64, 1e-3, 1.0, 7.5, 1e20] {
+                let (y, x) = ((r * t.sin()) as f32, (r * t.cos()) as f32);
+                let e = (atan2_f32(y, x) as f64 - (y as f64).atan2(x as f64)).abs();
+                worst = worst.max(e);
+            }
+        }
+        // 4e-7 = 1.7 ulp of f32 at pi (the octant reduction subtracts from pi in f32).
+        assert!(worst < 4e-7, "max error {worst}");
+        for (y, x) in [
+            (0.0f32, 1.0f32),
+            (1.0, 0.0),
+            (0.0, -1.0),
+            (-1.0, 0.0),
+            (1.0, 1.0),
+            (0.0, 0.0),
+        ] {
+            let e = (atan2_f32(y, x) as f64 - (y as f64).atan2(x as f64)).abs();
+            assert!(e < 4e-7, "({y}, {x}): {e}");
+        }
+        assert!((atan2_f32(-0.0, -1.0).abs() - std::f32::consts::PI).abs() < 1e-6);
+    }
 
     #[test]
     fn round_trip_direction_uv_direction() {

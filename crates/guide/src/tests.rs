@@ -437,7 +437,11 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
     };
     let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
     let h = LeafHandle(0);
-    assert_eq!(tree.incident_radiance_leaf(h, 1.0), 0.0, "unbuilt: no estimate");
+    assert_eq!(
+        tree.incident_radiance_leaf(h, 1.0),
+        0.0,
+        "unbuilt: no estimate"
+    );
     // Uniform directions, L = 2 on the upper hemisphere (z > 0), 0 below: integral 4 pi.
     let mut rng = Pcg::new(77);
     let n = 100_000;
@@ -445,14 +449,24 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
     for _ in 0..n {
         let d = uv_to_dir(Vec2::new(rng.f64() as f32, rng.f64() as f32));
         let l = if d.z > 0.0 { 2.0 } else { 0.0 };
-        tree.record(&Record::radiance_only(Vec3::ZERO, d, l, p, 1.0), &mut rng.rng());
+        tree.record(
+            &Record::radiance_only(Vec3::ZERO, d, l, p, 1.0),
+            &mut rng.rng(),
+        );
     }
     tree.refine(0);
     let leaf = &tree.leaves()[0];
-    assert_eq!(leaf.flux, (leaf.sampling.total() / leaf.sampling.weight()) as f32);
+    assert_eq!(
+        leaf.flux,
+        (leaf.sampling.total() / leaf.sampling.weight()) as f32
+    );
     // per-record value L / p has mean 4 pi and standard deviation 2 pi * sqrt(... ) <= 8 pi
     let se = 8.0 * PI / (n as f64).sqrt();
-    assert!(((leaf.flux as f64) - 4.0 * PI).abs() < 5.0 * se, "flux {}", leaf.flux);
+    assert!(
+        ((leaf.flux as f64) - 4.0 * PI).abs() < 5.0 * se,
+        "flux {}",
+        leaf.flux
+    );
     let up = Vec3::new(0.1, 0.2, 0.97).normalize();
     let pdf = tree.pdf_leaf(h, up);
     assert_eq!(tree.incident_radiance_leaf(h, pdf), leaf.flux * pdf);
@@ -471,7 +485,10 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
     );
     for _ in 0..2000 {
         let pos = Vec3::new(rng.f64() as f32, rng.f64() as f32, rng.f64() as f32) * 2.0 - 1.0;
-        split.record(&Record::radiance_only(pos, Vec3::Z, 3.0, p, 1.0), &mut rng.rng());
+        split.record(
+            &Record::radiance_only(pos, Vec3::Z, 3.0, p, 1.0),
+            &mut rng.rng(),
+        );
     }
     split.refine(0);
     assert!(split.leaves().len() > 1);
