@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
-"""Path-guiding benchmark: pathfarm `path` / `guided_path` (2017, 2019 presets) vs Mitsuba 3 `path`.
+"""Path-guiding benchmark: pathfarm `path` / `guided_path` (2017, 2019, pathfarm presets) vs Mitsuba 3 `path`.
 
 Usage (from anywhere):
   python3 guided.py [--budgets 30 120] [--reps 3] [--threads 2] [--scenes veach-ajar cornell-box door-ajar]
-                    [--configs pf-path pf-2017 pf-2019 mi-path] [--resume] [--table-only]
+                    [--configs pf-path pf-2017 pf-2019 pf-pathfarm mi-path] [--resume] [--table-only]
   python3 guided.py --make-door-reference      # (re)generate results/door-ajar-reference.exr
 
 Equal-time relMSE at CPU-second budgets (default 30 and 120). Same conventions as renderer.py:
@@ -12,7 +12,7 @@ Equal-time relMSE at CPU-second budgets (default 30 and 120). Same conventions a
     rendering). CPU-s actually used, spp, training fraction and tree memory come from the
     `summary:` / `guided:` lines. `path` runs on the scene file with -D integrator=path; the
     two guided configurations use a wrapper XML in a temp dir (the scene file with its
-    <integrator> block replaced by <integrator type="guided_path"> + preset 2017 / 2019 +
+    <integrator> block replaced by <integrator type="guided_path"> + preset 2017 / 2019 / pathfarm +
     max_depth; every other entry of the scene dir is symlinked beside it, so relative mesh and
     texture paths resolve).
   - Mitsuba 3 llvm_ad_rgb `path` (one subprocess per run): warm-up render (JIT), 3 throughput
@@ -303,8 +303,9 @@ def write_table(a):
             fmt(m["cpu_s"], "%.1f"), fmt(m["training_fraction"], "%.3f"), fmt(m["tree_memory_mb"], "%.2f"),
             m["n"], fmt(m["other"], "%.1f")))
     lines += ["", "## Targets", ""]
-    for b in sorted({k[1] for k in keys}):
-      for gc, gl in (("pf-2019", "guided 2019"), ("pf-pathfarm", "guided pathfarm")):
+    targets = [(b, gc, gl) for b in sorted({k[1] for k in keys})
+               for gc, gl in (("pf-2019", "guided 2019"), ("pf-pathfarm", "guided pathfarm"))]
+    for b, gc, gl in targets:
         g, mi_ = meds.get(("veach-ajar", b, gc)), meds.get(("veach-ajar", b, "mi-path"))
         if g and mi_:
             f = mi_["relmse_masked"] / g["relmse_masked"]
