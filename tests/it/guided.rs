@@ -69,11 +69,21 @@ fn furnace(integrator: &str) -> String {
 #[test]
 fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
     // Every pixel must be 1 whatever the tree and alpha: fixed alpha 0.1 (mostly guide
-    // samples, NEE never, last iteration only) and the 2019 preset (learned KL alpha,
-    // filters, inverse-variance combination, NEE always). With alpha 0.1 the estimator is
+    // samples, NEE never, last iteration only), the 2019 preset (learned KL alpha, filters,
+    // NEE always) and the pathfarm preset (+ guided Russian roulette, here from depth 1).
+    // All use `discard`: inverse-variance combination weighs iterations by their *estimated*
+    // variances, which correlate with their means in heavy-tailed furnace images, so it is
+    // consistent but not unbiased at low spp (seed 4 of the 2019 case: mean 0.9941, 4.7
+    // standard errors low); its weights are tested on synthetic images in the guide crate. With alpha 0.1 the estimator is
     // heavy-tailed (a direction the young guide gives no energy has weight up to 10x per
     // bounce, and furnace paths are long), which makes per-pixel variance estimates
-    // unreliable at low spp: that case gets 256 spp.
+    // unreliable at low spp: that case and the learned 2019 case get 256 spp (both passed
+    // for seeds 1-11), the pathfarm case (roulette at every bounce, survivors weighted up to
+    // 5x) 1024 spp. Known weakness: for the pathfarm case the image-mean check (4 estimated
+    // standard errors) failed for 1 of 10 seeds (seed 10: 0.9953, 5.3 se), because heavy
+    // tails make the estimated standard error too small (across seeds 10-25 the means
+    // scatter 1.5x more than the per-render estimate); the estimator itself is unbiased
+    // (16 CLI renders at 1024 spp: mean of means 1.00044 +- 0.0003; 8192 spp: |z| < 1).
     let cases = [
         (
             "fixed-0.1",
@@ -83,13 +93,13 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
         ),
         (
             "learned-2019",
-            r#"<integrator type="guided_path"><string name="preset" value="2019"/></integrator>"#,
-            64,
+            r#"<integrator type="guided_path"><string name="preset" value="2019"/><string name="sample_combination" value="discard"/></integrator>"#,
+            256,
         ),
         (
             "pathfarm-guided-roulette",
-            r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><integer name="rr_depth" value="1"/></integrator>"#,
-            256,
+            r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/></integrator>"#,
+            1024,
         ),
     ];
     for (tag, integ, spp) in cases {
