@@ -67,7 +67,6 @@ LABEL = {"pf-path": "pathfarm path", "pf-2017": "pathfarm guided 2017", "pf-2019
          "mi-path": "Mitsuba 3 path (llvm_ad_rgb)"}
 # Default plan: which configs per scene and budget (cornell-box only at the smallest budget).
 PLAN = {"veach-ajar": CONFIGS, "cornell-box": ["pf-path", "pf-2019", "pf-pathfarm", "mi-path"], "door-ajar": CONFIGS}
-PASS_SAMPLES = R.PASS_SAMPLES
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 GUIDED_RE = re.compile(r"guided: training_fraction=([\d.eE+-]+) tree_memory_mb=([\d.eE+-]+) weights=\[([^\]]*)\]")
 ITER_RE = re.compile(r"iteration (\d+): spp=(\d+) nodes=(\d+) leaves=(\d+) variance=([\d.eE+-]+|NaN|inf) time=([\d.]+)s")
@@ -171,20 +170,7 @@ def mitsuba_worker(a):
     mi.set_variant("llvm_ad_rgb")
     scene = mi.load_file(a.scene, resx=a.res[0], resy=a.res[1], max_depth=a.max_depth, integrator="path")
     pixels = a.res[0] * a.res[1]
-    pass_spp = max(1, PASS_SAMPLES // pixels)
-    seed = [a.seed]
-
-    def render(spp):
-        img = np.zeros((a.res[1], a.res[0], 3))
-        c0, t0 = time.process_time(), time.perf_counter()
-        left = spp
-        while left > 0:
-            n = min(pass_spp, left)
-            arr = np.array(mi.render(scene, spp=n, seed=seed[0]), dtype=np.float64)[..., :3]
-            seed[0] += 1
-            img += arr * (n / spp)
-            left -= n
-        return img, time.process_time() - c0, time.perf_counter() - t0
+    render, pass_spp = R.mitsuba_renderer(mi, scene, a.res, a.seed)
 
     render(min(pass_spp, 4))                      # warm-up (JIT)
     _, cpu, _ = render(pass_spp)                  # probe

@@ -52,6 +52,28 @@ PASS_SAMPLES = 1 << 21      # max samples per mi.render call (llvm wavefront siz
 # ----------------------------------------------------------------------------------------------
 # Mitsuba worker (runs in its own process, one variant)
 # ----------------------------------------------------------------------------------------------
+def mitsuba_renderer(mi, scene, res, seed):
+    """(render, pass_spp) for a loaded Mitsuba scene: render(spp) renders spp samples/pixel in
+    passes of pass_spp (at most PASS_SAMPLES samples each, a fresh seed per pass counting up
+    from `seed`) and returns (image float64 HxWx3, cpu_s, wall_s)."""
+    pass_spp = max(1, PASS_SAMPLES // (res[0] * res[1]))
+    next_seed = [seed]
+
+    def render(spp):
+        img = np.zeros((res[1], res[0], 3))
+        c0, t0 = time.process_time(), time.perf_counter()
+        left = spp
+        while left > 0:
+            n = min(pass_spp, left)
+            arr = np.array(mi.render(scene, spp=n, seed=next_seed[0]), dtype=np.float64)[..., :3]
+            next_seed[0] += 1
+            img += arr * (n / spp)
+            left -= n
+        return img, time.process_time() - c0, time.perf_counter() - t0
+
+    return render, pass_spp
+
+
 def mitsuba_worker(a):
     import mitsuba as mi
     mi.set_variant(a.variant)
@@ -59,21 +81,7 @@ def mitsuba_worker(a):
         mi.set_thread_count(a.threads)
     scene = mi.load_file(a.scene, resx=a.res[0], resy=a.res[1], max_depth=a.max_depth)
     pixels = a.res[0] * a.res[1]
-    pass_spp = max(1, PASS_SAMPLES // pixels)
-    seed = [1000]
-
-    def render(spp):
-        """Render spp samples/pixel in passes; returns (image, cpu_s, wall_s)."""
-        img = np.zeros((a.res[1], a.res[0], 3))
-        c0, t0 = time.process_time(), time.perf_counter()
-        left = spp
-        while left > 0:
-            n = min(pass_spp, left)
-            arr = np.array(mi.render(scene, spp=n, seed=seed[0]), dtype=np.float64)[..., :3]
-            seed[0] += 1
-            img += arr * (n / spp)
-            left -= n
-        return img, time.process_time() - c0, time.perf_counter() - t0
+    render, pass_spp = mitsuba_renderer(mi, scene, a.res, 1000)
 
     render(min(pass_spp, 4))        # warm-up: JIT compile (llvm), caches
     if a.rate_spp <= 0:             # probe: size the throughput runs to ~rate_cpu seconds

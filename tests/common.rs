@@ -65,11 +65,17 @@ pub fn render_xml(tag: &str, xml: &str, spp: u32, seed: u64) -> Film {
     render_file(&write_scene(tag, xml), &[], spp, seed)
 }
 
-/// Runs the `pathfarm` binary.
+/// Runs the `pathfarm` binary (warnings and errors logged).
 pub fn pathfarm(args: &[&str]) -> Output {
+    pathfarm_logging(args, "warn")
+}
+
+/// Runs the `pathfarm` binary with log level `level` and no colour codes in the log.
+pub fn pathfarm_logging(args: &[&str], level: &str) -> Output {
     Command::new(env!("CARGO_BIN_EXE_pathfarm"))
         .args(args)
-        .env("RUST_LOG", "warn")
+        .env("RUST_LOG", level)
+        .env("NO_COLOR", "1")
         .output()
         .expect("run pathfarm")
 }

@@ -1,8 +1,6 @@
 //! The `guided_path` integrator (SD-tree path guiding): unbiasedness, agreement
 //! with the path tracer, determinism, parameters and the CLI.
 
-use std::process::Command;
-
 use pathfarm_render::guided::{render_guided, Budget, GuidedStats, SdTree};
 use pathfarm_render::{render, Film, RenderSettings, Scene};
 use pathfarm_scene::{
@@ -284,8 +282,8 @@ fn cli_renders_the_shared_scene_guided_and_reports_iterations() {
     let dir = temp_dir("guided-cli");
     let out = dir.join("v.exr");
     let scene = shared_scene("veach-ajar");
-    let o = Command::new(env!("CARGO_BIN_EXE_pathfarm"))
-        .args([
+    let o = pathfarm_logging(
+        &[
             "render",
             scene.to_str().unwrap(),
             "-o",
@@ -298,11 +296,9 @@ fn cli_renders_the_shared_scene_guided_and_reports_iterations() {
             "resx=32",
             "-D",
             "resy=18",
-        ])
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .output()
-        .expect("run pathfarm");
+        ],
+        "info",
+    );
     let (stdout, stderr) = (
         String::from_utf8_lossy(&o.stdout),
         String::from_utf8_lossy(&o.stderr),

@@ -1,7 +1,7 @@
 //! Smooth conductor: a delta mirror with complex-IOR Fresnel (Mitsuba `conductor`).
 
 use crate::fresnel::{fresnel_conductor_rgb, reflect};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -35,16 +35,7 @@ impl Conductor {
             return None;
         }
         let f = fresnel_conductor_rgb(wi.z, self.eta, self.k) * self.specular_reflectance;
-        Some(BsdfSample {
-            wo: reflect(wi),
-            pdf: 1.0,
-            weight: f,
-            eta: 1.0,
-            lobe: Lobe {
-                delta: true,
-                transmission: false,
-            },
-        })
+        Some(BsdfSample::specular_reflection(reflect(wi), 1.0, f))
     }
 
     pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {

@@ -40,16 +40,11 @@ impl Dielectric {
         let (r, cos_theta_t, eta_it, eta_ti) = fresnel_dielectric(cos_theta_i, self.eta);
         let t = 1.0 - r;
         if r > 0.0 && u_lobe <= r {
-            Some(BsdfSample {
-                wo: reflect(wi),
-                pdf: r,
-                weight: self.specular_reflectance,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: false,
-                },
-            })
+            Some(BsdfSample::specular_reflection(
+                reflect(wi),
+                r,
+                self.specular_reflectance,
+            ))
         } else {
             if !(t > 0.0) {
                 return None;

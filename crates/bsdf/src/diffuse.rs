@@ -1,7 +1,7 @@
 //! Lambertian reflection (Mitsuba `diffuse`).
 
 use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
 
@@ -32,16 +32,7 @@ impl Diffuse {
         if !(pdf > 0.0) {
             return None;
         }
-        Some(BsdfSample {
-            wo,
-            pdf,
-            weight: self.reflectance,
-            eta: 1.0,
-            lobe: Lobe {
-                delta: false,
-                transmission: false,
-            },
-        })
+        Some(BsdfSample::glossy_reflection(wo, pdf, self.reflectance))
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {

@@ -60,6 +60,34 @@ pub struct BsdfSample {
     pub lobe: Lobe,
 }
 
+impl BsdfSample {
+    /// A reflected direction of a smooth (non-delta) lobe: `eta` 1.
+    #[inline]
+    pub fn glossy_reflection(wo: Vec3, pdf: f32, weight: Vec3) -> Self {
+        Self::reflection(wo, pdf, weight, false)
+    }
+
+    /// A mirror-reflected direction of a delta lobe picked with probability `pdf`: `eta` 1.
+    #[inline]
+    pub fn specular_reflection(wo: Vec3, pdf: f32, weight: Vec3) -> Self {
+        Self::reflection(wo, pdf, weight, true)
+    }
+
+    #[inline]
+    fn reflection(wo: Vec3, pdf: f32, weight: Vec3, delta: bool) -> Self {
+        Self {
+            wo,
+            pdf,
+            weight,
+            eta: 1.0,
+            lobe: Lobe {
+                delta,
+                transmission: false,
+            },
+        }
+    }
+}
+
 /// Static properties of a BSDF, known without a direction.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub struct BsdfFlags {

@@ -3,7 +3,7 @@
 
 use crate::fresnel::{fresnel_dielectric, fresnel_diffuse_reflectance, reflect};
 use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 /// Mitsuba's `specular_sampling_weight = s_mean / (d_mean + s_mean)`, where
@@ -88,16 +88,11 @@ impl Plastic {
             if !weight.is_finite() {
                 return None;
             }
-            Some(BsdfSample {
-                wo: reflect(wi),
-                pdf: prob_specular,
+            Some(BsdfSample::specular_reflection(
+                reflect(wi),
+                prob_specular,
                 weight,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: false,
-                },
-            })
+            ))
         } else {
             let wo = square_to_cosine_hemisphere(u);
             let pdf = prob_diffuse * square_to_cosine_hemisphere_pdf(wo);
@@ -110,16 +105,7 @@ impl Plastic {
             if !weight.is_finite() {
                 return None;
             }
-            Some(BsdfSample {
-                wo,
-                pdf,
-                weight,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: false,
-                    transmission: false,
-                },
-            })
+            Some(BsdfSample::glossy_reflection(wo, pdf, weight))
         }
     }
 

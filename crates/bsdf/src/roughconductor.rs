@@ -3,7 +3,7 @@
 
 use crate::fresnel::{fresnel_conductor_rgb, reflect_about};
 use crate::microfacet::{Microfacet, MicrofacetType};
-use crate::{finite_or_zero, BsdfFlags, BsdfSample, Lobe};
+use crate::{finite_or_zero, BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -79,16 +79,7 @@ impl RoughConductor {
         if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || weight == Vec3::ZERO {
             return None;
         }
-        Some(BsdfSample {
-            wo,
-            pdf,
-            weight,
-            eta: 1.0,
-            lobe: Lobe {
-                delta: false,
-                transmission: false,
-            },
-        })
+        Some(BsdfSample::glossy_reflection(wo, pdf, weight))
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {

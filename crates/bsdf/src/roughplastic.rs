@@ -6,7 +6,7 @@
 use crate::fresnel::{fresnel_dielectric, reflect_about, refract_about};
 use crate::microfacet::{Microfacet, MicrofacetType};
 use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
 
@@ -292,16 +292,7 @@ impl<'a> RoughPlastic<'a> {
         if !weight.is_finite() {
             return None;
         }
-        Some(BsdfSample {
-            wo,
-            pdf,
-            weight,
-            eta: 1.0,
-            lobe: Lobe {
-                delta: false,
-                transmission: false,
-            },
-        })
+        Some(BsdfSample::glossy_reflection(wo, pdf, weight))
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {

@@ -46,16 +46,11 @@ impl ThinDielectric {
         let r = self.reflectance(wi.z);
         let t = 1.0 - r;
         if r > 0.0 && u_lobe <= r {
-            Some(BsdfSample {
-                wo: reflect(wi),
-                pdf: r,
-                weight: self.specular_reflectance,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: false,
-                },
-            })
+            Some(BsdfSample::specular_reflection(
+                reflect(wi),
+                r,
+                self.specular_reflectance,
+            ))
         } else {
             if !(t > 0.0) {
                 return None;

@@ -80,8 +80,6 @@ pub(crate) struct SampleNode {
     p_row0: [f32; 2],
     /// Child node per quadrant (0 = leaf cell).
     children: [u32; 4],
-    /// The node has mass (sum > 0).
-    live: bool,
 }
 
 impl SampleNode {
@@ -107,7 +105,6 @@ impl SampleNode {
             p_col0: ((s[0] + s[2]) / tot) as f32,
             p_row0: [row(s[0], s[2]), row(s[1], s[3])],
             children,
-            live: true,
         }
     }
 }
@@ -320,7 +317,8 @@ impl DTree {
     /// A tree is empty (samples uniformly) when its total sum is zero (mean <= 0).
     pub fn is_empty(&self) -> bool {
         if self.frozen.len() == self.nodes.len() {
-            return !self.frozen[0].live;
+            // a node with mass has a quadrant of at least a quarter of it: factor >= 1
+            return self.frozen[0].factor == [0.0; 4];
         }
         self.total_fixed() == 0
     }

@@ -33,8 +33,8 @@ use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::Bsdf;
 use pathfarm_guide::{LeafHandle, Record, SdTree};
 
-use super::{camera_hit, depth_limit};
-use crate::geometry::{offset_origin, spawn_ray, spawn_ray_to, Ray};
+use super::{camera_hit, depth_limit, mitsuba_survival};
+use crate::geometry::{spawn_ray, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
@@ -523,16 +523,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                 let f = bsdf.eval(wi, wo);
                 let mut w_light = 0.0;
                 if f != Vec3::ZERO {
-                    let shadow = if ls.infinite {
-                        Ray {
-                            o: offset_origin(si.p, si.ng, ls.wi),
-                            d: ls.wi,
-                            tmin: 0.0,
-                            tmax: f32::INFINITY,
-                        }
-                    } else {
-                        spawn_ray_to(si.p, si.ng, ls.point)
-                    };
+                    let shadow = ls.shadow_ray(si.p, si.ng);
                     rays += 1;
                     if accel.unoccluded::<ANALYTIC>(&shadow) {
                         w_light = if ls.delta {
@@ -606,7 +597,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                     let t = (throughput.x + throughput.y + throughput.z) / 3.0;
                     guided_survival(t * l, est.get(pixel).copied().unwrap_or(f32::NAN))
                 }
-                _ => (tp_max * eta * eta).min(0.95),
+                _ => mitsuba_survival(tp_max, eta),
             };
             if rng.next_f32() >= q {
                 break;

@@ -16,6 +16,13 @@ pub fn depth_limit(max_depth: i32) -> u32 {
     }
 }
 
+/// Mitsuba's Russian-roulette survival probability from the throughput's largest channel
+/// and the accumulated relative IOR: `min(max(throughput) eta^2, 0.95)`.
+#[inline]
+pub fn mitsuba_survival(throughput_max: f32, eta: f32) -> f32 {
+    (throughput_max * eta * eta).min(0.95)
+}
+
 /// The first hit of a camera ray, with Mitsuba's `hide_emitters`: camera rays
 /// then pass through area emitters (advancing `ray`), and a camera ray that
 /// escapes shows nothing (Mitsuba's `valid_ray`, which hides the environment

@@ -9,8 +9,8 @@
 
 use glam::Vec3;
 
-use super::{camera_hit, depth_limit};
-use crate::geometry::{offset_origin, spawn_ray, spawn_ray_to, Ray};
+use super::{camera_hit, depth_limit, mitsuba_survival};
+use crate::geometry::{spawn_ray, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
@@ -83,16 +83,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                 let wo = frame.to_local(ls.wi);
                 let f = bsdf.eval(wi, wo);
                 if f != Vec3::ZERO {
-                    let shadow = if ls.infinite {
-                        Ray {
-                            o: offset_origin(si.p, si.ng, ls.wi),
-                            d: ls.wi,
-                            tmin: 0.0,
-                            tmax: f32::INFINITY,
-                        }
-                    } else {
-                        spawn_ray_to(si.p, si.ng, ls.point)
-                    };
+                    let shadow = ls.shadow_ray(si.p, si.ng);
                     if accel.unoccluded::<ANALYTIC>(&shadow) {
                         let w = if ls.delta {
                             1.0
@@ -123,7 +114,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         // Russian roulette, as Mitsuba does it.
         let tp_max = throughput.max_element();
         if depth >= params.rr_depth {
-            let q = (tp_max * eta * eta).min(0.95);
+            let q = mitsuba_survival(tp_max, eta);
             if rng.next_f32() >= q {
                 break;
             }

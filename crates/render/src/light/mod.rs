@@ -11,7 +11,7 @@ pub use envmap::EnvMap;
 use glam::{Vec2, Vec3};
 use std::f32::consts::PI;
 
-use crate::geometry::Accel;
+use crate::geometry::{spawn_ray, spawn_ray_to, Accel, Ray};
 use crate::sampling::uniform_sphere;
 
 /// One light sample seen from a reference point.
@@ -30,6 +30,19 @@ pub struct LightSample {
     /// the selection probability alone.
     pub pdf: f32,
     pub delta: bool,
+}
+
+impl LightSample {
+    /// The shadow ray testing this sample from surface point `p` (geometric normal `ng`):
+    /// unbounded towards an infinite light, else stopping just short of the sampled point.
+    #[inline]
+    pub fn shadow_ray(&self, p: Vec3, ng: Vec3) -> Ray {
+        if self.infinite {
+            spawn_ray(p, ng, self.wi)
+        } else {
+            spawn_ray_to(p, ng, self.point)
+        }
+    }
 }
 
 pub enum Light {
