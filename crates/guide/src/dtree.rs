@@ -18,7 +18,11 @@ struct Scratch {
     cells: Vec<(u32, u8)>,
     areas: Vec<f64>,
     parts: Vec<u128>,
+    stack: Vec<BoxStackEntry>,
 }
+
+/// A pending node of the box-overlap traversal: index, lower corner, side.
+type BoxStackEntry = (u32, [f64; 2], f64);
 
 thread_local! {
     static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
@@ -70,14 +74,16 @@ pub struct Cell {
 
 /// What sampling and pdf evaluation need of one node, derived from its four sums in one place
 /// ([`SampleNode::from_sums`]) so that the cached and the uncached paths agree bit for bit.
+///
+/// 32 bytes, aligned so that a node never straddles a cache line (two per line): sampling and
+/// pdf evaluation walk one node per level, and the trees of a large scene do not fit in cache.
+/// The column and row probabilities are derived from the factors when sampling
+/// ([`SampleNode::p_col0`], [`SampleNode::p_row0`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[repr(C, align(32))]
 pub(crate) struct SampleNode {
     /// Density factor `4 s_q / sum` per quadrant (exactly 0 for a zero quadrant).
     factor: [f32; 4],
-    /// Probability of the left column (`(s0 + s2) / sum`).
-    p_col0: f32,
-    /// Probability of the lower row within each column (`s_c / (s_c + s_{c+2})`).
-    p_row0: [f32; 2],
     /// Child node per quadrant (0 = leaf cell).
     children: [u32; 4],
 }
@@ -93,18 +99,27 @@ impl SampleNode {
             };
         }
         let f = |x: f64| if x > 0.0 { (4.0 * x / tot) as f32 } else { 0.0 };
-        let row = |a: f64, b: f64| {
-            if a + b > 0.0 {
-                (a / (a + b)) as f32
-            } else {
-                0.5
-            }
-        };
         Self {
             factor: [f(s[0]), f(s[1]), f(s[2]), f(s[3])],
-            p_col0: ((s[0] + s[2]) / tot) as f32,
-            p_row0: [row(s[0], s[2]), row(s[1], s[3])],
             children,
+        }
+    }
+
+    /// Probability of the left column, `(s0 + s2) / sum`.
+    #[inline]
+    fn p_col0(&self) -> f32 {
+        (self.factor[0] + self.factor[2]) * 0.25
+    }
+
+    /// Probability of the lower row within column `c`, `s_c / (s_c + s_{c+2})` (0.5 for an
+    /// empty column).
+    #[inline]
+    fn p_row0(&self, c: usize) -> f32 {
+        let (a, b) = (self.factor[c], self.factor[c + 2]);
+        if a + b > 0.0 {
+            a / (a + b)
+        } else {
+            0.5
         }
     }
 }
@@ -206,15 +221,6 @@ impl DTree {
     fn compute_node(&self, idx: usize) -> SampleNode {
         let n = &self.nodes[idx];
         SampleNode::from_sums(n.sums_f64(), n.children)
-    }
-
-    #[inline]
-    fn sample_node(&self, idx: usize) -> SampleNode {
-        if self.frozen.len() == self.nodes.len() {
-            self.frozen[idx]
-        } else {
-            self.compute_node(idx)
-        }
     }
 
     /// A complete tree of the given depth (`depth >= 1`, clamped to [`MAX_DEPTH`]), all sums 0.
@@ -354,14 +360,36 @@ impl DTree {
         }
     }
 
+    /// The leaf cell containing `uv` as (owning node, quadrant): [`DTree::leaf_cell`] without the
+    /// cell's geometry. The walk is exact in f32 (doubling and subtracting 0 or 1), so it finds
+    /// the same cell.
+    #[inline]
+    pub fn leaf_slot(&self, uv: Vec2) -> (u32, usize) {
+        let mut x = uv.x.clamp(0.0, 1.0);
+        let mut y = uv.y.clamp(0.0, 1.0);
+        let mut idx = 0u32;
+        loop {
+            let bu = (x >= 0.5) as usize;
+            let bv = (y >= 0.5) as usize;
+            let q = bu | (bv << 1);
+            let c = self.nodes[idx as usize].children[q];
+            if c == 0 {
+                return (idx, q);
+            }
+            x = x * 2.0 - bu as f32;
+            y = y * 2.0 - bv as f32;
+            idx = c;
+        }
+    }
+
     /// Adds `amount` (fixed point) to the leaf cell containing `uv` (thread safe).
     #[inline]
     pub fn deposit(&self, uv: Vec2, amount: u128, overflow: &AtomicU64) {
         if amount == 0 {
             return;
         }
-        let c = self.leaf_cell(uv);
-        self.nodes[c.node as usize].sums[c.quadrant as usize].add(amount, overflow);
+        let (node, q) = self.leaf_slot(uv);
+        self.nodes[node as usize].sums[q].add(amount, overflow);
     }
 
     /// Adds `amount` (fixed point) to W (thread safe).
@@ -384,8 +412,9 @@ impl DTree {
                 cells,
                 areas,
                 parts,
+                stack,
             } = &mut *sc;
-            self.box_overlaps(uv, size, cells, areas);
+            self.box_overlaps_with(uv, size, cells, areas, stack);
             if cells.is_empty() {
                 self.deposit(uv, amount, overflow);
                 return;
@@ -406,19 +435,28 @@ impl DTree {
         cells: &mut Vec<(u32, u8)>,
         areas: &mut Vec<f64>,
     ) {
+        self.box_overlaps_with(uv, size, cells, areas, &mut Vec::new());
+    }
+
+    /// [`DTree::box_overlaps`] with a reusable traversal stack.
+    fn box_overlaps_with(
+        &self,
+        uv: Vec2,
+        size: f64,
+        cells: &mut Vec<(u32, u8)>,
+        areas: &mut Vec<f64>,
+        stack: &mut Vec<BoxStackEntry>,
+    ) {
         let h = (size * 0.5).clamp(0.0, 0.5);
         let (u, v) = ((uv.x as f64).clamp(0.0, 1.0), (uv.y as f64).clamp(0.0, 1.0));
         let (u0, u1) = (u - h, u + h);
         let (v0, v1) = (v - h, v + h);
         cells.clear();
         areas.clear();
-        // Depth-first with a fixed-size stack: at most 4 entries per level are pending.
-        let mut stack = [(0u32, [0.0f64; 2], 0.0f64); 4 * MAX_DEPTH as usize + 4];
-        stack[0] = (0, [0.0, 0.0], 1.0);
-        let mut len = 1usize;
-        while len > 0 {
-            len -= 1;
-            let (n, o, s) = stack[len];
+        // Depth first.
+        stack.clear();
+        stack.push((0, [0.0, 0.0], 1.0));
+        while let Some((n, o, s)) = stack.pop() {
             for q in 0..4usize {
                 let co = quadrant_origin(o, s, q);
                 let cs = s * 0.5;
@@ -450,8 +488,7 @@ impl DTree {
                     cells.push((n, q as u8));
                     areas.push(ou * ov);
                 } else {
-                    stack[len] = (c, co, cs);
-                    len += 1;
+                    stack.push((c, co, cs));
                 }
             }
         }
@@ -475,15 +512,25 @@ impl DTree {
     /// quadrant on the path is zero, 1 (uniform) for an empty tree. Divide by `4 pi` for solid angle.
     /// The factors are f32, multiplied root first, exactly as [`DTree::sample_with_pdf`] does.
     pub fn pdf(&self, uv: Vec2) -> f32 {
-        if self.is_empty() {
-            return 1.0;
+        if self.frozen.len() == self.nodes.len() {
+            Self::pdf_in(&|i| self.frozen[i], uv)
+        } else {
+            Self::pdf_in(&|i| self.compute_node(i), uv)
+        }
+    }
+
+    /// [`DTree::pdf`] over the nodes `node(i)` returns (the cache, or computed from the sums).
+    #[inline(always)]
+    fn pdf_in(node: &impl Fn(usize) -> SampleNode, uv: Vec2) -> f32 {
+        let root = node(0);
+        if root.factor == [0.0; 4] {
+            return 1.0; // empty tree: uniform
         }
         let mut x = uv.x.clamp(0.0, 1.0);
         let mut y = uv.y.clamp(0.0, 1.0);
-        let mut idx = 0usize;
+        let mut n = root;
         let mut pdf = 1.0f32;
         loop {
-            let n = self.sample_node(idx);
             let bu = (x >= 0.5) as usize;
             let bv = (y >= 0.5) as usize;
             let q = bu | (bv << 1);
@@ -499,7 +546,7 @@ impl DTree {
             // exact in f32: doubling and subtracting 0 or 1
             x = x * 2.0 - bu as f32;
             y = y * 2.0 - bv as f32;
-            idx = c as usize;
+            n = node(c as usize);
         }
     }
 
@@ -516,7 +563,21 @@ impl DTree {
     /// samples uniformly with density 1. The density equals [`DTree::pdf`] of the returned
     /// point bit for bit.
     pub fn sample_with_pdf(&self, rng: &mut impl FnMut() -> f32) -> (Vec2, f32) {
-        if self.is_empty() {
+        if self.frozen.len() == self.nodes.len() {
+            Self::sample_in(&|i| self.frozen[i], rng)
+        } else {
+            Self::sample_in(&|i| self.compute_node(i), rng)
+        }
+    }
+
+    /// [`DTree::sample_with_pdf`] over the nodes `node(i)` returns.
+    #[inline(always)]
+    fn sample_in(
+        node: &impl Fn(usize) -> SampleNode,
+        rng: &mut impl FnMut() -> f32,
+    ) -> (Vec2, f32) {
+        let root = node(0);
+        if root.factor == [0.0; 4] {
             let a = next_unit(rng);
             let b = next_unit(rng);
             return (
@@ -524,17 +585,16 @@ impl DTree {
                 1.0,
             );
         }
-        let mut idx = 0usize;
+        let mut n = root;
         let mut origin = [0.0f64; 2];
         let mut size = 1.0f64;
         let mut pdf = 1.0f32;
         loop {
-            let n = self.sample_node(idx);
-            let mut col = (unit_f32(rng) >= n.p_col0) as usize;
+            let mut col = (unit_f32(rng) >= n.p_col0()) as usize;
             if !(n.factor[col] > 0.0 || n.factor[col + 2] > 0.0) {
                 col ^= 1; // rounding guard: never pick a zero-mass column
             }
-            let mut row = (unit_f32(rng) >= n.p_row0[col]) as usize;
+            let mut row = (unit_f32(rng) >= n.p_row0(col)) as usize;
             if !(n.factor[col | (row << 1)] > 0.0) {
                 row ^= 1;
             }
@@ -550,7 +610,7 @@ impl DTree {
                 let v = to_f32_inside(origin[1] + r4 * size, origin[1], origin[1] + size);
                 return (Vec2::new(u, v), pdf);
             }
-            idx = c as usize;
+            n = node(c as usize);
         }
     }
 

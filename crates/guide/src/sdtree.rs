@@ -235,6 +235,13 @@ impl SdTree {
     /// record, only with [`SpatialFilter::Stochastic`]), so the renderer keeps determinism.
     /// See [`Record`] for the validity rules and the radiance convention.
     pub fn record(&self, rec: &Record, rng: &mut impl FnMut() -> f32) {
+        self.record_at(rec, &self.stree.lookup(rec.position), rng);
+    }
+
+    /// [`SdTree::record`] with the spatial leaf of `rec.position` already looked up: `at` must
+    /// be what [`SdTree::lookup`] returns for that position (renderers that sampled from the
+    /// guide at the vertex have it and save a lookup).
+    pub fn record_at(&self, rec: &Record, at: &SLookup, rng: &mut impl FnMut() -> f32) {
         let w = rec.weight as f64;
         let pm = rec.pdf_mix as f64;
         let valid = w > 0.0
@@ -257,11 +264,10 @@ impl SdTree {
         if ov || ow {
             self.overflow.fetch_add(1, Relaxed);
         }
-        let at = self.stree.lookup(rec.position);
         match self.config.spatial_filter {
             SpatialFilter::Nearest => self.deposit_leaf(at.leaf, uv, qv, qw, w, rec),
             SpatialFilter::Stochastic => {
-                let pj = stochastic_jitter(rec.position, &at, rng);
+                let pj = stochastic_jitter(rec.position, at, rng);
                 let leaf = self.stree.lookup(pj).leaf;
                 self.deposit_leaf(leaf, uv, qv, qw, w, rec);
             }
@@ -269,7 +275,7 @@ impl SdTree {
                 let (ov, vols, pv, pw) = BOX_SCRATCH.with(|sc| {
                     let mut sc = sc.borrow_mut();
                     let (ov, vols, pv, pw) = &mut *sc;
-                    spatial_box_overlaps(&self.stree, rec.position, &at, ov);
+                    spatial_box_overlaps(&self.stree, rec.position, at, ov);
                     vols.clear();
                     vols.extend(ov.iter().map(|o| o.1));
                     split_exact(qv, vols, pv);

@@ -28,7 +28,7 @@ impl SNode {
 }
 
 /// Result of a point lookup.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct SLookup {
     /// Payload index of the leaf.
     pub leaf: u32,

@@ -1483,3 +1483,33 @@ fn viz_rasterises_the_pdf_with_its_peak_brightest() {
         "cell corner outlined"
     );
 }
+
+#[test]
+fn leaf_slot_finds_the_same_cell_as_leaf_cell() {
+    // Deterministic identity (no significance level): the f32 walk used by recording and the
+    // f64 walk that also returns the cell's geometry agree on every point, including cell
+    // borders and the square's edges.
+    for (i, kind) in [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect]
+        .into_iter()
+        .enumerate()
+    {
+        let t = random_dtree(900 + i as u64, kind);
+        let mut r = Pcg::new(i as u64);
+        let mut points: Vec<Vec2> = (0..5000).map(|_| Vec2::new(r.f32(), r.f32())).collect();
+        for c in t.leaf_cells() {
+            let (o, s) = (c.origin, c.size);
+            points.push(Vec2::new(o[0] as f32, o[1] as f32));
+            points.push(Vec2::new((o[0] + s) as f32, (o[1] + 0.5 * s) as f32));
+        }
+        points.extend([
+            Vec2::ZERO,
+            Vec2::ONE,
+            Vec2::new(1.0, 0.0),
+            Vec2::new(-0.5, 2.0),
+        ]);
+        for uv in points {
+            let c = t.leaf_cell(uv);
+            assert_eq!(t.leaf_slot(uv), (c.node, c.quadrant as usize), "{uv:?}");
+        }
+    }
+}

@@ -31,7 +31,7 @@
 use glam::Vec3;
 use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::Bsdf;
-use pathfarm_guide::{LeafHandle, Record, SdTree};
+use pathfarm_guide::{LeafHandle, Record, SLookup, SdTree};
 
 use super::{camera_hit, depth_limit, mitsuba_survival};
 use crate::geometry::{spawn_ray, Ray};
@@ -84,6 +84,8 @@ pub fn mis_weight(a: f32, b: f32) -> f32 {
 /// Guide state at one vertex: the leaf, whether guiding applies, and alpha.
 #[derive(Clone, Copy, Debug)]
 pub struct VertexGuide {
+    /// The spatial leaf of the vertex (with its box, which recording reuses).
+    pub at: SLookup,
     pub leaf: LeafHandle,
     pub guided: bool,
     pub alpha: f32,
@@ -93,7 +95,8 @@ impl VertexGuide {
     /// Looks the leaf up once. Guiding applies with a smooth BSDF and a built tree.
     #[inline]
     pub fn at(tree: &SdTree, p: Vec3, smooth: bool) -> Self {
-        let leaf = tree.leaf_index(p);
+        let at = tree.lookup(p);
+        let leaf = LeafHandle(at.leaf);
         let guided = smooth && tree.is_built();
         let alpha = if guided {
             tree.bsdf_sampling_fraction_leaf(leaf)
@@ -101,9 +104,20 @@ impl VertexGuide {
             1.0
         };
         Self {
+            at,
             leaf,
             guided,
             alpha,
+        }
+    }
+
+    /// No guiding at this vertex (a BSDF without smooth components): the BSDF alone.
+    pub fn unguided() -> Self {
+        Self {
+            at: SLookup::default(),
+            leaf: LeafHandle(0),
+            guided: false,
+            alpha: 1.0,
         }
     }
 
@@ -270,6 +284,8 @@ fn finish(
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct RecVertex {
     pub position: Vec3,
+    /// The guide's spatial leaf at `position` (from the vertex's [`VertexGuide`]).
+    pub at: SLookup,
     pub direction: Vec3,
     /// Throughput including this bounce's `f cos / p_mix` (before Russian roulette).
     pub throughput: Vec3,
@@ -388,7 +404,7 @@ impl PathRecorder {
     /// Deposits every vertex into the tree's building statistics.
     pub fn commit(&self, tree: &SdTree, learn_fraction: bool, rng: &mut Rng) {
         for v in self.vertices() {
-            tree.record(&v.record(learn_fraction), &mut || rng.next_f32());
+            tree.record_at(&v.record(learn_fraction), &v.at, &mut || rng.next_f32());
         }
     }
 }
@@ -508,11 +524,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let vg = if flags.smooth {
             VertexGuide::at(tree, si.p, true)
         } else {
-            VertexGuide {
-                leaf: LeafHandle(0),
-                guided: false,
-                alpha: 1.0,
-            }
+            VertexGuide::unguided()
         };
 
         // Next-event estimation, weighted against the mixture pdf.
@@ -564,6 +576,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                 && (1.0 / ms.p_mix).is_finite()
                 && rec.push(RecVertex {
                     position: si.p,
+                    at: vg.at,
                     direction: ms.wo_world,
                     throughput,
                     fcos: ms.fcos,
@@ -688,9 +701,8 @@ mod tests {
         for bsdf in [diffuse, rough] {
             for alpha in [0.1f32, 0.5, 0.9] {
                 let vg = VertexGuide {
-                    leaf: tree.leaf_index(Vec3::ZERO),
-                    guided: true,
                     alpha,
+                    ..VertexGuide::at(&tree, Vec3::ZERO, true)
                 };
                 for _ in 0..2000 {
                     let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else {
@@ -724,9 +736,8 @@ mod tests {
         let wi = Vec3::new(0.2, 0.1, 0.97).normalize();
         for alpha in [0.1f32, 0.5] {
             let vg = VertexGuide {
-                leaf: tree.leaf_index(Vec3::ZERO),
-                guided: true,
                 alpha,
+                ..VertexGuide::at(&tree, Vec3::ZERO, true)
             };
             let mut rng = Rng::new(17, alpha.to_bits() as u64);
             let n = 200_000;
