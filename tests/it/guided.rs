@@ -1,10 +1,13 @@
 //! The `guided_path` integrator (SD-tree path guiding): unbiasedness, agreement
 //! with the path tracer, determinism, parameters and the CLI.
 
-use pathfarm_render::guided::{render_guided, Budget, GuidedStats, SdTree};
+use pathfarm_render::guided::{
+    render_guided, render_guided_with_policy, Budget, GuidedStats, GuidingVerdict, SdTree,
+};
 use pathfarm_render::{render, Film, RenderSettings, Scene};
 use pathfarm_scene::{
-    load_scene, GuidedCombination, GuidedFractionLoss, GuidedSpatialFilter, IntegratorDesc,
+    load_scene, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss,
+    GuidedSpatialFilter, IntegratorDesc,
 };
 
 use crate::common::*;
@@ -98,7 +101,7 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
         ),
         (
             "pathfarm-guided-roulette",
-            r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/></integrator>"#,
+            r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/><boolean name="path_fallback" value="false"/></integrator>"#,
             1024,
         ),
     ];
@@ -123,7 +126,7 @@ fn guided_roulette_keeps_the_white_furnace_mean_at_one_across_seeds() {
     // freedom at the two-sided 0.001 level (t = 4.781). Passed for seed bases 1000..5000;
     // a 1 % bias gives t = 12 (checked by testing against 1.01).
     const SEED_BASE: u64 = 1000;
-    let integ = r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/></integrator>"#;
+    let integ = r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/><boolean name="path_fallback" value="false"/></integrator>"#;
     let scene = load(&write_scene("furnace-seeds", &furnace(integ)), &[]);
     let means: Vec<f64> = (0..10u64)
         .map(|k| {
@@ -173,7 +176,9 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     let path_scene = load(&cornell_box_filter("path"), &defs);
     let mut gdefs = defs.to_vec();
     gdefs.push(("integrator", "guided_path"));
-    let guided_scene = load(&cornell_box_filter("guided"), &gdefs);
+    let mut guided_scene = load(&cornell_box_filter("guided"), &gdefs);
+    // guiding itself is under test: no fallback to path tracing
+    guided_scene.guided.as_mut().unwrap().path_fallback = false;
     let spp = 256;
     let reference = render(
         &path_scene,
@@ -183,12 +188,18 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     .0;
     let (film, stats, _) = guided(&guided_scene, spp, 2);
     assert_eq!(stats.spp, spp);
+    assert_agrees_with(&film, &reference, "guided");
+}
+
+/// Per pixel, |a - b| / sqrt(var_a + var_b) above the two-sided 0.001 quantile fails; at most
+/// 1 % of pixels may fail. Image means must agree within 4 standard errors.
+fn assert_agrees_with(a: &Film, b: &Film, what: &str) {
     let z = z_two_sided(0.001);
     let (mg, vg, mp, vp) = (
-        film.mean_rgb(),
-        film.variance_rgb(),
-        reference.mean_rgb(),
-        reference.variance_rgb(),
+        a.mean_rgb(),
+        a.variance_rgb(),
+        b.mean_rgb(),
+        b.variance_rgb(),
     );
     let mut fails = 0;
     let (mut dsum, mut vsum) = (0.0f64, 0.0f64);
@@ -206,13 +217,73 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     let n = mg.len() as f64;
     assert!(
         fails as f64 <= 0.01 * n,
-        "{fails} of {n} pixels disagree at the 0.001 level"
+        "{what}: {fails} of {n} pixels disagree at the 0.001 level"
     );
     assert!(
         dsum.abs() <= 4.0 * vsum.sqrt(),
-        "image means differ: sum of differences {dsum}, se {}",
+        "{what}: image means differ: sum of differences {dsum}, se {}",
         vsum.sqrt()
     );
+}
+
+#[test]
+fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
+    // The pathfarm preset with the fallback rule forced to "fall back" at the first check
+    // (after iteration 1): the rest of the 256-spp budget is plain path tracing, combined
+    // with the guided iterations by inverse variance. Same statistics as the guided/unguided
+    // agreement test (0.001 level per pixel, <= 1 % failing, means within 4 se). Forced
+    // "keep" never falls back. Both are deterministic across thread counts.
+    let defs = [("resx", "32"), ("resy", "32")];
+    let path_scene = load(&cornell_box_filter("path-fb"), &defs);
+    let mut gdefs = defs.to_vec();
+    gdefs.push(("integrator", "guided_path"));
+    let scene = load(&cornell_box_filter("guided-fb"), &gdefs);
+    let params = scene.guided.clone().expect("guided");
+    assert!(params.path_fallback, "on in the pathfarm preset");
+    let spp = 256;
+    let run = |verdict: GuidingVerdict, threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                render_guided_with_policy(
+                    &scene,
+                    &params,
+                    Budget::Spp(spp),
+                    &RenderSettings::new(Some(spp), None, 3),
+                    &|_| {},
+                    &|_| {},
+                    &|_, _| verdict,
+                )
+            })
+    };
+    let (film, stats, _) = run(GuidingVerdict::FallBack, 2);
+    assert_eq!(stats.path_fallback_after, Some(1), "{stats:?}");
+    assert_eq!(
+        stats.spp, spp,
+        "probes and the fallback stay within the budget"
+    );
+    let last = stats.iterations.last().unwrap();
+    assert!(!last.training && last.nodes == 0, "{last:?}");
+    assert!(
+        last.spp as u64 * 2 > spp as u64,
+        "most of the budget went to path tracing: {stats:?}"
+    );
+    let reference = render(
+        &path_scene,
+        &RenderSettings::new(Some(spp), None, 1),
+        &|_| {},
+    )
+    .0;
+    assert_agrees_with(&film, &reference, "fallback");
+    let (film1, _, _) = run(GuidingVerdict::FallBack, 1);
+    assert_eq!(film_bits(&film), film_bits(&film1), "thread count");
+
+    let (_, kept, _) = run(GuidingVerdict::Keep, 2);
+    assert_eq!(kept.path_fallback_after, None);
+    assert!(kept.iterations.iter().all(|i| i.nodes > 0 || i.index == 0));
+    assert_eq!(kept.spp, spp);
 }
 
 #[test]
@@ -265,6 +336,20 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
     assert_eq!(p.bsdf_sampling_fraction_loss, GuidedFractionLoss::Kl);
     assert_eq!(p.s_tree_threshold, 4000.0);
     assert_eq!(p.path.max_depth, 7);
+    assert!(
+        !p.path_fallback,
+        "the 2019 preset keeps the paper's behaviour"
+    );
+    let integ = r#"<integrator type="guided_path"><boolean name="path_fallback" value="false"/></integrator>"#;
+    let desc = load_scene(&write_scene("params-pf", &furnace(integ)), &[]).unwrap();
+    let IntegratorDesc::GuidedPath(p) = desc.integrator else {
+        panic!("not guided")
+    };
+    assert!(
+        !p.path_fallback,
+        "explicit value over the pathfarm preset's"
+    );
+    assert_eq!(p.directional_filter, GuidedDirectionalFilter::Nearest);
     for bad in [
         r#"<integrator type="guided_path"><float name="budgett" value="3"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,

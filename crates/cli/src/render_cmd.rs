@@ -178,10 +178,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
             );
             bar.suspend(|| {
                 tracing::info!(
-                    "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?}",
+                    "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?} \
+                     path_fallback={}",
                     gs.training_fraction,
                     gs.tree_memory_bytes as f64 / 1048576.0,
-                    gs.weights
+                    gs.weights,
+                    gs.path_fallback_after
+                        .map_or("no".to_string(), |k| format!("after_iteration_{k}"))
                 )
             });
             (

@@ -1513,3 +1513,33 @@ fn leaf_slot_finds_the_same_cell_as_leaf_cell() {
         }
     }
 }
+
+#[test]
+fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses() {
+    // Deterministic rule (no significance level).
+    use crate::schedule::{guiding_verdict as v, GuidingVerdict::*};
+    assert_eq!(v(&[], 1.0), Undecided);
+    assert_eq!(v(&[0.5], 1.0), Keep, "clearly better at the first check");
+    assert_eq!(v(&[3.0], 1.0), Undecided, "one loss is not enough");
+    assert_eq!(v(&[3.0, 1.3], 1.0), FallBack, "two clear losses in a row");
+    assert_eq!(v(&[3.0, 1.1], 1.0), Undecided, "a marginal loss waits");
+    assert_eq!(v(&[1.1, 3.0], 1.0), Undecided);
+    assert_eq!(v(&[1.1, 1.1, 1.1], 1.0), Undecided);
+    assert_eq!(
+        v(&[1.1, 1.1, 1.1, 1.2], 1.0),
+        Keep,
+        "last check: marginal keeps"
+    );
+    assert_eq!(
+        v(&[1.1, 1.1, 1.1, 1.3], 1.0),
+        FallBack,
+        "last check: clear loss"
+    );
+    assert_eq!(v(&[3.0, 0.79], 1.0), Keep);
+    // scale invariance: only the ratio to the path cost counts
+    assert_eq!(v(&[300.0, 130.0], 100.0), FallBack);
+    // no usable comparison: guiding stays (after the last check), never a fallback
+    assert_eq!(v(&[3.0, 3.0], 0.0), Undecided);
+    assert_eq!(v(&[3.0, 3.0, 3.0, 3.0], f64::NAN), Keep);
+    assert_eq!(v(&[f64::NAN, 3.0], 1.0), Undecided);
+}

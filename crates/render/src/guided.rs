@@ -23,6 +23,7 @@
 use std::time::{Duration, Instant};
 
 pub use pathfarm_guide::schedule::Budget;
+pub use pathfarm_guide::schedule::GuidingVerdict;
 use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome};
 pub use pathfarm_guide::SdTree;
 use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
@@ -40,6 +41,47 @@ use crate::scene::Scene;
 
 /// NEE "kickstart" does light sampling while fewer than this many spp have been rendered.
 pub const KICKSTART_SPP: u64 = 128;
+
+/// Random streams of the path fallback's unguided passes start at this sample index, apart
+/// from the guided passes' (which count up from 0).
+const PATH_STREAM: u64 = 1 << 40;
+
+/// Bookkeeping of the path fallback (`path_fallback`): while `enabled`, every training
+/// iteration that samples from a built tree is checked against an unguided probe.
+struct FallbackState {
+    enabled: bool,
+    /// Film of the unguided passes (probes, then the fallback's rendering).
+    path_film: Film,
+    path_seconds: f64,
+    path_rays: u64,
+    path_spp: u64,
+    /// Seconds of the current iteration's unrecorded first pass.
+    guided_pass_seconds: f64,
+    /// Efficiency costs of the checked guided iterations, oldest first.
+    guided_costs: Vec<f64>,
+    /// The training iteration after which the rest of the budget went to path tracing.
+    fell_back_after: Option<u32>,
+}
+
+impl FallbackState {
+    fn new(enabled: bool, width: u32, height: u32) -> Self {
+        Self {
+            enabled,
+            path_film: Film::new(width, height),
+            path_seconds: 0.0,
+            path_rays: 0,
+            path_spp: 0,
+            guided_pass_seconds: 0.0,
+            guided_costs: Vec::new(),
+            fell_back_after: None,
+        }
+    }
+
+    /// Whether an iteration sampling from `tree` is checked.
+    fn checks(&self, tree: &SdTree) -> bool {
+        self.enabled && self.fell_back_after.is_none() && tree.is_built()
+    }
+}
 
 /// One iteration of a guided render.
 #[derive(Clone, Debug)]
@@ -78,6 +120,9 @@ pub struct GuidedStats {
     pub wall: Duration,
     /// Camera samples that produced a non-finite value (counted as zero).
     pub invalid_samples: u64,
+    /// Path fallback: the training iteration after which the rest of the budget was rendered
+    /// as plain path tracing (guiding did not pay), if it happened.
+    pub path_fallback_after: Option<u32>,
 }
 
 /// The guide configuration of `params`.
@@ -143,6 +188,25 @@ pub fn film_variance(film: &Film) -> f64 {
         / (3 * v.len()) as f64
 }
 
+/// Relative variance of a film, as relMSE weighs errors: the mean over pixels of the
+/// per-pixel variance of the mean (mean over channels) divided by `e^2 + 0.01`, where `e` is
+/// the pixel's value estimate ([`pixel_estimate`]; the offset is the usual relMSE one). The
+/// path fallback compares guided and unguided sampling with it. 0 without an estimate.
+pub fn film_relative_variance(film: &Film, estimate: &[f32]) -> f64 {
+    if estimate.len() != film.pixels.len() || estimate.is_empty() {
+        return 0.0;
+    }
+    film.pixels
+        .iter()
+        .zip(estimate)
+        .map(|(p, &e)| {
+            let v = p.variance_of_mean();
+            (v[0] as f64 + v[1] as f64 + v[2] as f64) / 3.0 / (e as f64 * e as f64 + 1e-2)
+        })
+        .sum::<f64>()
+        / estimate.len() as f64
+}
+
 /// Weighted combination of films: per pixel, film k's sample weights are scaled by
 /// `weights[k] / sum_w_k`, so the mean is `sum_k weights[k] mean_k` and the variance
 /// sums of the merged samples give the combined variance.
@@ -193,6 +257,29 @@ pub fn render_guided_with(
     progress: &(dyn Fn(Progress) + Sync),
     on_iteration: &dyn Fn(&GuidedIteration),
 ) -> (Film, GuidedStats, SdTree) {
+    render_guided_with_policy(
+        scene,
+        params,
+        budget,
+        settings,
+        progress,
+        on_iteration,
+        &schedule::guiding_verdict,
+    )
+}
+
+/// [`render_guided_with`] with the path fallback's rule as a parameter (by default
+/// [`schedule::guiding_verdict`]), so that tests and experiments can force either outcome. It
+/// gets the efficiency costs of the checked guided iterations and path tracing's.
+pub fn render_guided_with_policy(
+    scene: &Scene,
+    params: &GuidedParams,
+    budget: Budget,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+    on_iteration: &dyn Fn(&GuidedIteration),
+    policy: &dyn Fn(&[f64], f64) -> GuidingVerdict,
+) -> (Film, GuidedStats, SdTree) {
     let cfg = guide_config(params, scene);
     let (lo, hi) = scene.accel.bounds();
     let mut tree = SdTree::new(lo, hi, cfg);
@@ -222,15 +309,20 @@ pub fn render_guided_with(
     let mut est_sum: Vec<f64> = Vec::new();
     let mut est_spp = 0u64;
     let mut estimate: Vec<f32> = Vec::new();
+    // Path fallback: the unguided probe's film, seconds and rays; the guided iterations'
+    // efficiency costs; the iteration after which the rest went to path tracing.
+    let mut fallback = FallbackState::new(params.path_fallback, scene.width, scene.height);
 
     // One pass of spp_per_pass samples into `film`.
     let rays_counter = std::sync::atomic::AtomicU64::new(0);
     let rays = &rays_counter;
     let render_pass = |tree: &SdTree,
                        estimate: &[f32],
+                       guide: bool,
                        record: bool,
                        film: &mut Film,
                        spp_done: u64,
+                       stream: u64,
                        invalid: &mut u64| {
         let nee = match params.nee {
             GuidedNee::Never => false,
@@ -239,12 +331,13 @@ pub fn render_guided_with(
         };
         let ctx = GuideCtx {
             tree,
+            guide,
             nee,
             indirect_only: params.nee == GuidedNee::Always,
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
             rays: Some(rays),
-            pixel_estimate: if roulette && tree.is_built() && !estimate.is_empty() {
+            pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
                 Some(estimate)
             } else {
                 None
@@ -274,7 +367,7 @@ pub fn render_guided_with(
                 samples_total: total.max(d),
             })
         };
-        let st = render_into(scene, &pass_settings, &prog, spp_done, film, &est);
+        let st = render_into(scene, &pass_settings, &prog, stream, film, &est);
         *invalid += st.invalid_samples;
     };
 
@@ -307,18 +400,27 @@ pub fn render_guided_with(
                     if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
                 _ => {
                     let tp = Instant::now();
+                    // The first pass of a training iteration checked by the path fallback is
+                    // not recorded: it times what a final, guided pass costs.
+                    let probe = passes == 0 && record && fallback.checks(&tree);
+                    let rec = record && !stopped && !probe;
                     render_pass(
                         &tree,
                         &estimate,
-                        record && !stopped,
+                        true,
+                        rec,
                         &mut film,
+                        spp_done,
                         spp_done,
                         &mut invalid,
                     );
-                    if record && !stopped {
+                    if rec {
                         tree.step_fractions();
                     }
                     last_pass = tp.elapsed().as_secs_f64();
+                    if probe {
+                        fallback.guided_pass_seconds = last_pass;
+                    }
                     passes += 1;
                     spp_done += spp_per_pass as u64;
                     continue;
@@ -373,7 +475,7 @@ pub fn render_guided_with(
             training,
         });
         on_iteration(iterations.last().unwrap());
-        if roulette {
+        if roulette || fallback.enabled {
             let spp = spp_done - spp_before;
             let means = film.mean_rgb();
             est_sum.resize(means.len(), 0.0);
@@ -383,19 +485,129 @@ pub fn render_guided_with(
             est_spp += spp;
             estimate = pixel_estimate(&est_sum, est_spp, scene.width, scene.height);
         }
+        let checked = training && fallback.checks(&tree);
         films.push(film);
         if !training {
             kept = Some(films.len() - 1);
             break;
         }
+        if checked {
+            // One unguided pass into the probe film, then compare per-sample efficiencies.
+            let r0 = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
+            let tp = Instant::now();
+            render_pass(
+                &tree,
+                &estimate,
+                false,
+                false,
+                &mut fallback.path_film,
+                spp_done + fallback.path_spp,
+                PATH_STREAM + fallback.path_spp,
+                &mut invalid,
+            );
+            fallback.path_seconds += tp.elapsed().as_secs_f64();
+            fallback.path_rays += rays_counter.load(std::sync::atomic::Ordering::Relaxed) - r0;
+            fallback.path_spp += spp_per_pass as u64;
+            passes_done += 1;
+            let it = iterations.last().unwrap();
+            let guided_variance = film_relative_variance(films.last().unwrap(), &estimate);
+            let guided_cost = match budget {
+                // per-sample variance x seconds per spp of an unrecorded pass
+                Budget::Seconds(_) => {
+                    guided_variance * it.spp as f64 * fallback.guided_pass_seconds
+                        / spp_per_pass as f64
+                }
+                // deterministic: per-sample variance x rays per spp
+                Budget::Spp(_) => guided_variance * it.rays_per_sample * it.spp as f64,
+            };
+            let path_variance = film_relative_variance(&fallback.path_film, &estimate);
+            let path_cost = match budget {
+                Budget::Seconds(_) => path_variance * fallback.path_seconds,
+                Budget::Spp(_) => path_variance * fallback.path_rays as f64 / npix.max(1) as f64,
+            };
+            fallback.guided_costs.push(guided_cost);
+            let verdict = policy(&fallback.guided_costs, path_cost);
+            tracing::info!(
+                "guiding check after iteration {k}: guided cost {guided_cost:.4e}, path cost \
+                 {path_cost:.4e} (ratio {:.3}): {verdict:?}",
+                guided_cost / path_cost
+            );
+            match verdict {
+                GuidingVerdict::Keep => fallback.enabled = false,
+                GuidingVerdict::FallBack => {
+                    fallback.fell_back_after = Some(k);
+                    break;
+                }
+                GuidingVerdict::Undecided => {}
+            }
+        }
         tree.refine(k);
         k += 1;
     }
 
+    // Path fallback: the rest of the budget is plain path tracing into the probe's film,
+    // which becomes the final iteration.
+    if let Some(after) = fallback.fell_back_after {
+        let t0 = Instant::now();
+        let r0 = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
+        let spp0 = fallback.path_spp;
+        let mut last_pass = 0.0f64;
+        loop {
+            let more = match budget {
+                Budget::Spp(s) => passes_done < schedule::total_passes(s, spp_per_pass),
+                Budget::Seconds(s) => start.elapsed().as_secs_f64() + 0.5 * last_pass < s,
+            };
+            if !more {
+                break;
+            }
+            let tp = Instant::now();
+            render_pass(
+                &tree,
+                &estimate,
+                false,
+                false,
+                &mut fallback.path_film,
+                spp_done + fallback.path_spp,
+                PATH_STREAM + fallback.path_spp,
+                &mut invalid,
+            );
+            last_pass = tp.elapsed().as_secs_f64();
+            fallback.path_spp += spp_per_pass as u64;
+            passes_done += 1;
+        }
+        let path_spp = fallback.path_spp;
+        spp_done += path_spp;
+        iterations.push(GuidedIteration {
+            index: after + 1,
+            spp: path_spp as u32,
+            nodes: 0,
+            leaves: 0,
+            variance: film_variance(&fallback.path_film),
+            seconds: t0.elapsed().as_secs_f64(),
+            rays_per_sample: (rays_counter.load(std::sync::atomic::Ordering::Relaxed) - r0) as f64
+                / ((path_spp - spp0) as f64 * npix as f64).max(1.0),
+            training: false,
+        });
+        on_iteration(iterations.last().unwrap());
+        films.push(std::mem::replace(
+            &mut fallback.path_film,
+            Film::new(scene.width, scene.height),
+        ));
+        kept = Some(films.len() - 1);
+    } else {
+        // probe passes count toward the total spp
+        spp_done += fallback.path_spp;
+    }
+
     let n = films.len();
     let weights = match params.sample_combination {
+        // An iteration of one sample per pixel has no usable variance estimate (with a box
+        // filter it is exactly 0, which would claim a perfect image): it gets weight 0.
         GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(
-            &iterations.iter().map(|i| i.variance).collect::<Vec<_>>(),
+            &iterations
+                .iter()
+                .map(|i| if i.spp < 2 { f64::INFINITY } else { i.variance })
+                .collect::<Vec<_>>(),
         ),
         _ => {
             let mut w = vec![0.0; n];
@@ -425,6 +637,7 @@ pub fn render_guided_with(
         weights,
         wall: start.elapsed(),
         invalid_samples: invalid,
+        path_fallback_after: fallback.fell_back_after,
     };
     (film, stats, tree)
 }

@@ -189,6 +189,10 @@ pub struct GuidedParams {
     pub bsdf_sampling_fraction_loss: GuidedFractionLoss,
     /// `russian_roulette`: "throughput" (Mitsuba's; 2017 and 2019 presets) | "guided".
     pub russian_roulette: GuidedRoulette,
+    /// `path_fallback`: while training, compare the efficiency (variance x cost per sample) of
+    /// guided sampling with an unguided probe and render the rest of the budget as plain path
+    /// tracing when guiding does not pay. false in the 2017 and 2019 presets, true in pathfarm's.
+    pub path_fallback: bool,
     /// `max_memory_mb`: approximate cap on the tree's memory (default none).
     pub max_memory_mb: Option<f64>,
     /// `max_nodes`: cap on the number of spatial nodes (default none).
@@ -212,6 +216,7 @@ impl GuidedParams {
             bsdf_sampling_fraction: 0.5,
             bsdf_sampling_fraction_loss: GuidedFractionLoss::None,
             russian_roulette: GuidedRoulette::Throughput,
+            path_fallback: false,
             max_memory_mb: None,
             max_nodes: None,
         }
@@ -232,12 +237,14 @@ impl GuidedParams {
     }
 
     /// pathfarm's default: the 2019 configuration with guided Russian roulette
-    /// ([`GuidedRoulette::Guided`]) and the nearest directional filter (with guided roulette
+    /// ([`GuidedRoulette::Guided`]), the fallback to path tracing where guiding does not pay
+    /// (`path_fallback`) and the nearest directional filter (with guided roulette
     /// the box filter gave no better guide on veach-ajar, final-iteration variance x rays
     /// 0.1225 vs 0.1255, while its splat was 13 % of a guided Cornell-box render).
     pub fn preset_pathfarm() -> Self {
         Self {
             russian_roulette: GuidedRoulette::Guided,
+            path_fallback: true,
             directional_filter: GuidedDirectionalFilter::Nearest,
             ..Self::preset_2019()
         }

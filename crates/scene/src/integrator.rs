@@ -160,6 +160,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
                 ("guided", GuidedRoulette::Guided),
             ],
         )?,
+        path_fallback: p.bool("path_fallback", d.path_fallback)?,
         nee: choice(
             p,
             "nee",

@@ -48,6 +48,9 @@ pub struct GuideCtx<'a> {
     /// The SD-tree: sample and pdf read its frozen sampling trees, records go to its
     /// building trees.
     pub tree: &'a SdTree,
+    /// Sample from the guide where it applies. false: plain path tracing (the unguided
+    /// probe of the path fallback); then `record` must be false too.
+    pub guide: bool,
     /// Light sampling (NEE) is done in this pass.
     pub nee: bool,
     /// NEE mode "always": vertices learn indirect light only.
@@ -332,43 +335,36 @@ impl RecVertex {
     }
 }
 
-/// Forward-loop suffix-radiance bookkeeping for one path.
-#[derive(Clone, Debug)]
+/// Forward-loop suffix-radiance bookkeeping for one path. Costs nothing until the first
+/// [`PathRecorder::push`] (paths that are not recorded never touch it).
+#[derive(Clone, Debug, Default)]
 pub struct PathRecorder {
-    v: [RecVertex; MAX_RECORDED_VERTICES],
-    n: usize,
+    /// The open vertices (at most [`MAX_RECORDED_VERTICES`]).
+    v: Vec<RecVertex>,
     /// The last pushed vertex is the path vertex whose sampled direction the next hit
     /// lies along.
     last_is_previous: bool,
 }
 
-impl Default for PathRecorder {
-    fn default() -> Self {
-        Self {
-            v: [RecVertex::default(); MAX_RECORDED_VERTICES],
-            n: 0,
-            last_is_previous: false,
-        }
-    }
-}
-
 impl PathRecorder {
     /// The open vertices.
     pub fn vertices(&self) -> &[RecVertex] {
-        &self.v[..self.n]
+        &self.v
     }
 
     /// Opens a vertex for the direction just sampled (false when full).
     pub fn push(&mut self, v: RecVertex) -> bool {
-        if self.n >= MAX_RECORDED_VERTICES {
+        if self.v.len() >= MAX_RECORDED_VERTICES {
             self.last_is_previous = false;
             return false;
         }
-        self.v[self.n] = RecVertex {
+        if self.v.capacity() == 0 {
+            self.v.reserve_exact(MAX_RECORDED_VERTICES);
+        }
+        self.v.push(RecVertex {
             acc: Vec3::ZERO,
             ..v
-        };
-        self.n += 1;
+        });
         self.last_is_previous = true;
         true
     }
@@ -381,7 +377,7 @@ impl PathRecorder {
     /// A contribution `c` added to the pixel (NEE, or emission with `indirect_only` false).
     #[inline]
     pub fn add(&mut self, c: Vec3) {
-        for v in &mut self.v[..self.n] {
+        for v in &mut self.v {
             v.acc += c;
         }
     }
@@ -392,9 +388,9 @@ impl PathRecorder {
     #[inline]
     pub fn add_emission(&mut self, c: Vec3, indirect_only: bool, prev_nee: bool) {
         let end = if indirect_only && prev_nee && self.last_is_previous {
-            self.n - 1
+            self.v.len() - 1
         } else {
-            self.n
+            self.v.len()
         };
         for v in &mut self.v[..end] {
             v.acc += c;
@@ -521,7 +517,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
         let wi = frame.to_local(-ray.d);
         let flags = bsdf.flags();
-        let vg = if flags.smooth {
+        let vg = if flags.smooth && g.guide {
             VertexGuide::at(tree, si.p, true)
         } else {
             VertexGuide::unguided()
