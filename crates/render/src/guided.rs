@@ -35,7 +35,7 @@ use pathfarm_scene::{
 use crate::film::Film;
 use crate::geometry::Ray;
 use crate::integrator::guided_path::{self, GuideCtx};
-use crate::render::{render_into, Progress, RenderSettings};
+use crate::render::{path_estimator, render_into, Progress, RenderSettings};
 use crate::rng::Rng;
 use crate::scene::Scene;
 
@@ -53,8 +53,11 @@ struct FallbackState {
     /// Film of the unguided passes (probes, then the fallback's rendering).
     path_film: Film,
     path_seconds: f64,
+    /// Rays of the probe passes.
     path_rays: u64,
+    /// Samples per pixel in `path_film`, and how many of them are probes.
     path_spp: u64,
+    probe_spp: u64,
     /// Seconds of the current iteration's unrecorded first pass.
     guided_pass_seconds: f64,
     /// Efficiency costs of the checked guided iterations, oldest first.
@@ -71,6 +74,7 @@ impl FallbackState {
             path_seconds: 0.0,
             path_rays: 0,
             path_spp: 0,
+            probe_spp: 0,
             guided_pass_seconds: 0.0,
             guided_costs: Vec::new(),
             fell_back_after: None,
@@ -508,6 +512,7 @@ pub fn render_guided_with_policy(
             fallback.path_seconds += tp.elapsed().as_secs_f64();
             fallback.path_rays += rays_counter.load(std::sync::atomic::Ordering::Relaxed) - r0;
             fallback.path_spp += spp_per_pass as u64;
+            fallback.probe_spp += spp_per_pass as u64;
             passes_done += 1;
             let it = iterations.last().unwrap();
             let guided_variance = film_relative_variance(films.last().unwrap(), &estimate);
@@ -549,8 +554,7 @@ pub fn render_guided_with_policy(
     // which becomes the final iteration.
     if let Some(after) = fallback.fell_back_after {
         let t0 = Instant::now();
-        let r0 = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
-        let spp0 = fallback.path_spp;
+        let path_est = path_estimator(scene);
         let mut last_pass = 0.0f64;
         loop {
             let more = match budget {
@@ -560,17 +564,33 @@ pub fn render_guided_with_policy(
             if !more {
                 break;
             }
+            // The path integrator itself (no guide bookkeeping), into the probes' film: both
+            // are unbiased path-tracing estimates (same NEE, MIS and roulette), on the next
+            // sample streams.
             let tp = Instant::now();
-            render_pass(
-                &tree,
-                &estimate,
-                false,
-                false,
-                &mut fallback.path_film,
-                spp_done + fallback.path_spp,
+            let base = (spp_done + fallback.path_spp) * npix;
+            let prog = |p: Progress| {
+                let d = base + p.samples_done;
+                let total = match budget {
+                    Budget::Spp(s) => s as u64 * npix,
+                    Budget::Seconds(s) => {
+                        (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
+                    }
+                };
+                progress(Progress {
+                    samples_done: d,
+                    samples_total: total.max(d),
+                })
+            };
+            let st = render_into(
+                scene,
+                &pass_settings,
+                &prog,
                 PATH_STREAM + fallback.path_spp,
-                &mut invalid,
+                &mut fallback.path_film,
+                &path_est,
             );
+            invalid += st.invalid_samples;
             last_pass = tp.elapsed().as_secs_f64();
             fallback.path_spp += spp_per_pass as u64;
             passes_done += 1;
@@ -584,8 +604,9 @@ pub fn render_guided_with_policy(
             leaves: 0,
             variance: film_variance(&fallback.path_film),
             seconds: t0.elapsed().as_secs_f64(),
-            rays_per_sample: (rays_counter.load(std::sync::atomic::Ordering::Relaxed) - r0) as f64
-                / ((path_spp - spp0) as f64 * npix as f64).max(1.0),
+            // measured on the probe passes (the path integrator does not count rays)
+            rays_per_sample: fallback.path_rays as f64
+                / (fallback.probe_spp as f64 * npix as f64).max(1.0),
             training: false,
         });
         on_iteration(iterations.last().unwrap());

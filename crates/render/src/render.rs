@@ -85,7 +85,21 @@ pub fn render(
     progress: &(dyn Fn(Progress) + Sync),
 ) -> (Film, RenderStats) {
     let mut film = Film::new(scene.width, scene.height);
-    let estimator = |ray: Ray, rng: &mut Rng, _pixel: usize| match (
+    let stats = render_into(
+        scene,
+        settings,
+        progress,
+        0,
+        &mut film,
+        &path_estimator(scene),
+    );
+    (film, stats)
+}
+
+/// The `path` integrator as a per-sample estimator for [`render_into`], specialised for the
+/// effects the scene has.
+pub fn path_estimator(scene: &Scene) -> impl Fn(Ray, &mut Rng, usize) -> glam::Vec3 + Sync + '_ {
+    move |ray: Ray, rng: &mut Rng, _pixel: usize| match (
         scene.features.environment,
         scene.features.analytic_shapes,
     ) {
@@ -93,9 +107,7 @@ pub fn render(
         (true, false) => path::li::<true, false>(scene, ray, rng),
         (false, true) => path::li::<false, true>(scene, ray, rng),
         (true, true) => path::li::<true, true>(scene, ray, rng),
-    };
-    let stats = render_into(scene, settings, progress, 0, &mut film, &estimator);
-    (film, stats)
+    }
 }
 
 /// The render loop of [`render`] with any per-sample estimator, accumulating
