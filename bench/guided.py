@@ -63,12 +63,13 @@ SCENES = {
 }
 CONFIGS = ["pf-path", "pf-2017", "pf-2019", "pf-pathfarm", "mi-path"]
 LABEL = {"pf-path": "pathfarm path", "pf-2017": "pathfarm guided 2017", "pf-2019": "pathfarm guided 2019",
-         "pf-pathfarm": "pathfarm guided (preset pathfarm = 2019 + guided RR)",
+         "pf-pathfarm": "pathfarm guided (preset pathfarm = 2019 + guided RR + path fallback)",
          "mi-path": "Mitsuba 3 path (llvm_ad_rgb)"}
 # Default plan: which configs per scene and budget (cornell-box only at the smallest budget).
 PLAN = {"veach-ajar": CONFIGS, "cornell-box": ["pf-path", "pf-2019", "pf-pathfarm", "mi-path"], "door-ajar": CONFIGS}
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 GUIDED_RE = re.compile(r"guided: training_fraction=([\d.eE+-]+) tree_memory_mb=([\d.eE+-]+) weights=\[([^\]]*)\]")
+FALLBACK_RE = re.compile(r"path_fallback=after_iteration_(\d+)")
 ITER_RE = re.compile(r"iteration (\d+): spp=(\d+) nodes=(\d+) leaves=(\d+) variance=([\d.eE+-]+|NaN|inf) time=([\d.]+)s")
 
 
@@ -159,6 +160,8 @@ def run_pathfarm(a, xml, res, md, out, tlimit, seed, integrator=None):
         r["iterations"] = [{"index": int(i), "spp": int(s), "nodes": int(n), "leaves": int(l),
                             "variance": float(v), "seconds": float(t)} for i, s, n, l, v, t in ITER_RE.findall(err)]
         r["final_spp"] = r["iterations"][-1]["spp"] if r["iterations"] else None
+        fb = FALLBACK_RE.search(err)
+        r["path_fallback"] = fb.group(1) if fb else "no"
     return r
 
 
@@ -266,11 +269,12 @@ def write_table(a):
              "door-ajar = `results/door-ajar-reference.exr` (Mitsuba path, 8192 spp). \"excl. edges\" excludes pixels within "
              "1 px of directly visible emitters (only cornell-box has any); the ratio vs Mitsuba uses that column. "
              "spp = total spp (guided: training + final), final = spp of the last iteration. "
-             "other CPU-s = CPU time of other processes during the run (should be ~0).",
+             "other CPU-s = CPU time of other processes during the run (should be ~0). "
+             "fallback = runs (of n) in which the path fallback rendered the rest as plain path tracing.",
              "",
              "| scene | budget CPU-s | renderer | relMSE | relMSE excl. edges | ratio vs Mitsuba path | spp (final) | CPU-s used | "
-             "training fraction | tree MB | n | other CPU-s (max) |",
-             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "training fraction | tree MB | fallback | n | other CPU-s (max) |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     meds = {}
     for k in keys:
         g = groups[k]
@@ -278,16 +282,18 @@ def write_table(a):
                                                  "training_fraction", "tree_memory_mb")}
         meds[k]["n"] = len(g)
         meds[k]["other"] = max(r.get("other_cpu_s", 0) or 0 for r in g)
+        fbs = [r for r in g if r.get("path_fallback", "no") != "no"]
+        meds[k]["fallback"] = ("%d" % len(fbs)) if "training_fraction" in g[0] else "-"
         meds[k]["all"] = [r["relmse_masked"] for r in g]
     for k in keys:
         m = meds[k]
         mi_ = meds.get((k[0], k[1], "mi-path"))
         ratio = m["relmse_masked"] / mi_["relmse_masked"] if mi_ and mi_["relmse_masked"] else None
         spp = fmt(m["spp"], "%d") + (" (%s)" % fmt(m["final_spp"], "%d") if m["final_spp"] is not None else "")
-        lines.append("| %s | %g | %s | %s | %s | %s | %s | %s | %s | %s | %d | %s |" % (
+        lines.append("| %s | %g | %s | %s | %s | %s | %s | %s | %s | %s | %s | %d | %s |" % (
             k[0], k[1], LABEL[k[2]], fmt(m["relmse"]), fmt(m["relmse_masked"]), fmt(ratio, "%.3f"), spp,
             fmt(m["cpu_s"], "%.1f"), fmt(m["training_fraction"], "%.3f"), fmt(m["tree_memory_mb"], "%.2f"),
-            m["n"], fmt(m["other"], "%.1f")))
+            m["fallback"], m["n"], fmt(m["other"], "%.1f")))
     lines += ["", "## Targets", ""]
     targets = [(b, gc, gl) for b in sorted({k[1] for k in keys})
                for gc, gl in (("pf-2019", "guided 2019"), ("pf-pathfarm", "guided pathfarm"))]
