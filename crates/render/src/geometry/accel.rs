@@ -5,8 +5,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use glam::{Vec2, Vec3, Vec3A};
+use obvhs::cwbvh::builder::build_cwbvh_from_tris;
 use obvhs::cwbvh::node::CwBvhNode;
-use obvhs::cwbvh::{builder::build_cwbvh_from_tris, CwBvh};
 use obvhs::ray::Ray as BRay;
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
@@ -24,7 +24,8 @@ pub enum ShapeGeom {
 }
 
 pub struct Accel {
-    bvh: CwBvh,
+    /// The CWBVH's nodes, decoded for traversal.
+    nodes: Vec<Node>,
     /// Triangles in BVH primitive order, for intersection in batches.
     tris: TriSoa,
     /// Shape, triangle within the shape and hit-independent shading data
@@ -68,8 +69,8 @@ impl Accel {
                 }
             }
         }
-        let (bvh, tris, prims) = if tris.is_empty() {
-            (CwBvh::default(), TriSoa::default(), Vec::new())
+        let (nodes, tris, prims) = if tris.is_empty() {
+            (Vec::new(), TriSoa::default(), Vec::new())
         } else {
             let bvh = build_cwbvh_from_tris(
                 &tris,
@@ -96,14 +97,14 @@ impl Accel {
                     }
                 })
                 .collect();
-            (bvh, ordered, prims)
+            (bvh.nodes.iter().map(Node::new).collect(), ordered, prims)
         };
         if lo.x > hi.x {
             lo = Vec3::ZERO;
             hi = Vec3::ZERO;
         }
         Self {
-            bvh,
+            nodes,
             tris,
             prims,
             analytic,
@@ -183,11 +184,11 @@ impl Accel {
         true
     }
 
-    /// Walks the CWBVH (obvhs' node layout and child ordering, as in its
-    /// `traverse!` macro) and returns the BVH index of the closest triangle
-    /// hit and the barycentrics of the hit, shortening `r.tmax` to its
-    /// distance, or with `ANY_HIT` of the first triangle found (barycentrics
-    /// unset); `u32::MAX` when nothing is hit.
+    /// Walks the BVH (obvhs' CWBVH topology and child ordering, as in its
+    /// `traverse!` macro, over the decoded [`Node`]s) and returns the BVH
+    /// index of the closest triangle hit and the barycentrics of the hit,
+    /// shortening `r.tmax` to its distance, or with `ANY_HIT` of the first
+    /// triangle found (barycentrics unset); `u32::MAX` when nothing is hit.
     ///
     /// Own loop rather than obvhs' macro: the primitives of all the leaves
     /// hit in a node (up to 24 consecutive BVH indices) are tested together,
@@ -198,6 +199,7 @@ impl Accel {
         /// obvhs' maximum CWBVH depth (checked by its validation).
         const STACK: usize = 32;
         let oct_inv4 = octant_inv4(r.direction);
+        let node_ray = NodeRay::new(r, oct_inv4);
         let mut stack = [(0u32, 0u32); STACK];
         let mut sp = 0usize;
         // (first child index, hit mask): internal children in the high
@@ -216,17 +218,14 @@ impl Accel {
                 }
                 let slot = (bit - 24) ^ (oct_inv4 & 0xff);
                 let relative = (hits & !(u32::MAX << slot)).count_ones();
-                let node = &self.bvh.nodes[(group.0 + relative) as usize];
-                let mask = intersect_node(node, r, oct_inv4);
-                group = (
-                    node.child_base_idx,
-                    (mask & 0xff00_0000) | node.imask as u32,
-                );
+                let node = &self.nodes[(group.0 + relative) as usize];
+                let mask = node.intersect(&node_ray, r.tmax);
+                group = (node.child_base, (mask & 0xff00_0000) | node.imask);
 
                 // Primitives of the hit leaves (bit j: BVH index base + j),
                 // by blocks of LANES, lowest first.
                 let mut prims = mask & 0x00ff_ffff;
-                let base = node.primitive_base_idx;
+                let base = node.prim_base;
                 while prims != 0 {
                     let j = prims.trailing_zeros();
                     let first = base + j;
@@ -283,60 +282,161 @@ impl Accel {
     }
 }
 
-/// Ray against the eight quantised child boxes of a CWBVH node: the hit mask
-/// in obvhs' encoding, as its `traverse!` uses it (internal children in the
-/// high byte by traversal priority, leaf primitives in the low 24 bits).
-///
-/// Same arithmetic as obvhs' `CwBvhNode::intersect_ray` (the box planes in
-/// the node's quantised grid, mul then add, the same `tmin` floor of 1e-4),
-/// but written over all eight children at once so that it compiles to 8-wide
-/// vector code instead of two 4-wide halves with per-lane scalar int->float
-/// conversions and a branch per child.
-#[inline(always)]
-fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
-    /// obvhs' lower bound on the entry distance of a box.
-    const EPSILON: f32 = 0.0001;
-    let scale = node.compute_extent() * ray.inv_direction;
-    let orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
-    // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up, one
-    // vmaxps (operands are finite: inv_direction is clamped by obvhs).
-    #[inline(always)]
-    fn max(a: f32, b: f32) -> f32 {
-        if a > b {
-            a
-        } else {
-            b
+/// A CWBVH node decoded for traversal: the child boxes in world space as
+/// f32 rows (no per-visit dequantisation) and each child's contribution to
+/// the hit mask precomputed. Same topology, slot order and indices as the
+/// obvhs node it comes from; 256 bytes.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Node {
+    /// Child boxes by axis, then min/max, then slot. Empty slots hold a
+    /// zero box (their `code` is 0, so a hit on it adds nothing).
+    bounds: [[[f32; 8]; 2]; 3],
+    /// Per slot, its bits of the hit mask before the ray's octant applies:
+    /// for a leaf its primitives (unary count shifted to its offset from
+    /// `prim_base`, obvhs' encoding), `0xff00_0000` for an internal child
+    /// (narrowed to its traversal-priority bit by [`NodeRay::order`]), 0
+    /// for an empty slot.
+    code: [u32; 8],
+    /// Index of the first internal child in `Accel::nodes`.
+    child_base: u32,
+    /// BVH index of the first leaf primitive.
+    prim_base: u32,
+    /// Bit per slot: the child is an internal node.
+    imask: u32,
+}
+
+impl Node {
+    fn new(n: &CwBvhNode) -> Self {
+        let e = n.compute_extent();
+        let q = [
+            [n.child_min_x, n.child_max_x],
+            [n.child_min_y, n.child_max_y],
+            [n.child_min_z, n.child_max_z],
+        ];
+        let mut bounds = [[[0.0f32; 8]; 2]; 3];
+        let mut code = [0u32; 8];
+        for slot in 0..8 {
+            let meta = n.child_meta[slot];
+            if meta == 0 {
+                continue;
+            }
+            code[slot] = if n.imask & (1 << slot) != 0 {
+                0xff00_0000
+            } else {
+                ((meta >> 5) as u32) << (meta & 0x1f)
+            };
+            for axis in 0..3 {
+                for side in 0..2 {
+                    // q * e is exact (e is a power of two).
+                    bounds[axis][side][slot] = n.p[axis] + q[axis][side][slot] as f32 * e[axis];
+                }
+            }
+        }
+        Self {
+            bounds,
+            code,
+            child_base: n.child_base_idx,
+            prim_base: n.primitive_base_idx,
+            imask: n.imask as u32,
         }
     }
+
+    /// Ray against the eight child boxes: the hit mask in obvhs' encoding,
+    /// as its `traverse!` uses it (internal children in the high byte by
+    /// traversal priority, leaf primitives in the low 24 bits). Boxes are
+    /// culled beyond `tmax` and before obvhs' floor of 1e-4.
+    ///
+    /// Written over all eight slots at once so that it compiles to 8-wide
+    /// vector code: per axis the near and far planes (chosen by the ray's
+    /// direction signs) by one FMA each, then the hit lanes' codes ORed.
     #[inline(always)]
-    fn min(a: f32, b: f32) -> f32 {
-        if a < b {
-            a
-        } else {
-            b
+    fn intersect(&self, ray: &NodeRay, tmax: f32) -> u32 {
+        /// obvhs' lower bound on the entry distance of a box.
+        const EPSILON: f32 = 0.0001;
+        // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up,
+        // one vmaxps (operands are finite: inv_dir is clamped by obvhs).
+        #[inline(always)]
+        fn max(a: f32, b: f32) -> f32 {
+            if a > b {
+                a
+            } else {
+                b
+            }
+        }
+        #[inline(always)]
+        fn min(a: f32, b: f32) -> f32 {
+            if a < b {
+                a
+            } else {
+                b
+            }
+        }
+        let [(bx, sx), (by, sy), (bz, sz)] = [0, 1, 2].map(|a| (&self.bounds[a], ray.near[a]));
+        let (nx, fx) = (&bx[sx], &bx[1 - sx]);
+        let (ny, fy) = (&by[sy], &by[1 - sy]);
+        let (nz, fz) = (&bz[sz], &bz[1 - sz]);
+        let (inv, org) = (ray.inv_dir, ray.neg_org_inv);
+        let mut hit_mask = 0u32;
+        for i in 0..8 {
+            let t0x = nx[i].mul_add(inv.x, org.x);
+            let t1x = fx[i].mul_add(inv.x, org.x);
+            let t0y = ny[i].mul_add(inv.y, org.y);
+            let t1y = fy[i].mul_add(inv.y, org.y);
+            let t0z = nz[i].mul_add(inv.z, org.z);
+            let t1z = fz[i].mul_add(inv.z, org.z);
+            let t0 = max(max(t0x, t0y), max(t0z, EPSILON));
+            let t1 = min(min(t1x, t1y), min(t1z, tmax));
+            let bits = self.code[i] & ray.order[i];
+            hit_mask |= if t0 <= t1 { bits } else { 0 };
+        }
+        hit_mask
+    }
+}
+
+/// For each ray octant code (`octant_inv4 & 7`), per slot the mask that
+/// narrows a node's `code` to the ray's bits: all leaf bits and, for an
+/// internal child in slot `s`, bit `24 + (s ^ octant)` (obvhs' traversal
+/// priority).
+static OCTANT_ORDER: [[u32; 8]; 8] = {
+    let mut table = [[0u32; 8]; 8];
+    let mut oct = 0;
+    while oct < 8 {
+        let mut s = 0;
+        while s < 8 {
+            table[oct][s] = 0x00ff_ffff | 1 << (24 + (s ^ oct));
+            s += 1;
+        }
+        oct += 1;
+    }
+    table
+};
+
+/// What [`Node::intersect`] needs of a ray, computed once per traversal.
+struct NodeRay {
+    inv_dir: Vec3A,
+    /// `-origin * inv_dir`: box planes become distances by one FMA.
+    neg_org_inv: Vec3A,
+    /// Per axis, which of a box's min (0) or max (1) plane is entered first.
+    near: [usize; 3],
+    /// The ray octant's row of [`OCTANT_ORDER`].
+    order: &'static [u32; 8],
+}
+
+impl NodeRay {
+    #[inline(always)]
+    fn new(r: &BRay, oct_inv4: u32) -> Self {
+        Self {
+            inv_dir: r.inv_direction,
+            neg_org_inv: -r.origin * r.inv_direction,
+            near: [
+                (r.inv_direction.x < 0.0) as usize,
+                (r.inv_direction.y < 0.0) as usize,
+                (r.inv_direction.z < 0.0) as usize,
+            ],
+            order: &OCTANT_ORDER[(oct_inv4 & 7) as usize],
         }
     }
-    // Per child: its bits of the hit mask (obvhs' child bits shifted to
-    // the child's bit index), kept if the ray hits its box.
-    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
-    let (child_bits, bit_index) = (child_bits8.to_le_bytes(), bit_index8.to_le_bytes());
-    // Slab distances of both planes per axis; near/far by min/max rather
-    // than by the direction's sign (the same values, and plain lane-wise
-    // code that vectorises the same way for every target CPU).
-    let mut hit_mask = 0u32;
-    for i in 0..8 {
-        let ax = node.child_min_x[i] as f32 * scale.x + orig.x;
-        let bx = node.child_max_x[i] as f32 * scale.x + orig.x;
-        let ay = node.child_min_y[i] as f32 * scale.y + orig.y;
-        let by = node.child_max_y[i] as f32 * scale.y + orig.y;
-        let az = node.child_min_z[i] as f32 * scale.z + orig.z;
-        let bz = node.child_max_z[i] as f32 * scale.z + orig.z;
-        let tmin = max(max(min(ax, bx), max(min(ay, by), min(az, bz))), EPSILON);
-        let tmax = min(min(max(ax, bx), min(max(ay, by), max(az, bz))), ray.tmax);
-        let bits = (child_bits[i] as u32) << bit_index[i];
-        hit_mask |= if tmin <= tmax { bits } else { 0 };
-    }
-    hit_mask
 }
 
 /// obvhs' ray octant code (which children come first), replicated per byte.
