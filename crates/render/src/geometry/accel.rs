@@ -7,7 +7,6 @@ use std::time::Duration;
 use glam::{Vec2, Vec3, Vec3A};
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
 use obvhs::cwbvh::node::CwBvhNode;
-use obvhs::ray::Ray as BRay;
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
@@ -122,11 +121,6 @@ impl Accel {
         &self.shapes[i as usize]
     }
 
-    #[inline]
-    fn bray(ray: &Ray) -> BRay {
-        BRay::new(Vec3A::from(ray.o), Vec3A::from(ray.d), ray.tmin, ray.tmax)
-    }
-
     /// Closest hit along the ray. `ANALYTIC` is false for scenes without
     /// analytic shapes, removing their test from the hot loop.
     #[inline]
@@ -134,7 +128,7 @@ impl Accel {
         let mut best: Option<Hit> = None;
         let mut tmax = ray.tmax;
         if !self.tris.is_empty() {
-            let mut r = Self::bray(ray);
+            let mut r = TraceRay::new(ray);
             let (prim, bary) = self.traverse::<false>(&mut r);
             if prim != u32::MAX {
                 let info = &self.prims[prim as usize];
@@ -171,7 +165,7 @@ impl Accel {
     /// True when nothing blocks the ray in (tmin, tmax).
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
-        if !self.tris.is_empty() && self.traverse::<true>(&mut Self::bray(ray)).0 != u32::MAX {
+        if !self.tris.is_empty() && self.traverse::<true>(&mut TraceRay::new(ray)).0 != u32::MAX {
             return false;
         }
         if ANALYTIC {
@@ -195,11 +189,9 @@ impl Accel {
     /// by aligned blocks of `LANES` (vector code, one bounds check per block),
     /// and the test's barycentrics are kept for shading.
     #[inline(always)]
-    fn traverse<const ANY_HIT: bool>(&self, r: &mut BRay) -> (u32, Vec2) {
+    fn traverse<const ANY_HIT: bool>(&self, r: &mut TraceRay) -> (u32, Vec2) {
         /// obvhs' maximum CWBVH depth (checked by its validation).
         const STACK: usize = 32;
-        let oct_inv4 = octant_inv4(r.direction);
-        let node_ray = NodeRay::new(r, oct_inv4);
         let mut stack = [(0u32, 0u32); STACK];
         let mut sp = 0usize;
         // (first child index, hit mask): internal children in the high
@@ -216,10 +208,10 @@ impl Accel {
                     stack[sp] = group;
                     sp += 1;
                 }
-                let slot = (bit - 24) ^ (oct_inv4 & 0xff);
+                let slot = (bit - 24) ^ r.oct;
                 let relative = (hits & !(u32::MAX << slot)).count_ones();
                 let node = &self.nodes[(group.0 + relative) as usize];
-                let mask = node.intersect(&node_ray, r.tmax);
+                let mask = node.intersect(r);
                 group = (node.child_base, (mask & 0xff00_0000) | node.imask);
 
                 // Primitives of the hit leaves (bit j: BVH index base + j),
@@ -295,7 +287,7 @@ struct Node {
     /// Per slot, its bits of the hit mask before the ray's octant applies:
     /// for a leaf its primitives (unary count shifted to its offset from
     /// `prim_base`, obvhs' encoding), `0xff00_0000` for an internal child
-    /// (narrowed to its traversal-priority bit by [`NodeRay::order`]), 0
+    /// (narrowed to its traversal-priority bit by [`TraceRay::order`]), 0
     /// for an empty slot.
     code: [u32; 8],
     /// Index of the first internal child in `Accel::nodes`.
@@ -348,14 +340,15 @@ impl Node {
     /// culled beyond `tmax` and before obvhs' floor of 1e-4.
     ///
     /// Written over all eight slots at once so that it compiles to 8-wide
-    /// vector code: per axis the near and far planes (chosen by the ray's
-    /// direction signs) by one FMA each, then the hit lanes' codes ORed.
+    /// vector code: per axis both planes' distances by one FMA each (near
+    /// and far by min/max: no per-ray plane selection, so the loads have
+    /// fixed offsets), then the hit lanes' codes ORed.
     #[inline(always)]
-    fn intersect(&self, ray: &NodeRay, tmax: f32) -> u32 {
+    fn intersect(&self, ray: &TraceRay) -> u32 {
         /// obvhs' lower bound on the entry distance of a box.
         const EPSILON: f32 = 0.0001;
         // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up,
-        // one vmaxps (operands are finite: inv_dir is clamped by obvhs).
+        // one vmaxps (operands are finite: inv_dir is clamped).
         #[inline(always)]
         fn max(a: f32, b: f32) -> f32 {
             if a > b {
@@ -372,21 +365,18 @@ impl Node {
                 b
             }
         }
-        let [(bx, sx), (by, sy), (bz, sz)] = [0, 1, 2].map(|a| (&self.bounds[a], ray.near[a]));
-        let (nx, fx) = (&bx[sx], &bx[1 - sx]);
-        let (ny, fy) = (&by[sy], &by[1 - sy]);
-        let (nz, fz) = (&bz[sz], &bz[1 - sz]);
+        let [[lx, hx], [ly, hy], [lz, hz]] = &self.bounds;
         let (inv, org) = (ray.inv_dir, ray.neg_org_inv);
         let mut hit_mask = 0u32;
         for i in 0..8 {
-            let t0x = nx[i].mul_add(inv.x, org.x);
-            let t1x = fx[i].mul_add(inv.x, org.x);
-            let t0y = ny[i].mul_add(inv.y, org.y);
-            let t1y = fy[i].mul_add(inv.y, org.y);
-            let t0z = nz[i].mul_add(inv.z, org.z);
-            let t1z = fz[i].mul_add(inv.z, org.z);
+            let (ax, bx) = (lx[i].mul_add(inv.x, org.x), hx[i].mul_add(inv.x, org.x));
+            let (ay, by) = (ly[i].mul_add(inv.y, org.y), hy[i].mul_add(inv.y, org.y));
+            let (az, bz) = (lz[i].mul_add(inv.z, org.z), hz[i].mul_add(inv.z, org.z));
+            let (t0x, t1x) = (min(ax, bx), max(ax, bx));
+            let (t0y, t1y) = (min(ay, by), max(ay, by));
+            let (t0z, t1z) = (min(az, bz), max(az, bz));
             let t0 = max(max(t0x, t0y), max(t0z, EPSILON));
-            let t1 = min(min(t1x, t1y), min(t1z, tmax));
+            let t1 = min(min(t1x, t1y), min(t1z, ray.tmax));
             let bits = self.code[i] & ray.order[i];
             hit_mask |= if t0 <= t1 { bits } else { 0 };
         }
@@ -394,7 +384,7 @@ impl Node {
     }
 }
 
-/// For each ray octant code (`octant_inv4 & 7`), per slot the mask that
+/// For each ray octant code ([`TraceRay::oct`]), per slot the mask that
 /// narrows a node's `code` to the ray's bits: all leaf bits and, for an
 /// internal child in slot `s`, bit `24 + (s ^ octant)` (obvhs' traversal
 /// priority).
@@ -412,39 +402,48 @@ static OCTANT_ORDER: [[u32; 8]; 8] = {
     table
 };
 
-/// What [`Node::intersect`] needs of a ray, computed once per traversal.
-struct NodeRay {
+/// A ray as the traversal uses it, with what the node and triangle tests
+/// need precomputed once per ray.
+struct TraceRay {
+    origin: Vec3A,
+    direction: Vec3A,
+    /// 1 / direction, clamped to +-2^23 where a component's magnitude is at
+    /// most f32::EPSILON (obvhs' `safe_inverse`; keeps box distances finite).
     inv_dir: Vec3A,
     /// `-origin * inv_dir`: box planes become distances by one FMA.
     neg_org_inv: Vec3A,
-    /// Per axis, which of a box's min (0) or max (1) plane is entered first.
-    near: [usize; 3],
-    /// The ray octant's row of [`OCTANT_ORDER`].
+    tmin: f32,
+    /// End of the ray; shortened to the closest hit found so far.
+    tmax: f32,
+    /// obvhs' ray octant code (its `oct_inv4` byte): 4, 2, 1 for a
+    /// non-negative x, y, z direction.
+    oct: u32,
+    /// The octant's row of [`OCTANT_ORDER`].
     order: &'static [u32; 8],
 }
 
-impl NodeRay {
+impl TraceRay {
     #[inline(always)]
-    fn new(r: &BRay, oct_inv4: u32) -> Self {
+    fn new(ray: &Ray) -> Self {
+        let direction = Vec3A::from(ray.d);
+        let tiny = direction.abs().cmple(Vec3A::splat(f32::EPSILON));
+        let clamped = Vec3A::splat(1.0 / f32::EPSILON).copysign(direction);
+        let inv_dir = Vec3A::select(tiny, clamped, Vec3A::ONE / direction);
+        let origin = Vec3A::from(ray.o);
+        // Bits x, y, z of the non-negative components, reversed.
+        let pos = !direction.cmplt(Vec3A::ZERO).bitmask();
+        let oct = (pos & 1) << 2 | (pos & 2) | (pos >> 2 & 1);
         Self {
-            inv_dir: r.inv_direction,
-            neg_org_inv: -r.origin * r.inv_direction,
-            near: [
-                (r.inv_direction.x < 0.0) as usize,
-                (r.inv_direction.y < 0.0) as usize,
-                (r.inv_direction.z < 0.0) as usize,
-            ],
-            order: &OCTANT_ORDER[(oct_inv4 & 7) as usize],
+            origin,
+            direction,
+            inv_dir,
+            neg_org_inv: -origin * inv_dir,
+            tmin: ray.tmin,
+            tmax: ray.tmax,
+            oct,
+            order: &OCTANT_ORDER[oct as usize],
         }
     }
-}
-
-/// obvhs' ray octant code (which children come first), replicated per byte.
-#[inline(always)]
-fn octant_inv4(d: Vec3A) -> u32 {
-    (if d.x < 0.0 { 0 } else { 0x0404_0404 })
-        | (if d.y < 0.0 { 0 } else { 0x0202_0202 })
-        | (if d.z < 0.0 { 0 } else { 0x0101_0101 })
 }
 
 /// A BVH primitive: its triangle and what shading needs of it.
@@ -500,7 +499,7 @@ impl TriSoa {
     /// Trumbore on its edge layout, the same sign-bit inside test), written
     /// across lanes so that it compiles to vector code.
     #[inline(always)]
-    fn intersect_block(&self, block: usize, lanes: u32, r: &BRay) -> (u32, [[f32; LANES]; 3]) {
+    fn intersect_block(&self, block: usize, lanes: u32, r: &TraceRay) -> (u32, [[f32; LANES]; 3]) {
         let b = &self.blocks[block].0;
         let ld = |k: usize| &b[k];
         let (v0x, v0y, v0z) = (ld(0), ld(1), ld(2));
