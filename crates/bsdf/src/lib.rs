@@ -123,9 +123,17 @@ pub use roughdielectric::RoughDielectric;
 pub use roughplastic::{RoughPlastic, RoughPlasticTable};
 pub use thindielectric::ThinDielectric;
 
+/// True when every value is finite, branch-free: `x - x` is 0 for a finite
+/// `x` and NaN for an infinity or NaN, and a NaN makes the sum NaN (chained
+/// `is_finite` tests compile to a compare and branch per value).
+#[inline]
+pub(crate) fn all_finite<const N: usize>(values: [f32; N]) -> bool {
+    values.iter().fold(0.0f32, |acc, &x| acc + (x - x)) == 0.0
+}
+
 #[inline]
 pub(crate) fn finite_or_zero(v: Vec3) -> Vec3 {
-    if v.is_finite() {
+    if all_finite(v.to_array()) {
         v
     } else {
         Vec3::ZERO
@@ -169,11 +177,10 @@ impl Bsdf<'_> {
     /// the direction. `None` means no valid sample (the path is absorbed).
     pub fn sample(&self, wi: Vec3, u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
         let s = dispatch!(self, b => b.sample(wi, u_lobe, u))?;
-        if s.weight.is_finite()
-            && s.pdf.is_finite()
+        let (w, wo) = (s.weight, s.wo);
+        if all_finite([w.x, w.y, w.z, s.pdf, wo.x, wo.y, wo.z])
             && s.pdf > 0.0
-            && s.wo.is_finite()
-            && s.weight.max_element() > 0.0
+            && w.max_element() > 0.0
         {
             Some(s)
         } else {

@@ -460,3 +460,18 @@ fn no_model_produces_nan_or_infinity_anywhere() {
         }
     }
 }
+
+#[test]
+fn all_finite_rejects_nan_and_infinities() {
+    assert!(crate::all_finite([
+        0.0,
+        -1.0,
+        f32::MAX,
+        f32::MIN_POSITIVE,
+        -0.0
+    ]));
+    for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+        assert!(!crate::all_finite([1.0, bad, 2.0]));
+        assert!(!crate::all_finite([bad]));
+    }
+}

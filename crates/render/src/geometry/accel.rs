@@ -5,9 +5,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use glam::{Vec2, Vec3, Vec3A};
+use obvhs::cwbvh::builder::build_cwbvh_from_tris;
 use obvhs::cwbvh::node::CwBvhNode;
-use obvhs::cwbvh::{builder::build_cwbvh_from_tris, CwBvh};
-use obvhs::ray::Ray as BRay;
 use obvhs::rt_triangle::RtTriangle;
 use obvhs::triangle::Triangle;
 use obvhs::BvhBuildParams;
@@ -24,7 +23,8 @@ pub enum ShapeGeom {
 }
 
 pub struct Accel {
-    bvh: CwBvh,
+    /// The CWBVH's nodes, decoded for traversal.
+    nodes: Vec<Node>,
     /// Triangles in BVH primitive order, for intersection in batches.
     tris: TriSoa,
     /// Shape, triangle within the shape and hit-independent shading data
@@ -68,8 +68,8 @@ impl Accel {
                 }
             }
         }
-        let (bvh, tris, prims) = if tris.is_empty() {
-            (CwBvh::default(), TriSoa::default(), Vec::new())
+        let (nodes, tris, prims) = if tris.is_empty() {
+            (Vec::new(), TriSoa::default(), Vec::new())
         } else {
             let bvh = build_cwbvh_from_tris(
                 &tris,
@@ -96,14 +96,14 @@ impl Accel {
                     }
                 })
                 .collect();
-            (bvh, ordered, prims)
+            (bvh.nodes.iter().map(Node::new).collect(), ordered, prims)
         };
         if lo.x > hi.x {
             lo = Vec3::ZERO;
             hi = Vec3::ZERO;
         }
         Self {
-            bvh,
+            nodes,
             tris,
             prims,
             analytic,
@@ -121,11 +121,6 @@ impl Accel {
         &self.shapes[i as usize]
     }
 
-    #[inline]
-    fn bray(ray: &Ray) -> BRay {
-        BRay::new(Vec3A::from(ray.o), Vec3A::from(ray.d), ray.tmin, ray.tmax)
-    }
-
     /// Closest hit along the ray. `ANALYTIC` is false for scenes without
     /// analytic shapes, removing their test from the hot loop.
     #[inline]
@@ -133,7 +128,7 @@ impl Accel {
         let mut best: Option<Hit> = None;
         let mut tmax = ray.tmax;
         if !self.tris.is_empty() {
-            let mut r = Self::bray(ray);
+            let mut r = TraceRay::new(ray);
             let (prim, bary) = self.traverse::<false>(&mut r);
             if prim != u32::MAX {
                 let info = &self.prims[prim as usize];
@@ -170,7 +165,7 @@ impl Accel {
     /// True when nothing blocks the ray in (tmin, tmax).
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
-        if !self.tris.is_empty() && self.traverse::<true>(&mut Self::bray(ray)).0 != u32::MAX {
+        if !self.tris.is_empty() && self.traverse::<true>(&mut TraceRay::new(ray)).0 != u32::MAX {
             return false;
         }
         if ANALYTIC {
@@ -183,21 +178,20 @@ impl Accel {
         true
     }
 
-    /// Walks the CWBVH (obvhs' node layout and child ordering, as in its
-    /// `traverse!` macro) and returns the BVH index of the closest triangle
-    /// hit and the barycentrics of the hit, shortening `r.tmax` to its
-    /// distance, or with `ANY_HIT` of the first triangle found (barycentrics
-    /// unset); `u32::MAX` when nothing is hit.
+    /// Walks the BVH (obvhs' CWBVH topology and child ordering, as in its
+    /// `traverse!` macro, over the decoded [`Node`]s) and returns the BVH
+    /// index of the closest triangle hit and the barycentrics of the hit,
+    /// shortening `r.tmax` to its distance, or with `ANY_HIT` of the first
+    /// triangle found (barycentrics unset); `u32::MAX` when nothing is hit.
     ///
     /// Own loop rather than obvhs' macro: the primitives of all the leaves
     /// hit in a node (up to 24 consecutive BVH indices) are tested together,
     /// by aligned blocks of `LANES` (vector code, one bounds check per block),
     /// and the test's barycentrics are kept for shading.
     #[inline(always)]
-    fn traverse<const ANY_HIT: bool>(&self, r: &mut BRay) -> (u32, Vec2) {
+    fn traverse<const ANY_HIT: bool>(&self, r: &mut TraceRay) -> (u32, Vec2) {
         /// obvhs' maximum CWBVH depth (checked by its validation).
         const STACK: usize = 32;
-        let oct_inv4 = octant_inv4(r.direction);
         let mut stack = [(0u32, 0u32); STACK];
         let mut sp = 0usize;
         // (first child index, hit mask): internal children in the high
@@ -214,19 +208,16 @@ impl Accel {
                     stack[sp] = group;
                     sp += 1;
                 }
-                let slot = (bit - 24) ^ (oct_inv4 & 0xff);
+                let slot = (bit - 24) ^ r.oct;
                 let relative = (hits & !(u32::MAX << slot)).count_ones();
-                let node = &self.bvh.nodes[(group.0 + relative) as usize];
-                let mask = intersect_node(node, r, oct_inv4);
-                group = (
-                    node.child_base_idx,
-                    (mask & 0xff00_0000) | node.imask as u32,
-                );
+                let node = &self.nodes[(group.0 + relative) as usize];
+                let mask = node.intersect(r);
+                group = (node.child_base, (mask & 0xff00_0000) | node.imask);
 
                 // Primitives of the hit leaves (bit j: BVH index base + j),
                 // by blocks of LANES, lowest first.
                 let mut prims = mask & 0x00ff_ffff;
-                let base = node.primitive_base_idx;
+                let base = node.prim_base;
                 while prims != 0 {
                     let j = prims.trailing_zeros();
                     let first = base + j;
@@ -283,68 +274,176 @@ impl Accel {
     }
 }
 
-/// Ray against the eight quantised child boxes of a CWBVH node: the hit mask
-/// in obvhs' encoding, as its `traverse!` uses it (internal children in the
-/// high byte by traversal priority, leaf primitives in the low 24 bits).
-///
-/// Same arithmetic as obvhs' `CwBvhNode::intersect_ray` (the box planes in
-/// the node's quantised grid, mul then add, the same `tmin` floor of 1e-4),
-/// but written over all eight children at once so that it compiles to 8-wide
-/// vector code instead of two 4-wide halves with per-lane scalar int->float
-/// conversions and a branch per child.
-#[inline(always)]
-fn intersect_node(node: &CwBvhNode, ray: &BRay, oct_inv4: u32) -> u32 {
-    /// obvhs' lower bound on the entry distance of a box.
-    const EPSILON: f32 = 0.0001;
-    let scale = node.compute_extent() * ray.inv_direction;
-    let orig = (Vec3A::from(node.p) - ray.origin) * ray.inv_direction;
-    // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up, one
-    // vmaxps (operands are finite: inv_direction is clamped by obvhs).
-    #[inline(always)]
-    fn max(a: f32, b: f32) -> f32 {
-        if a > b {
-            a
-        } else {
-            b
-        }
-    }
-    #[inline(always)]
-    fn min(a: f32, b: f32) -> f32 {
-        if a < b {
-            a
-        } else {
-            b
-        }
-    }
-    // Per child: its bits of the hit mask (obvhs' child bits shifted to
-    // the child's bit index), kept if the ray hits its box.
-    let (child_bits8, bit_index8) = node.get_child_and_index_bits(oct_inv4);
-    let (child_bits, bit_index) = (child_bits8.to_le_bytes(), bit_index8.to_le_bytes());
-    // Slab distances of both planes per axis; near/far by min/max rather
-    // than by the direction's sign (the same values, and plain lane-wise
-    // code that vectorises the same way for every target CPU).
-    let mut hit_mask = 0u32;
-    for i in 0..8 {
-        let ax = node.child_min_x[i] as f32 * scale.x + orig.x;
-        let bx = node.child_max_x[i] as f32 * scale.x + orig.x;
-        let ay = node.child_min_y[i] as f32 * scale.y + orig.y;
-        let by = node.child_max_y[i] as f32 * scale.y + orig.y;
-        let az = node.child_min_z[i] as f32 * scale.z + orig.z;
-        let bz = node.child_max_z[i] as f32 * scale.z + orig.z;
-        let tmin = max(max(min(ax, bx), max(min(ay, by), min(az, bz))), EPSILON);
-        let tmax = min(min(max(ax, bx), min(max(ay, by), max(az, bz))), ray.tmax);
-        let bits = (child_bits[i] as u32) << bit_index[i];
-        hit_mask |= if tmin <= tmax { bits } else { 0 };
-    }
-    hit_mask
+/// A CWBVH node decoded for traversal: the child boxes in world space as
+/// f32 rows (no per-visit dequantisation) and each child's contribution to
+/// the hit mask precomputed. Same topology, slot order and indices as the
+/// obvhs node it comes from; 256 bytes.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Node {
+    /// Child boxes by axis, then min/max, then slot. Empty slots hold a
+    /// zero box (their `code` is 0, so a hit on it adds nothing).
+    bounds: [[[f32; 8]; 2]; 3],
+    /// Per slot, its bits of the hit mask before the ray's octant applies:
+    /// for a leaf its primitives (unary count shifted to its offset from
+    /// `prim_base`, obvhs' encoding), `0xff00_0000` for an internal child
+    /// (narrowed to its traversal-priority bit by [`TraceRay::order`]), 0
+    /// for an empty slot.
+    code: [u32; 8],
+    /// Index of the first internal child in `Accel::nodes`.
+    child_base: u32,
+    /// BVH index of the first leaf primitive.
+    prim_base: u32,
+    /// Bit per slot: the child is an internal node.
+    imask: u32,
 }
 
-/// obvhs' ray octant code (which children come first), replicated per byte.
-#[inline(always)]
-fn octant_inv4(d: Vec3A) -> u32 {
-    (if d.x < 0.0 { 0 } else { 0x0404_0404 })
-        | (if d.y < 0.0 { 0 } else { 0x0202_0202 })
-        | (if d.z < 0.0 { 0 } else { 0x0101_0101 })
+impl Node {
+    fn new(n: &CwBvhNode) -> Self {
+        let e = n.compute_extent();
+        let q = [
+            [n.child_min_x, n.child_max_x],
+            [n.child_min_y, n.child_max_y],
+            [n.child_min_z, n.child_max_z],
+        ];
+        let mut bounds = [[[0.0f32; 8]; 2]; 3];
+        let mut code = [0u32; 8];
+        for slot in 0..8 {
+            let meta = n.child_meta[slot];
+            if meta == 0 {
+                continue;
+            }
+            code[slot] = if n.imask & (1 << slot) != 0 {
+                0xff00_0000
+            } else {
+                ((meta >> 5) as u32) << (meta & 0x1f)
+            };
+            for axis in 0..3 {
+                for side in 0..2 {
+                    // q * e is exact (e is a power of two).
+                    bounds[axis][side][slot] = n.p[axis] + q[axis][side][slot] as f32 * e[axis];
+                }
+            }
+        }
+        Self {
+            bounds,
+            code,
+            child_base: n.child_base_idx,
+            prim_base: n.primitive_base_idx,
+            imask: n.imask as u32,
+        }
+    }
+
+    /// Ray against the eight child boxes: the hit mask in obvhs' encoding,
+    /// as its `traverse!` uses it (internal children in the high byte by
+    /// traversal priority, leaf primitives in the low 24 bits). Boxes are
+    /// culled beyond `tmax` and before obvhs' floor of 1e-4.
+    ///
+    /// Written over all eight slots at once so that it compiles to 8-wide
+    /// vector code: per axis both planes' distances by one FMA each (near
+    /// and far by min/max: no per-ray plane selection, so the loads have
+    /// fixed offsets), then the hit lanes' codes ORed.
+    #[inline(always)]
+    fn intersect(&self, ray: &TraceRay) -> u32 {
+        /// obvhs' lower bound on the entry distance of a box.
+        const EPSILON: f32 = 0.0001;
+        // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up,
+        // one vmaxps (operands are finite: inv_dir is clamped).
+        #[inline(always)]
+        fn max(a: f32, b: f32) -> f32 {
+            if a > b {
+                a
+            } else {
+                b
+            }
+        }
+        #[inline(always)]
+        fn min(a: f32, b: f32) -> f32 {
+            if a < b {
+                a
+            } else {
+                b
+            }
+        }
+        let [[lx, hx], [ly, hy], [lz, hz]] = &self.bounds;
+        let (inv, org) = (ray.inv_dir, ray.neg_org_inv);
+        let mut hit_mask = 0u32;
+        for i in 0..8 {
+            let (ax, bx) = (lx[i].mul_add(inv.x, org.x), hx[i].mul_add(inv.x, org.x));
+            let (ay, by) = (ly[i].mul_add(inv.y, org.y), hy[i].mul_add(inv.y, org.y));
+            let (az, bz) = (lz[i].mul_add(inv.z, org.z), hz[i].mul_add(inv.z, org.z));
+            let (t0x, t1x) = (min(ax, bx), max(ax, bx));
+            let (t0y, t1y) = (min(ay, by), max(ay, by));
+            let (t0z, t1z) = (min(az, bz), max(az, bz));
+            let t0 = max(max(t0x, t0y), max(t0z, EPSILON));
+            let t1 = min(min(t1x, t1y), min(t1z, ray.tmax));
+            let bits = self.code[i] & ray.order[i];
+            hit_mask |= if t0 <= t1 { bits } else { 0 };
+        }
+        hit_mask
+    }
+}
+
+/// For each ray octant code ([`TraceRay::oct`]), per slot the mask that
+/// narrows a node's `code` to the ray's bits: all leaf bits and, for an
+/// internal child in slot `s`, bit `24 + (s ^ octant)` (obvhs' traversal
+/// priority).
+static OCTANT_ORDER: [[u32; 8]; 8] = {
+    let mut table = [[0u32; 8]; 8];
+    let mut oct = 0;
+    while oct < 8 {
+        let mut s = 0;
+        while s < 8 {
+            table[oct][s] = 0x00ff_ffff | 1 << (24 + (s ^ oct));
+            s += 1;
+        }
+        oct += 1;
+    }
+    table
+};
+
+/// A ray as the traversal uses it, with what the node and triangle tests
+/// need precomputed once per ray.
+struct TraceRay {
+    origin: Vec3A,
+    direction: Vec3A,
+    /// 1 / direction, clamped to +-2^23 where a component's magnitude is at
+    /// most f32::EPSILON (obvhs' `safe_inverse`; keeps box distances finite).
+    inv_dir: Vec3A,
+    /// `-origin * inv_dir`: box planes become distances by one FMA.
+    neg_org_inv: Vec3A,
+    tmin: f32,
+    /// End of the ray; shortened to the closest hit found so far.
+    tmax: f32,
+    /// obvhs' ray octant code (its `oct_inv4` byte): 4, 2, 1 for a
+    /// non-negative x, y, z direction.
+    oct: u32,
+    /// The octant's row of [`OCTANT_ORDER`].
+    order: &'static [u32; 8],
+}
+
+impl TraceRay {
+    #[inline(always)]
+    fn new(ray: &Ray) -> Self {
+        let direction = Vec3A::from(ray.d);
+        let tiny = direction.abs().cmple(Vec3A::splat(f32::EPSILON));
+        let clamped = Vec3A::splat(1.0 / f32::EPSILON).copysign(direction);
+        let inv_dir = Vec3A::select(tiny, clamped, Vec3A::ONE / direction);
+        let origin = Vec3A::from(ray.o);
+        // Bits x, y, z of the non-negative components, reversed.
+        let pos = !direction.cmplt(Vec3A::ZERO).bitmask();
+        let oct = (pos & 1) << 2 | (pos & 2) | (pos >> 2 & 1);
+        Self {
+            origin,
+            direction,
+            inv_dir,
+            neg_org_inv: -origin * inv_dir,
+            tmin: ray.tmin,
+            tmax: ray.tmax,
+            oct,
+            order: &OCTANT_ORDER[oct as usize],
+        }
+    }
 }
 
 /// A BVH primitive: its triangle and what shading needs of it.
@@ -400,7 +499,7 @@ impl TriSoa {
     /// Trumbore on its edge layout, the same sign-bit inside test), written
     /// across lanes so that it compiles to vector code.
     #[inline(always)]
-    fn intersect_block(&self, block: usize, lanes: u32, r: &BRay) -> (u32, [[f32; LANES]; 3]) {
+    fn intersect_block(&self, block: usize, lanes: u32, r: &TraceRay) -> (u32, [[f32; LANES]; 3]) {
         let b = &self.blocks[block].0;
         let ld = |k: usize| &b[k];
         let (v0x, v0y, v0z) = (ld(0), ld(1), ld(2));
