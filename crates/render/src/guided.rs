@@ -555,19 +555,28 @@ pub fn render_guided_with_policy(
     if let Some(after) = fallback.fell_back_after {
         let t0 = Instant::now();
         let path_est = path_estimator(scene);
-        let mut last_pass = 0.0f64;
-        loop {
-            let more = match budget {
-                Budget::Spp(s) => passes_done < schedule::total_passes(s, spp_per_pass),
-                Budget::Seconds(s) => start.elapsed().as_secs_f64() + 0.5 * last_pass < s,
-            };
-            if !more {
-                break;
+        // The path integrator itself (no guide bookkeeping), into the probes' film: both are
+        // unbiased path-tracing estimates (same NEE, MIS and roulette), on the next sample
+        // streams. One render call for the rest of the budget, so that the renderer sizes
+        // its passes (about a second each) instead of paying per-pass costs every spp.
+        let rest = match budget {
+            Budget::Spp(s) => {
+                let passes = schedule::total_passes(s, spp_per_pass).saturating_sub(passes_done);
+                RenderSettings {
+                    spp: Some(passes * spp_per_pass),
+                    time_limit: None,
+                    ..pass_settings.clone()
+                }
             }
-            // The path integrator itself (no guide bookkeeping), into the probes' film: both
-            // are unbiased path-tracing estimates (same NEE, MIS and roulette), on the next
-            // sample streams.
-            let tp = Instant::now();
+            Budget::Seconds(s) => RenderSettings {
+                spp: None,
+                time_limit: Some(Duration::from_secs_f64(
+                    (s - start.elapsed().as_secs_f64()).max(0.0),
+                )),
+                ..pass_settings.clone()
+            },
+        };
+        if rest.spp != Some(0) && rest.time_limit != Some(Duration::ZERO) {
             let base = (spp_done + fallback.path_spp) * npix;
             let prog = |p: Progress| {
                 let d = base + p.samples_done;
@@ -584,16 +593,14 @@ pub fn render_guided_with_policy(
             };
             let st = render_into(
                 scene,
-                &pass_settings,
+                &rest,
                 &prog,
                 PATH_STREAM + fallback.path_spp,
                 &mut fallback.path_film,
                 &path_est,
             );
             invalid += st.invalid_samples;
-            last_pass = tp.elapsed().as_secs_f64();
-            fallback.path_spp += spp_per_pass as u64;
-            passes_done += 1;
+            fallback.path_spp += st.spp as u64;
         }
         let path_spp = fallback.path_spp;
         spp_done += path_spp;
