@@ -165,6 +165,17 @@ fn cornell_box_filter(integrator: &str) -> std::path::PathBuf {
     write_scene(&format!("cornell-{integrator}"), &xml)
 }
 
+/// The box-filtered Cornell box at 32x32 as (`path` scene, `guided_path` scene); `tag` keeps
+/// the temp files of different tests apart.
+fn cornell_box_pair(tag: &str) -> (Scene, Scene) {
+    let defs = [("resx", "32"), ("resy", "32")];
+    let path_scene = load(&cornell_box_filter(&format!("path{tag}")), &defs);
+    let mut gdefs = defs.to_vec();
+    gdefs.push(("integrator", "guided_path"));
+    let guided_scene = load(&cornell_box_filter(&format!("guided{tag}")), &gdefs);
+    (path_scene, guided_scene)
+}
+
 #[test]
 fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     // Per pixel, |guided - path| / sqrt(var_g + var_p) above the two-sided 0.001 quantile
@@ -172,11 +183,7 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     // estimates are somewhat heavy-tailed, so low-spp variance estimates run small: seeds
     // 2-12 gave 3-9 failing pixels of 1024 at 256 spp, 8-15 at 128). Image means must agree
     // within 4 standard errors.
-    let defs = [("resx", "32"), ("resy", "32")];
-    let path_scene = load(&cornell_box_filter("path"), &defs);
-    let mut gdefs = defs.to_vec();
-    gdefs.push(("integrator", "guided_path"));
-    let mut guided_scene = load(&cornell_box_filter("guided"), &gdefs);
+    let (path_scene, mut guided_scene) = cornell_box_pair("");
     // guiding itself is under test: no fallback to path tracing
     guided_scene.guided.as_mut().unwrap().path_fallback = false;
     let spp = 256;
@@ -233,11 +240,7 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
     // with the guided iterations by inverse variance. Same statistics as the guided/unguided
     // agreement test (0.001 level per pixel, <= 1 % failing, means within 4 se). Forced
     // "keep" never falls back. Both are deterministic across thread counts.
-    let defs = [("resx", "32"), ("resy", "32")];
-    let path_scene = load(&cornell_box_filter("path-fb"), &defs);
-    let mut gdefs = defs.to_vec();
-    gdefs.push(("integrator", "guided_path"));
-    let scene = load(&cornell_box_filter("guided-fb"), &gdefs);
+    let (path_scene, scene) = cornell_box_pair("-fb");
     let params = scene.guided.clone().expect("guided");
     assert!(params.path_fallback, "on in the pathfarm preset");
     let spp = 256;

@@ -127,6 +127,7 @@ pub use thindielectric::ThinDielectric;
 /// `x` and NaN for an infinity or NaN, and a NaN makes the sum NaN (chained
 /// `is_finite` tests compile to a compare and branch per value).
 #[inline]
+#[allow(clippy::eq_op)] // `x - x` on purpose, see above
 pub(crate) fn all_finite<const N: usize>(values: [f32; N]) -> bool {
     values.iter().fold(0.0f32, |acc, &x| acc + (x - x)) == 0.0
 }

@@ -274,7 +274,11 @@ fn scatter(a: ScatterArgs) -> Result<()> {
     let si = scene.accel.interaction(&ray, &hit);
     let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
     let wi = frame.to_local(-ray.d);
-    let guide = VertexGuide::at(&tree, si.p, bsdf.flags().smooth);
+    let guide = if bsdf.flags().smooth {
+        VertexGuide::at(&tree, si.p)
+    } else {
+        VertexGuide::unguided()
+    };
     let mut rng = Rng::new(7, 11);
     let mut from_bsdf = Vec::new();
     let mut from_mixture = Vec::new();

@@ -329,57 +329,49 @@ impl DTree {
         self.total_fixed() == 0
     }
 
-    /// Finds the leaf cell containing `uv` (coordinates clamped to `[0, 1]`).
-    pub fn leaf_cell(&self, uv: Vec2) -> Cell {
-        let mut x = (uv.x as f64).clamp(0.0, 1.0);
-        let mut y = (uv.y as f64).clamp(0.0, 1.0);
-        let mut idx = 0u32;
-        let mut origin = [0.0f64; 2];
-        let mut size = 1.0f64;
-        let mut depth = 1u32;
-        loop {
+    /// The `(node, quadrant)` pairs from the root down to the leaf cell containing `uv`
+    /// (coordinates clamped to `[0, 1]`). Exact in f32: each level doubles and subtracts 0 or 1.
+    #[inline]
+    fn descend(&self, uv: Vec2) -> impl Iterator<Item = (u32, usize)> + '_ {
+        let mut x = uv.x.clamp(0.0, 1.0);
+        let mut y = uv.y.clamp(0.0, 1.0);
+        let mut next = Some(0u32);
+        std::iter::from_fn(move || {
+            let idx = next?;
             let bu = (x >= 0.5) as usize;
             let bv = (y >= 0.5) as usize;
             let q = bu | (bv << 1);
-            x = x * 2.0 - bu as f64;
-            y = y * 2.0 - bv as f64;
+            x = x * 2.0 - bu as f32;
+            y = y * 2.0 - bv as f32;
             let c = self.nodes[idx as usize].children[q];
-            if c == 0 {
-                return Cell {
-                    node: idx,
-                    quadrant: q as u8,
-                    depth,
-                    origin: quadrant_origin(origin, size, q),
-                    size: size * 0.5,
-                };
-            }
+            next = (c != 0).then_some(c);
+            Some((idx, q))
+        })
+    }
+
+    /// Finds the leaf cell containing `uv` (coordinates clamped to `[0, 1]`).
+    pub fn leaf_cell(&self, uv: Vec2) -> Cell {
+        let (mut origin, mut size, mut depth, mut last) = ([0.0f64; 2], 1.0f64, 0u32, (0, 0));
+        for (node, q) in self.descend(uv) {
             origin = quadrant_origin(origin, size, q);
             size *= 0.5;
-            idx = c;
             depth += 1;
+            last = (node, q);
+        }
+        Cell {
+            node: last.0,
+            quadrant: last.1 as u8,
+            depth,
+            origin,
+            size,
         }
     }
 
     /// The leaf cell containing `uv` as (owning node, quadrant): [`DTree::leaf_cell`] without the
-    /// cell's geometry. The walk is exact in f32 (doubling and subtracting 0 or 1), so it finds
-    /// the same cell.
+    /// cell's geometry.
     #[inline]
     pub fn leaf_slot(&self, uv: Vec2) -> (u32, usize) {
-        let mut x = uv.x.clamp(0.0, 1.0);
-        let mut y = uv.y.clamp(0.0, 1.0);
-        let mut idx = 0u32;
-        loop {
-            let bu = (x >= 0.5) as usize;
-            let bv = (y >= 0.5) as usize;
-            let q = bu | (bv << 1);
-            let c = self.nodes[idx as usize].children[q];
-            if c == 0 {
-                return (idx, q);
-            }
-            x = x * 2.0 - bu as f32;
-            y = y * 2.0 - bv as f32;
-            idx = c;
-        }
+        self.descend(uv).last().unwrap_or((0, 0))
     }
 
     /// Adds `amount` (fixed point) to the leaf cell containing `uv` (thread safe).

@@ -27,7 +27,7 @@ pub fn dir_to_uv(d: Vec3) -> Vec2 {
         phi += std::f32::consts::TAU;
     }
     let v = phi * (1.0 / std::f32::consts::TAU);
-    Vec2::new(u, if v >= 0.0 && v < 1.0 { v } else { 0.0 })
+    Vec2::new(u, if (0.0..1.0).contains(&v) { v } else { 0.0 })
 }
 
 /// `atan2(y, x)` in f32 for finite arguments, in `[-pi, pi]`: a degree-15 odd minimax-fitted

@@ -1486,9 +1486,9 @@ fn viz_rasterises_the_pdf_with_its_peak_brightest() {
 
 #[test]
 fn leaf_slot_finds_the_same_cell_as_leaf_cell() {
-    // Deterministic identity (no significance level): the f32 walk used by recording and the
-    // f64 walk that also returns the cell's geometry agree on every point, including cell
-    // borders and the square's edges.
+    // Deterministic identity (no significance level): the cell recording deposits into and the
+    // cell with its geometry agree on every point, including cell borders and the square's
+    // edges.
     for (i, kind) in [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect]
         .into_iter()
         .enumerate()

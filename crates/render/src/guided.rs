@@ -32,6 +32,7 @@ use pathfarm_scene::{
     GuidedParams, GuidedRoulette, GuidedSpatialFilter,
 };
 
+use crate::counter::ShardedCounter;
 use crate::film::Film;
 use crate::geometry::Ray;
 use crate::integrator::guided_path::{self, GuideCtx};
@@ -81,9 +82,10 @@ impl FallbackState {
         }
     }
 
-    /// Whether an iteration sampling from `tree` is checked.
+    /// Whether an iteration sampling from `tree` is checked (the render loop ends at a
+    /// fallback, so `enabled` covers the rest).
     fn checks(&self, tree: &SdTree) -> bool {
-        self.enabled && self.fell_back_after.is_none() && tree.is_built()
+        self.enabled && tree.is_built()
     }
 }
 
@@ -317,8 +319,26 @@ pub fn render_guided_with_policy(
     // efficiency costs; the iteration after which the rest went to path tracing.
     let mut fallback = FallbackState::new(params.path_fallback, scene.width, scene.height);
 
+    // Progress of a render call that starts after `spp_before` spp of the whole budget.
+    let overall_progress = |spp_before: u64| {
+        let base = spp_before * npix;
+        move |p: Progress| {
+            let d = base + p.samples_done;
+            let total = match budget {
+                Budget::Spp(s) => s as u64 * npix,
+                Budget::Seconds(s) => {
+                    (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
+                }
+            };
+            progress(Progress {
+                samples_done: d,
+                samples_total: total.max(d),
+            })
+        }
+    };
+
     // One pass of spp_per_pass samples into `film`.
-    let rays_counter = std::sync::atomic::AtomicU64::new(0);
+    let rays_counter = ShardedCounter::new();
     let rays = &rays_counter;
     let render_pass = |tree: &SdTree,
                        estimate: &[f32],
@@ -357,21 +377,14 @@ pub fn render_guided_with_policy(
             (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng, pixel),
             (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng, pixel),
         };
-        let base = spp_done * npix;
-        let prog = |p: Progress| {
-            let d = base + p.samples_done;
-            let total = match budget {
-                Budget::Spp(s) => s as u64 * npix,
-                Budget::Seconds(s) => {
-                    (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
-                }
-            };
-            progress(Progress {
-                samples_done: d,
-                samples_total: total.max(d),
-            })
-        };
-        let st = render_into(scene, &pass_settings, &prog, stream, film, &est);
+        let st = render_into(
+            scene,
+            &pass_settings,
+            &overall_progress(spp_done),
+            stream,
+            film,
+            &est,
+        );
         *invalid += st.invalid_samples;
     };
 
@@ -390,7 +403,7 @@ pub fn render_guided_with_policy(
         let record = !plan.is_last;
         let stats_before = tree.stats();
         let t0 = Instant::now();
-        let rays_before = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
+        let rays_before = rays_counter.total();
         let spp_before = spp_done;
         let mut film = Film::new(scene.width, scene.height);
         let mut passes = 0u32;
@@ -473,8 +486,7 @@ pub fn render_guided_with_policy(
             leaves: stats_before.leaves,
             variance,
             seconds: secs,
-            rays_per_sample: (rays_counter.load(std::sync::atomic::Ordering::Relaxed) - rays_before)
-                as f64
+            rays_per_sample: (rays_counter.total() - rays_before) as f64
                 / ((spp_done - spp_before) as f64 * npix as f64).max(1.0),
             training,
         });
@@ -497,7 +509,7 @@ pub fn render_guided_with_policy(
         }
         if checked {
             // One unguided pass into the probe film, then compare per-sample efficiencies.
-            let r0 = rays_counter.load(std::sync::atomic::Ordering::Relaxed);
+            let r0 = rays_counter.total();
             let tp = Instant::now();
             render_pass(
                 &tree,
@@ -510,7 +522,7 @@ pub fn render_guided_with_policy(
                 &mut invalid,
             );
             fallback.path_seconds += tp.elapsed().as_secs_f64();
-            fallback.path_rays += rays_counter.load(std::sync::atomic::Ordering::Relaxed) - r0;
+            fallback.path_rays += rays_counter.total() - r0;
             fallback.path_spp += spp_per_pass as u64;
             fallback.probe_spp += spp_per_pass as u64;
             passes_done += 1;
@@ -577,24 +589,10 @@ pub fn render_guided_with_policy(
             },
         };
         if rest.spp != Some(0) && rest.time_limit != Some(Duration::ZERO) {
-            let base = (spp_done + fallback.path_spp) * npix;
-            let prog = |p: Progress| {
-                let d = base + p.samples_done;
-                let total = match budget {
-                    Budget::Spp(s) => s as u64 * npix,
-                    Budget::Seconds(s) => {
-                        (d as f64 * s / start.elapsed().as_secs_f64().max(1e-3)) as u64
-                    }
-                };
-                progress(Progress {
-                    samples_done: d,
-                    samples_total: total.max(d),
-                })
-            };
             let st = render_into(
                 scene,
                 &rest,
-                &prog,
+                &overall_progress(spp_done + fallback.path_spp),
                 PATH_STREAM + fallback.path_spp,
                 &mut fallback.path_film,
                 &path_est,

@@ -34,6 +34,7 @@ use pathfarm_bsdf::Bsdf;
 use pathfarm_guide::{LeafHandle, Record, SLookup, SdTree};
 
 use super::{camera_hit, depth_limit, mitsuba_survival};
+use crate::counter::ShardedCounter;
 use crate::geometry::{spawn_ray, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
@@ -63,8 +64,8 @@ pub struct GuideCtx<'a> {
     /// Guided Russian roulette: each pixel's estimated value (index `y * width + x`), from
     /// the previous iterations. `None`: Mitsuba's throughput-based roulette everywhere.
     pub pixel_estimate: Option<&'a [f32]>,
-    /// Counts the rays traced (camera, continuation and shadow rays), one atomic add per path.
-    pub rays: Option<&'a std::sync::atomic::AtomicU64>,
+    /// Counts the rays traced (camera, continuation and shadow rays), one add per path.
+    pub rays: Option<&'a ShardedCounter>,
 }
 
 /// The mixture pdf `alpha p_bsdf + (1 - alpha) p_guide` (just `p_bsdf` when unguided).
@@ -89,36 +90,35 @@ pub fn mis_weight(a: f32, b: f32) -> f32 {
 pub struct VertexGuide {
     /// The spatial leaf of the vertex (with its box, which recording reuses).
     pub at: SLookup,
-    pub leaf: LeafHandle,
     pub guided: bool,
     pub alpha: f32,
 }
 
 impl VertexGuide {
-    /// Looks the leaf up once. Guiding applies with a smooth BSDF and a built tree.
+    /// Looks the leaf up once, at a vertex with a smooth BSDF. Guiding applies once the tree
+    /// is built.
     #[inline]
-    pub fn at(tree: &SdTree, p: Vec3, smooth: bool) -> Self {
+    pub fn at(tree: &SdTree, p: Vec3) -> Self {
         let at = tree.lookup(p);
-        let leaf = LeafHandle(at.leaf);
-        let guided = smooth && tree.is_built();
+        let guided = tree.is_built();
         let alpha = if guided {
-            tree.bsdf_sampling_fraction_leaf(leaf)
+            tree.bsdf_sampling_fraction_leaf(LeafHandle(at.leaf))
         } else {
             1.0
         };
-        Self {
-            at,
-            leaf,
-            guided,
-            alpha,
-        }
+        Self { at, guided, alpha }
+    }
+
+    /// The vertex's spatial leaf.
+    #[inline]
+    pub fn leaf(&self) -> LeafHandle {
+        LeafHandle(self.at.leaf)
     }
 
     /// No guiding at this vertex (a BSDF without smooth components): the BSDF alone.
     pub fn unguided() -> Self {
         Self {
             at: SLookup::default(),
-            leaf: LeafHandle(0),
             guided: false,
             alpha: 1.0,
         }
@@ -137,7 +137,7 @@ impl VertexGuide {
     ) -> (f32, f32, f32) {
         let p_bsdf = bsdf.pdf(wi, wo);
         let p_guide = if self.guided {
-            tree.pdf_leaf(self.leaf, wo_world)
+            tree.pdf_leaf(self.leaf(), wo_world)
         } else {
             0.0
         };
@@ -231,12 +231,12 @@ pub fn sample_mixture(
         // A non-delta BSDF sample carries its own pdf and f cos / pdf (the bsdf crate's
         // tests check that they equal `pdf` and `eval / pdf`), so only the guide's pdf is new.
         let fcos = bs.weight * bs.pdf;
-        let p_guide = tree.pdf_leaf(g.leaf, wo_world);
+        let p_guide = tree.pdf_leaf(g.leaf(), wo_world);
         let p_mix = mixture_pdf(true, g.alpha, bs.pdf, p_guide);
         finish(bs.wo, wo_world, fcos, p_mix, bs.pdf, p_guide, bs.eta)
     } else {
         // The guide's sampler returns the same pdf `pdf_leaf` gives for that direction.
-        let (wo_world, p_guide) = tree.sample_leaf(g.leaf, &mut || rng.next_f32())?;
+        let (wo_world, p_guide) = tree.sample_leaf(g.leaf(), &mut || rng.next_f32())?;
         let wo = frame.to_local(wo_world);
         let fcos = bsdf.eval(wi, wo);
         let p_bsdf = bsdf.pdf(wi, wo);
@@ -470,7 +470,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     let mut rays = 1u64;
     let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
         if let Some(c) = g.rays {
-            c.fetch_add(rays, std::sync::atomic::Ordering::Relaxed);
+            c.add(rays);
         }
         return Vec3::ZERO;
     };
@@ -518,7 +518,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let wi = frame.to_local(-ray.d);
         let flags = bsdf.flags();
         let vg = if flags.smooth && g.guide {
-            VertexGuide::at(tree, si.p, true)
+            VertexGuide::at(tree, si.p)
         } else {
             VertexGuide::unguided()
         };
@@ -599,7 +599,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
             let q = match g.pixel_estimate {
                 Some(est) if vg.guided && !ms.delta => {
                     let l = tree.incident_radiance_leaf(
-                        vg.leaf,
+                        vg.leaf(),
                         ROULETTE_DIRECTIONAL * ms.p_guide
                             + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
                     );
@@ -625,7 +625,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         rec.commit(tree, learn_fraction, rng);
     }
     if let Some(c) = g.rays {
-        c.fetch_add(rays, std::sync::atomic::Ordering::Relaxed);
+        c.add(rays);
     }
     result
 }
@@ -698,7 +698,7 @@ mod tests {
             for alpha in [0.1f32, 0.5, 0.9] {
                 let vg = VertexGuide {
                     alpha,
-                    ..VertexGuide::at(&tree, Vec3::ZERO, true)
+                    ..VertexGuide::at(&tree, Vec3::ZERO)
                 };
                 for _ in 0..2000 {
                     let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else {
@@ -733,7 +733,7 @@ mod tests {
         for alpha in [0.1f32, 0.5] {
             let vg = VertexGuide {
                 alpha,
-                ..VertexGuide::at(&tree, Vec3::ZERO, true)
+                ..VertexGuide::at(&tree, Vec3::ZERO)
             };
             let mut rng = Rng::new(17, alpha.to_bits() as u64);
             let n = 200_000;
