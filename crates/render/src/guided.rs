@@ -360,6 +360,7 @@ pub fn render_guided_with_policy(
             indirect_only: params.nee == GuidedNee::Always,
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
+            ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
             rays: Some(rays),
             pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
                 Some(estimate)

@@ -113,6 +113,11 @@ pub enum GuidedNee {
 pub enum GuidedRoulette {
     /// Mitsuba's: survival `min(max(throughput) eta^2, 0.95)` from `rr_depth` on.
     Throughput,
+    /// Müller's reference implementation ([G] in `ppg-algorithm.md`), from `rr_depth` on at
+    /// vertices with a smooth BSDF whose sampled lobe is not delta: survival
+    /// `clamp(max(throughput) eta^2, 0.1, 0.99)` until the tree is built, 0.99 after (roulette
+    /// effectively off); no roulette at other vertices. Default of the 2017 and 2019 presets.
+    Ppg,
     /// Once the tree is built, at guided vertices from `rr_depth` on: survival
     /// `clamp(E / I, 0.1, 1)` where `E` = throughput x the guide's incident-radiance estimate
     /// along the sampled direction (the path's expected remaining contribution) and `I` =
@@ -187,7 +192,8 @@ pub struct GuidedParams {
     pub bsdf_sampling_fraction: f32,
     /// `bsdf_sampling_fraction_loss`: "none" (default) | "kl" (2019) | "var".
     pub bsdf_sampling_fraction_loss: GuidedFractionLoss,
-    /// `russian_roulette`: "throughput" (Mitsuba's; 2017 and 2019 presets) | "guided".
+    /// `russian_roulette`: "throughput" (Mitsuba's) | "ppg" (the reference implementation's;
+    /// 2017 and 2019 presets) | "guided" (pathfarm preset).
     pub russian_roulette: GuidedRoulette,
     /// `path_fallback`: while training, compare the efficiency (variance x cost per sample) of
     /// guided sampling with an unguided probe and render the rest of the budget as plain path
@@ -215,7 +221,7 @@ impl GuidedParams {
             directional_filter: GuidedDirectionalFilter::Nearest,
             bsdf_sampling_fraction: 0.5,
             bsdf_sampling_fraction_loss: GuidedFractionLoss::None,
-            russian_roulette: GuidedRoulette::Throughput,
+            russian_roulette: GuidedRoulette::Ppg,
             path_fallback: false,
             max_memory_mb: None,
             max_nodes: None,

@@ -157,6 +157,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
             d.russian_roulette,
             &[
                 ("throughput", GuidedRoulette::Throughput),
+                ("ppg", GuidedRoulette::Ppg),
                 ("guided", GuidedRoulette::Guided),
             ],
         )?,

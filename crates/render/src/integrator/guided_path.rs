@@ -64,6 +64,11 @@ pub struct GuideCtx<'a> {
     /// Guided Russian roulette: each pixel's estimated value (index `y * width + x`), from
     /// the previous iterations. `None`: Mitsuba's throughput-based roulette everywhere.
     pub pixel_estimate: Option<&'a [f32]>,
+    /// Russian roulette of Müller's reference implementation (`russian_roulette` = `ppg`):
+    /// from `rr_depth` on, at vertices with a smooth BSDF whose sampled lobe is not delta,
+    /// survival `clamp(max(throughput) eta^2, 0.1, 0.99)` before the tree is built and 0.99
+    /// after; no roulette elsewhere. Takes precedence over `pixel_estimate`.
+    pub ppg_roulette: bool,
     /// Counts the rays traced (camera, continuation and shadow rays), one add per path.
     pub rays: Option<&'a ShardedCounter>,
 }
@@ -437,6 +442,20 @@ pub fn guided_survival(expected: f32, pixel_value: f32) -> f32 {
     }
 }
 
+/// Survival probability of Müller's reference roulette (see [`GuideCtx::ppg_roulette`]):
+/// `guided_vertex` = smooth BSDF and a non-delta sampled lobe.
+#[inline]
+pub fn ppg_survival(guided_vertex: bool, built: bool, throughput_max: f32, eta: f32) -> f32 {
+    if !guided_vertex {
+        1.0
+    } else if built {
+        0.99
+    } else {
+        // NaN survives with the lower bound (max/min drop NaN operands).
+        (throughput_max * eta * eta).max(0.1).min(0.99)
+    }
+}
+
 /// Radiance along the camera ray `ray` of pixel `pixel` (index `y * width + x`), guided by
 /// `g.tree`.
 pub fn li<const ENV: bool, const ANALYTIC: bool>(
@@ -597,6 +616,12 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let tp_max = throughput.max_element();
         if depth >= params.rr_depth {
             let q = match g.pixel_estimate {
+                _ if g.ppg_roulette => ppg_survival(
+                    flags.smooth && !ms.delta,
+                    tree.is_built(),
+                    tp_max,
+                    eta,
+                ),
                 Some(est) if vg.guided && !ms.delta => {
                     let l = tree.incident_radiance_leaf(
                         vg.leaf(),
@@ -652,6 +677,18 @@ mod tests {
         }
         assert!(tree.is_built());
         tree
+    }
+
+    #[test]
+    fn ppg_survival_is_the_reference_implementations() {
+        // Deterministic arithmetic (no significance level).
+        assert_eq!(ppg_survival(false, true, 1e-6, 1.0), 1.0, "delta/unguided: no RR");
+        assert_eq!(ppg_survival(false, false, 1e-6, 1.0), 1.0);
+        assert_eq!(ppg_survival(true, true, 1e-6, 1.0), 0.99, "built: effectively off");
+        assert_eq!(ppg_survival(true, false, 1e-6, 1.0), 0.1);
+        assert_eq!(ppg_survival(true, false, 0.5, 1.0), 0.5);
+        assert_eq!(ppg_survival(true, false, 0.5, 1.5), 0.99);
+        assert_eq!(ppg_survival(true, false, f32::NAN, 1.0), 0.1);
     }
 
     #[test]
