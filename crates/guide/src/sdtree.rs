@@ -42,9 +42,24 @@ pub struct Leaf {
     /// (`total / W` of the building tree when it was frozen; split children inherit it):
     /// `flux * pdf(direction)` estimates the incident radiance in that direction.
     pub flux: f32,
+    /// `sigmoid(fraction.theta)` in f32, cached: it is read at every guided path vertex and
+    /// changes only when theta does ([`Leaf::set_theta_cache`]).
+    pub(crate) alpha: f32,
+}
+
+/// The learned fraction's alpha as vertices read it: f32 sigmoid of the logit.
+#[inline]
+pub(crate) fn alpha_of(theta: f64) -> f32 {
+    let theta = theta as f32;
+    1.0 / (1.0 + (-theta).exp())
 }
 
 impl Leaf {
+    /// Refreshes the cached alpha after `fraction.theta` changed.
+    pub(crate) fn set_theta_cache(&mut self) {
+        self.alpha = alpha_of(self.fraction.theta);
+    }
+
     fn initial() -> Self {
         Self {
             // The state of a freshly reset empty tree (as [G] resets before iteration 0).
@@ -53,6 +68,7 @@ impl Leaf {
             fraction: FractionState::default(),
             grad: GradAccum::default(),
             flux: 0.0,
+            alpha: alpha_of(0.0),
         }
     }
 }
@@ -220,11 +236,8 @@ impl SdTree {
         match self.config.bsdf_sampling_fraction {
             FractionMode::Fixed(a) => a,
             FractionMode::Learned { .. } => {
-                // f32 sigmoid: this runs at every path vertex.
-                let theta = self.leaves[h.0 as usize].fraction.theta as f32;
-                let a = 1.0 / (1.0 + (-theta).exp());
                 let (lo, hi) = self.config.fraction_clamp;
-                a.clamp(lo, hi)
+                self.leaves[h.0 as usize].alpha.clamp(lo, hi)
             }
         }
     }
@@ -349,6 +362,7 @@ impl SdTree {
         let mut n = 0;
         for l in &mut self.leaves {
             if l.fraction.step(&l.grad, &adam) {
+                l.set_theta_cache();
                 n += 1;
             }
         }

@@ -777,6 +777,7 @@ fn stree_children_inherit_the_whole_payload() {
     }
     t.leaves[0].fraction.theta = 0.75;
     t.leaves[0].fraction.m = 0.125;
+    t.leaves[0].set_theta_cache();
     let mut expected = t.leaves[0].building.clone();
     expected.build();
     let pending = t.leaves[0].grad.clone();
@@ -1071,8 +1072,10 @@ fn fixed_fraction_and_clamped_learned_fraction() {
     let mut l = SdTree::new(Vec3::ZERO, Vec3::ONE, GuideConfig::improvements_2019());
     assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.5);
     l.leaves[0].fraction.theta = 20.0;
+    l.leaves[0].set_theta_cache();
     assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.95);
     l.leaves[0].fraction.theta = -20.0;
+    l.leaves[0].set_theta_cache();
     assert_eq!(l.bsdf_sampling_fraction(Vec3::ZERO), 0.05);
     // theta stays within [-20, 20] under huge gradients
     let mut f = crate::fraction::FractionState {

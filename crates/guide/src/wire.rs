@@ -502,6 +502,9 @@ impl SdTree {
         if nn == 0 || !(size > 0.0) || !min.is_finite() {
             return Err(WireError::Malformed("spatial domain"));
         }
+        if nodes[0].axis != 0 || nodes[0].depth != 0 {
+            return Err(WireError::Malformed("spatial root"));
+        }
         let mut leaf_seen = vec![false; nl];
         let mut node_seen = vec![false; nn];
         for (i, n) in nodes.iter().enumerate() {
@@ -520,6 +523,15 @@ impl SdTree {
                         return Err(WireError::Malformed("spatial child index"));
                     }
                     node_seen[c] = true;
+                    // Children split on the next axis, one level deeper, within the depth
+                    // limit (lookups rely on at most 20 splits per axis).
+                    let k = &nodes[c];
+                    if k.axis != (n.axis + 1) % 3
+                        || k.depth != n.depth + 1
+                        || k.depth > crate::sdtree::MAX_SPATIAL_DEPTH
+                    {
+                        return Err(WireError::Malformed("spatial split axis or depth"));
+                    }
                 }
             }
         }
@@ -552,6 +564,7 @@ impl SdTree {
                 fraction,
                 grad,
                 flux,
+                alpha: crate::sdtree::alpha_of(fraction.theta),
             });
         }
         if r.p != payload.len() {

@@ -616,12 +616,9 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let tp_max = throughput.max_element();
         if depth >= params.rr_depth {
             let q = match g.pixel_estimate {
-                _ if g.ppg_roulette => ppg_survival(
-                    flags.smooth && !ms.delta,
-                    tree.is_built(),
-                    tp_max,
-                    eta,
-                ),
+                _ if g.ppg_roulette => {
+                    ppg_survival(flags.smooth && !ms.delta, tree.is_built(), tp_max, eta)
+                }
                 Some(est) if vg.guided && !ms.delta => {
                     let l = tree.incident_radiance_leaf(
                         vg.leaf(),
@@ -682,9 +679,17 @@ mod tests {
     #[test]
     fn ppg_survival_is_the_reference_implementations() {
         // Deterministic arithmetic (no significance level).
-        assert_eq!(ppg_survival(false, true, 1e-6, 1.0), 1.0, "delta/unguided: no RR");
+        assert_eq!(
+            ppg_survival(false, true, 1e-6, 1.0),
+            1.0,
+            "delta/unguided: no RR"
+        );
         assert_eq!(ppg_survival(false, false, 1e-6, 1.0), 1.0);
-        assert_eq!(ppg_survival(true, true, 1e-6, 1.0), 0.99, "built: effectively off");
+        assert_eq!(
+            ppg_survival(true, true, 1e-6, 1.0),
+            0.99,
+            "built: effectively off"
+        );
         assert_eq!(ppg_survival(true, false, 1e-6, 1.0), 0.1);
         assert_eq!(ppg_survival(true, false, 0.5, 1.0), 0.5);
         assert_eq!(ppg_survival(true, false, 0.5, 1.5), 0.99);
