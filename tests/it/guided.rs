@@ -195,6 +195,10 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     .0;
     let (film, stats, _) = guided(&guided_scene, spp, 2);
     assert_eq!(stats.spp, spp);
+    assert!(
+        stats.split_paths > 0,
+        "the pathfarm preset's splitting is under test too: {stats:?}"
+    );
     assert_agrees_with(&film, &reference, "guided");
 }
 

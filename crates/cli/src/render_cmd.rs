@@ -179,12 +179,13 @@ pub fn render(args: RenderArgs) -> Result<()> {
             bar.suspend(|| {
                 tracing::info!(
                     "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?} \
-                     path_fallback={}",
+                     path_fallback={} split_paths={}",
                     gs.training_fraction,
                     gs.tree_memory_bytes as f64 / 1048576.0,
                     gs.weights,
                     gs.path_fallback_after
-                        .map_or("no".to_string(), |k| format!("after_iteration_{k}"))
+                        .map_or("no".to_string(), |k| format!("after_iteration_{k}")),
+                    gs.split_paths
                 )
             });
             (

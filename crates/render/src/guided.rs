@@ -129,6 +129,8 @@ pub struct GuidedStats {
     /// Path fallback: the training iteration after which the rest of the budget was rendered
     /// as plain path tracing (guiding did not pay), if it happened.
     pub path_fallback_after: Option<u32>,
+    /// Extra paths made by splitting (`splitting`), over all passes.
+    pub split_paths: u64,
 }
 
 /// The guide configuration of `params`.
@@ -340,6 +342,7 @@ pub fn render_guided_with_policy(
     // One pass of spp_per_pass samples into `film`.
     let rays_counter = ShardedCounter::new();
     let rays = &rays_counter;
+    let splits_counter = ShardedCounter::new();
     let render_pass = |tree: &SdTree,
                        estimate: &[f32],
                        guide: bool,
@@ -361,6 +364,8 @@ pub fn render_guided_with_policy(
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
             ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
+            split: params.splitting,
+            splits: Some(&splits_counter),
             rays: Some(rays),
             pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
                 Some(estimate)
@@ -665,6 +670,7 @@ pub fn render_guided_with_policy(
         wall: start.elapsed(),
         invalid_samples: invalid,
         path_fallback_after: fallback.fell_back_after,
+        split_paths: splits_counter.total(),
     };
     (film, stats, tree)
 }

@@ -195,6 +195,10 @@ pub struct GuidedParams {
     /// `russian_roulette`: "throughput" (Mitsuba's) | "ppg" (the reference implementation's;
     /// 2017 and 2019 presets) | "guided" (pathfarm preset).
     pub russian_roulette: GuidedRoulette,
+    /// `splitting`: with guided Russian roulette, split paths whose expected contribution is
+    /// well above the pixel's estimated value (the weight window's upper edge), in the passes
+    /// that record nothing. true in the pathfarm preset, false in 2017 and 2019.
+    pub splitting: bool,
     /// `path_fallback`: while training, compare the efficiency (variance x cost per sample) of
     /// guided sampling with an unguided probe and render the rest of the budget as plain path
     /// tracing when guiding does not pay. false in the 2017 and 2019 presets, true in pathfarm's.
@@ -222,6 +226,7 @@ impl GuidedParams {
             bsdf_sampling_fraction: 0.5,
             bsdf_sampling_fraction_loss: GuidedFractionLoss::None,
             russian_roulette: GuidedRoulette::Ppg,
+            splitting: false,
             path_fallback: false,
             max_memory_mb: None,
             max_nodes: None,
@@ -250,6 +255,7 @@ impl GuidedParams {
     pub fn preset_pathfarm() -> Self {
         Self {
             russian_roulette: GuidedRoulette::Guided,
+            splitting: true,
             path_fallback: true,
             directional_filter: GuidedDirectionalFilter::Nearest,
             ..Self::preset_2019()

@@ -161,6 +161,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
                 ("guided", GuidedRoulette::Guided),
             ],
         )?,
+        splitting: p.bool("splitting", d.splitting)?,
         path_fallback: p.bool("path_fallback", d.path_fallback)?,
         nee: choice(
             p,
