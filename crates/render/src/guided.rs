@@ -347,6 +347,7 @@ pub fn render_guided_with_policy(
                        estimate: &[f32],
                        guide: bool,
                        record: bool,
+                       split: bool,
                        film: &mut Film,
                        spp_done: u64,
                        stream: u64,
@@ -364,7 +365,7 @@ pub fn render_guided_with_policy(
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
             ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
-            split: params.splitting,
+            split: params.splitting && split,
             splits: Some(&splits_counter),
             rays: Some(rays),
             pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
@@ -427,11 +428,15 @@ pub fn render_guided_with_policy(
                     // not recorded: it times what a final, guided pass costs.
                     let probe = passes == 0 && record && fallback.checks(&tree);
                     let rec = record && !stopped && !probe;
+                    // Splitting only in passes that sample as the final image does (not in
+                    // the fallback's timed check pass: there it judged immature trees by
+                    // split paths and made door-ajar fall back).
                     render_pass(
                         &tree,
                         &estimate,
                         true,
                         rec,
+                        !rec && !probe,
                         &mut film,
                         spp_done,
                         spp_done,
@@ -520,6 +525,7 @@ pub fn render_guided_with_policy(
             render_pass(
                 &tree,
                 &estimate,
+                false,
                 false,
                 false,
                 &mut fallback.path_film,
