@@ -450,6 +450,7 @@ pub fn guided_survival(expected: f32, pixel_value: f32) -> f32 {
 /// Survival probability of Müller's reference roulette (see [`GuideCtx::ppg_roulette`]):
 /// `guided_vertex` = smooth BSDF and a non-delta sampled lobe.
 #[inline]
+#[allow(clippy::manual_clamp)] // clamp would keep NaN; max/min map it to the lower bound
 pub fn ppg_survival(guided_vertex: bool, built: bool, throughput_max: f32, eta: f32) -> f32 {
     if !guided_vertex {
         1.0
@@ -554,6 +555,19 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
 
     // A split copy waiting to resume at its vertex's direction sampling.
     let mut resume: Option<Vertex> = None;
+    // The current path ends: resume the next pending split copy, or stop.
+    // (The loop label is an argument: macro hygiene hides labels defined outside.)
+    macro_rules! end_path {
+        ($paths:lifetime) => {
+            match pending.pop() {
+                Some(v) => {
+                    resume = Some(v);
+                    continue $paths;
+                }
+                None => break $paths,
+            }
+        };
+    }
     'paths: loop {
         let v = if let Some(v) = resume.take() {
             v
@@ -572,13 +586,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                         rec.add_emission(c, g.indirect_only, prev_nee);
                     }
                 }
-                match pending.pop() {
-                    Some(v) => {
-                        resume = Some(v);
-                        continue 'paths;
-                    }
-                    None => break 'paths,
-                }
+                end_path!('paths)
             };
             let si = accel.interaction(&ray, &h);
 
@@ -599,13 +607,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
             }
 
             if depth + 1 >= max_depth {
-                match pending.pop() {
-                    Some(v) => {
-                        resume = Some(v);
-                        continue 'paths;
-                    }
-                    None => break 'paths,
-                }
+                end_path!('paths)
             }
 
             let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
@@ -673,32 +675,29 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
 
             // Splitting: decided from the throughput and the leaf's mean radiance, before any
             // direction is sampled; the copies wait in `pending`.
-            if let Some(value) = split_value {
-                // From the depth where roulette starts (splitting at the first vertices too
-                // was worse on veach-ajar: relMSE at 30 CPU-s 0.21-0.25 vs 0.14-0.16).
-                if vg.guided && depth + 1 >= params.rr_depth && paths < MAX_PATHS_PER_SAMPLE {
+            // From the depth where roulette starts (splitting at the first vertices too was
+            // worse on veach-ajar: relMSE at 30 CPU-s 0.21-0.25 vs 0.14-0.16).
+            let n = match split_value {
+                Some(value)
+                    if vg.guided
+                        && depth + 1 >= params.rr_depth
+                        && paths < MAX_PATHS_PER_SAMPLE =>
+                {
                     let l =
                         tree.incident_radiance_leaf(vg.leaf(), 1.0 / (4.0 * std::f32::consts::PI));
                     let t = (throughput.x + throughput.y + throughput.z) / 3.0;
-                    let n = split_count(t * l, value, rng.next_f32())
-                        .min(MAX_PATHS_PER_SAMPLE - paths + 1);
-                    if n > 1 {
-                        let copy = Vertex {
-                            throughput: throughput / n as f32,
-                            ..v
-                        };
-                        for _ in 1..n {
-                            pending.push(copy);
-                        }
-                        paths += n - 1;
-                        throughput = copy.throughput;
-                        Vertex { throughput, ..v }
-                    } else {
-                        v
-                    }
-                } else {
-                    v
+                    split_count(t * l, value, rng.next_f32()).min(MAX_PATHS_PER_SAMPLE - paths + 1)
                 }
+                _ => 1,
+            };
+            if n > 1 {
+                let copy = Vertex {
+                    throughput: throughput / n as f32,
+                    ..v
+                };
+                pending.extend(std::iter::repeat_n(copy, n as usize - 1));
+                paths += n - 1;
+                copy
             } else {
                 v
             }
@@ -710,13 +709,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
 
         // Direction sampling from the BSDF/guide mixture.
         let Some(ms) = sample_mixture(tree, vg, bsdf, frame, wi, rng) else {
-            match pending.pop() {
-                Some(v) => {
-                    resume = Some(v);
-                    continue 'paths;
-                }
-                None => break 'paths,
-            }
+            end_path!('paths)
         };
         throughput *= ms.weight;
         eta *= ms.eta;
@@ -766,24 +759,12 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                 _ => mitsuba_survival(tp_max, eta),
             };
             if rng.next_f32() >= q {
-                match pending.pop() {
-                    Some(v) => {
-                        resume = Some(v);
-                        continue 'paths;
-                    }
-                    None => break 'paths,
-                }
+                end_path!('paths)
             }
             throughput /= q;
         }
         if tp_max <= 0.0 || !tp_max.is_finite() {
-            match pending.pop() {
-                Some(v) => {
-                    resume = Some(v);
-                    continue 'paths;
-                }
-                None => break 'paths,
-            }
+            end_path!('paths)
         }
 
         ray = spawn_ray(si.p, si.ng, ms.wo_world);
