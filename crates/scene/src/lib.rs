@@ -36,13 +36,18 @@ pub use error::SceneError;
 pub use imageio::srgb_to_linear;
 
 use std::path::Path;
+use std::rc::Rc;
 
 use context::Ctx;
 use xml::{invalid, Category};
 
 /// Load a Mitsuba 3 XML scene. `overrides` are `-D name=value` pairs; they
-/// replace the values of `<default>` declarations (and may define names the
-/// file does not declare).
+/// replace the values of `<default>` declarations and define `$name`s the file
+/// references without declaring. An override the file neither declares nor
+/// references becomes a parameter of the scene's integrator (so
+/// `-D preset=2019` sets `guided_path`'s preset on a file whose integrator
+/// block only says `max_depth`); if the integrator has no such parameter, or
+/// the file has no `<integrator>`, loading fails with an error naming it.
 pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDesc, SceneError> {
     let parsed = xml::parse_file(path, overrides)?;
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir);
@@ -51,10 +56,17 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
     let mut shape_descs = Vec::new();
     let mut emitter_descs = Vec::new();
 
+    let mut unused = parsed.unused_overrides;
     for child in &parsed.objects {
-        let r = props::resolve(child, &ctx.ids)?;
+        let mut r = props::resolve(child, &ctx.ids)?;
         match r.node.category {
             Category::Integrator => {
+                if !unused.is_empty() {
+                    r.node = Rc::new(with_command_line_params(
+                        &r.node,
+                        std::mem::take(&mut unused),
+                    ));
+                }
                 if integrator_desc.is_some() {
                     return Err(invalid(
                         &r.loc,
@@ -95,6 +107,15 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
         }
     }
 
+    if let Some((name, value)) = unused.first() {
+        return Err(invalid(
+            &xml::root_loc(path),
+            format!(
+                "-D {name}={value}: the scene does not use ${name} and has no <integrator> \
+                 block to take it as a parameter"
+            ),
+        ));
+    }
     let sensor = sensor_desc.ok_or_else(|| invalid(&xml::root_loc(path), "scene has no sensor"))?;
     let integrator = integrator_desc.unwrap_or(IntegratorDesc::Path(PathParams::default()));
     let features = features(&shape_descs, &ctx.bsdfs, &emitter_descs);
@@ -109,6 +130,22 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
         features,
         warnings: ctx.warnings,
     })
+}
+
+/// The integrator `node` with the `-D` overrides the file does not use as its parameters: each
+/// replaces a property of the same name written in the file (the command line wins, as it
+/// does for `<default>`), and one the integrator does not know is an error when it is built.
+fn with_command_line_params(node: &xml::Node, overrides: Vec<(String, String)>) -> xml::Node {
+    let mut n = node.clone();
+    for (name, value) in overrides {
+        n.props.retain(|p| p.name != name);
+        n.props.push(xml::Prop {
+            name,
+            value: xml::Value::CommandLine(value),
+            loc: node.loc.clone(),
+        });
+    }
+    n
 }
 
 /// What the scene actually uses: BSDFs reachable from shapes (through

@@ -108,13 +108,30 @@ impl Props {
         )
     }
 
+    /// A `-D name=value` parameter whose text is not of the parameter's type.
+    fn command_line_error(&self, p: &Prop, text: &str, expected: &str) -> SceneError {
+        invalid(
+            &p.loc,
+            format!(
+                "-D {}={text}: parameter '{}' of {} must be {expected}",
+                p.name,
+                p.name,
+                self.what()
+            ),
+        )
+    }
+
     pub(crate) fn float_opt(&self, name: &str) -> Result<Option<f32>, SceneError> {
         let Some(p) = self.get(name) else {
             return Ok(None);
         };
-        let v = match p.value {
-            Value::Float(f) => f,
-            Value::Integer(i) => i as f64,
+        let v = match &p.value {
+            Value::Float(f) => *f,
+            Value::Integer(i) => *i as f64,
+            Value::CommandLine(s) => s
+                .trim()
+                .parse::<f64>()
+                .map_err(|_| self.command_line_error(p, s, "a number"))?,
             _ => return Err(self.type_error(p, "<float>")),
         };
         let f = v as f32;
@@ -135,8 +152,12 @@ impl Props {
         let Some(p) = self.get(name) else {
             return Ok(None);
         };
-        match p.value {
-            Value::Integer(i) => Ok(Some((i, p.loc.clone()))),
+        match &p.value {
+            Value::Integer(i) => Ok(Some((*i, p.loc.clone()))),
+            Value::CommandLine(s) => match s.trim().parse::<i64>() {
+                Ok(i) => Ok(Some((i, p.loc.clone()))),
+                Err(_) => Err(self.command_line_error(p, s, "an integer")),
+            },
             _ => Err(self.type_error(p, "<integer>")),
         }
     }
@@ -166,8 +187,13 @@ impl Props {
         let Some(p) = self.get(name) else {
             return Ok(default);
         };
-        match p.value {
-            Value::Boolean(b) => Ok(b),
+        match &p.value {
+            Value::Boolean(b) => Ok(*b),
+            Value::CommandLine(s) => match s.trim() {
+                "true" => Ok(true),
+                "false" => Ok(false),
+                _ => Err(self.command_line_error(p, s, "true or false")),
+            },
             _ => Err(self.type_error(p, "<boolean>")),
         }
     }
@@ -177,7 +203,7 @@ impl Props {
             return Ok(None);
         };
         match &p.value {
-            Value::String(s) => Ok(Some((s.clone(), p.loc.clone()))),
+            Value::String(s) | Value::CommandLine(s) => Ok(Some((s.clone(), p.loc.clone()))),
             _ => Err(self.type_error(p, "<string>")),
         }
     }
@@ -256,6 +282,18 @@ impl Props {
     pub(crate) fn finish(&self) -> Result<(), SceneError> {
         for (p, used) in self.node.props.iter().zip(self.used_props.borrow().iter()) {
             if !used {
+                if let Value::CommandLine(text) = &p.value {
+                    return Err(invalid(
+                        &p.loc,
+                        format!(
+                            "-D {}={text}: the scene does not use ${} and {} has no parameter '{}'",
+                            p.name,
+                            p.name,
+                            self.what(),
+                            p.name
+                        ),
+                    ));
+                }
                 return Err(invalid(
                     &p.loc,
                     format!(

@@ -83,6 +83,9 @@ pub(crate) enum Value {
     Point(DVec3),
     Vector(DVec3),
     Transform(DMat4),
+    /// A `-D name=value` the scene file does not use, given to the integrator as its parameter
+    /// `name`: untyped text, read as whatever type the parameter has.
+    CommandLine(String),
 }
 
 impl Value {
@@ -98,6 +101,7 @@ impl Value {
             Value::Point(_) => "point",
             Value::Vector(_) => "vector",
             Value::Transform(_) => "transform",
+            Value::CommandLine(_) => "-D",
         }
     }
 }
@@ -142,12 +146,17 @@ pub(crate) struct XmlScene {
     pub ids: HashMap<String, Rc<Node>>,
     /// Directory that relative file names are resolved against.
     pub base_dir: PathBuf,
+    /// `-D name=value` overrides whose name the file neither declares (`<default>`) nor
+    /// references (`$name`), in command-line order: the loader hands them to the integrator.
+    pub unused_overrides: Vec<(String, String)>,
 }
 
 struct Parser<'a> {
     file: PathBuf,
     doc: &'a roxmltree::Document<'a>,
     params: HashMap<String, String>,
+    /// Names declared by `<default>` or referenced by `$name`.
+    used: std::cell::RefCell<std::collections::HashSet<String>>,
     ids: HashMap<String, Rc<Node>>,
 }
 
@@ -173,6 +182,7 @@ pub(crate) fn parse_file(
         file: path.to_path_buf(),
         doc: &doc,
         params: overrides.iter().cloned().collect(),
+        used: Default::default(),
         ids: HashMap::new(),
     };
     let root = doc.root_element();
@@ -213,6 +223,7 @@ pub(crate) fn parse_file(
                 }
                 // As in Mitsuba, the first definition wins: command-line
                 // overrides, then the earliest <default> of that name.
+                parser.used.borrow_mut().insert(name.clone());
                 parser.params.entry(name).or_insert(value);
             }
             "include" => {
@@ -237,10 +248,20 @@ pub(crate) fn parse_file(
         }
     }
     let base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let used = parser.used.into_inner();
+    let mut unused_overrides: Vec<(String, String)> = Vec::new();
+    for (name, value) in overrides {
+        if !used.contains(name) {
+            // A repeated -D: the last one wins, as in `params`.
+            unused_overrides.retain(|(n, _)| n != name);
+            unused_overrides.push((name.clone(), value.clone()));
+        }
+    }
     Ok(XmlScene {
         objects,
         ids: parser.ids,
         base_dir,
+        unused_overrides,
     })
 }
 
@@ -320,6 +341,7 @@ impl<'a> Parser<'a> {
                 }
             }
             let name = &value[start..end];
+            self.used.borrow_mut().insert(name.to_string());
             match self.params.get(name) {
                 Some(v) if !name.is_empty() => out.push_str(v),
                 _ => {

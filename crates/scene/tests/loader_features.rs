@@ -458,3 +458,79 @@ fn envmap_loads_linear_exr_with_scale_and_transform() {
     assert!((to_world.transform_vector3(Vec3::X) - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
     assert!(s.features.environment);
 }
+
+/// An integrator block written like Bitterli's scenes: only `max_depth`, through `$max_depth`.
+const GUIDED_SCENE: &str = r#"<scene version="3.0.0">
+<default name="max_depth" value="5"/>
+<integrator type="guided_path"><integer name="max_depth" value="$max_depth"/><integer name="rr_depth" value="3"/></integrator>
+<sensor type="perspective"/>
+</scene>
+"#;
+
+fn guided(s: &SceneDesc) -> &GuidedParams {
+    match &s.integrator {
+        IntegratorDesc::GuidedPath(g) => g,
+        other => panic!("not guided_path: {other:?}"),
+    }
+}
+
+#[test]
+fn command_line_names_the_file_does_not_use_become_integrator_parameters() {
+    let p = write_scene("cl-guided", GUIDED_SCENE);
+    let plain = load_scene(&p, &[]).unwrap();
+    assert_eq!(
+        guided(&plain).splitting,
+        GuidedParams::preset_pathfarm().splitting
+    );
+    let s = load_scene(
+        &p,
+        &ov(&[
+            ("preset", "2019"),
+            ("max_depth", "7"),
+            ("spp_per_pass", "2"),
+            ("d_tree_threshold", "0.02"),
+            ("splitting", "true"),
+            // the command line beats a literal value in the file
+            ("rr_depth", "9"),
+        ]),
+    )
+    .unwrap();
+    let g = guided(&s);
+    let expect = GuidedParams::preset_2019();
+    assert_eq!(g.russian_roulette, expect.russian_roulette);
+    assert_eq!(g.sample_combination, expect.sample_combination);
+    assert_eq!(g.directional_filter, expect.directional_filter);
+    assert_eq!((g.path.max_depth, g.path.rr_depth), (7, 9));
+    assert_eq!(
+        (g.spp_per_pass, g.d_tree_threshold, g.splitting),
+        (2, 0.02f32 as f64, true)
+    );
+}
+
+#[test]
+fn command_line_name_no_one_uses_is_an_error_naming_it() {
+    let p = write_scene("cl-unknown", GUIDED_SCENE);
+    let line = line_of(GUIDED_SCENE, "<integrator");
+    let err = load_scene(&p, &ov(&[("presset", "2019")])).unwrap_err();
+    assert_invalid_at(
+        &err,
+        &p,
+        line,
+        &["-D presset=2019", "$presset", "guided_path integrator"],
+    );
+    let err = load_scene(&p, &ov(&[("spp_per_pass", "four")])).unwrap_err();
+    assert_invalid_at(&err, &p, line, &["-D spp_per_pass=four", "an integer"]);
+    let err = load_scene(&p, &ov(&[("splitting", "yes")])).unwrap_err();
+    assert_invalid_at(&err, &p, line, &["-D splitting=yes", "true or false"]);
+    let err = load_scene(&p, &ov(&[("preset", "2018")])).unwrap_err();
+    assert_invalid_at(&err, &p, line, &["preset", "2018"]);
+    // The path integrator has no guide parameters.
+    let path_scene = GUIDED_SCENE.replace("guided_path", "path");
+    let p = write_scene("cl-path", &path_scene);
+    let err = load_scene(&p, &ov(&[("preset", "2019")])).unwrap_err();
+    assert_invalid_at(&err, &p, line, &["-D preset=2019", "path integrator"]);
+    // Without an <integrator> block nothing can take it.
+    let p = write_scene("cl-none", &scene(""));
+    let err = load_scene(&p, &ov(&[("preset", "2019")])).unwrap_err();
+    assert_invalid_at(&err, &p, 1, &["-D preset=2019", "no <integrator>"]);
+}
