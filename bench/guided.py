@@ -343,6 +343,88 @@ def contact_sheets(a):
             os.path.join(a.workdir, "guided-sheet-%s-%g.png" % (name, b)))
 
 
+# Colours and markers of the curves (one per configuration).
+STYLE = {"pf-path": ("#1f77b4", "path"), "pf-2017": ("#9467bd", "guided 2017"),
+         "pf-2019": ("#d62728", "guided 2019"), "pf-pathfarm": ("#2ca02c", "guided pathfarm"),
+         "mi-path": ("#555555", "Mitsuba path")}
+
+
+def write_curves(a):
+    """results/guided-curves.svg: relMSE (excl. emitter edges) against CPU seconds, log-log, one
+    panel per scene: a line through each configuration's medians, its repetitions as dots.
+    Written without a plotting library (plain SVG), so it needs nothing beyond the benchmark."""
+    import math
+    path = os.path.join(RESULTS, "guided.jsonl")
+    rows = [json.loads(l) for l in open(path)] if os.path.exists(path) else []
+    scenes = [s for s in SCENES if any(r["scene"] == s for r in rows)]
+    if not rows or not scenes:
+        return None
+    W, H, ML, MR, MT, MB = 430, 330, 62, 14, 30, 46
+    out = ['<svg xmlns="http://www.w3.org/2000/svg" width="%d" height="%d" font-family="sans-serif" '
+           'font-size="11">' % (W * len(scenes), H + 24), '<rect width="100%" height="100%" fill="white"/>']
+    for si, scene in enumerate(scenes):
+        rs = [r for r in rows if r["scene"] == scene and r.get("relmse_masked")]
+        xs = [r["budget"] for r in rs]
+        ys = [r["relmse_masked"] for r in rs]
+        x0, x1 = math.log10(min(xs)) - 0.08, math.log10(max(xs)) + 0.08
+        y0, y1 = math.floor(math.log10(min(ys)) * 4) / 4, math.ceil(math.log10(max(ys)) * 4) / 4
+        if x1 - x0 < 0.3:
+            x0, x1 = x0 - 0.15, x1 + 0.15
+        if y1 - y0 < 0.5:
+            y0, y1 = y0 - 0.25, y1 + 0.25
+        ox = si * W
+
+        def px(x):
+            return ox + ML + (math.log10(x) - x0) / (x1 - x0) * (W - ML - MR)
+
+        def py(y):
+            return MT + (y1 - math.log10(y)) / (y1 - y0) * (H - MT - MB)
+        out.append('<text x="%g" y="18" font-size="13" font-weight="bold">%s</text>' % (ox + ML, scene))
+        out.append('<rect x="%g" y="%g" width="%g" height="%g" fill="none" stroke="#999"/>'
+                   % (ox + ML, MT, W - ML - MR, H - MT - MB))
+        for e in range(int(math.floor(y0)), int(math.ceil(y1)) + 1):
+            for m in (1, 2, 3, 5):
+                v = m * 10.0 ** e
+                if y0 <= math.log10(v) <= y1:
+                    out.append('<line x1="%g" x2="%g" y1="%g" y2="%g" stroke="#eee"/>'
+                               % (ox + ML, ox + W - MR, py(v), py(v)))
+                    out.append('<text x="%g" y="%g" text-anchor="end">%g</text>' % (ox + ML - 4, py(v) + 4, v))
+        for b in sorted(set(xs)):
+            out.append('<line x1="%g" x2="%g" y1="%g" y2="%g" stroke="#eee"/>' % (px(b), px(b), MT, H - MB))
+            out.append('<text x="%g" y="%g" text-anchor="middle">%g</text>' % (px(b), H - MB + 14, b))
+        out.append('<text x="%g" y="%g" text-anchor="middle">CPU seconds (equal time)</text>'
+                   % (ox + (ML + W - MR) / 2, H - 8))
+        out.append('<text x="%g" y="%g" text-anchor="middle" transform="rotate(-90 %g %g)">relMSE</text>'
+                   % (ox + 14, (MT + H - MB) / 2, ox + 14, (MT + H - MB) / 2))
+        for ci, c in enumerate(CONFIGS):
+            cr = [r for r in rs if r["config"] == c]
+            if not cr:
+                continue
+            colour, label = STYLE[c]
+            for r in cr:
+                out.append('<circle cx="%.1f" cy="%.1f" r="2" fill="%s" fill-opacity="0.35"/>'
+                           % (px(r["budget"]), py(r["relmse_masked"]), colour))
+            pts = [(b, statistics.median(r["relmse_masked"] for r in cr if r["budget"] == b))
+                   for b in sorted({r["budget"] for r in cr})]
+            out.append('<polyline fill="none" stroke="%s" stroke-width="2" points="%s"/>'
+                       % (colour, " ".join("%.1f,%.1f" % (px(b), py(y)) for b, y in pts)))
+            for b, y in pts:
+                out.append('<circle cx="%.1f" cy="%.1f" r="3.5" fill="%s"/>' % (px(b), py(y), colour))
+            # legend in the lower left corner, where falling curves are not
+            ly = H - MB - 8 - 14 * (len(CONFIGS) - 1 - ci)
+            out.append('<line x1="%g" x2="%g" y1="%g" y2="%g" stroke="%s" stroke-width="2"/>'
+                       % (ox + ML + 8, ox + ML + 26, ly - 4, ly - 4, colour))
+            out.append('<text x="%g" y="%g">%s</text>' % (ox + ML + 30, ly, label))
+    out.append('<text x="6" y="%d" fill="#555">relMSE (excl. emitter edges) vs equal CPU time; lines: medians '
+               'over repetitions, dots: single runs. Made by bench/guided.py from results/guided.jsonl.</text>'
+               % (H + 16))
+    out.append("</svg>")
+    svg = os.path.join(os.path.dirname(a.out), "guided-curves.svg")
+    with open(svg, "w") as f:
+        f.write("\n".join(out) + "\n")
+    return svg
+
+
 def main():
     if len(sys.argv) > 1 and sys.argv[1] == "_mitsuba_worker":
         ap = argparse.ArgumentParser()
@@ -377,6 +459,7 @@ def main():
     if a.table_only:
         contact_sheets(a)
         print(write_table(a))
+        log("curves: %s" % write_curves(a))
         return 0
     os.makedirs(a.workdir, exist_ok=True)
     jl = os.path.join(RESULTS, "guided.jsonl")
@@ -440,11 +523,13 @@ def main():
                                " train %.3f tree %.2f MB" % (r["training_fraction"], r["tree_memory_mb"])
                                if "training_fraction" in r else "", r.get("other_cpu_s", 0)))
                 write_table(a)
+                write_curves(a)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     log("total %.0f s" % (time.time() - t_start))
     contact_sheets(a)
     print(write_table(a))
+    log("curves: %s" % write_curves(a))
     return 0
 
 
