@@ -110,11 +110,14 @@ pub fn scene_xml(
 /// Two-sided normal quantile for significance `alpha`, for the few levels the
 /// tests use.
 pub fn z_two_sided(alpha: f64) -> f64 {
-    match alpha {
-        a if a == 0.01 => 2.5758,
-        a if a == 0.001 => 3.2905,
-        a if a == 1e-4 => 3.8906,
-        _ => panic!("no quantile tabulated for {alpha}"),
+    if alpha == 0.01 {
+        2.5758
+    } else if alpha == 0.001 {
+        3.2905
+    } else if alpha == 1e-4 {
+        3.8906
+    } else {
+        panic!("no quantile tabulated for {alpha}")
     }
 }
 

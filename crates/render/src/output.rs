@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use exr::prelude::{
     read_first_flat_layer_from_file, AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer,
-    LayerAttributes, Text, WritableImage,
+    LayerAttributes, WritableImage,
 };
 
 use crate::film::Film;
@@ -119,13 +119,7 @@ pub fn read_exr_rgb(path: &Path) -> Result<(u32, u32, Vec<[f32; 3]>), RenderErro
     let image = read_first_flat_layer_from_file(path).map_err(|e| err(path, e))?;
     let layer = &image.layer_data;
     let (w, h) = (layer.size.0, layer.size.1);
-    let find = |name: &str| {
-        layer
-            .channel_data
-            .list
-            .iter()
-            .find(|c| c.name == Text::from(name))
-    };
+    let find = |name: &str| layer.channel_data.list.iter().find(|c| c.name.eq(name));
     let get = |name: &str| -> Result<Vec<f32>, RenderError> {
         let c = find(name).ok_or_else(|| err(path, format!("no channel {name}")))?;
         Ok(c.sample_data.values_as_f32().collect())

@@ -151,13 +151,14 @@ where
         let s0 = spp_done;
         let s1 = s0.saturating_add(pass.clamp(1, max_pass)).min(target_spp);
         let n = (s1 - s0) as usize;
-        let total = if settings.time_limit.is_some() && settings.spp.is_none() {
-            let rate = (done.load(Ordering::Relaxed) as f64
-                / start.elapsed().as_secs_f64().max(1e-3))
-            .max(1.0);
-            (rate * settings.time_limit.unwrap().as_secs_f64()) as u64
-        } else {
-            npix as u64 * target_spp as u64
+        let total = match (settings.time_limit, settings.spp) {
+            (Some(limit), None) => {
+                let rate = (done.load(Ordering::Relaxed) as f64
+                    / start.elapsed().as_secs_f64().max(1e-3))
+                .max(1.0);
+                (rate * limit.as_secs_f64()) as u64
+            }
+            _ => npix as u64 * target_spp as u64,
         };
         // Phase 1: samples, in tiles of `tile` pixels along each row.
         buffer.clear();
