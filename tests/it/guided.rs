@@ -356,7 +356,7 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
         !p.path_fallback,
         "explicit value over the pathfarm preset's"
     );
-    assert_eq!(p.directional_filter, GuidedDirectionalFilter::Nearest);
+    assert_eq!(p.directional_filter, GuidedDirectionalFilter::Box);
     for bad in [
         r#"<integrator type="guided_path"><float name="budgett" value="3"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,
