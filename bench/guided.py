@@ -396,10 +396,9 @@ def write_curves(a):
                    % (ox + (ML + W - MR) / 2, H - 8))
         out.append('<text x="%g" y="%g" text-anchor="middle" transform="rotate(-90 %g %g)">relMSE</text>'
                    % (ox + 14, (MT + H - MB) / 2, ox + 14, (MT + H - MB) / 2))
-        for ci, c in enumerate(CONFIGS):
+        present = [c for c in CONFIGS if any(r["config"] == c for r in rs)]
+        for ci, c in enumerate(present):
             cr = [r for r in rs if r["config"] == c]
-            if not cr:
-                continue
             colour, label = STYLE[c]
             for r in cr:
                 out.append('<circle cx="%.1f" cy="%.1f" r="2" fill="%s" fill-opacity="0.35"/>'
@@ -411,7 +410,7 @@ def write_curves(a):
             for b, y in pts:
                 out.append('<circle cx="%.1f" cy="%.1f" r="3.5" fill="%s"/>' % (px(b), py(y), colour))
             # legend in the lower left corner, where falling curves are not
-            ly = H - MB - 8 - 14 * (len(CONFIGS) - 1 - ci)
+            ly = H - MB - 8 - 14 * (len(present) - 1 - ci)
             out.append('<line x1="%g" x2="%g" y1="%g" y2="%g" stroke="%s" stroke-width="2"/>'
                        % (ox + ML + 8, ox + ML + 26, ly - 4, ly - 4, colour))
             out.append('<text x="%g" y="%g">%s</text>' % (ox + ML + 30, ly, label))
