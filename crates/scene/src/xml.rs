@@ -341,7 +341,9 @@ impl<'a> Parser<'a> {
                 }
             }
             let name = &value[start..end];
-            self.used.borrow_mut().insert(name.to_string());
+            if !self.used.borrow().contains(name) {
+                self.used.borrow_mut().insert(name.to_string());
+            }
             match self.params.get(name) {
                 Some(v) if !name.is_empty() => out.push_str(v),
                 _ => {

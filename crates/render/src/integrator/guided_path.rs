@@ -489,6 +489,15 @@ pub fn split_count(expected: f32, pixel_value: f32, u: f32) -> u32 {
     (n as u32 + (u < r - n) as u32).clamp(1, MAX_SPLIT)
 }
 
+/// A path's expected remaining contribution at a guided vertex, the quantity both edges of
+/// the weight window compare with the pixel's value: mean throughput x the leaf's incident
+/// radiance estimate `flux x pdf` (see [`SdTree::incident_radiance_leaf`]).
+#[inline]
+fn expected_contribution(tree: &SdTree, vg: &VertexGuide, throughput: Vec3, pdf: f32) -> f32 {
+    let l = tree.incident_radiance_leaf(vg.leaf(), pdf);
+    (throughput.x + throughput.y + throughput.z) / 3.0 * l
+}
+
 /// A path vertex from which directions are sampled: what a split copy resumes from.
 #[derive(Clone, Copy)]
 struct Vertex<'s> {
@@ -683,10 +692,14 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                         && depth + 1 >= params.rr_depth
                         && paths < MAX_PATHS_PER_SAMPLE =>
                 {
-                    let l =
-                        tree.incident_radiance_leaf(vg.leaf(), 1.0 / (4.0 * std::f32::consts::PI));
-                    let t = (throughput.x + throughput.y + throughput.z) / 3.0;
-                    split_count(t * l, value, rng.next_f32()).min(MAX_PATHS_PER_SAMPLE - paths + 1)
+                    // The leaf's mean radiance: no direction is sampled yet.
+                    let e = expected_contribution(
+                        tree,
+                        &vg,
+                        throughput,
+                        1.0 / (4.0 * std::f32::consts::PI),
+                    );
+                    split_count(e, value, rng.next_f32()).min(MAX_PATHS_PER_SAMPLE - paths + 1)
                 }
                 _ => 1,
             };
@@ -743,20 +756,22 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         // guide applies and pixel estimates exist, else as Mitsuba does it.
         let tp_max = throughput.max_element();
         if depth >= params.rr_depth {
-            let q = match g.pixel_estimate {
-                _ if g.ppg_roulette => {
-                    ppg_survival(v.smooth && !ms.delta, tree.is_built(), tp_max, eta)
+            let q = if g.ppg_roulette {
+                ppg_survival(v.smooth && !ms.delta, tree.is_built(), tp_max, eta)
+            } else {
+                match g.pixel_estimate {
+                    Some(est) if vg.guided && !ms.delta => {
+                        let e = expected_contribution(
+                            tree,
+                            vg,
+                            throughput,
+                            ROULETTE_DIRECTIONAL * ms.p_guide
+                                + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
+                        );
+                        guided_survival(e, est.get(pixel).copied().unwrap_or(f32::NAN))
+                    }
+                    _ => mitsuba_survival(tp_max, eta),
                 }
-                Some(est) if vg.guided && !ms.delta => {
-                    let l = tree.incident_radiance_leaf(
-                        vg.leaf(),
-                        ROULETTE_DIRECTIONAL * ms.p_guide
-                            + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
-                    );
-                    let t = (throughput.x + throughput.y + throughput.z) / 3.0;
-                    guided_survival(t * l, est.get(pixel).copied().unwrap_or(f32::NAN))
-                }
-                _ => mitsuba_survival(tp_max, eta),
             };
             if rng.next_f32() >= q {
                 end_path!('paths)
