@@ -27,7 +27,10 @@ pub mod scene;
 pub mod texture;
 
 pub use film::Film;
-pub use render::{render, render_into, Progress, RenderSettings, RenderStats, DEFAULT_TILE};
+pub use render::{
+    path_estimator, render, render_into, CameraSample, Estimator, PathEstimator, Progress,
+    RenderSettings, RenderStats, DEFAULT_TILE,
+};
 pub use scene::Scene;
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 
 use crate::film::Film;
 use crate::geometry::Ray;
-use crate::integrator::path;
+use crate::integrator::wavefront::PathWavefront;
 use crate::rng::Rng;
 use crate::scene::Scene;
 
@@ -96,18 +96,63 @@ pub fn render(
     (film, stats)
 }
 
-/// The `path` integrator as a per-sample estimator for [`render_into`], specialised for the
-/// effects the scene has.
-pub fn path_estimator(scene: &Scene) -> impl Fn(Ray, &mut Rng, usize) -> glam::Vec3 + Sync + '_ {
-    move |ray: Ray, rng: &mut Rng, _pixel: usize| match (
-        scene.features.environment,
-        scene.features.analytic_shapes,
-    ) {
-        (false, false) => path::li::<false, false>(scene, ray, rng),
-        (true, false) => path::li::<true, false>(scene, ray, rng),
-        (false, true) => path::li::<false, true>(scene, ray, rng),
-        (true, true) => path::li::<true, true>(scene, ray, rng),
+/// One camera sample handed to an [`Estimator`]: its ray and the index `y * width + x` of
+/// its pixel.
+#[derive(Clone, Copy, Debug)]
+pub struct CameraSample {
+    pub ray: Ray,
+    pub pixel: usize,
+}
+
+/// What [`render_into`] runs for every camera sample: radiance estimates for a batch of
+/// samples. `rngs[k]` is sample `k`'s own generator (after the two pixel-offset numbers);
+/// an estimate may depend only on its own sample and generator, never on the batch, so
+/// that images do not depend on how the work is split. Any
+/// `Fn(Ray, &mut Rng, pixel) -> Vec3` is an estimator taking one sample at a time.
+pub trait Estimator: Sync {
+    fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]);
+}
+
+impl<F> Estimator for F
+where
+    F: Fn(Ray, &mut Rng, usize) -> glam::Vec3 + Sync,
+{
+    fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]) {
+        for ((s, rng), o) in samples.iter().zip(rngs.iter_mut()).zip(out.iter_mut()) {
+            *o = self(s.ray, rng, s.pixel);
+        }
     }
+}
+
+/// The `path` integrator as an [`Estimator`]: batches of paths side by side
+/// ([`wavefront`]), specialised for the effects the scene has.
+pub fn path_estimator(scene: &Scene) -> PathEstimator<'_> {
+    PathEstimator { scene }
+}
+
+/// See [`path_estimator`].
+pub struct PathEstimator<'a> {
+    scene: &'a Scene,
+}
+
+impl Estimator for PathEstimator<'_> {
+    fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]) {
+        let scene = self.scene;
+        match (scene.features.environment, scene.features.analytic_shapes) {
+            (false, false) => PathWavefront::<false, false> { scene }.estimate(samples, rngs, out),
+            (true, false) => PathWavefront::<true, false> { scene }.estimate(samples, rngs, out),
+            (false, true) => PathWavefront::<false, true> { scene }.estimate(samples, rngs, out),
+            (true, true) => PathWavefront::<true, true> { scene }.estimate(samples, rngs, out),
+        }
+    }
+}
+
+/// Per-thread buffers of one phase-1 chunk.
+#[derive(Default)]
+struct ChunkScratch {
+    samples: Vec<CameraSample>,
+    rngs: Vec<Rng>,
+    values: Vec<glam::Vec3>,
 }
 
 /// The render loop of [`render`] with any per-sample estimator, accumulating
@@ -125,7 +170,7 @@ pub fn render_into<E>(
     estimator: &E,
 ) -> RenderStats
 where
-    E: Fn(Ray, &mut Rng, usize) -> glam::Vec3 + Sync,
+    E: Estimator + ?Sized,
 {
     let (w, h) = (scene.width, scene.height);
     let start = Instant::now();
@@ -163,31 +208,35 @@ where
         // Phase 1: samples, in tiles of `tile` pixels along each row.
         buffer.clear();
         buffer.resize(npix * n, SampleRec::default());
-        buffer
-            .par_chunks_mut(tile * n)
-            .enumerate()
-            .for_each(|(chunk, out)| {
+        buffer.par_chunks_mut(tile * n).enumerate().for_each_init(
+            ChunkScratch::default,
+            |scratch, (chunk, out)| {
                 let first = chunk * tile;
-                let mut bad = 0u64;
+                scratch.samples.clear();
+                scratch.rngs.clear();
                 for (i, recs) in out.chunks_mut(n).enumerate() {
                     let pixel = first + i;
                     let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
                     for (k, rec) in recs.iter_mut().enumerate() {
-                        let (offset, mut value) = sample(
-                            scene,
-                            settings.seed,
-                            x,
-                            y,
-                            pixel as u64,
-                            first_sample + (s0 as usize + k) as u64,
-                            estimator,
-                        );
-                        if !value.is_finite() {
-                            bad += 1;
-                            value = glam::Vec3::ZERO;
-                        }
-                        *rec = SampleRec { offset, value };
+                        let index = first_sample + (s0 as usize + k) as u64;
+                        let mut rng = Rng::for_sample(settings.seed, pixel as u64, index);
+                        rec.offset = rng.next_2d();
+                        let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + rec.offset);
+                        scratch.samples.push(CameraSample { ray, pixel });
+                        scratch.rngs.push(rng);
                     }
+                }
+                scratch.values.clear();
+                scratch.values.resize(out.len(), glam::Vec3::ZERO);
+                estimator.estimate(&scratch.samples, &mut scratch.rngs, &mut scratch.values);
+                let mut bad = 0u64;
+                for (rec, &value) in out.iter_mut().zip(&scratch.values) {
+                    rec.value = if value.is_finite() {
+                        value
+                    } else {
+                        bad += 1;
+                        glam::Vec3::ZERO
+                    };
                 }
                 invalid.fetch_add(bad, Ordering::Relaxed);
                 let m = (out.len()) as u64;
@@ -196,7 +245,8 @@ where
                     samples_done: d,
                     samples_total: total.max(d),
                 });
-            });
+            },
+        );
         // Phase 2: splat by gathering.
         let filter = scene.filter;
         let reach = filter.reach();
@@ -245,23 +295,4 @@ where
         wall: start.elapsed(),
         invalid_samples: invalid.load(Ordering::Relaxed),
     }
-}
-
-/// One camera sample of pixel (x, y): its own random stream, a position
-/// uniformly inside the pixel (returned as the offset from the pixel's
-/// corner), and the integrator's estimate.
-#[inline]
-fn sample<E: Fn(Ray, &mut Rng, usize) -> glam::Vec3>(
-    scene: &Scene,
-    seed: u64,
-    x: u32,
-    y: u32,
-    pixel: u64,
-    index: u64,
-    estimator: &E,
-) -> (Vec2, glam::Vec3) {
-    let mut rng = Rng::for_sample(seed, pixel, index);
-    let offset = rng.next_2d();
-    let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + offset);
-    (offset, estimator(ray, &mut rng, pixel as usize))
 }

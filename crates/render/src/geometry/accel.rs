@@ -34,7 +34,16 @@ pub struct Accel {
     analytic: Vec<(u32, Analytic)>,
     shapes: Vec<ShapeGeom>,
     bounds: (Vec3, Vec3),
+    /// So few triangles ([`FLAT_MAX`]) that testing them all beats walking the
+    /// BVH: rays are tested against every triangle, in BVH primitive order.
+    flat: bool,
 }
+
+/// Scenes with at most this many triangles are intersected without the BVH.
+const FLAT_MAX: usize = 64;
+
+/// Rays per group in [`Accel::intersect_many`] and [`Accel::unoccluded_many`].
+const STREAM: usize = 8;
 
 impl Accel {
     pub fn build(shapes: Vec<ShapeGeom>) -> Self {
@@ -102,6 +111,7 @@ impl Accel {
             lo = Vec3::ZERO;
             hi = Vec3::ZERO;
         }
+        let flat = tris.len <= FLAT_MAX;
         Self {
             nodes,
             tris,
@@ -109,6 +119,7 @@ impl Accel {
             analytic,
             shapes,
             bounds: (lo, hi),
+            flat,
         }
     }
 
@@ -131,65 +142,179 @@ impl Accel {
             let mut r = TraceRay::new(ray);
             let (prim, bary) = self.traverse::<false>(&mut r);
             if prim != u32::MAX {
-                let info = &self.prims[prim as usize];
-                best = Some(Hit {
-                    t: r.tmax,
-                    shape: info.shape,
-                    prim: info.tri,
-                    bvh_prim: prim,
-                    bary,
-                });
+                best = Some(self.triangle_hit(prim, r.tmax, bary));
                 tmax = r.tmax;
             }
         }
         if ANALYTIC {
-            let mut r = *ray;
-            r.tmax = tmax;
-            for (s, a) in &self.analytic {
-                let t = a.intersect(&r);
-                if t < r.tmax {
-                    r.tmax = t;
-                    best = Some(Hit {
-                        t,
-                        shape: *s,
-                        prim: 0,
-                        bvh_prim: u32::MAX,
-                        bary: Vec2::ZERO,
-                    });
-                }
-            }
+            self.intersect_analytic(ray, tmax, &mut best);
         }
         best
     }
 
-    /// True when nothing blocks the ray in (tmin, tmax).
+    #[inline(always)]
+    fn triangle_hit(&self, prim: u32, t: f32, bary: Vec2) -> Hit {
+        let info = &self.prims[prim as usize];
+        Hit {
+            t,
+            shape: info.shape,
+            prim: info.tri,
+            bvh_prim: prim,
+            bary,
+        }
+    }
+
+    /// The analytic shapes' part of a closest-hit query whose triangles gave `best` at `tmax`.
+    #[inline(always)]
+    fn intersect_analytic(&self, ray: &Ray, tmax: f32, best: &mut Option<Hit>) {
+        let mut r = *ray;
+        r.tmax = tmax;
+        for (s, a) in &self.analytic {
+            let t = a.intersect(&r);
+            if t < r.tmax {
+                r.tmax = t;
+                *best = Some(Hit {
+                    t,
+                    shape: *s,
+                    prim: 0,
+                    bvh_prim: u32::MAX,
+                    bary: Vec2::ZERO,
+                });
+            }
+        }
+    }
+
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
         if !self.tris.is_empty() && self.traverse::<true>(&mut TraceRay::new(ray)).0 != u32::MAX {
             return false;
         }
-        if ANALYTIC {
-            for (_, a) in &self.analytic {
-                if a.intersect(ray) < ray.tmax {
-                    return false;
+        !ANALYTIC || self.analytic_unoccluded(ray)
+    }
+
+    #[inline(always)]
+    fn analytic_unoccluded(&self, ray: &Ray) -> bool {
+        !self
+            .analytic
+            .iter()
+            .any(|(_, a)| a.intersect(ray) < ray.tmax)
+    }
+
+    /// [`Accel::intersect`] of every ray: `hits[i]` for `rays[i]`, the same hits as one
+    /// query at a time. In scenes with few triangles, groups of rays are tested
+    /// against each triangle side by side (vectorised across rays).
+    pub fn intersect_many<const ANALYTIC: bool>(&self, rays: &[Ray], hits: &mut [Option<Hit>]) {
+        if !self.flat || self.tris.is_empty() {
+            for (ray, hit) in rays.iter().zip(hits.iter_mut()) {
+                *hit = self.intersect::<ANALYTIC>(ray);
+            }
+            return;
+        }
+        for (group, out) in rays.chunks(STREAM).zip(hits.chunks_mut(STREAM)) {
+            let g = RayGroup::new(group);
+            let (prim, [t, u, v]) = self.stream_closest(&g);
+            for (i, (ray, hit)) in group.iter().zip(out.iter_mut()).enumerate() {
+                let mut best = None;
+                let mut tmax = ray.tmax;
+                if prim[i] != u32::MAX {
+                    best = Some(self.triangle_hit(prim[i], t[i], Vec2::new(u[i], v[i])));
+                    tmax = t[i];
+                }
+                if ANALYTIC {
+                    self.intersect_analytic(ray, tmax, &mut best);
+                }
+                *hit = best;
+            }
+        }
+    }
+
+    /// [`Accel::unoccluded`] of every ray, vectorised across rays like
+    /// [`Accel::intersect_many`].
+    pub fn unoccluded_many<const ANALYTIC: bool>(&self, rays: &[Ray], out: &mut [bool]) {
+        if !self.flat || self.tris.is_empty() {
+            for (ray, o) in rays.iter().zip(out.iter_mut()) {
+                *o = self.unoccluded::<ANALYTIC>(ray);
+            }
+            return;
+        }
+        for (group, out) in rays.chunks(STREAM).zip(out.chunks_mut(STREAM)) {
+            let blocked = self.stream_any(&RayGroup::new(group));
+            for (i, (ray, o)) in group.iter().zip(out.iter_mut()).enumerate() {
+                *o = !blocked[i] && (!ANALYTIC || self.analytic_unoccluded(ray));
+            }
+        }
+    }
+
+    /// Every triangle against one ray, block by block ([`Accel::flat`] scenes): the
+    /// closest hit, the lowest primitive index among equally close ones (as
+    /// [`Accel::stream_closest`] decides).
+    #[inline(always)]
+    fn test_all<const ANY_HIT: bool>(&self, r: &mut TraceRay) -> (u32, Vec2) {
+        let mut found = u32::MAX;
+        let mut bary = Vec2::ZERO;
+        let nb = self.tris.blocks.len();
+        for block in 0..nb {
+            let lanes = if block + 1 == nb {
+                LANE_MASK >> (nb * LANES - self.tris.len)
+            } else {
+                LANE_MASK
+            };
+            let (mut hits, [t, u, v]) = self.tris.intersect_block(block, lanes, r);
+            if ANY_HIT && hits != 0 {
+                return ((block * LANES) as u32 + hits.trailing_zeros(), bary);
+            }
+            while hits != 0 {
+                let i = hits.trailing_zeros() as usize;
+                hits &= hits - 1;
+                if t[i] < r.tmax {
+                    r.tmax = t[i];
+                    found = (block * LANES + i) as u32;
+                    bary = Vec2::new(u[i], v[i]);
                 }
             }
         }
-        true
+        (found, bary)
     }
 
-    /// Walks the BVH (obvhs' CWBVH topology and child ordering, as in its
-    /// `traverse!` macro, over the decoded [`Node`]s) and returns the BVH
-    /// index of the closest triangle hit and the barycentrics of the hit,
-    /// shortening `r.tmax` to its distance, or with `ANY_HIT` of the first
-    /// triangle found (barycentrics unset); `u32::MAX` when nothing is hit.
-    ///
-    /// Own loop rather than obvhs' macro: the primitives of all the leaves
-    /// hit in a node (up to 24 consecutive BVH indices) are tested together,
-    /// by aligned blocks of `LANES` (vector code, one bounds check per block),
-    /// and the test's barycentrics are kept for shading.
+    /// Closest hits of a group of rays against every triangle, in primitive order: a
+    /// triangle replaces a lane's hit when strictly closer, as [`Accel::test_all`] does.
+    #[inline(always)]
+    fn stream_closest(&self, g: &RayGroup) -> ([u32; STREAM], [[f32; STREAM]; 3]) {
+        let mut prim = [u32::MAX; STREAM];
+        let (mut best, mut bu, mut bv) = (g.tmax, [0.0f32; STREAM], [0.0f32; STREAM]);
+        for j in 0..self.tris.len {
+            let tri = self.tris.get(j);
+            for i in 0..STREAM {
+                let (ok, t, u, v) = tri_test(&tri, g, i);
+                let take = ok & (t < best[i]);
+                best[i] = if take { t } else { best[i] };
+                bu[i] = if take { u } else { bu[i] };
+                bv[i] = if take { v } else { bv[i] };
+                prim[i] = if take { j as u32 } else { prim[i] };
+            }
+        }
+        (prim, [best, bu, bv])
+    }
+
+    /// Whether any triangle blocks each ray of a group.
+    #[inline(always)]
+    fn stream_any(&self, g: &RayGroup) -> [bool; STREAM] {
+        let mut blocked = [false; STREAM];
+        for j in 0..self.tris.len {
+            let tri = self.tris.get(j);
+            for (i, b) in blocked.iter_mut().enumerate() {
+                let (ok, t, _, _) = tri_test(&tri, g, i);
+                *b |= ok & (t <= g.tmax[i]);
+            }
+        }
+        blocked
+    }
+
     #[inline(always)]
     fn traverse<const ANY_HIT: bool>(&self, r: &mut TraceRay) -> (u32, Vec2) {
+        if self.flat {
+            return self.test_all::<ANY_HIT>(r);
+        }
         /// obvhs' maximum CWBVH depth (checked by its validation).
         const STACK: usize = 32;
         let mut stack = [(0u32, 0u32); STACK];
@@ -456,6 +581,64 @@ struct PrimInfo {
 
 /// Batch width of the triangle test (8: measured faster than 4 on both
 /// benchmark scenes, with AVX2).
+/// A group of up to [`STREAM`] rays in structure-of-arrays form; unused lanes have
+/// an empty interval.
+struct RayGroup {
+    o: [[f32; STREAM]; 3],
+    d: [[f32; STREAM]; 3],
+    tmin: [f32; STREAM],
+    tmax: [f32; STREAM],
+}
+
+impl RayGroup {
+    #[inline(always)]
+    fn new(rays: &[Ray]) -> Self {
+        let mut g = RayGroup {
+            o: [[0.0; STREAM]; 3],
+            d: [[0.0; STREAM]; 3],
+            tmin: [1.0; STREAM],
+            tmax: [-1.0; STREAM],
+        };
+        for (i, r) in rays.iter().enumerate() {
+            for a in 0..3 {
+                g.o[a][i] = r.o[a];
+                g.d[a][i] = r.d[a];
+            }
+            g.tmin[i] = r.tmin;
+            g.tmax[i] = r.tmax;
+        }
+        g
+    }
+}
+
+/// One triangle (vertex 0, the two edges from it, the unnormalised normal).
+struct Tri {
+    v0: [f32; 3],
+    e1: [f32; 3],
+    e2: [f32; 3],
+    ng: [f32; 3],
+}
+
+/// Ray `i` of `g` against `tri`: hit within [tmin, inf) and inside, with its distance
+/// and barycentrics; per lane the arithmetic of [`TriSoa::intersect_block`], so both
+/// find the same hits.
+#[inline(always)]
+fn tri_test(tri: &Tri, g: &RayGroup, i: usize) -> (bool, f32, f32, f32) {
+    let (ox, oy, oz) = (g.o[0][i], g.o[1][i], g.o[2][i]);
+    let (dx, dy, dz) = (g.d[0][i], g.d[1][i], g.d[2][i]);
+    let (cx, cy, cz) = (tri.v0[0] - ox, tri.v0[1] - oy, tri.v0[2] - oz);
+    let rx = dy * cz - dz * cy;
+    let ry = dz * cx - dx * cz;
+    let rz = dx * cy - dy * cx;
+    let inv_det = 1.0 / (tri.ng[0] * dx + tri.ng[1] * dy + tri.ng[2] * dz);
+    let u = (rx * tri.e2[0] + ry * tri.e2[1] + rz * tri.e2[2]) * inv_det;
+    let v = (rx * tri.e1[0] + ry * tri.e1[1] + rz * tri.e1[2]) * inv_det;
+    let w = 1.0 - u - v;
+    let t = (tri.ng[0] * cx + tri.ng[1] * cy + tri.ng[2] * cz) * inv_det;
+    let inside = (u.to_bits() | v.to_bits() | w.to_bits()) & 0x8000_0000 == 0;
+    (inside & (inv_det != 0.0) & (t >= g.tmin[i]), t, u, v)
+}
+
 const LANES: usize = 8;
 const LANE_MASK: u32 = (1 << LANES) - 1;
 
@@ -492,6 +675,19 @@ impl TriSoa {
         self.len == 0
     }
 
+    #[inline(always)]
+    fn get(&self, j: usize) -> Tri {
+        let b = &self.blocks[j / LANES].0;
+        let l = j % LANES;
+        let at = |k: usize| [b[k][l], b[k + 1][l], b[k + 2][l]];
+        Tri {
+            v0: at(0),
+            e1: at(3),
+            e2: at(6),
+            ng: at(9),
+        }
+    }
+
     /// Tests the triangles of block `block` whose bit is set in `lanes`:
     /// the bits of those hit within [tmin, tmax] and every lane's distance
     /// and barycentrics (weights of vertices 1 and 2).
@@ -526,5 +722,107 @@ impl TriSoa {
             hits |= (ok as u32) << i;
         }
         (hits & lanes, [t, bu, bv])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// A soup of `n` random triangles in the unit cube, as one mesh.
+    fn soup(n: usize, rng: &mut Rng) -> Accel {
+        let mut positions = Vec::new();
+        let mut indices = Vec::new();
+        for t in 0..n as u32 {
+            let c = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+            for _ in 0..3 {
+                let jitter = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) - 0.5;
+                positions.push(c + jitter * 0.4);
+            }
+            indices.push([3 * t, 3 * t + 1, 3 * t + 2]);
+        }
+        let mesh = TriangleMesh {
+            positions,
+            normals: None,
+            uvs: None,
+            indices,
+            flip_normals: false,
+        };
+        Accel::build(vec![ShapeGeom::Mesh(Arc::new(mesh))])
+    }
+
+    fn random_rays(n: usize, rng: &mut Rng) -> Vec<Ray> {
+        (0..n)
+            .map(|i| {
+                let o = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32()) * 2.0 - 0.5;
+                // Aimed into the cube, where the triangles are.
+                let target = Vec3::new(rng.next_f32(), rng.next_f32(), rng.next_f32());
+                let d = (target - o).normalize();
+                // Every third ray is bounded, as shadow rays are.
+                let tmax = if i % 3 == 0 {
+                    rng.next_f32()
+                } else {
+                    f32::INFINITY
+                };
+                Ray {
+                    o,
+                    d,
+                    tmin: 0.0,
+                    tmax,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn ray_streams_find_the_hits_of_one_ray_at_a_time() {
+        let mut rng = Rng::for_sample(5, 0, 0);
+        // Below FLAT_MAX the stream is vectorised across rays; above it, it walks the BVH.
+        for n in [1, 13, FLAT_MAX, 300] {
+            let accel = soup(n, &mut rng);
+            assert_eq!(accel.flat, n <= FLAT_MAX);
+            // 203 rays: groups of STREAM and a partial one.
+            let rays = random_rays(203, &mut rng);
+            let mut hits = vec![None; rays.len()];
+            accel.intersect_many::<false>(&rays, &mut hits);
+            let mut clear = vec![false; rays.len()];
+            accel.unoccluded_many::<false>(&rays, &mut clear);
+            let mut found = 0;
+            for (i, ray) in rays.iter().enumerate() {
+                let one = accel.intersect::<false>(ray);
+                let key =
+                    |h: Option<Hit>| h.map(|h| (h.t.to_bits(), h.bvh_prim, h.bary.to_array()));
+                assert_eq!(key(hits[i]), key(one), "{n} triangles, ray {i}");
+                assert_eq!(
+                    clear[i],
+                    accel.unoccluded::<false>(ray),
+                    "{n} triangles, ray {i}"
+                );
+                assert_eq!(clear[i], one.is_none(), "{n} triangles, ray {i}");
+                found += one.is_some() as usize;
+            }
+            assert!(found > n.min(50), "{n} triangles: only {found} rays hit");
+        }
+    }
+
+    #[test]
+    fn testing_every_triangle_agrees_with_the_bvh() {
+        let mut rng = Rng::for_sample(9, 0, 0);
+        let mut accel = soup(FLAT_MAX, &mut rng);
+        let rays = random_rays(500, &mut rng);
+        let flat: Vec<_> = rays.iter().map(|r| accel.intersect::<false>(r)).collect();
+        accel.flat = false;
+        let mut agree = 0;
+        for (ray, f) in rays.iter().zip(&flat) {
+            let b = accel.intersect::<false>(ray);
+            assert_eq!(f.is_some(), b.is_some());
+            if let (Some(f), Some(b)) = (f, b) {
+                // The same triangle at the same distance (another one only on a tie).
+                assert_eq!(f.t, b.t);
+                agree += (f.bvh_prim == b.bvh_prim) as usize;
+            }
+        }
+        assert!(agree > 150, "only {agree} of {} rays hit", rays.len());
     }
 }

@@ -2,6 +2,7 @@
 
 pub mod guided_path;
 pub mod path;
+pub mod wavefront;
 
 use crate::geometry::{spawn_ray, Hit, Ray};
 use crate::scene::Scene;

@@ -1,0 +1,298 @@
+//! The `path` integrator over a batch of camera samples at once ("wavefront"):
+//! the same estimator as [`super::path::li`], bit for bit, restructured so
+//! that each step of a bounce runs as a loop over many independent paths.
+//!
+//! Why: one path's bounce is a long chain of dependent, latency-bound
+//! scalar work (square roots, divisions, table lookups, a traversal whose
+//! every step waits on the last). With the paths of a batch side by side,
+//! each step's loop body is independent from one lane to the next, so the
+//! out-of-order core overlaps lanes, and each step's code and data stay hot.
+//!
+//! Per bounce: **shade** every live lane (emission found, the BSDF, the light
+//! sample with its MIS weight, the BSDF sample, Russian roulette, the next
+//! ray), then test every pending **shadow** ray, then **trace** every
+//! continuing ray. A lane's random numbers, arithmetic and order of additions
+//! are those of the one-path estimator, so both give identical bits (tested).
+
+use glam::Vec3;
+use pathfarm_bsdf::{Bsdf, Frame};
+
+use super::{camera_hit, depth_limit, mitsuba_survival};
+use crate::geometry::{spawn_ray, Hit, Ray};
+use crate::render::{CameraSample, Estimator};
+use crate::rng::Rng;
+use crate::sampling::power_heuristic;
+use crate::scene::Scene;
+
+/// Paths in flight per batch: enough lanes to overlap, few enough that their
+/// state stays in the first-level cache.
+const LANES: usize = 64;
+
+/// `path` over batches of samples, specialised like [`super::path::li`] for
+/// an environment light (`ENV`) and analytic shapes (`ANALYTIC`).
+pub struct PathWavefront<'a, const ENV: bool, const ANALYTIC: bool> {
+    pub scene: &'a Scene,
+}
+
+/// The buffers of a batch, reused from one batch to the next.
+struct Scratch<'a> {
+    /// The paths still going.
+    lanes: Vec<Lane>,
+    /// Where each of `lanes` scatters this bounce.
+    shading: Vec<Option<Shading<'a>>>,
+    /// The rays of one stream query, and its answers.
+    rays: Vec<Ray>,
+    hits: Vec<Option<Hit>>,
+    clear: Vec<bool>,
+}
+
+/// Where a lane scatters this bounce.
+#[derive(Clone, Copy)]
+struct Shading<'a> {
+    p: Vec3,
+    ng: Vec3,
+    bsdf: Bsdf<'a>,
+    frame: Frame,
+    /// Direction towards the previous vertex, in the shading frame.
+    wi: Vec3,
+}
+
+/// One path in flight.
+#[derive(Clone, Copy)]
+struct Lane {
+    /// Index of the sample in the batch.
+    k: usize,
+    ray: Ray,
+    hit: Option<Hit>,
+    throughput: Vec3,
+    result: Vec3,
+    eta: f32,
+    depth: u32,
+    prev_p: Vec3,
+    prev_bsdf_pdf: f32,
+    prev_delta: bool,
+    /// A next-event shadow ray is pending, with the contribution it adds
+    /// if unoccluded.
+    shadow: Option<(Ray, Vec3)>,
+    /// The path goes on (its next ray is to be traced).
+    alive: bool,
+}
+
+impl<const ENV: bool, const ANALYTIC: bool> Estimator for PathWavefront<'_, ENV, ANALYTIC> {
+    fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [Vec3]) {
+        let mut scratch = Scratch {
+            lanes: Vec::with_capacity(LANES.min(samples.len())),
+            shading: Vec::with_capacity(LANES.min(samples.len())),
+            rays: Vec::new(),
+            hits: Vec::new(),
+            clear: Vec::new(),
+        };
+        let mut start = 0;
+        while start < samples.len() {
+            let end = (start + LANES).min(samples.len());
+            self.batch(start..end, samples, rngs, out, &mut scratch);
+            start = end;
+        }
+    }
+}
+
+impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC> {
+    fn batch(
+        &self,
+        range: std::ops::Range<usize>,
+        samples: &[CameraSample],
+        rngs: &mut [Rng],
+        out: &mut [Vec3],
+        scratch: &mut Scratch<'a>,
+    ) {
+        let Scratch {
+            lanes,
+            shading,
+            rays,
+            hits,
+            clear,
+        } = scratch;
+        let scene = self.scene;
+        let params = &scene.path;
+        lanes.clear();
+        for k in range {
+            out[k] = Vec3::ZERO;
+            if params.max_depth == 0 {
+                continue;
+            }
+            let mut ray = samples[k].ray;
+            if let Some(hit) = camera_hit::<ANALYTIC>(scene, &mut ray) {
+                lanes.push(Lane {
+                    k,
+                    ray,
+                    hit,
+                    throughput: Vec3::ONE,
+                    result: Vec3::ZERO,
+                    eta: 1.0,
+                    depth: 0,
+                    prev_p: ray.o,
+                    prev_bsdf_pdf: 1.0,
+                    prev_delta: true,
+                    shadow: None,
+                    alive: true,
+                });
+            }
+        }
+        let max_depth = depth_limit(params.max_depth);
+        let accel = &scene.accel;
+        while !lanes.is_empty() {
+            shading.clear();
+            shading.extend(lanes.iter_mut().map(|lane| self.surface(lane, max_depth)));
+            for (lane, sh) in lanes.iter_mut().zip(shading.iter()) {
+                if let Some(sh) = sh {
+                    self.next_event(lane, sh, &mut rngs[lane.k]);
+                }
+            }
+            for (lane, sh) in lanes.iter_mut().zip(shading.iter()) {
+                if let Some(sh) = sh {
+                    self.scatter(lane, sh, &mut rngs[lane.k]);
+                }
+            }
+            // Shadow rays, all at once.
+            rays.clear();
+            rays.extend(lanes.iter().filter_map(|l| l.shadow.map(|(r, _)| r)));
+            clear.clear();
+            clear.resize(rays.len(), false);
+            accel.unoccluded_many::<ANALYTIC>(rays, clear);
+            let mut next = clear.iter();
+            for lane in lanes.iter_mut() {
+                if let Some((_, contribution)) = lane.shadow.take() {
+                    if *next.next().expect("one answer per shadow ray") {
+                        lane.result += contribution;
+                    }
+                }
+            }
+            lanes.retain(|lane| {
+                if !lane.alive {
+                    out[lane.k] = lane.result;
+                }
+                lane.alive
+            });
+            // The continuing paths' next rays, all at once.
+            rays.clear();
+            rays.extend(lanes.iter().map(|l| l.ray));
+            hits.clear();
+            hits.resize(rays.len(), None);
+            accel.intersect_many::<ANALYTIC>(rays, hits);
+            for (lane, hit) in lanes.iter_mut().zip(hits.iter()) {
+                lane.hit = *hit;
+            }
+        }
+    }
+
+    /// The surface a lane's ray found: emission (MIS-weighted against the
+    /// previous BSDF sample), then the BSDF to scatter with, unless the path
+    /// ends here (escaped, or at the depth limit).
+    #[inline(always)]
+    fn surface(&self, lane: &mut Lane, max_depth: u32) -> Option<Shading<'a>> {
+        let scene = self.scene;
+        let lights = &scene.lights;
+        lane.alive = false;
+        let ray = lane.ray;
+        let Some(h) = lane.hit else {
+            if ENV {
+                let le = lights.environment_radiance(ray.d);
+                let w = if lane.prev_delta {
+                    1.0
+                } else {
+                    power_heuristic(lane.prev_bsdf_pdf, lights.environment_pdf(ray.d))
+                };
+                lane.result += lane.throughput * le * w;
+            }
+            return None;
+        };
+        let si = scene.accel.interaction(&ray, &h);
+
+        if let Some(light) = scene.shape_light[si.shape as usize] {
+            let le = lights.area_radiance(light, si.ns, -ray.d);
+            if le != Vec3::ZERO {
+                let w = if lane.prev_delta {
+                    1.0
+                } else {
+                    power_heuristic(
+                        lane.prev_bsdf_pdf,
+                        lights.area_pdf(light, lane.prev_p, si.p, si.ns),
+                    )
+                };
+                lane.result += lane.throughput * le * w;
+            }
+        }
+
+        if lane.depth + 1 >= max_depth {
+            return None;
+        }
+        let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
+        let wi = frame.to_local(-ray.d);
+        Some(Shading {
+            p: si.p,
+            ng: si.ng,
+            bsdf,
+            frame,
+            wi,
+        })
+    }
+
+    /// Next-event estimation: a light sample, its MIS-weighted contribution
+    /// and the shadow ray that decides it (tested later, with the batch's).
+    #[inline(always)]
+    fn next_event(&self, lane: &mut Lane, sh: &Shading<'a>, rng: &mut Rng) {
+        let scene = self.scene;
+        if sh.bsdf.flags().smooth {
+            if let Some(ls) = scene
+                .lights
+                .sample(&scene.accel, sh.p, rng.next_f32(), rng.next_2d())
+            {
+                let wo = sh.frame.to_local(ls.wi);
+                let f = sh.bsdf.eval(sh.wi, wo);
+                if f != Vec3::ZERO {
+                    let w = if ls.delta {
+                        1.0
+                    } else {
+                        power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
+                    };
+                    lane.shadow = Some((
+                        ls.shadow_ray(sh.p, sh.ng),
+                        lane.throughput * f * ls.value * (w / ls.pdf),
+                    ));
+                }
+            }
+        } else {
+            // Keep the random-number stream aligned across materials.
+            rng.next_f32();
+            rng.next_2d();
+        }
+    }
+
+    /// BSDF sampling, Russian roulette as Mitsuba does it, and the next ray.
+    #[inline(always)]
+    fn scatter(&self, lane: &mut Lane, sh: &Shading<'a>, rng: &mut Rng) {
+        let Some(bs) = sh.bsdf.sample(sh.wi, rng.next_f32(), rng.next_2d()) else {
+            return;
+        };
+        lane.throughput *= bs.weight;
+        lane.eta *= bs.eta;
+        lane.prev_p = sh.p;
+        lane.prev_bsdf_pdf = bs.pdf;
+        lane.prev_delta = bs.lobe.delta;
+        lane.depth += 1;
+
+        let tp_max = lane.throughput.max_element();
+        if lane.depth >= self.scene.path.rr_depth {
+            let q = mitsuba_survival(tp_max, lane.eta);
+            if rng.next_f32() >= q {
+                return;
+            }
+            lane.throughput /= q;
+        }
+        if tp_max <= 0.0 || !tp_max.is_finite() {
+            return;
+        }
+        lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo));
+        lane.alive = true;
+    }
+}
