@@ -30,8 +30,18 @@ pub fn mitsuba_survival(throughput_max: f32, eta: f32) -> f32 {
 /// too). `None` means the sample is black; `Some(None)` a visible miss.
 #[inline]
 pub fn camera_hit<const ANALYTIC: bool>(scene: &Scene, ray: &mut Ray) -> Option<Option<Hit>> {
+    let first = scene.accel.intersect::<ANALYTIC>(ray);
+    camera_hit_from::<ANALYTIC>(scene, ray, first)
+}
+
+/// [`camera_hit`] given the camera ray's first hit `hit`.
+#[inline]
+pub fn camera_hit_from<const ANALYTIC: bool>(
+    scene: &Scene,
+    ray: &mut Ray,
+    mut hit: Option<Hit>,
+) -> Option<Option<Hit>> {
     let accel = &scene.accel;
-    let mut hit = accel.intersect::<ANALYTIC>(ray);
     if scene.path.hide_emitters {
         while let Some(h) = hit {
             if scene.shape_light[h.shape as usize].is_none() {

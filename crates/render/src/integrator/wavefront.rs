@@ -14,11 +14,12 @@
 //! continuing ray. A lane's random numbers, arithmetic and order of additions
 //! are those of the one-path estimator, so both give identical bits (tested).
 
-use glam::Vec3;
+use glam::{Vec2, Vec3};
 use pathfarm_bsdf::{Bsdf, Frame};
 
-use super::{camera_hit, depth_limit, mitsuba_survival};
+use super::{camera_hit_from, depth_limit, mitsuba_survival};
 use crate::geometry::{spawn_ray, Hit, Ray};
+use crate::light::LightSample;
 use crate::render::{CameraSample, Estimator};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
@@ -40,6 +41,9 @@ struct Scratch<'a> {
     lanes: Vec<Lane>,
     /// Where each of `lanes` scatters this bounce.
     shading: Vec<Option<Shading<'a>>>,
+    /// Next-event queries (point, selection number, 2D number) and their light samples.
+    queries: Vec<(Vec3, f32, Vec2)>,
+    light_samples: Vec<Option<LightSample>>,
     /// The rays of one stream query, and its answers.
     rays: Vec<Ray>,
     hits: Vec<Option<Hit>>,
@@ -83,6 +87,8 @@ impl<const ENV: bool, const ANALYTIC: bool> Estimator for PathWavefront<'_, ENV,
         let mut scratch = Scratch {
             lanes: Vec::with_capacity(LANES.min(samples.len())),
             shading: Vec::with_capacity(LANES.min(samples.len())),
+            queries: Vec::new(),
+            light_samples: Vec::new(),
             rays: Vec::new(),
             hits: Vec::new(),
             clear: Vec::new(),
@@ -108,6 +114,8 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         let Scratch {
             lanes,
             shading,
+            queries,
+            light_samples,
             rays,
             hits,
             clear,
@@ -115,13 +123,20 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         let scene = self.scene;
         let params = &scene.path;
         lanes.clear();
-        for k in range {
+        if params.max_depth == 0 {
+            out[range].fill(Vec3::ZERO);
+            return;
+        }
+        // The camera rays, as one stream.
+        rays.clear();
+        rays.extend(samples[range.clone()].iter().map(|s| s.ray));
+        hits.clear();
+        hits.resize(rays.len(), None);
+        scene.accel.intersect_many::<ANALYTIC>(rays, hits);
+        for (k, (&first, &ray)) in range.zip(hits.iter().zip(rays.iter())) {
             out[k] = Vec3::ZERO;
-            if params.max_depth == 0 {
-                continue;
-            }
-            let mut ray = samples[k].ray;
-            if let Some(hit) = camera_hit::<ANALYTIC>(scene, &mut ray) {
+            let mut ray = ray;
+            if let Some(hit) = camera_hit_from::<ANALYTIC>(scene, &mut ray, first) {
                 lanes.push(Lane {
                     k,
                     ray,
@@ -143,9 +158,29 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         while !lanes.is_empty() {
             shading.clear();
             shading.extend(lanes.iter_mut().map(|lane| self.surface(lane, max_depth)));
+            // Next-event estimation: the random numbers, then all light samples at
+            // once, then each one's BSDF value and MIS weight.
+            queries.clear();
+            for (lane, sh) in lanes.iter().zip(shading.iter()) {
+                if let Some(sh) = sh {
+                    let rng = &mut rngs[lane.k];
+                    let (u_select, u) = (rng.next_f32(), rng.next_2d());
+                    if sh.bsdf.flags().smooth {
+                        queries.push((sh.p, u_select, u));
+                    }
+                }
+            }
+            light_samples.clear();
+            light_samples.resize(queries.len(), None);
+            scene.lights.sample_many(accel, queries, light_samples);
+            let mut next = light_samples.iter();
             for (lane, sh) in lanes.iter_mut().zip(shading.iter()) {
                 if let Some(sh) = sh {
-                    self.next_event(lane, sh, &mut rngs[lane.k]);
+                    if sh.bsdf.flags().smooth {
+                        if let Some(ls) = next.next().expect("one light sample per query") {
+                            Self::next_event(lane, sh, ls);
+                        }
+                    }
                 }
             }
             for (lane, sh) in lanes.iter_mut().zip(shading.iter()) {
@@ -237,34 +272,22 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         })
     }
 
-    /// Next-event estimation: a light sample, its MIS-weighted contribution
+    /// Next-event estimation with light sample `ls`: its MIS-weighted contribution
     /// and the shadow ray that decides it (tested later, with the batch's).
     #[inline(always)]
-    fn next_event(&self, lane: &mut Lane, sh: &Shading<'a>, rng: &mut Rng) {
-        let scene = self.scene;
-        if sh.bsdf.flags().smooth {
-            if let Some(ls) = scene
-                .lights
-                .sample(&scene.accel, sh.p, rng.next_f32(), rng.next_2d())
-            {
-                let wo = sh.frame.to_local(ls.wi);
-                let f = sh.bsdf.eval(sh.wi, wo);
-                if f != Vec3::ZERO {
-                    let w = if ls.delta {
-                        1.0
-                    } else {
-                        power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
-                    };
-                    lane.shadow = Some((
-                        ls.shadow_ray(sh.p, sh.ng),
-                        lane.throughput * f * ls.value * (w / ls.pdf),
-                    ));
-                }
-            }
-        } else {
-            // Keep the random-number stream aligned across materials.
-            rng.next_f32();
-            rng.next_2d();
+    fn next_event(lane: &mut Lane, sh: &Shading<'a>, ls: &LightSample) {
+        let wo = sh.frame.to_local(ls.wi);
+        let f = sh.bsdf.eval(sh.wi, wo);
+        if f != Vec3::ZERO {
+            let w = if ls.delta {
+                1.0
+            } else {
+                power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
+            };
+            lane.shadow = Some((
+                ls.shadow_ray(sh.p, sh.ng),
+                lane.throughput * f * ls.value * (w / ls.pdf),
+            ));
         }
     }
 

@@ -135,6 +135,10 @@ impl AreaLight {
 
     #[inline]
     pub fn sample(&self, accel: &Accel, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
+        if let Some((tri, ux)) = self.pick_flat(u.x) {
+            let s = flat_triangle_sample(&tri, self.area, p_ref.to_array(), ux, u.y);
+            return s.valid.then(|| self.light_sample(&s));
+        }
         let (p, n) = self.sample_point(accel, u)?;
         let v = p - p_ref;
         let d2 = v.length_squared();
@@ -162,6 +166,46 @@ impl AreaLight {
         })
     }
 
+    /// For an emitting mesh whose picked triangle (by `ux`) is flat: that triangle,
+    /// prepared for [`flat_triangle_sample`], and `ux` rescaled within its bin.
+    #[inline(always)]
+    pub(super) fn pick_flat(&self, ux: f32) -> Option<(FlatTri, f32)> {
+        if self.tri_data.is_empty() || self.area <= 0.0 {
+            return None;
+        }
+        let (t, ux) = self.tris.sample(ux);
+        let tri = &self.tri_data[t];
+        tri.flat.then(|| {
+            let a = |v: Vec3| v.to_array();
+            (
+                FlatTri {
+                    v0: a(tri.v0),
+                    e1: a(tri.e1),
+                    e2: a(tri.e2),
+                    n: a(tri.n[0]),
+                },
+                ux,
+            )
+        })
+    }
+
+    /// The light sample of a valid [`FlatSample`] of this light.
+    #[inline(always)]
+    pub(super) fn light_sample(&self, s: &FlatSample) -> LightSample {
+        LightSample {
+            wi: Vec3::from_array(s.wi),
+            point: Vec3::from_array(s.point),
+            infinite: false,
+            value: self.radiance,
+            pdf: s.pdf,
+            delta: false,
+        }
+    }
+
+    pub fn area(&self) -> f32 {
+        self.area
+    }
+
     /// Solid-angle density of `sample` producing point `p` (normal `n`) seen
     /// from `p_ref` (without the light-selection probability).
     #[inline]
@@ -173,5 +217,57 @@ impl AreaLight {
             return 0.0;
         }
         d2 / (cos * self.area)
+    }
+}
+
+/// An emitting triangle with one normal everywhere, as plain numbers.
+#[derive(Clone, Copy, Default)]
+pub(super) struct FlatTri {
+    pub v0: [f32; 3],
+    pub e1: [f32; 3],
+    pub e2: [f32; 3],
+    /// Unit normal (the emitting side).
+    pub n: [f32; 3],
+}
+
+/// A point sampled on a [`FlatTri`] seen from a reference point.
+#[derive(Clone, Copy, Default)]
+pub(super) struct FlatSample {
+    /// False when the sample is void (the reference point on the light, the back
+    /// side facing it, or a non-finite density).
+    pub valid: bool,
+    pub wi: [f32; 3],
+    pub point: [f32; 3],
+    /// Solid-angle pdf without the light-selection probability.
+    pub pdf: f32,
+}
+
+/// Uniform sampling by area of a flat emitting triangle of a light of total area
+/// `area`, seen from `p_ref`, with `(ux, uy)` uniform. Branch-free arithmetic on plain
+/// numbers, so that a loop over many samples vectorises; the one implementation for
+/// one sample ([`AreaLight::sample`]) and many ([`super::Lights::sample_many`]).
+#[inline(always)]
+pub(super) fn flat_triangle_sample(
+    tri: &FlatTri,
+    area: f32,
+    p_ref: [f32; 3],
+    ux: f32,
+    uy: f32,
+) -> FlatSample {
+    // uniform_triangle: barycentrics (1 - sqrt(ux), uy sqrt(ux)).
+    let s = ux.sqrt();
+    let (b1, b2) = (1.0 - s, uy * s);
+    let point: [f32; 3] = std::array::from_fn(|c| tri.v0[c] + tri.e1[c] * b1 + tri.e2[c] * b2);
+    let v: [f32; 3] = std::array::from_fn(|c| point[c] - p_ref[c]);
+    let d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    let dist = d2.sqrt();
+    let wi: [f32; 3] = std::array::from_fn(|c| v[c] / dist);
+    let cos = tri.n[0] * -wi[0] + tri.n[1] * -wi[1] + tri.n[2] * -wi[2];
+    let pdf = d2 / (cos * area);
+    FlatSample {
+        valid: (dist != 0.0) & (cos > 0.0) & pdf.is_finite(),
+        wi,
+        point,
+        pdf,
     }
 }

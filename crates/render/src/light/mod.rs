@@ -6,6 +6,7 @@ mod area;
 mod envmap;
 
 pub use area::AreaLight;
+use area::{flat_triangle_sample, FlatSample, FlatTri};
 pub use envmap::EnvMap;
 
 use glam::{Vec2, Vec3};
@@ -145,6 +146,89 @@ impl Lights {
         Some(s)
     }
 
+    /// [`Lights::sample`] for many reference points at once: `out[i]` for `queries[i]`
+    /// (point, selection number, 2D number), the same samples as one at a time. Flat
+    /// triangles of emitting meshes (the common case) are sampled in groups, vectorised
+    /// across queries; anything else one at a time.
+    pub fn sample_many(
+        &self,
+        accel: &Accel,
+        queries: &[(Vec3, f32, Vec2)],
+        out: &mut [Option<LightSample>],
+    ) {
+        const GROUP: usize = 8;
+        let n = self.lights.len();
+        for (qs, outs) in queries.chunks(GROUP).zip(out.chunks_mut(GROUP)) {
+            // Structure of arrays, so that the sampling loop below vectorises.
+            let mut tri = [[0.0f32; GROUP]; 12];
+            let mut area = [1.0f32; GROUP];
+            let mut p_ref = [[0.0f32; GROUP]; 3];
+            let (mut ux, mut uy) = ([0.0f32; GROUP], [0.0f32; GROUP]);
+            let mut light = [usize::MAX; GROUP];
+            for (i, (&(p, u_select, u), o)) in qs.iter().zip(outs.iter_mut()).enumerate() {
+                if n == 0 {
+                    *o = None;
+                    continue;
+                }
+                let l = if n == 1 {
+                    0
+                } else {
+                    ((u_select * n as f32) as usize).min(n - 1)
+                };
+                match &self.lights[l] {
+                    Light::Area(a) => match a.pick_flat(u.x) {
+                        Some((t, x)) => {
+                            for c in 0..3 {
+                                tri[c][i] = t.v0[c];
+                                tri[3 + c][i] = t.e1[c];
+                                tri[6 + c][i] = t.e2[c];
+                                tri[9 + c][i] = t.n[c];
+                                p_ref[c][i] = p[c];
+                            }
+                            (area[i], ux[i], uy[i], light[i]) = (a.area(), x, u.y, l);
+                        }
+                        None => *o = self.sample(accel, p, u_select, u),
+                    },
+                    _ => *o = self.sample(accel, p, u_select, u),
+                }
+            }
+            let mut valid = [false; GROUP];
+            let mut wi = [[0.0f32; GROUP]; 3];
+            let mut point = [[0.0f32; GROUP]; 3];
+            let mut pdf = [0.0f32; GROUP];
+            for i in 0..GROUP {
+                let t = FlatTri {
+                    v0: [tri[0][i], tri[1][i], tri[2][i]],
+                    e1: [tri[3][i], tri[4][i], tri[5][i]],
+                    e2: [tri[6][i], tri[7][i], tri[8][i]],
+                    n: [tri[9][i], tri[10][i], tri[11][i]],
+                };
+                let p = [p_ref[0][i], p_ref[1][i], p_ref[2][i]];
+                let s = flat_triangle_sample(&t, area[i], p, ux[i], uy[i]);
+                valid[i] = s.valid;
+                pdf[i] = s.pdf;
+                for c in 0..3 {
+                    wi[c][i] = s.wi[c];
+                    point[c][i] = s.point[c];
+                }
+            }
+            for (i, o) in outs.iter_mut().enumerate() {
+                if let Some(Light::Area(a)) = self.lights.get(light[i]) {
+                    *o = valid[i].then(|| {
+                        let mut ls = a.light_sample(&FlatSample {
+                            valid: true,
+                            wi: [wi[0][i], wi[1][i], wi[2][i]],
+                            point: [point[0][i], point[1][i], point[2][i]],
+                            pdf: pdf[i],
+                        });
+                        ls.pdf *= self.select_pdf;
+                        ls
+                    });
+                }
+            }
+        }
+    }
+
     /// Radiance arriving from the environment along direction `d` (pointing
     /// away from the scene).
     #[inline]
@@ -186,5 +270,82 @@ impl Lights {
             Light::Area(a) if n.dot(w) > 0.0 => a.radiance,
             _ => Vec3::ZERO,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::{Analytic, ShapeGeom};
+    use crate::rng::Rng;
+    use pathfarm_scene::TriangleMesh;
+    use std::sync::Arc;
+
+    fn mesh(normals: Option<Vec<Vec3>>, z: f32) -> ShapeGeom {
+        ShapeGeom::Mesh(Arc::new(TriangleMesh {
+            positions: vec![
+                Vec3::new(0.0, 0.0, z),
+                Vec3::new(1.0, 0.0, z),
+                Vec3::new(1.0, 1.0, z),
+                Vec3::new(0.0, 2.0, z),
+            ],
+            normals,
+            uvs: None,
+            indices: vec![[0, 1, 2], [0, 2, 3]],
+            flip_normals: true,
+        }))
+    }
+
+    #[test]
+    fn many_light_samples_at_once_equal_one_at_a_time() {
+        let bent = vec![
+            Vec3::new(0.0, 0.3, -1.0).normalize(),
+            Vec3::NEG_Z,
+            Vec3::new(0.2, 0.0, -1.0).normalize(),
+            Vec3::NEG_Z,
+        ];
+        let shapes = vec![
+            mesh(None, 2.0),
+            mesh(Some(bent), 2.5),
+            ShapeGeom::Analytic(Analytic::Sphere {
+                center: Vec3::new(0.5, 0.5, 3.0),
+                radius: 0.3,
+                flip: false,
+            }),
+        ];
+        let accel = crate::geometry::Accel::build(shapes);
+        let e = Vec3::new(3.0, 2.0, 1.0);
+        let lights = Lights::new(vec![
+            Light::Area(AreaLight::new(&accel, 0, e)),
+            Light::Area(AreaLight::new(&accel, 1, e)),
+            Light::Area(AreaLight::new(&accel, 2, e)),
+            Light::Point {
+                position: Vec3::new(0.2, 0.1, 1.5),
+                intensity: e,
+            },
+        ]);
+        let mut rng = Rng::for_sample(4, 0, 0);
+        // Reference points below the lights, some above the first (its back side).
+        let queries: Vec<(Vec3, f32, Vec2)> = (0..203)
+            .map(|_| {
+                let p = Vec3::new(rng.next_f32(), rng.next_f32(), 2.3 * rng.next_f32());
+                (p, rng.next_f32(), rng.next_2d())
+            })
+            .collect();
+        let mut many = vec![None; queries.len()];
+        lights.sample_many(&accel, &queries, &mut many);
+        let bits = |s: &Option<LightSample>| {
+            s.map(|s| {
+                let v = |v: Vec3| v.to_array().map(f32::to_bits);
+                (v(s.wi), v(s.point), v(s.value), s.pdf.to_bits(), s.delta)
+            })
+        };
+        let mut flat_valid = 0;
+        for (q, m) in queries.iter().zip(&many) {
+            let one = lights.sample(&accel, q.0, q.1, q.2);
+            assert_eq!(bits(m), bits(&one), "query {q:?}");
+            flat_valid += (q.1 < 0.25 && one.is_some()) as usize;
+        }
+        assert!(flat_valid > 20, "{flat_valid}");
     }
 }
