@@ -80,6 +80,8 @@ struct Lane {
     shadow: Option<(Ray, Vec3)>,
     /// The path goes on (its next ray is to be traced).
     alive: bool,
+    /// `ray` is the camera ray (Mitsuba's `hide_emitters` applies to its hits).
+    camera: bool,
 }
 
 impl<const ENV: bool, const ANALYTIC: bool> Estimator for PathWavefront<'_, ENV, ANALYTIC> {
@@ -93,19 +95,15 @@ impl<const ENV: bool, const ANALYTIC: bool> Estimator for PathWavefront<'_, ENV,
             hits: Vec::new(),
             clear: Vec::new(),
         };
-        let mut start = 0;
-        while start < samples.len() {
-            let end = (start + LANES).min(samples.len());
-            self.batch(start..end, samples, rngs, out, &mut scratch);
-            start = end;
-        }
+        self.run(samples, rngs, out, &mut scratch);
     }
 }
 
 impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC> {
-    fn batch(
+    /// All `samples`, up to [`LANES`] paths in flight: a finished path's slot takes the
+    /// next camera sample, so the streams stay full until the samples run out.
+    fn run(
         &self,
-        range: std::ops::Range<usize>,
         samples: &[CameraSample],
         rngs: &mut [Rng],
         out: &mut [Vec3],
@@ -122,25 +120,22 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         } = scratch;
         let scene = self.scene;
         let params = &scene.path;
-        lanes.clear();
+        out.fill(Vec3::ZERO);
         if params.max_depth == 0 {
-            out[range].fill(Vec3::ZERO);
             return;
         }
-        // The camera rays, as one stream.
-        rays.clear();
-        rays.extend(samples[range.clone()].iter().map(|s| s.ray));
-        hits.clear();
-        hits.resize(rays.len(), None);
-        scene.accel.intersect_many::<ANALYTIC>(rays, hits);
-        for (k, (&first, &ray)) in range.zip(hits.iter().zip(rays.iter())) {
-            out[k] = Vec3::ZERO;
-            let mut ray = ray;
-            if let Some(hit) = camera_hit_from::<ANALYTIC>(scene, &mut ray, first) {
+        let max_depth = depth_limit(params.max_depth);
+        let accel = &scene.accel;
+        let mut next_sample = 0;
+        lanes.clear();
+        loop {
+            // New camera paths in the free slots.
+            while lanes.len() < LANES && next_sample < samples.len() {
+                let ray = samples[next_sample].ray;
                 lanes.push(Lane {
-                    k,
+                    k: next_sample,
                     ray,
-                    hit,
+                    hit: None,
                     throughput: Vec3::ONE,
                     result: Vec3::ZERO,
                     eta: 1.0,
@@ -150,12 +145,33 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
                     prev_delta: true,
                     shadow: None,
                     alive: true,
+                    camera: true,
                 });
+                next_sample += 1;
             }
-        }
-        let max_depth = depth_limit(params.max_depth);
-        let accel = &scene.accel;
-        while !lanes.is_empty() {
+            if lanes.is_empty() {
+                break;
+            }
+            // Every path's next ray (a camera ray for the new ones), as one stream.
+            rays.clear();
+            rays.extend(lanes.iter().map(|l| l.ray));
+            hits.clear();
+            hits.resize(rays.len(), None);
+            accel.intersect_many::<ANALYTIC>(rays, hits);
+            for (lane, &hit) in lanes.iter_mut().zip(hits.iter()) {
+                if lane.camera {
+                    lane.camera = false;
+                    match camera_hit_from::<ANALYTIC>(scene, &mut lane.ray, hit) {
+                        Some(hit) => lane.hit = hit,
+                        // A black sample (hidden emitters, nothing behind).
+                        None => lane.alive = false,
+                    }
+                } else {
+                    lane.hit = hit;
+                }
+            }
+            lanes.retain(|lane| lane.alive);
+
             shading.clear();
             shading.extend(lanes.iter_mut().map(|lane| self.surface(lane, max_depth)));
             // Next-event estimation: the random numbers, then all light samples at
@@ -208,15 +224,6 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
                 }
                 lane.alive
             });
-            // The continuing paths' next rays, all at once.
-            rays.clear();
-            rays.extend(lanes.iter().map(|l| l.ray));
-            hits.clear();
-            hits.resize(rays.len(), None);
-            accel.intersect_many::<ANALYTIC>(rays, hits);
-            for (lane, hit) in lanes.iter_mut().zip(hits.iter()) {
-                lane.hit = *hit;
-            }
         }
     }
 
