@@ -266,10 +266,10 @@ where
                             let base = Vec2::new(qx as f32, qy as f32) - centre;
                             for rec in &buf[q * n..(q + 1) * n] {
                                 let d = base + rec.offset;
-                                let wt = filter.eval(d.x) * filter.eval(d.y);
-                                if wt > 0.0 {
-                                    stats.add(wt, rec.value);
-                                }
+                                // Added even at weight zero (it adds exact zeros: the sums
+                                // are unchanged), which is cheaper than a branch that the
+                                // random sample positions make unpredictable.
+                                stats.add(filter.eval(d.x) * filter.eval(d.y), rec.value);
                             }
                         }
                     }
