@@ -35,6 +35,10 @@ pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
 #[inline]
 fn wrap(i: i64, n: u32, mode: WrapMode) -> usize {
     let n = n as i64;
+    if (0..n).contains(&i) {
+        // Inside the image (nearly every lookup): no integer division.
+        return i as usize;
+    }
     (match mode {
         WrapMode::Repeat => i.rem_euclid(n),
         WrapMode::Clamp => i.clamp(0, n - 1),
@@ -55,13 +59,16 @@ pub fn eval_bitmap(b: &BitmapDesc, uv: Vec2) -> Vec3 {
     if !uv.is_finite() {
         return Vec3::ZERO;
     }
-    let texel = |x: i64, y: i64| {
-        b.texels[wrap(y, b.height, b.wrap) * b.width as usize + wrap(x, b.width, b.wrap)]
-    };
+    // Texel (x, y) from wrapped column x and row y.
+    let texel = |x: usize, y: usize| b.texels[y * b.width as usize + x];
+    let (wx, wy) = (
+        |x: i64| wrap(x, b.width, b.wrap),
+        |y: i64| wrap(y, b.height, b.wrap),
+    );
     match b.filter {
         TexFilter::Nearest => texel(
-            (uv.x * b.width as f32).floor() as i64,
-            (uv.y * b.height as f32).floor() as i64,
+            wx((uv.x * b.width as f32).floor() as i64),
+            wy((uv.y * b.height as f32).floor() as i64),
         ),
         TexFilter::Bilinear => {
             let px = uv.x * b.width as f32 - 0.5;
@@ -69,8 +76,10 @@ pub fn eval_bitmap(b: &BitmapDesc, uv: Vec2) -> Vec3 {
             let (x0, y0) = (px.floor(), py.floor());
             let (fx, fy) = (px - x0, py - y0);
             let (x0, y0) = (x0 as i64, y0 as i64);
-            let top = texel(x0, y0) * (1.0 - fx) + texel(x0 + 1, y0) * fx;
-            let bottom = texel(x0, y0 + 1) * (1.0 - fx) + texel(x0 + 1, y0 + 1) * fx;
+            let (x1, y1) = (wx(x0 + 1), wy(y0 + 1));
+            let (x0, y0) = (wx(x0), wy(y0));
+            let top = texel(x0, y0) * (1.0 - fx) + texel(x1, y0) * fx;
+            let bottom = texel(x0, y1) * (1.0 - fx) + texel(x1, y1) * fx;
             top * (1.0 - fy) + bottom * fy
         }
     }
