@@ -1,6 +1,7 @@
 //! Lambertian reflection (Mitsuba `diffuse`).
 
-use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
+use crate::all_finite;
+use crate::warp::{square_to_cosine_hemisphere_lane, square_to_cosine_hemisphere_pdf};
 use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
@@ -24,15 +25,9 @@ impl Diffuse {
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, u: Vec2) -> Option<BsdfSample> {
-        if !(wi.z > 0.0) {
-            return None;
-        }
-        let wo = square_to_cosine_hemisphere(u);
-        let pdf = square_to_cosine_hemisphere_pdf(wo);
-        if !(pdf > 0.0) {
-            return None;
-        }
-        Some(BsdfSample::glossy_reflection(wo, pdf, self.reflectance))
+        let s = sample_lane(self.reflectance.to_array(), wi.z, u.x, u.y);
+        s.valid
+            .then(|| BsdfSample::glossy_reflection(Vec3::from_array(s.wo), s.pdf, self.reflectance))
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
@@ -50,4 +45,28 @@ impl Diffuse {
             0.0
         }
     }
+}
+
+/// A cosine-weighted direction drawn by [`sample_lane`] (weight: the reflectance).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct LaneSample {
+    /// False where [`crate::Bsdf::sample`] gives no sample.
+    pub valid: bool,
+    pub wo: [f32; 3],
+    pub pdf: f32,
+}
+
+/// [`Diffuse::sample`] (with [`crate::Bsdf::sample`]'s checks) on plain numbers and
+/// without branches, so that a loop over many shading points vectorises; the one
+/// implementation of both. `wi_z` is the incident direction's cosine.
+#[inline(always)]
+pub fn sample_lane(reflectance: [f32; 3], wi_z: f32, ux: f32, uy: f32) -> LaneSample {
+    let wo = square_to_cosine_hemisphere_lane(ux, uy);
+    let pdf = FRAC_1_PI * wo[2];
+    let [r0, r1, r2] = reflectance;
+    let valid = (wi_z > 0.0)
+        & (pdf > 0.0)
+        & all_finite([r0, r1, r2, pdf, wo[0], wo[1], wo[2]])
+        & (r0.max(r1).max(r2) > 0.0);
+    LaneSample { valid, wo, pdf }
 }

@@ -7,21 +7,25 @@ use std::f32::consts::{FRAC_1_PI, PI};
 /// variant, as Mitsuba's `square_to_uniform_disk_concentric`).
 #[inline]
 pub fn square_to_uniform_disk_concentric(u: Vec2) -> Vec2 {
-    let x = 2.0 * u.x - 1.0;
-    let y = 2.0 * u.y - 1.0;
-    if x == 0.0 && y == 0.0 {
-        return Vec2::ZERO;
-    }
+    let [x, y] = square_to_uniform_disk_concentric_lane(u.x, u.y);
+    Vec2::new(x, y)
+}
+
+/// [`square_to_uniform_disk_concentric`] on plain numbers and without branches (selects
+/// only), so that a loop over many samples vectorises.
+#[inline(always)]
+pub fn square_to_uniform_disk_concentric_lane(ux: f32, uy: f32) -> [f32; 2] {
+    let x = 2.0 * ux - 1.0;
+    let y = 2.0 * uy - 1.0;
     let q13 = x.abs() < y.abs();
     let (r, rp) = if q13 { (y, x) } else { (x, y) };
     // Mitsuba's angle is phi = pi/4 rp/r, or pi/2 - phi in quadrants 1 and
     // 3; sin and cos of pi/2 - phi are cos and sin of phi.
     let (s, c) = sin_cos_quarter(0.25 * PI * rp / r);
-    if q13 {
-        Vec2::new(r * s, r * c)
-    } else {
-        Vec2::new(r * c, r * s)
-    }
+    let (px, py) = if q13 { (r * s, r * c) } else { (r * c, r * s) };
+    // The centre maps to itself (0/0 above).
+    let centre = (x == 0.0) & (y == 0.0);
+    [if centre { 0.0 } else { px }, if centre { 0.0 } else { py }]
 }
 
 /// `(sin x, cos x)` for |x| <= pi/4 by minimax polynomials (Cephes' `sinf`
@@ -37,9 +41,15 @@ fn sin_cos_quarter(x: f32) -> (f32, f32) {
 /// Cosine-weighted hemisphere sampling via the concentric disk map.
 #[inline]
 pub fn square_to_cosine_hemisphere(u: Vec2) -> Vec3 {
-    let p = square_to_uniform_disk_concentric(u);
-    let z = (1.0 - p.length_squared()).max(0.0).sqrt();
-    Vec3::new(p.x, p.y, z)
+    Vec3::from_array(square_to_cosine_hemisphere_lane(u.x, u.y))
+}
+
+/// [`square_to_cosine_hemisphere`] on plain numbers, branch-free.
+#[inline(always)]
+pub fn square_to_cosine_hemisphere_lane(ux: f32, uy: f32) -> [f32; 3] {
+    let [x, y] = square_to_uniform_disk_concentric_lane(ux, uy);
+    let z = (1.0 - (x * x + y * y)).max(0.0).sqrt();
+    [x, y, z]
 }
 
 /// Density of [`square_to_cosine_hemisphere`] (cos theta / pi; not clamped,
@@ -78,5 +88,31 @@ mod tests {
             );
         }
         assert!((v.length() - 1.0).abs() < 1e-5 && v.z >= 0.0);
+    }
+
+    /// Shirley-Chiu: the square's concentric rings map to circles (radius max(|x|, |y|))
+    /// and each point keeps its octant's angle, phi = pi/4 y/x where |x| >= |y|.
+    #[test]
+    fn concentric_map_keeps_rings_and_octant_angles() {
+        for i in 0..=40 {
+            for j in 0..=40 {
+                let u = Vec2::new(i as f32 / 40.0, j as f32 / 40.0);
+                let (x, y) = (2.0 * u.x - 1.0, 2.0 * u.y - 1.0);
+                let p = square_to_uniform_disk_concentric(u);
+                let r = x.abs().max(y.abs());
+                assert!((p.length() - r).abs() < 1e-6, "{u}: {p}");
+                if r == 0.0 {
+                    continue;
+                }
+                let phi = if x.abs() >= y.abs() {
+                    std::f32::consts::FRAC_PI_4 * y / x + if x < 0.0 { PI } else { 0.0 }
+                } else {
+                    std::f32::consts::FRAC_PI_2 - std::f32::consts::FRAC_PI_4 * x / y
+                        + if y < 0.0 { PI } else { 0.0 }
+                };
+                let expected = Vec2::new(phi.cos(), phi.sin()) * r;
+                assert!((p - expected).length() < 1e-5, "{u}: {p} vs {expected}");
+            }
+        }
     }
 }

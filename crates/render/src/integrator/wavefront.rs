@@ -15,7 +15,7 @@
 //! are those of the one-path estimator, so both give identical bits (tested).
 
 use glam::{Vec2, Vec3};
-use pathfarm_bsdf::{Bsdf, Frame};
+use pathfarm_bsdf::{diffuse, Bsdf, BsdfSample, Frame};
 
 use super::{camera_hit_from, depth_limit, mitsuba_survival};
 use crate::geometry::{spawn_ray, Hit, Ray};
@@ -29,6 +29,9 @@ use crate::scene::Scene;
 /// state stays in the first-level cache.
 const LANES: usize = 64;
 
+/// Lanes per group of the vectorised BSDF sampling.
+const GROUP: usize = 16;
+
 /// `path` over batches of samples, specialised like [`super::path::li`] for
 /// an environment light (`ENV`) and analytic shapes (`ANALYTIC`).
 pub struct PathWavefront<'a, const ENV: bool, const ANALYTIC: bool> {
@@ -41,6 +44,9 @@ struct Scratch<'a> {
     lanes: Vec<Lane>,
     /// Where each of `lanes` scatters this bounce.
     shading: Vec<Option<Shading<'a>>>,
+    /// Diffuse lanes to sample this bounce: (lane, cos of the incident direction, 2D
+    /// number, reflectance).
+    diffuse: Vec<(usize, f32, Vec2, Vec3)>,
     /// Next-event queries (point, selection number, 2D number) and their light samples.
     queries: Vec<(Vec3, f32, Vec2)>,
     light_samples: Vec<Option<LightSample>>,
@@ -89,6 +95,7 @@ impl<const ENV: bool, const ANALYTIC: bool> Estimator for PathWavefront<'_, ENV,
         let mut scratch = Scratch {
             lanes: Vec::with_capacity(LANES.min(samples.len())),
             shading: Vec::with_capacity(LANES.min(samples.len())),
+            diffuse: Vec::new(),
             queries: Vec::new(),
             light_samples: Vec::new(),
             rays: Vec::new(),
@@ -112,6 +119,7 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         let Scratch {
             lanes,
             shading,
+            diffuse,
             queries,
             light_samples,
             rays,
@@ -199,9 +207,44 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
                     }
                 }
             }
-            for (lane, sh) in lanes.iter_mut().zip(shading.iter()) {
+            // BSDF sampling: the random numbers; diffuse surfaces (the common case)
+            // side by side, the others one at a time; then roulette and the next ray.
+            diffuse.clear();
+            for (i, (lane, sh)) in lanes.iter_mut().zip(shading.iter()).enumerate() {
                 if let Some(sh) = sh {
-                    self.scatter(lane, sh, &mut rngs[lane.k]);
+                    let rng = &mut rngs[lane.k];
+                    let (u_lobe, u) = (rng.next_f32(), rng.next_2d());
+                    match sh.bsdf {
+                        Bsdf::Diffuse(d) => diffuse.push((i, sh.wi.z, u, d.reflectance)),
+                        bsdf => self.scatter(lane, sh, bsdf.sample(sh.wi, u_lobe, u), rng),
+                    }
+                }
+            }
+            for group in diffuse.chunks(GROUP) {
+                // Structure of arrays, so that this loop vectorises.
+                let (mut wi_z, mut ux, mut uy) =
+                    ([1.0f32; GROUP], [0.5f32; GROUP], [0.5f32; GROUP]);
+                let mut r = [[1.0f32; GROUP]; 3];
+                for (j, &(_, z, u, refl)) in group.iter().enumerate() {
+                    (wi_z[j], ux[j], uy[j]) = (z, u.x, u.y);
+                    (r[0][j], r[1][j], r[2][j]) = (refl.x, refl.y, refl.z);
+                }
+                let (mut valid, mut pdf, mut wo) =
+                    ([false; GROUP], [0.0f32; GROUP], [[0.0f32; GROUP]; 3]);
+                for j in 0..GROUP {
+                    let s =
+                        diffuse::sample_lane([r[0][j], r[1][j], r[2][j]], wi_z[j], ux[j], uy[j]);
+                    (valid[j], pdf[j]) = (s.valid, s.pdf);
+                    (wo[0][j], wo[1][j], wo[2][j]) = (s.wo[0], s.wo[1], s.wo[2]);
+                }
+                for (j, &(i, _, _, refl)) in group.iter().enumerate() {
+                    let bs = valid[j].then(|| {
+                        let wo = Vec3::new(wo[0][j], wo[1][j], wo[2][j]);
+                        BsdfSample::glossy_reflection(wo, pdf[j], refl)
+                    });
+                    let lane = &mut lanes[i];
+                    let sh = shading[i].as_ref().expect("a diffuse lane scatters");
+                    self.scatter(lane, sh, bs, &mut rngs[lane.k]);
                 }
             }
             // Shadow rays, all at once.
@@ -298,10 +341,11 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
         }
     }
 
-    /// BSDF sampling, Russian roulette as Mitsuba does it, and the next ray.
+    /// After BSDF sample `bs` (`None`: absorbed): the path's throughput, Russian
+    /// roulette as Mitsuba does it, and the next ray.
     #[inline(always)]
-    fn scatter(&self, lane: &mut Lane, sh: &Shading<'a>, rng: &mut Rng) {
-        let Some(bs) = sh.bsdf.sample(sh.wi, rng.next_f32(), rng.next_2d()) else {
+    fn scatter(&self, lane: &mut Lane, sh: &Shading<'a>, bs: Option<BsdfSample>, rng: &mut Rng) {
+        let Some(bs) = bs else {
             return;
         };
         lane.throughput *= bs.weight;
