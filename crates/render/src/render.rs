@@ -125,7 +125,7 @@ where
 }
 
 /// The `path` integrator as an [`Estimator`]: batches of paths side by side
-/// ([`wavefront`]), specialised for the effects the scene has.
+/// ([`crate::integrator::wavefront`]), specialised for the effects the scene has.
 pub fn path_estimator(scene: &Scene) -> PathEstimator<'_> {
     PathEstimator { scene }
 }
@@ -155,12 +155,12 @@ struct ChunkScratch {
     values: Vec<glam::Vec3>,
 }
 
-/// The render loop of [`render`] with any per-sample estimator, accumulating
-/// into `film`. Sample `k` of this call uses the random stream of sample index
+/// The render loop of [`render`] with any [`Estimator`], accumulating into
+/// `film`. Sample `k` of this call uses the random stream of sample index
 /// `first_sample + k`, so successive calls (e.g. the passes of path-guiding
-/// iterations) draw fresh, deterministic streams. The estimator gets the
-/// camera ray, the sample's own generator (after the two pixel-offset
-/// numbers) and the pixel's index `y * width + x`.
+/// iterations) draw fresh, deterministic streams. The estimator gets each
+/// tile's camera samples as one batch: rays, pixel indices `y * width + x`
+/// and the samples' own generators (after the two pixel-offset numbers).
 pub fn render_into<E>(
     scene: &Scene,
     settings: &RenderSettings,

@@ -13,7 +13,7 @@
 //!   (same leaf, same alpha), and emitters hit by the sampled direction are
 //!   weighted with `p_mix` on the BSDF side ([`mixture_pdf`], [`mis_weight`]).
 //! * Russian roulette is Mitsuba's (unchanged from `path`): survival
-//!   `min(max(throughput) eta^2, 0.95)` from `rr_depth` on. [G] effectively
+//!   `min(max(throughput) eta^2, 0.95)` from `rr_depth` on. \[G\] effectively
 //!   disables it once the tree is built; keeping Mitsuba's keeps the
 //!   integrator's documented semantics and is unbiased either way.
 //! * Recording (training iterations only) uses the forward-loop suffix-radiance
