@@ -260,21 +260,40 @@ impl Accel {
             } else {
                 LANE_MASK
             };
-            let (mut hits, [t, u, v]) = self.tris.intersect_block(block, lanes, r);
-            if ANY_HIT && hits != 0 {
-                return ((block * LANES) as u32 + hits.trailing_zeros(), bary);
-            }
-            while hits != 0 {
-                let i = hits.trailing_zeros() as usize;
-                hits &= hits - 1;
-                if t[i] < r.tmax {
-                    r.tmax = t[i];
-                    found = (block * LANES + i) as u32;
-                    bary = Vec2::new(u[i], v[i]);
-                }
+            if self.test_block::<ANY_HIT>(block, lanes, r, &mut found, &mut bary) {
+                break;
             }
         }
         (found, bary)
+    }
+
+    /// The triangles `lanes` of block `block` against `r`. Any-hit: true at the first
+    /// hit, with `found` its primitive. Closest hit: each hit strictly closer than
+    /// `r.tmax`, lowest lane first, narrows `r.tmax` and becomes `found` (with `bary`).
+    #[inline(always)]
+    fn test_block<const ANY_HIT: bool>(
+        &self,
+        block: usize,
+        lanes: u32,
+        r: &mut TraceRay,
+        found: &mut u32,
+        bary: &mut Vec2,
+    ) -> bool {
+        let (mut hits, [t, u, v]) = self.tris.intersect_block(block, lanes, r);
+        if ANY_HIT && hits != 0 {
+            *found = (block * LANES) as u32 + hits.trailing_zeros();
+            return true;
+        }
+        while hits != 0 {
+            let i = hits.trailing_zeros() as usize;
+            hits &= hits - 1;
+            if t[i] < r.tmax {
+                r.tmax = t[i];
+                *found = (block * LANES + i) as u32;
+                *bary = Vec2::new(u[i], v[i]);
+            }
+        }
+        false
     }
 
     /// Closest hits of a group of rays against every triangle, in primitive order: a
@@ -352,18 +371,8 @@ impl Accel {
                     let in_block = LANE_MASK >> lane;
                     let lanes = ((prims >> j) & in_block) << lane;
                     prims &= !(in_block << j);
-                    let (mut hits, [t, u, v]) = self.tris.intersect_block(block as usize, lanes, r);
-                    if ANY_HIT && hits != 0 {
-                        return (block * LANES as u32 + hits.trailing_zeros(), bary);
-                    }
-                    while hits != 0 {
-                        let i = hits.trailing_zeros() as usize;
-                        hits &= hits - 1;
-                        if t[i] < r.tmax {
-                            r.tmax = t[i];
-                            found = block * LANES as u32 + i as u32;
-                            bary = Vec2::new(u[i], v[i]);
-                        }
+                    if self.test_block::<ANY_HIT>(block as usize, lanes, r, &mut found, &mut bary) {
+                        return (found, bary);
                     }
                 }
             }
@@ -620,14 +629,25 @@ struct Tri {
     ng: [f32; 3],
 }
 
-/// Ray `i` of `g` against `tri`: hit within [tmin, inf) and inside, with its distance
-/// and barycentrics; per lane the arithmetic of [`TriSoa::intersect_block`], so both
-/// find the same hits.
+/// Ray `i` of `g` against `tri`: [`tri_lane`].
 #[inline(always)]
 fn tri_test(tri: &Tri, g: &RayGroup, i: usize) -> (bool, f32, f32, f32) {
-    let (ox, oy, oz) = (g.o[0][i], g.o[1][i], g.o[2][i]);
-    let (dx, dy, dz) = (g.d[0][i], g.d[1][i], g.d[2][i]);
-    let (cx, cy, cz) = (tri.v0[0] - ox, tri.v0[1] - oy, tri.v0[2] - oz);
+    let o = [g.o[0][i], g.o[1][i], g.o[2][i]];
+    let d = [g.d[0][i], g.d[1][i], g.d[2][i]];
+    tri_lane(o, d, g.tmin[i], tri)
+}
+
+/// The ray (`o`, `d`) against `tri`: whether it hits inside at a distance of at least
+/// `tmin`, with that distance and the barycentrics (weights of vertices 1 and 2). The
+/// arithmetic of obvhs' `RtTriangle::intersect` (Möller-Trumbore on its edge layout, the
+/// same sign-bit inside test), on plain numbers and branch-free, so that loops over
+/// triangles ([`TriSoa::intersect_block`]) or rays ([`Accel::intersect_many`]) vectorise;
+/// the one implementation of both, so they find the same hits.
+#[inline(always)]
+fn tri_lane(o: [f32; 3], d: [f32; 3], tmin: f32, tri: &Tri) -> (bool, f32, f32, f32) {
+    let [dx, dy, dz] = d;
+    let (cx, cy, cz) = (tri.v0[0] - o[0], tri.v0[1] - o[1], tri.v0[2] - o[2]);
+    // r = d x c
     let rx = dy * cz - dz * cy;
     let ry = dz * cx - dx * cz;
     let rz = dx * cy - dy * cx;
@@ -637,7 +657,7 @@ fn tri_test(tri: &Tri, g: &RayGroup, i: usize) -> (bool, f32, f32, f32) {
     let w = 1.0 - u - v;
     let t = (tri.ng[0] * cx + tri.ng[1] * cy + tri.ng[2] * cz) * inv_det;
     let inside = (u.to_bits() | v.to_bits() | w.to_bits()) & 0x8000_0000 == 0;
-    (inside & (inv_det != 0.0) & (t >= g.tmin[i]), t, u, v)
+    (inside & (inv_det != 0.0) & (t >= tmin), t, u, v)
 }
 
 const LANES: usize = 8;
@@ -697,30 +717,13 @@ impl TriSoa {
     /// across lanes so that it compiles to vector code.
     #[inline(always)]
     fn intersect_block(&self, block: usize, lanes: u32, r: &TraceRay) -> (u32, [[f32; LANES]; 3]) {
-        let b = &self.blocks[block].0;
-        let ld = |k: usize| &b[k];
-        let (v0x, v0y, v0z) = (ld(0), ld(1), ld(2));
-        let (e1x, e1y, e1z) = (ld(3), ld(4), ld(5));
-        let (e2x, e2y, e2z) = (ld(6), ld(7), ld(8));
-        let (ngx, ngy, ngz) = (ld(9), ld(10), ld(11));
-        let (o, d) = (r.origin, r.direction);
+        let (o, d) = (r.origin.to_array(), r.direction.to_array());
         let (mut t, mut bu, mut bv) = ([0.0f32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
         let mut hits = 0u32;
         for i in 0..LANES {
-            let (cx, cy, cz) = (v0x[i] - o.x, v0y[i] - o.y, v0z[i] - o.z);
-            // r = d x c
-            let rx = d.y * cz - d.z * cy;
-            let ry = d.z * cx - d.x * cz;
-            let rz = d.x * cy - d.y * cx;
-            let inv_det = 1.0 / (ngx[i] * d.x + ngy[i] * d.y + ngz[i] * d.z);
-            let u = (rx * e2x[i] + ry * e2y[i] + rz * e2z[i]) * inv_det;
-            let v = (rx * e1x[i] + ry * e1y[i] + rz * e1z[i]) * inv_det;
-            let w = 1.0 - u - v;
-            let ti = (ngx[i] * cx + ngy[i] * cy + ngz[i] * cz) * inv_det;
-            let inside = (u.to_bits() | v.to_bits() | w.to_bits()) & 0x8000_0000 == 0;
-            let ok = inside & (inv_det != 0.0) & (ti >= r.tmin) & (ti <= r.tmax);
+            let (ok, ti, u, v) = tri_lane(o, d, r.tmin, &self.get(block * LANES + i));
             (t[i], bu[i], bv[i]) = (ti, u, v);
-            hits |= (ok as u32) << i;
+            hits |= ((ok & (ti <= r.tmax)) as u32) << i;
         }
         (hits & lanes, [t, bu, bv])
     }

@@ -9,7 +9,7 @@ use crate::sampling::{concentric_disk, uniform_sphere, uniform_triangle, Distrib
 
 /// A triangle of an emitting mesh, prepared for sampling.
 #[derive(Clone, Copy)]
-struct EmitterTri {
+pub(super) struct EmitterTri {
     v0: Vec3,
     e1: Vec3,
     e2: Vec3,
@@ -18,7 +18,20 @@ struct EmitterTri {
     n: [Vec3; 3],
     /// The normal is the same everywhere on the triangle (no vertex normals,
     /// or equal ones, as on `rectangle` and `cube`): `n[0]`, unit length.
-    flat: bool,
+    pub flat: bool,
+}
+
+impl EmitterTri {
+    /// The triangle for [`flat_triangle_sample`] (meaningful when `flat`).
+    #[inline(always)]
+    pub fn flat(&self) -> FlatTri {
+        FlatTri {
+            v0: self.v0.to_array(),
+            e1: self.e1.to_array(),
+            e2: self.e2.to_array(),
+            n: self.n[0].to_array(),
+        }
+    }
 }
 
 pub struct AreaLight {
@@ -96,50 +109,67 @@ impl AreaLight {
         }
     }
 
-    /// A uniformly distributed point on the surface with its shading normal.
+    /// A light sample seen from `p_ref`, uniform over the surface by area.
     #[inline]
-    fn sample_point(&self, accel: &Accel, u: Vec2) -> Option<(Vec3, Vec3)> {
+    pub fn sample(&self, accel: &Accel, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
         if !self.tri_data.is_empty() {
-            if self.area <= 0.0 {
-                return None;
-            }
-            let (t, ux) = self.tris.sample(u.x);
-            let b = uniform_triangle(Vec2::new(ux, u.y));
-            let tri = &self.tri_data[t];
-            let n = if tri.flat {
-                tri.n[0]
-            } else {
-                (tri.n[0] * (1.0 - b.x - b.y) + tri.n[1] * b.x + tri.n[2] * b.y).normalize_or_zero()
-            };
-            return Some((tri.v0 + tri.e1 * b.x + tri.e2 * b.y, n));
+            let (tri, ux) = self.pick(u.x)?;
+            return self.sample_triangle(tri, ux, u.y, p_ref);
         }
-        match accel.shape(self.shape) {
+        let (p, n) = match accel.shape(self.shape) {
             // Meshes always have `tri_data`; an empty one has nothing to sample.
-            ShapeGeom::Mesh(_) => None,
+            ShapeGeom::Mesh(_) => return None,
             ShapeGeom::Analytic(Analytic::Sphere {
                 center,
                 radius,
                 flip,
             }) => {
                 let n = uniform_sphere(u);
-                Some((*center + n * *radius, if *flip { -n } else { n }))
+                (*center + n * *radius, if *flip { -n } else { n })
             }
             ShapeGeom::Analytic(a @ Analytic::Disk { to_world, .. }) => {
                 let d = concentric_disk(u);
                 let p = to_world.transform_point3(Vec3::new(d.x, d.y, 0.0));
                 let (_, n, _) = a.shade(p);
-                Some((p, n))
+                (p, n)
             }
-        }
+        };
+        self.towards(p_ref, p, n)
     }
 
-    #[inline]
-    pub fn sample(&self, accel: &Accel, p_ref: Vec3, u: Vec2) -> Option<LightSample> {
-        if let Some((tri, ux)) = self.pick_flat(u.x) {
-            let s = flat_triangle_sample(&tri, self.area, p_ref.to_array(), ux, u.y);
-            return s.valid.then(|| self.light_sample(&s));
+    /// An emitting mesh's triangle picked by area with `ux`, and `ux` rescaled within
+    /// its bin; `None` for analytic shapes and meshes of no area.
+    #[inline(always)]
+    pub(super) fn pick(&self, ux: f32) -> Option<(&EmitterTri, f32)> {
+        if self.tri_data.is_empty() || self.area <= 0.0 {
+            return None;
         }
-        let (p, n) = self.sample_point(accel, u)?;
+        let (t, ux) = self.tris.sample(ux);
+        Some((&self.tri_data[t], ux))
+    }
+
+    /// A point uniform on triangle `tri` (by `ux`, `uy`) seen from `p_ref`.
+    #[inline(always)]
+    pub(super) fn sample_triangle(
+        &self,
+        tri: &EmitterTri,
+        ux: f32,
+        uy: f32,
+        p_ref: Vec3,
+    ) -> Option<LightSample> {
+        if tri.flat {
+            let s = flat_triangle_sample(&tri.flat(), self.area, p_ref.to_array(), ux, uy);
+            return s.valid.then(|| self.light_sample(s.wi, s.point, s.pdf));
+        }
+        let b = uniform_triangle(Vec2::new(ux, uy));
+        let n =
+            (tri.n[0] * (1.0 - b.x - b.y) + tri.n[1] * b.x + tri.n[2] * b.y).normalize_or_zero();
+        self.towards(p_ref, tri.v0 + tri.e1 * b.x + tri.e2 * b.y, n)
+    }
+
+    /// The sample of point `p` (shading normal `n`) seen from `p_ref`.
+    #[inline(always)]
+    fn towards(&self, p_ref: Vec3, p: Vec3, n: Vec3) -> Option<LightSample> {
         let v = p - p_ref;
         let d2 = v.length_squared();
         let dist = d2.sqrt();
@@ -166,38 +196,16 @@ impl AreaLight {
         })
     }
 
-    /// For an emitting mesh whose picked triangle (by `ux`) is flat: that triangle,
-    /// prepared for [`flat_triangle_sample`], and `ux` rescaled within its bin.
+    /// The light sample of direction `wi` to `point` with solid-angle density `pdf`
+    /// (without the light-selection probability).
     #[inline(always)]
-    pub(super) fn pick_flat(&self, ux: f32) -> Option<(FlatTri, f32)> {
-        if self.tri_data.is_empty() || self.area <= 0.0 {
-            return None;
-        }
-        let (t, ux) = self.tris.sample(ux);
-        let tri = &self.tri_data[t];
-        tri.flat.then(|| {
-            let a = |v: Vec3| v.to_array();
-            (
-                FlatTri {
-                    v0: a(tri.v0),
-                    e1: a(tri.e1),
-                    e2: a(tri.e2),
-                    n: a(tri.n[0]),
-                },
-                ux,
-            )
-        })
-    }
-
-    /// The light sample of a valid [`FlatSample`] of this light.
-    #[inline(always)]
-    pub(super) fn light_sample(&self, s: &FlatSample) -> LightSample {
+    pub(super) fn light_sample(&self, wi: [f32; 3], point: [f32; 3], pdf: f32) -> LightSample {
         LightSample {
-            wi: Vec3::from_array(s.wi),
-            point: Vec3::from_array(s.point),
+            wi: Vec3::from_array(wi),
+            point: Vec3::from_array(point),
             infinite: false,
             value: self.radiance,
-            pdf: s.pdf,
+            pdf,
             delta: false,
         }
     }

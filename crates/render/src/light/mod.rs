@@ -6,7 +6,7 @@ mod area;
 mod envmap;
 
 pub use area::AreaLight;
-use area::{flat_triangle_sample, FlatSample, FlatTri};
+use area::{flat_triangle_sample, FlatTri};
 pub use envmap::EnvMap;
 
 use glam::{Vec2, Vec3};
@@ -84,20 +84,22 @@ impl Lights {
         self.lights.is_empty()
     }
 
+    /// The light `u_select` picks, each with the same probability; `None` without lights.
+    #[inline(always)]
+    fn select(&self, u_select: f32) -> Option<usize> {
+        let n = self.lights.len();
+        match n {
+            0 => None,
+            // One light: skip the float-to-index conversion; same choice.
+            1 => Some(0),
+            _ => Some(((u_select * n as f32) as usize).min(n - 1)),
+        }
+    }
+
     /// Samples a light for next-event estimation from point `p`.
     #[inline]
     pub fn sample(&self, accel: &Accel, p: Vec3, u_select: f32, u: Vec2) -> Option<LightSample> {
-        let n = self.lights.len();
-        if n == 0 {
-            return None;
-        }
-        // (One light: skip the float-to-index conversion; same choice.)
-        let i = if n == 1 {
-            0
-        } else {
-            ((u_select * n as f32) as usize).min(n - 1)
-        };
-        let mut s = match &self.lights[i] {
+        let mut s = match &self.lights[self.select(u_select)?] {
             Light::Area(a) => a.sample(accel, p, u)?,
             Light::Point {
                 position,
@@ -157,39 +159,42 @@ impl Lights {
         out: &mut [Option<LightSample>],
     ) {
         const GROUP: usize = 8;
-        let n = self.lights.len();
         for (qs, outs) in queries.chunks(GROUP).zip(out.chunks_mut(GROUP)) {
             // Structure of arrays, so that the sampling loop below vectorises.
             let mut tri = [[0.0f32; GROUP]; 12];
             let mut area = [1.0f32; GROUP];
             let mut p_ref = [[0.0f32; GROUP]; 3];
             let (mut ux, mut uy) = ([0.0f32; GROUP], [0.0f32; GROUP]);
-            let mut light = [usize::MAX; GROUP];
+            // The area light of each lane sampled in the group.
+            let mut light: [Option<&AreaLight>; GROUP] = [None; GROUP];
             for (i, (&(p, u_select, u), o)) in qs.iter().zip(outs.iter_mut()).enumerate() {
-                if n == 0 {
+                let Some(l) = self.select(u_select) else {
                     *o = None;
                     continue;
-                }
-                let l = if n == 1 {
-                    0
-                } else {
-                    ((u_select * n as f32) as usize).min(n - 1)
                 };
-                match &self.lights[l] {
-                    Light::Area(a) => match a.pick_flat(u.x) {
-                        Some((t, x)) => {
-                            for c in 0..3 {
-                                tri[c][i] = t.v0[c];
-                                tri[3 + c][i] = t.e1[c];
-                                tri[6 + c][i] = t.e2[c];
-                                tri[9 + c][i] = t.n[c];
-                                p_ref[c][i] = p[c];
-                            }
-                            (area[i], ux[i], uy[i], light[i]) = (a.area(), x, u.y, l);
+                let Light::Area(a) = &self.lights[l] else {
+                    *o = self.sample(accel, p, u_select, u);
+                    continue;
+                };
+                match a.pick(u.x) {
+                    Some((t, x)) if t.flat => {
+                        let t = t.flat();
+                        for c in 0..3 {
+                            tri[c][i] = t.v0[c];
+                            tri[3 + c][i] = t.e1[c];
+                            tri[6 + c][i] = t.e2[c];
+                            tri[9 + c][i] = t.n[c];
+                            p_ref[c][i] = p[c];
                         }
-                        None => *o = self.sample(accel, p, u_select, u),
-                    },
-                    _ => *o = self.sample(accel, p, u_select, u),
+                        (area[i], ux[i], uy[i], light[i]) = (a.area(), x, u.y, Some(a));
+                    }
+                    Some((t, x)) => {
+                        *o = a.sample_triangle(t, x, u.y, p).map(|mut s| {
+                            s.pdf *= self.select_pdf;
+                            s
+                        })
+                    }
+                    None => *o = self.sample(accel, p, u_select, u),
                 }
             }
             let mut valid = [false; GROUP];
@@ -213,14 +218,13 @@ impl Lights {
                 }
             }
             for (i, o) in outs.iter_mut().enumerate() {
-                if let Some(Light::Area(a)) = self.lights.get(light[i]) {
+                if let Some(a) = light[i] {
                     *o = valid[i].then(|| {
-                        let mut ls = a.light_sample(&FlatSample {
-                            valid: true,
-                            wi: [wi[0][i], wi[1][i], wi[2][i]],
-                            point: [point[0][i], point[1][i], point[2][i]],
-                            pdf: pdf[i],
-                        });
+                        let mut ls = a.light_sample(
+                            [wi[0][i], wi[1][i], wi[2][i]],
+                            [point[0][i], point[1][i], point[2][i]],
+                            pdf[i],
+                        );
                         ls.pdf *= self.select_pdf;
                         ls
                     });
