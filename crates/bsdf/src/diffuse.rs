@@ -70,3 +70,31 @@ pub fn sample_lane(reflectance: [f32; 3], wi_z: f32, ux: f32, uy: f32) -> LaneSa
         & (r0.max(r1).max(r2) > 0.0);
     LaneSample { valid, wo, pdf }
 }
+
+/// [`crate::Bsdf::sample`] of many diffuse shading points at once: `out[i]` for
+/// `queries[i]` = (reflectance, cos of the incident direction, 2D number), computed 16
+/// side by side in structure-of-arrays form so that the loop vectorises; the same
+/// samples as one at a time ([`sample_lane`] is the one implementation).
+pub fn sample_many(queries: &[(Vec3, f32, Vec2)], out: &mut [Option<BsdfSample>]) {
+    const GROUP: usize = 16;
+    for (qs, outs) in queries.chunks(GROUP).zip(out.chunks_mut(GROUP)) {
+        let (mut wi_z, mut ux, mut uy) = ([1.0f32; GROUP], [0.5f32; GROUP], [0.5f32; GROUP]);
+        let mut r = [[1.0f32; GROUP]; 3];
+        for (j, &(refl, z, u)) in qs.iter().enumerate() {
+            (wi_z[j], ux[j], uy[j]) = (z, u.x, u.y);
+            (r[0][j], r[1][j], r[2][j]) = (refl.x, refl.y, refl.z);
+        }
+        let (mut valid, mut pdf, mut wo) = ([false; GROUP], [0.0f32; GROUP], [[0.0f32; GROUP]; 3]);
+        for j in 0..GROUP {
+            let s = sample_lane([r[0][j], r[1][j], r[2][j]], wi_z[j], ux[j], uy[j]);
+            (valid[j], pdf[j]) = (s.valid, s.pdf);
+            (wo[0][j], wo[1][j], wo[2][j]) = (s.wo[0], s.wo[1], s.wo[2]);
+        }
+        for (j, (&(refl, _, _), o)) in qs.iter().zip(outs.iter_mut()).enumerate() {
+            *o = valid[j].then(|| {
+                let wo = Vec3::new(wo[0][j], wo[1][j], wo[2][j]);
+                BsdfSample::glossy_reflection(wo, pdf[j], refl)
+            });
+        }
+    }
+}

@@ -3,130 +3,219 @@
 //! roulette, with Mitsuba's meaning of `max_depth`, `rr_depth` and
 //! `hide_emitters`.
 //!
-//! The estimator is monomorphised over the scene's features (`ENV`: an
-//! environment light exists, `ANALYTIC`: analytic shapes exist) so a scene
-//! pays nothing for what it lacks.
+//! The estimator is written as the steps of one bounce of one path ([`Lane`]:
+//! [`surface`], [`next_event`], [`scatter`]); [`li`] runs them for one path at a
+//! time, [`super::wavefront`] for many paths side by side. Both are
+//! monomorphised over the scene's features (`ENV`: an environment light exists,
+//! `ANALYTIC`: analytic shapes exist) so a scene pays nothing for what it lacks.
 
 use glam::Vec3;
+use pathfarm_bsdf::{Bsdf, BsdfSample, Frame};
 
 use super::{camera_hit, depth_limit, mitsuba_survival};
-use crate::geometry::{spawn_ray, Ray};
+use crate::geometry::{spawn_ray, Hit, Ray};
+use crate::light::LightSample;
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
 
-/// Radiance along the camera ray `ray`.
-pub fn li<const ENV: bool, const ANALYTIC: bool>(
-    scene: &Scene,
-    mut ray: Ray,
-    rng: &mut Rng,
-) -> Vec3 {
-    let params = &scene.path;
-    if params.max_depth == 0 {
+/// Radiance along the camera ray `ray`, one path at a time: each bounce's light
+/// sample is tested and added at once.
+pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, ray: Ray, rng: &mut Rng) -> Vec3 {
+    if scene.path.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = depth_limit(params.max_depth);
-    let accel = &scene.accel;
-    let lights = &scene.lights;
-
-    let mut throughput = Vec3::ONE;
-    let mut result = Vec3::ZERO;
-    let mut eta = 1.0f32;
-    let mut depth = 0u32;
-    let mut prev_p = ray.o;
-    let mut prev_bsdf_pdf = 1.0f32;
-    let mut prev_delta = true;
-
-    let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
+    let max_depth = depth_limit(scene.path.max_depth);
+    let (accel, lights) = (&scene.accel, &scene.lights);
+    let mut lane = Lane::new(0, ray);
+    let Some(hit) = camera_hit::<ANALYTIC>(scene, &mut lane.ray) else {
         return Vec3::ZERO;
     };
-
-    loop {
-        let Some(h) = hit else {
-            if ENV {
-                let le = lights.environment_radiance(ray.d);
-                let w = if prev_delta {
-                    1.0
-                } else {
-                    power_heuristic(prev_bsdf_pdf, lights.environment_pdf(ray.d))
-                };
-                result += throughput * le * w;
-            }
-            break;
-        };
-        let si = accel.interaction(&ray, &h);
-
-        // Emission found by BSDF sampling (or directly visible).
-        if let Some(light) = scene.shape_light[si.shape as usize] {
-            let le = lights.area_radiance(light, si.ns, -ray.d);
-            if le != Vec3::ZERO {
-                let w = if prev_delta {
-                    1.0
-                } else {
-                    power_heuristic(prev_bsdf_pdf, lights.area_pdf(light, prev_p, si.p, si.ns))
-                };
-                result += throughput * le * w;
+    lane.hit = hit;
+    while let Some(sh) = surface::<ENV>(scene, &mut lane, max_depth) {
+        let (u_select, u) = (rng.next_f32(), rng.next_2d());
+        if sh.bsdf.flags().smooth {
+            if let Some(ls) = lights.sample(accel, sh.p, u_select, u) {
+                next_event(&mut lane, &sh, &ls);
             }
         }
-
-        if depth + 1 >= max_depth {
-            break;
-        }
-
-        let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
-        let wi = frame.to_local(-ray.d);
-        let flags = bsdf.flags();
-
-        // Next-event estimation.
-        if flags.smooth {
-            if let Some(ls) = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d()) {
-                let wo = frame.to_local(ls.wi);
-                let f = bsdf.eval(wi, wo);
-                if f != Vec3::ZERO {
-                    let shadow = ls.shadow_ray(si.p, si.ng);
-                    if accel.unoccluded::<ANALYTIC>(&shadow) {
-                        let w = if ls.delta {
-                            1.0
-                        } else {
-                            power_heuristic(ls.pdf, bsdf.pdf(wi, wo))
-                        };
-                        result += throughput * f * ls.value * (w / ls.pdf);
-                    }
-                }
+        if let Some((shadow, contribution)) = lane.shadow.take() {
+            if accel.unoccluded::<ANALYTIC>(&shadow) {
+                lane.result += contribution;
             }
-        } else {
-            // Keep the random-number stream aligned across materials.
-            rng.next_f32();
-            rng.next_2d();
         }
-
-        // BSDF sampling.
-        let Some(bs) = bsdf.sample(wi, rng.next_f32(), rng.next_2d()) else {
-            break;
-        };
-        throughput *= bs.weight;
-        eta *= bs.eta;
-        prev_p = si.p;
-        prev_bsdf_pdf = bs.pdf;
-        prev_delta = bs.lobe.delta;
-        depth += 1;
-
-        // Russian roulette, as Mitsuba does it.
-        let tp_max = throughput.max_element();
-        if depth >= params.rr_depth {
-            let q = mitsuba_survival(tp_max, eta);
-            if rng.next_f32() >= q {
-                break;
-            }
-            throughput /= q;
-        }
-        if tp_max <= 0.0 || !tp_max.is_finite() {
+        let (u_lobe, u) = (rng.next_f32(), rng.next_2d());
+        scatter(scene, &mut lane, &sh, sh.bsdf.sample(sh.wi, u_lobe, u), rng);
+        if !lane.alive {
             break;
         }
-
-        let wo = frame.to_world(bs.wo);
-        ray = spawn_ray(si.p, si.ng, wo);
-        hit = accel.intersect::<ANALYTIC>(&ray);
+        lane.hit = accel.intersect::<ANALYTIC>(&lane.ray);
     }
-    result
+    lane.result
+}
+
+/// One path in flight: what the estimator carries from bounce to bounce.
+#[derive(Clone, Copy)]
+pub(super) struct Lane {
+    /// Index of the path's camera sample (in a batch).
+    pub k: usize,
+    pub ray: Ray,
+    /// What `ray` hit.
+    pub hit: Option<Hit>,
+    pub throughput: Vec3,
+    pub result: Vec3,
+    pub eta: f32,
+    pub depth: u32,
+    pub prev_p: Vec3,
+    pub prev_bsdf_pdf: f32,
+    pub prev_delta: bool,
+    /// A next-event shadow ray is pending, with the contribution it adds
+    /// if unoccluded.
+    pub shadow: Option<(Ray, Vec3)>,
+    /// The path goes on (its next ray is to be traced).
+    pub alive: bool,
+    /// `ray` is the camera ray (Mitsuba's `hide_emitters` applies to its hits).
+    pub camera: bool,
+}
+
+impl Lane {
+    /// The path of camera sample `k` along camera ray `ray`, before its first hit.
+    pub fn new(k: usize, ray: Ray) -> Self {
+        Self {
+            k,
+            ray,
+            hit: None,
+            throughput: Vec3::ONE,
+            result: Vec3::ZERO,
+            eta: 1.0,
+            depth: 0,
+            prev_p: ray.o,
+            prev_bsdf_pdf: 1.0,
+            prev_delta: true,
+            shadow: None,
+            alive: true,
+            camera: true,
+        }
+    }
+}
+
+/// Where a path scatters this bounce.
+#[derive(Clone, Copy)]
+pub(super) struct Shading<'a> {
+    pub p: Vec3,
+    pub ng: Vec3,
+    pub bsdf: Bsdf<'a>,
+    pub frame: Frame,
+    /// Direction towards the previous vertex, in the shading frame.
+    pub wi: Vec3,
+}
+
+/// The surface the lane's ray found: emission (MIS-weighted against the previous
+/// BSDF sample), then the BSDF to scatter with, unless the path ends here (escaped,
+/// or at the depth limit). Clears `lane.alive`; [`scatter`] sets it again.
+#[inline(always)]
+pub(super) fn surface<'a, const ENV: bool>(
+    scene: &'a Scene,
+    lane: &mut Lane,
+    max_depth: u32,
+) -> Option<Shading<'a>> {
+    let lights = &scene.lights;
+    lane.alive = false;
+    let ray = lane.ray;
+    let Some(h) = lane.hit else {
+        if ENV {
+            let le = lights.environment_radiance(ray.d);
+            let w = if lane.prev_delta {
+                1.0
+            } else {
+                power_heuristic(lane.prev_bsdf_pdf, lights.environment_pdf(ray.d))
+            };
+            lane.result += lane.throughput * le * w;
+        }
+        return None;
+    };
+    let si = scene.accel.interaction(&ray, &h);
+
+    // Emission found by BSDF sampling (or directly visible).
+    if let Some(light) = scene.shape_light[si.shape as usize] {
+        let le = lights.area_radiance(light, si.ns, -ray.d);
+        if le != Vec3::ZERO {
+            let w = if lane.prev_delta {
+                1.0
+            } else {
+                power_heuristic(
+                    lane.prev_bsdf_pdf,
+                    lights.area_pdf(light, lane.prev_p, si.p, si.ns),
+                )
+            };
+            lane.result += lane.throughput * le * w;
+        }
+    }
+
+    if lane.depth + 1 >= max_depth {
+        return None;
+    }
+    let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
+    let wi = frame.to_local(-ray.d);
+    Some(Shading {
+        p: si.p,
+        ng: si.ng,
+        bsdf,
+        frame,
+        wi,
+    })
+}
+
+/// Next-event estimation with light sample `ls`: its MIS-weighted contribution and
+/// the shadow ray that decides it (`lane.shadow`, for the caller to test).
+#[inline(always)]
+pub(super) fn next_event(lane: &mut Lane, sh: &Shading<'_>, ls: &LightSample) {
+    let wo = sh.frame.to_local(ls.wi);
+    let f = sh.bsdf.eval(sh.wi, wo);
+    if f != Vec3::ZERO {
+        let w = if ls.delta {
+            1.0
+        } else {
+            power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
+        };
+        lane.shadow = Some((
+            ls.shadow_ray(sh.p, sh.ng),
+            lane.throughput * f * ls.value * (w / ls.pdf),
+        ));
+    }
+}
+
+/// After BSDF sample `bs` (`None`: absorbed): the path's throughput, Russian
+/// roulette as Mitsuba does it, and the next ray (`lane.alive` if there is one).
+#[inline(always)]
+pub(super) fn scatter(
+    scene: &Scene,
+    lane: &mut Lane,
+    sh: &Shading<'_>,
+    bs: Option<BsdfSample>,
+    rng: &mut Rng,
+) {
+    let Some(bs) = bs else {
+        return;
+    };
+    lane.throughput *= bs.weight;
+    lane.eta *= bs.eta;
+    lane.prev_p = sh.p;
+    lane.prev_bsdf_pdf = bs.pdf;
+    lane.prev_delta = bs.lobe.delta;
+    lane.depth += 1;
+
+    let tp_max = lane.throughput.max_element();
+    if lane.depth >= scene.path.rr_depth {
+        let q = mitsuba_survival(tp_max, lane.eta);
+        if rng.next_f32() >= q {
+            return;
+        }
+        lane.throughput /= q;
+    }
+    if tp_max <= 0.0 || !tp_max.is_finite() {
+        return;
+    }
+    lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo));
+    lane.alive = true;
 }
