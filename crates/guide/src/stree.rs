@@ -106,32 +106,52 @@ impl STree {
     }
 
     /// Lookup with a point already in normalised `[0, 1]^3` coordinates.
+    ///
+    /// Node `d` levels below the root splits on axis `d % 3` (the tree's invariant, checked
+    /// when a tree is read), and a midpoint split of `[0, 1]` sends a coordinate to child 1
+    /// exactly when its next binary digit is 1. So the descent reads the digits of each
+    /// coordinate as a 32-bit fixed-point number, three levels (x, y, z) per round, with no
+    /// data-dependent branch and no float arithmetic in the loop. At most 20 splits per axis
+    /// ([`crate::sdtree`]'s depth limit) use only digits that the fixed-point form holds
+    /// exactly (`1.0` saturates to all ones: the last child at every level); the leaf's box is
+    /// its digit prefix, exact in f32.
+    #[inline]
     pub fn lookup_normalised(&self, x: Vec3) -> SLookup {
-        let mut x = x.to_array();
+        // `as` saturates: 1.0 becomes u32::MAX, the all-ones digit string.
+        let fixed = |v: f32| (v * 4_294_967_296.0) as u32;
+        let digits = [fixed(x.x), fixed(x.y), fixed(x.z)];
+        let mut bits = digits;
         let mut idx = 0usize;
-        let mut ext = [1.0f32; 3];
+        let mut depth = 0u32;
+        'descend: loop {
+            for b in &mut bits {
+                let n = &self.nodes[idx];
+                if n.is_leaf() {
+                    break 'descend;
+                }
+                idx = n.children[(*b >> 31) as usize] as usize;
+                *b <<= 1;
+                depth += 1;
+            }
+        }
+        // Splits per axis: x takes levels 0, 3, 6, ..., y 1, 4, ..., z 2, 5, ...
+        let k = [(depth + 2) / 3, (depth + 1) / 3, depth / 3];
         let mut org = [0.0f32; 3];
-        loop {
-            let n = &self.nodes[idx];
-            if n.is_leaf() {
-                let e = Vec3::from_array(ext) * self.size;
-                return SLookup {
-                    leaf: n.leaf,
-                    node: idx as u32,
-                    min: self.min + Vec3::from_array(org) * self.size,
-                    extent: e,
-                };
-            }
-            let a = n.axis as usize;
-            ext[a] *= 0.5;
-            if x[a] < 0.5 {
-                x[a] *= 2.0;
-                idx = n.children[0] as usize;
+        let mut ext = [0.0f32; 3];
+        for a in 0..3 {
+            let prefix = if k[a] == 0 {
+                0
             } else {
-                x[a] = (x[a] - 0.5) * 2.0;
-                org[a] += ext[a];
-                idx = n.children[1] as usize;
-            }
+                digits[a] & (u32::MAX << (32 - k[a]))
+            };
+            org[a] = prefix as f32 * (1.0 / 4_294_967_296.0);
+            ext[a] = f32::from_bits((127 - k[a]) << 23); // 2^-k
+        }
+        SLookup {
+            leaf: self.nodes[idx].leaf,
+            node: idx as u32,
+            min: self.min + Vec3::from_array(org) * self.size,
+            extent: Vec3::from_array(ext) * self.size,
         }
     }
 
