@@ -87,9 +87,7 @@ fn mean(textures: &[TextureDesc], r: TexRef) -> f32 {
     let c = match r {
         TexRef::Const(c) => c,
         TexRef::Texture(i) => match &textures[i] {
-            TextureDesc::Bitmap(b) => {
-                b.texels.iter().copied().sum::<Vec3>() / b.texels.len().max(1) as f32
-            }
+            TextureDesc::Bitmap(b) => b.texels.iter().sum::<Vec3>() / b.texels.len().max(1) as f32,
             TextureDesc::Checkerboard { color0, color1, .. } => (*color0 + *color1) * 0.5,
         },
     };

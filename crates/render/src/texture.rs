@@ -1,7 +1,7 @@
 //! Texture evaluation (Mitsuba `bitmap` and `checkerboard`).
 
 use glam::{Vec2, Vec3};
-use pathfarm_scene::{BitmapDesc, TexFilter, TexRef, TextureDesc, WrapMode};
+use pathfarm_scene::{byte_texel, BitmapDesc, TexFilter, TexRef, Texels, TextureDesc, WrapMode};
 
 /// Looks up a colour parameter at surface coordinates `uv`.
 #[inline]
@@ -56,11 +56,21 @@ fn wrap(i: i64, n: u32, mode: WrapMode) -> usize {
 /// Texel lookup with uv (0, 0) at the first stored row (the top of the
 /// image file), as Mitsuba's bitmap does; bilinear uses `pos = uv * res - 0.5`.
 pub fn eval_bitmap(b: &BitmapDesc, uv: Vec2) -> Vec3 {
+    match &b.texels {
+        Texels::Bytes { rgb, table } => filter(b, uv, |i| byte_texel(table, rgb[i])),
+        Texels::Float(t) => filter(b, uv, |i| t[i]),
+    }
+}
+
+/// [`eval_bitmap`] with texel `i` (row-major) from `texel`: the storage is matched once
+/// per lookup, not per texel.
+#[inline(always)]
+fn filter(b: &BitmapDesc, uv: Vec2, texel: impl Fn(usize) -> Vec3) -> Vec3 {
     if !uv.is_finite() {
         return Vec3::ZERO;
     }
     // Texel (x, y) from wrapped column x and row y.
-    let texel = |x: usize, y: usize| b.texels[y * b.width as usize + x];
+    let texel = |x: usize, y: usize| texel(y * b.width as usize + x);
     let (wx, wy) = (
         |x: i64| wrap(x, b.width, b.wrap),
         |y: i64| wrap(y, b.height, b.wrap),
@@ -97,7 +107,7 @@ mod tests {
         BitmapDesc {
             width: 2,
             height: 2,
-            texels: Arc::new(texels),
+            texels: Texels::Float(Arc::new(texels)),
             filter,
             wrap,
             to_uv: UvTransform::default(),
@@ -114,6 +124,51 @@ mod tests {
         let n = bitmap(TexFilter::Nearest, WrapMode::Repeat);
         assert_eq!(eval_bitmap(&n, Vec2::new(0.9, 0.1)), Vec3::Y);
         assert_eq!(eval_bitmap(&n, Vec2::new(1.9, 1.1)), Vec3::Y);
+    }
+
+    #[test]
+    fn byte_texels_look_up_the_values_float_texels_would_hold() {
+        // A 5x3 8-bit image with every wrap mode and filter: the table-backed storage gives
+        // bit for bit what the same image converted to f32 at load gives.
+        let table: [f32; 256] =
+            std::array::from_fn(|b| pathfarm_scene::srgb_to_linear(b as f32 / 255.0));
+        let rgb: Vec<[u8; 4]> = (0..15u32)
+            .map(|i| {
+                [
+                    (i * 37 % 256) as u8,
+                    (i * 91 % 256) as u8,
+                    (255 - i * 13) as u8,
+                    0,
+                ]
+            })
+            .collect();
+        let floats: Vec<Vec3> = rgb.iter().map(|&b| byte_texel(&table, b)).collect();
+        assert!(floats.windows(2).any(|w| w[0] != w[1]));
+        for filter in [TexFilter::Nearest, TexFilter::Bilinear] {
+            for wrap in [WrapMode::Repeat, WrapMode::Mirror, WrapMode::Clamp] {
+                let mut b = BitmapDesc {
+                    width: 5,
+                    height: 3,
+                    texels: Texels::Float(Arc::new(floats.clone())),
+                    filter,
+                    wrap,
+                    to_uv: UvTransform::default(),
+                };
+                let f = b.clone();
+                b.texels = Texels::Bytes {
+                    rgb: Arc::new(rgb.clone()),
+                    table: Arc::new(table),
+                };
+                for k in 0..400 {
+                    let uv = Vec2::new(k as f32 * 0.0137 - 1.3, k as f32 * 0.0291 - 2.1);
+                    let (a, c) = (eval_bitmap(&b, uv), eval_bitmap(&f, uv));
+                    assert_eq!(
+                        a.to_array().map(f32::to_bits),
+                        c.to_array().map(f32::to_bits)
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -97,7 +97,7 @@ pub(crate) fn emitter(ctx: &Ctx, r: &Resolved) -> Result<EmitterDesc, SceneError
             let path = ctx.resolve_path(&name);
             let img = load_image(&path, false)
                 .map_err(|e| invalid(&loc, format!("envmap file '{}': {e}", path.display())))?;
-            EmitterDesc::EnvMap { width: img.width, height: img.height, texels: Arc::new(img.texels), scale, to_world }
+            EmitterDesc::EnvMap { width: img.width, height: img.height, texels: Arc::new(img.texels.iter().collect()), scale, to_world }
         }
         other => {
             return Err(invalid(

@@ -5,11 +5,13 @@ use std::path::Path;
 
 use glam::Vec3;
 
+use crate::desc::Texels;
+
 /// A decoded image: linear (or raw) RGB, row-major, row 0 = top.
 pub(crate) struct LoadedImage {
     pub width: u32,
     pub height: u32,
-    pub texels: Vec<Vec3>,
+    pub texels: Texels,
 }
 
 /// The exact sRGB electro-optical transfer function (encoded -> linear).
@@ -63,17 +65,22 @@ fn load_ldr(path: &Path, raw: bool) -> Result<LoadedImage, String> {
         .map_err(|e| format!("cannot decode image: {e}"))?;
     let (width, height) = (dynimg.width(), dynimg.height());
     let conv = |v: f32| if raw { v } else { srgb_to_linear(v) };
-    let texels: Vec<Vec3> = match &dynimg {
+    let texels = match &dynimg {
         image::DynamicImage::ImageLuma8(_)
         | image::DynamicImage::ImageLumaA8(_)
         | image::DynamicImage::ImageRgb8(_)
         | image::DynamicImage::ImageRgba8(_) => {
-            // 256-entry table: exact curve per byte.
-            let lut: Vec<f32> = (0..256).map(|b| conv(b as f32 / 255.0)).collect();
+            // The bytes and a 256-entry table: the exact curve per byte.
+            let table: [f32; 256] = std::array::from_fn(|b| conv(b as f32 / 255.0));
             let rgb = dynimg.to_rgb8();
-            rgb.pixels()
-                .map(|p| Vec3::new(lut[p[0] as usize], lut[p[1] as usize], lut[p[2] as usize]))
-                .collect()
+            return Ok(LoadedImage {
+                width,
+                height,
+                texels: Texels::Bytes {
+                    rgb: std::sync::Arc::new(rgb.pixels().map(|p| [p[0], p[1], p[2], 0]).collect()),
+                    table: std::sync::Arc::new(table),
+                },
+            });
         }
         image::DynamicImage::ImageRgb32F(_) | image::DynamicImage::ImageRgba32F(_) => {
             // Float formats (e.g. HDR decoders) are linear.
@@ -100,7 +107,7 @@ fn load_ldr(path: &Path, raw: bool) -> Result<LoadedImage, String> {
     Ok(LoadedImage {
         width,
         height,
-        texels,
+        texels: Texels::Float(std::sync::Arc::new(texels)),
     })
 }
 
@@ -119,7 +126,7 @@ fn load_exr(path: &Path) -> Result<LoadedImage, String> {
     Ok(LoadedImage {
         width: size.width() as u32,
         height: size.height() as u32,
-        texels,
+        texels: Texels::Float(std::sync::Arc::new(texels)),
     })
 }
 

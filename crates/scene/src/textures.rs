@@ -1,8 +1,6 @@
 //! Texture plugins (`bitmap`, `checkerboard`) and colour parameters that
 //! may be either constants or textures.
 
-use std::sync::Arc;
-
 use glam::{DMat4, Mat2, Vec2, Vec3};
 
 use crate::context::Ctx;
@@ -170,7 +168,7 @@ fn bitmap(ctx: &Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     Ok(TextureDesc::Bitmap(BitmapDesc {
         width: img.width,
         height: img.height,
-        texels: Arc::new(img.texels),
+        texels: img.texels,
         filter,
         wrap,
         to_uv,
