@@ -135,7 +135,7 @@ impl STree {
             }
         }
         // Splits per axis: x takes levels 0, 3, 6, ..., y 1, 4, ..., z 2, 5, ...
-        let k = [(depth + 2) / 3, (depth + 1) / 3, depth / 3];
+        let k = [depth.div_ceil(3), (depth + 1) / 3, depth / 3];
         let mut org = [0.0f32; 3];
         let mut ext = [0.0f32; 3];
         for a in 0..3 {
