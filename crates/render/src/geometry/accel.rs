@@ -43,7 +43,8 @@ pub struct Accel {
 const FLAT_MAX: usize = 64;
 
 /// Rays per group in [`Accel::intersect_many`] and [`Accel::unoccluded_many`]: 16 beat 8 by
-/// 16 % samples/CPU-s on the Cornell box (AMD Zen 4, AVX-512), 32 were within noise of 16.
+/// 16 % samples/CPU-s on the Cornell box (AMD Zen 4, AVX-512), 32 were within noise of 16;
+/// with AVX2 (Zen 3) 16 and 8 are within noise.
 const STREAM: usize = 16;
 
 impl Accel {
@@ -307,10 +308,15 @@ impl Accel {
             for i in 0..STREAM {
                 let (ok, t, u, v) = tri_test(&tri, g, i);
                 let take = ok & (t < best[i]);
-                best[i] = if take { t } else { best[i] };
-                bu[i] = if take { u } else { bu[i] };
-                bv[i] = if take { v } else { bv[i] };
-                prim[i] = if take { j as u32 } else { prim[i] };
+                // Blends by bit mask, not `if`: the compiler turns a conditional update
+                // into a masked store, which is slow on AMD Zen.
+                let m = 0u32.wrapping_sub(take as u32);
+                let blend =
+                    |old: f32, new: f32| f32::from_bits(old.to_bits() & !m | new.to_bits() & m);
+                best[i] = blend(best[i], t);
+                bu[i] = blend(bu[i], u);
+                bv[i] = blend(bv[i], v);
+                prim[i] = prim[i] & !m | j as u32 & m;
             }
         }
         (prim, [best, bu, bv])
