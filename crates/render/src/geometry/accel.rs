@@ -325,15 +325,16 @@ impl Accel {
     /// Whether any triangle blocks each ray of a group.
     #[inline(always)]
     fn stream_any(&self, g: &RayGroup) -> [bool; STREAM] {
-        let mut blocked = [false; STREAM];
+        // 32-bit lanes, not bools: bools would be packed to bytes and back at every triangle.
+        let mut blocked = [0u32; STREAM];
         for j in 0..self.tris.len {
             let tri = self.tris.get(j);
             for (i, b) in blocked.iter_mut().enumerate() {
                 let (ok, t, _, _) = tri_test(&tri, g, i);
-                *b |= ok & (t <= g.tmax[i]);
+                *b |= (ok & (t <= g.tmax[i])) as u32;
             }
         }
-        blocked
+        blocked.map(|b| b != 0)
     }
 
     #[inline(always)]
