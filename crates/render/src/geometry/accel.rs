@@ -337,58 +337,108 @@ impl Accel {
         blocked.map(|b| b != 0)
     }
 
+    /// Walks the CWBVH for `r`: closest hit (narrowing `r.tmax`) or, with `ANY_HIT`,
+    /// the first hit found. Returns the BVH primitive (`u32::MAX`: none) and its
+    /// barycentrics.
+    ///
+    /// At each node the ray meets the eight child boxes at once; the triangles of the hit
+    /// leaves are tested at once, and the hit inner children are visited nearest box
+    /// first (closest hit), the others kept on a stack with their entry distance. A
+    /// kept child whose box starts beyond the closest hit found meanwhile is dropped
+    /// without being read, the main saving over obvhs' traversal, whose stack keeps
+    /// groups of siblings in a fixed per-octant order and reads every one of them.
     #[inline(always)]
     fn traverse<const ANY_HIT: bool>(&self, r: &mut TraceRay) -> (u32, Vec2) {
         if self.flat {
             return self.test_all::<ANY_HIT>(r);
         }
-        /// obvhs' maximum CWBVH depth (checked by its validation).
-        const STACK: usize = 32;
-        let mut stack = [(0u32, 0u32); STACK];
+        // Not zeroed (a memset of 1.8 KB per ray): entries below `sp` are always written.
+        let mut stack = [std::mem::MaybeUninit::<(u32, f32)>::uninit(); STACK];
         let mut sp = 0usize;
-        // (first child index, hit mask): internal children in the high
-        // byte, as in obvhs. The root group holds just node 0.
-        let mut group = (0u32, 0x8000_0000u32);
+        let mut node = 0u32;
         let mut found = u32::MAX;
         let mut bary = Vec2::ZERO;
         loop {
-            if group.1 & 0xff00_0000 != 0 {
-                let hits = group.1;
-                let bit = 31 - hits.leading_zeros();
-                group.1 &= !(1u32 << bit);
-                if group.1 & 0xff00_0000 != 0 {
-                    stack[sp] = group;
-                    sp += 1;
-                }
-                let slot = (bit - 24) ^ r.oct;
-                let relative = (hits & !(u32::MAX << slot)).count_ones();
-                let node = &self.nodes[(group.0 + relative) as usize];
-                let mask = node.intersect(r);
-                group = (node.child_base, (mask & 0xff00_0000) | node.imask);
+            let n = &self.nodes[node as usize];
+            let (mask, near) = n.intersect(r);
 
-                // Primitives of the hit leaves (bit j: BVH index base + j),
-                // by blocks of LANES, lowest first.
-                let mut prims = mask & 0x00ff_ffff;
-                let base = node.prim_base;
-                while prims != 0 {
-                    let j = prims.trailing_zeros();
-                    let first = base + j;
-                    let (block, lane) = (first / LANES as u32, first % LANES as u32);
-                    // Bits j.. of `prims` are lanes `lane`.. of the block.
-                    let in_block = LANE_MASK >> lane;
-                    let lanes = ((prims >> j) & in_block) << lane;
-                    prims &= !(in_block << j);
-                    if self.test_block::<ANY_HIT>(block as usize, lanes, r, &mut found, &mut bary) {
-                        return (found, bary);
-                    }
-                }
-            }
-            if group.1 & 0xff00_0000 == 0 {
-                if sp == 0 {
+            // Primitives of the hit leaves (bit j: BVH index base + j),
+            // by blocks of LANES, lowest first.
+            let mut prims = mask & 0x00ff_ffff;
+            let base = n.prim_base;
+            while prims != 0 {
+                let j = prims.trailing_zeros();
+                let first = base + j;
+                let (block, lane) = (first / LANES as u32, first % LANES as u32);
+                // Bits j.. of `prims` are lanes `lane`.. of the block.
+                let in_block = LANE_MASK >> lane;
+                let lanes = ((prims >> j) & in_block) << lane;
+                prims &= !(in_block << j);
+                if self.test_block::<ANY_HIT>(block as usize, lanes, r, &mut found, &mut bary) {
                     return (found, bary);
                 }
-                sp -= 1;
-                group = stack[sp];
+            }
+
+            // Hit inner children: slot s is bit s; child index from the node's inner mask.
+            let mut inner = mask >> 24;
+            let child = |s: u32| n.child_base + (n.imask & ((1u32 << s) - 1)).count_ones();
+            match inner.count_ones() {
+                0 => loop {
+                    if sp == 0 {
+                        return (found, bary);
+                    }
+                    sp -= 1;
+                    // SAFETY: entries 0..sp were written by pushes (below).
+                    let (c, t) = unsafe { stack[sp].assume_init() };
+                    if t <= r.tmax {
+                        node = c;
+                        break;
+                    }
+                },
+                1 => node = child(inner.trailing_zeros()),
+                2 => {
+                    let (s0, s1) = (inner.trailing_zeros(), 31 - inner.leading_zeros());
+                    let (a, b) = (
+                        (child(s0), near[s0 as usize]),
+                        (child(s1), near[s1 as usize]),
+                    );
+                    // The nearer one next (on a tie, the lower slot), the other kept.
+                    let (next, keep) = if ANY_HIT || a.1 <= b.1 {
+                        (a, b)
+                    } else {
+                        (b, a)
+                    };
+                    stack[sp].write(keep);
+                    sp += 1;
+                    node = next.0;
+                }
+                k => {
+                    // Push all but the nearest, farthest first, so the nearest kept
+                    // child is popped first.
+                    let mut hits = [(0u32, 0f32); 8];
+                    for h in hits.iter_mut().take(k as usize) {
+                        let s = inner.trailing_zeros();
+                        inner &= inner - 1;
+                        *h = (child(s), near[s as usize]);
+                    }
+                    let hits = &mut hits[..k as usize];
+                    if !ANY_HIT {
+                        // Insertion sort, farthest first (ties keep slot order).
+                        for i in 1..hits.len() {
+                            let mut j = i;
+                            while j > 0 && hits[j - 1].1 < hits[j].1 {
+                                hits.swap(j - 1, j);
+                                j -= 1;
+                            }
+                        }
+                    }
+                    let (last, rest) = hits.split_last().expect("k >= 2");
+                    for &e in rest {
+                        stack[sp].write(e);
+                        sp += 1;
+                    }
+                    node = last.0;
+                }
             }
         }
     }
@@ -426,10 +476,10 @@ struct Node {
     /// Child boxes by axis, then min/max, then slot. Empty slots hold a
     /// zero box (their `code` is 0, so a hit on it adds nothing).
     bounds: [[[f32; 8]; 2]; 3],
-    /// Per slot, its bits of the hit mask before the ray's octant applies:
+    /// Per slot, its bits of the hit mask:
     /// for a leaf its primitives (unary count shifted to its offset from
     /// `prim_base`, obvhs' encoding), `0xff00_0000` for an internal child
-    /// (narrowed to its traversal-priority bit by [`TraceRay::order`]), 0
+    /// (narrowed to its slot's bit by [`SLOT_ORDER`]), 0
     /// for an empty slot.
     code: [u32; 8],
     /// Index of the first internal child in `Accel::nodes`.
@@ -476,17 +526,17 @@ impl Node {
         }
     }
 
-    /// Ray against the eight child boxes: the hit mask in obvhs' encoding,
-    /// as its `traverse!` uses it (internal children in the high byte by
-    /// traversal priority, leaf primitives in the low 24 bits). Boxes are
-    /// culled beyond `tmax` and before obvhs' floor of 1e-4.
+    /// Ray against the eight child boxes: the hit mask (leaf primitives in the low 24
+    /// bits, obvhs' encoding; bit `24 + s` for a hit inner child in slot `s`) and each
+    /// box's entry distance. Boxes are culled beyond `tmax` and before obvhs' floor of
+    /// 1e-4.
     ///
     /// Written over all eight slots at once so that it compiles to 8-wide
     /// vector code: per axis both planes' distances by one FMA each (near
     /// and far by min/max: no per-ray plane selection, so the loads have
     /// fixed offsets), then the hit lanes' codes ORed.
     #[inline(always)]
-    fn intersect(&self, ray: &TraceRay) -> u32 {
+    fn intersect(&self, ray: &TraceRay) -> (u32, [f32; 8]) {
         /// obvhs' lower bound on the entry distance of a box.
         const EPSILON: f32 = 0.0001;
         // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up,
@@ -510,6 +560,7 @@ impl Node {
         let [[lx, hx], [ly, hy], [lz, hz]] = &self.bounds;
         let (inv, org) = (ray.inv_dir, ray.neg_org_inv);
         let mut hit_mask = 0u32;
+        let mut near = [0.0f32; 8];
         for i in 0..8 {
             let (ax, bx) = (lx[i].mul_add(inv.x, org.x), hx[i].mul_add(inv.x, org.x));
             let (ay, by) = (ly[i].mul_add(inv.y, org.y), hy[i].mul_add(inv.y, org.y));
@@ -519,29 +570,24 @@ impl Node {
             let (t0z, t1z) = (min(az, bz), max(az, bz));
             let t0 = max(max(t0x, t0y), max(t0z, EPSILON));
             let t1 = min(min(t1x, t1y), min(t1z, ray.tmax));
-            let bits = self.code[i] & ray.order[i];
+            near[i] = t0;
+            let bits = self.code[i] & SLOT_ORDER[i];
             hit_mask |= if t0 <= t1 { bits } else { 0 };
         }
-        hit_mask
+        (hit_mask, near)
     }
 }
 
-/// For each ray octant code ([`TraceRay::oct`]), per slot the mask that
-/// narrows a node's `code` to the ray's bits: all leaf bits and, for an
-/// internal child in slot `s`, bit `24 + (s ^ octant)` (obvhs' traversal
-/// priority).
-static OCTANT_ORDER: [[u32; 8]; 8] = {
-    let mut table = [[0u32; 8]; 8];
-    let mut oct = 0;
-    while oct < 8 {
-        let mut s = 0;
-        while s < 8 {
-            table[oct][s] = 0x00ff_ffff | 1 << (24 + (s ^ oct));
-            s += 1;
-        }
-        oct += 1;
+/// Per slot `s`, the mask that narrows a node's `code` to its bits in the hit mask:
+/// all leaf bits and, for an inner child, bit `24 + s`.
+static SLOT_ORDER: [u32; 8] = {
+    let mut row = [0u32; 8];
+    let mut s = 0;
+    while s < 8 {
+        row[s] = 0x00ff_ffff | 1 << (24 + s);
+        s += 1;
     }
-    table
+    row
 };
 
 /// A ray as the traversal uses it, with what the node and triangle tests
@@ -557,11 +603,6 @@ struct TraceRay {
     tmin: f32,
     /// End of the ray; shortened to the closest hit found so far.
     tmax: f32,
-    /// obvhs' ray octant code (its `oct_inv4` byte): 4, 2, 1 for a
-    /// non-negative x, y, z direction.
-    oct: u32,
-    /// The octant's row of [`OCTANT_ORDER`].
-    order: &'static [u32; 8],
 }
 
 impl TraceRay {
@@ -572,9 +613,6 @@ impl TraceRay {
         let clamped = Vec3A::splat(1.0 / f32::EPSILON).copysign(direction);
         let inv_dir = Vec3A::select(tiny, clamped, Vec3A::ONE / direction);
         let origin = Vec3A::from(ray.o);
-        // Bits x, y, z of the non-negative components, reversed.
-        let pos = !direction.cmplt(Vec3A::ZERO).bitmask();
-        let oct = (pos & 1) << 2 | (pos & 2) | (pos >> 2 & 1);
         Self {
             origin,
             direction,
@@ -582,11 +620,13 @@ impl TraceRay {
             neg_org_inv: -origin * inv_dir,
             tmin: ray.tmin,
             tmax: ray.tmax,
-            oct,
-            order: &OCTANT_ORDER[oct as usize],
         }
     }
 }
+
+/// Entries of the traversal stack: a node visit keeps at most 7 children, and
+/// obvhs' CWBVH is at most 32 levels deep (checked by its validation).
+const STACK: usize = 7 * 32;
 
 /// A BVH primitive: its triangle and what shading needs of it.
 struct PrimInfo {
