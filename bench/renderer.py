@@ -25,6 +25,12 @@ For every scene (shared scenes, fixed resolution/max_depth, see SCENES) and rend
          reported in the table either way).
      relMSE = mean((x-ref)^2 / (ref^2 + 1e-2)) over pixels and channels, against the Tungsten
      reference (TungstenRender.exr beside the scene) box-downsampled to the render resolution.
+  3. paired (--paired R, R rounds): the machine's speed drifts by 10-20 % from minute to
+     minute, which the sequential runs above see as noise between renderers. So pathfarm and
+     Mitsuba llvm_ad_rgb also run *at the same time*, one per core (taskset), single-threaded,
+     swapping cores every round: Mitsuba does its warm-up and 3 timed renders of ~--rate-cpu
+     CPU-s while pathfarm renders back to back beside it; each round gives one ratio of median
+     samples/CPU-s (pathfarm / llvm), and the table quotes the median and range of the ratios.
 Output: Markdown table on stdout and in --out (default bench/results/renderer.md).
 Internal: `renderer.py _mitsuba_worker ...` is the per-variant subprocess.
 """
@@ -78,7 +84,8 @@ def mitsuba_worker(a):
     import mitsuba as mi
     mi.set_variant(a.variant)
     if a.threads:
-        mi.set_thread_count(a.threads)
+        import drjit as dr
+        dr.set_thread_count(a.threads)
     scene = mi.load_file(a.scene, resx=a.res[0], resy=a.res[1], max_depth=a.max_depth)
     pixels = a.res[0] * a.res[1]
     render, pass_spp = mitsuba_renderer(mi, scene, a.res, 1000)
@@ -209,6 +216,50 @@ def emitter_edge_mask(ref, thresh=None):
     return ~dil
 
 
+def paired(a, name, xml, res, md):
+    """Rounds of pathfarm and Mitsuba llvm side by side, one core each: ratios of their rates."""
+    pixels = res[0] * res[1]
+    out = os.path.join(a.workdir, "paired-pathfarm-%s.exr" % name)
+    probe = run_pathfarm(a.pathfarm, xml, res, md, out, 1, spp=4)
+    spp = max(1, int(round(a.rate_cpu * probe["samples_per_cpu_s"] / pixels)))
+    ratios, pf_rates, mi_rates = [], [], []
+    for r in range(a.paired):
+        pf_core, mi_core = (0, 1) if r % 2 == 0 else (1, 0)
+        args = ["taskset", "-c", str(mi_core), sys.executable, os.path.abspath(__file__), "_mitsuba_worker",
+                "--variant", "llvm_ad_rgb", "--scene", xml, "--res", str(res[0]), str(res[1]),
+                "--max-depth", str(md), "--reps", "3", "--rate-cpu", str(a.rate_cpu), "--budget", "0",
+                "--threads", "1", "--out", os.path.join(a.workdir, "paired-mitsuba.npy")]
+        mi_proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        rates = []
+        while mi_proc.poll() is None:
+            p = subprocess.run(["taskset", "-c", str(pf_core), a.pathfarm, "render", xml, "-o", out,
+                                "--seed", str(100 + len(rates)), "--threads", "1", "--spp", str(spp),
+                                "-D", "resx=%d" % res[0], "-D", "resy=%d" % res[1], "-D", "max_depth=%d" % md],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            m = None
+            for line in p.stdout.splitlines():
+                m = SUMMARY_RE.search(line) or m
+            if p.returncode != 0 or not m:
+                mi_proc.kill()
+                raise RuntimeError("pathfarm failed in the paired run:\n" + p.stderr[-2000:])
+            w, h, spp_, _, cpu, _ = m.groups()
+            rates.append(int(w) * int(h) * int(spp_) / max(float(cpu), 1e-9))
+        mo, me = mi_proc.communicate()
+        lines = [l for l in mo.splitlines() if l.startswith("RESULT ")]
+        if mi_proc.returncode != 0 or not lines:
+            raise RuntimeError("mitsuba worker failed in the paired run:\n" + me[-3000:])
+        mi_rate = json.loads(lines[-1][7:])["rate"]
+        # The first pathfarm render overlaps Mitsuba's scene loading and JIT warm-up, not
+        # its timed renders: leave it out when there are others.
+        pf_rate = statistics.median(rates[1:] if len(rates) > 1 else rates)
+        pf_rates.append(pf_rate)
+        mi_rates.append(mi_rate)
+        ratios.append(pf_rate / mi_rate)
+        print("[%s/paired] round %d: pathfarm %.4g (%d renders), llvm %.4g, ratio %.3f"
+              % (name, r + 1, pf_rate, len(rates), mi_rate, ratios[-1]), file=sys.stderr)
+    return ratios, pf_rates, mi_rates
+
+
 def main():
     if len(sys.argv) > 1 and sys.argv[1] == "_mitsuba_worker":
         ap = argparse.ArgumentParser()
@@ -239,10 +290,13 @@ def main():
                          "time: --time budget/threads (wall-clock)")
     ap.add_argument("--workdir", default=os.path.join(HERE, "results", "renders"))
     ap.add_argument("--out", default=os.path.join(HERE, "results", "renderer.md"))
+    ap.add_argument("--paired", type=int, default=0,
+                    help="rounds of pathfarm and Mitsuba llvm run side by side (0: none)")
     a = ap.parse_args()
     os.makedirs(a.workdir, exist_ok=True)
 
     rows = []
+    pairs = []
     for name in a.scenes:
         xml, rx, ry, md = SCENES[name]
         res = (rx, ry)
@@ -270,6 +324,8 @@ def main():
                   % (name, r, time.time() - t0, ", ".join("%.3g" % x for x in rates),
                      eq and eq["spp"], eq["cpu_s"] if eq else float("nan"), err), file=sys.stderr)
             rows.append((name, r, res_["rate"], err, err_m, eq and eq["spp"], eq and eq["cpu_s"], ""))
+        if a.paired > 0:
+            pairs.append((name,) + paired(a, name, xml, res, md))
 
     lines = ["# Renderer benchmark", "",
              "%s; %d repetitions (median); equal-time budget %.1f CPU-s; threads: pathfarm %d, Mitsuba %s; %d CPUs."
@@ -289,6 +345,16 @@ def main():
                 name, r, rate, "%.4g" % err if err is not None else "-",
                 "%.4g" % err_m if err_m is not None else "-", spp if spp else "-",
                 "%.1f" % cpu if cpu is not None else "-"))
+    if pairs:
+        lines += ["", "Paired: pathfarm and Mitsuba llvm_ad_rgb at the same time, one core each, "
+                  "single-threaded, cores swapped every round (%d rounds)." % a.paired, "",
+                  "| scene | pathfarm samples/CPU-s (median) | llvm samples/CPU-s (median) | "
+                  "ratio pathfarm / llvm (median) | ratios |",
+                  "|---|---:|---:|---:|---|"]
+        for name, ratios, pf, mi in pairs:
+            lines.append("| %s | %.4g | %.4g | **%.3f** | %s |" % (
+                name, statistics.median(pf), statistics.median(mi), statistics.median(ratios),
+                " ".join("%.3f" % x for x in ratios)))
     text = "\n".join(lines) + "\n"
     print(text)
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
