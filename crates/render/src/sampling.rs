@@ -3,6 +3,10 @@
 use glam::{Vec2, Vec3};
 use std::f32::consts::PI;
 
+/// Distributions with at most this many bins pick theirs by counting (see
+/// [`Distribution1D::sample`]).
+const SMALL: usize = 8;
+
 /// Piecewise-constant 1D distribution over `n` bins.
 #[derive(Clone, Debug, Default)]
 pub struct Distribution1D {
@@ -58,7 +62,17 @@ impl Distribution1D {
     #[inline]
     pub fn sample(&self, u: f32) -> (usize, f32) {
         let n = self.len();
-        let i = (self.cdf.partition_point(|&c| c <= u).max(1) - 1).min(n - 1);
+        let i = if n <= SMALL {
+            // Few bins (a rectangle light's two triangles): count the inner CDF
+            // entries at or below `u` without branches, which the bisection's
+            // unpredictable comparisons would cost. Same bin: the CDF is sorted.
+            self.cdf[1..n]
+                .iter()
+                .map(|&c| (c <= u) as usize)
+                .sum::<usize>()
+        } else {
+            (self.cdf.partition_point(|&c| c <= u).max(1) - 1).min(n - 1)
+        };
         let (c0, c1) = (self.cdf[i], self.cdf[i + 1]);
         let r = if c1 > c0 {
             ((u - c0) / (c1 - c0)).clamp(0.0, 1.0 - f32::EPSILON)
@@ -115,6 +129,34 @@ pub fn power_heuristic(a: f32, b: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn counting_few_bins_picks_the_bins_bisection_picks() {
+        // Small distributions count CDF entries; larger ones bisect. Both must give the
+        // same bin and rescaled number for any u, zero-weight bins and edges included.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for n in 1..=SMALL {
+            for _ in 0..50 {
+                let w: Vec<f32> = (0..n)
+                    .map(|_| if next() < 0.3 { 0.0 } else { next() })
+                    .collect();
+                let d = Distribution1D::new(&w);
+                let mut us: Vec<f32> = (0..200).map(|_| next()).collect();
+                us.extend(d.cdf.iter().copied());
+                us.extend([0.0, 1.0 - f32::EPSILON / 2.0, -0.0, f32::NAN, 1.0, -1.0]);
+                for u in us {
+                    let i = (d.cdf.partition_point(|&c| c <= u).max(1) - 1).min(n - 1);
+                    assert_eq!(d.sample(u).0, i, "n {n}, weights {w:?}, u {u}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn distribution_picks_bins_in_proportion() {
