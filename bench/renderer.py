@@ -117,8 +117,10 @@ SUMMARY_RE = re.compile(r"summary:\s+resolution=(\d+)x(\d+)\s+spp=(\d+)\s+wall_s
                         r"cpu_s=([\d.eE+-]+)\s+samples_per_cpu_s=([\d.eE+-]+)")
 
 
-def run_pathfarm(binary, xml, res, max_depth, out, threads, spp=None, tlimit=None, seed=1):
-    args = [binary, "render", xml, "-o", out, "--seed", str(seed), "--threads", str(threads),
+def run_pathfarm(binary, xml, res, max_depth, out, threads, spp=None, tlimit=None, seed=1, cpu=None):
+    """One `pathfarm render`; `cpu`: pin it to that core (taskset)."""
+    args = ["taskset", "-c", str(cpu)] if cpu is not None else []
+    args += [binary, "render", xml, "-o", out, "--seed", str(seed), "--threads", str(threads),
             "-D", "resx=%d" % res[0], "-D", "resy=%d" % res[1], "-D", "max_depth=%d" % max_depth]
     if spp is not None:
         args += ["--spp", str(spp)]
@@ -232,18 +234,12 @@ def paired(a, name, xml, res, md):
         mi_proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         rates = []
         while mi_proc.poll() is None:
-            p = subprocess.run(["taskset", "-c", str(pf_core), a.pathfarm, "render", xml, "-o", out,
-                                "--seed", str(100 + len(rates)), "--threads", "1", "--spp", str(spp),
-                                "-D", "resx=%d" % res[0], "-D", "resy=%d" % res[1], "-D", "max_depth=%d" % md],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            m = None
-            for line in p.stdout.splitlines():
-                m = SUMMARY_RE.search(line) or m
-            if p.returncode != 0 or not m:
+            try:
+                r_ = run_pathfarm(a.pathfarm, xml, res, md, out, 1, spp=spp, seed=100 + len(rates), cpu=pf_core)
+            except RuntimeError:
                 mi_proc.kill()
-                raise RuntimeError("pathfarm failed in the paired run:\n" + p.stderr[-2000:])
-            w, h, spp_, _, cpu, _ = m.groups()
-            rates.append(int(w) * int(h) * int(spp_) / max(float(cpu), 1e-9))
+                raise
+            rates.append(r_["samples_per_cpu_s"])
         mo, me = mi_proc.communicate()
         lines = [l for l in mo.splitlines() if l.startswith("RESULT ")]
         if mi_proc.returncode != 0 or not lines:

@@ -2,6 +2,7 @@
 //! RGB texels, row 0 at the top of the file.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use glam::Vec3;
 
@@ -73,41 +74,41 @@ fn load_ldr(path: &Path, raw: bool) -> Result<LoadedImage, String> {
             // The bytes and a 256-entry table: the exact curve per byte.
             let table: [f32; 256] = std::array::from_fn(|b| conv(b as f32 / 255.0));
             let rgb = dynimg.to_rgb8();
-            return Ok(LoadedImage {
-                width,
-                height,
-                texels: Texels::Bytes {
-                    rgb: std::sync::Arc::new(rgb.pixels().map(|p| [p[0], p[1], p[2], 0]).collect()),
-                    table: std::sync::Arc::new(table),
-                },
-            });
+            Texels::Bytes {
+                rgb: Arc::new(rgb.pixels().map(|p| [p[0], p[1], p[2], 0]).collect()),
+                table: Arc::new(table),
+            }
         }
         image::DynamicImage::ImageRgb32F(_) | image::DynamicImage::ImageRgba32F(_) => {
             // Float formats (e.g. HDR decoders) are linear.
-            dynimg
-                .to_rgb32f()
-                .pixels()
-                .map(|p| Vec3::new(p[0], p[1], p[2]))
-                .collect()
+            Texels::Float(Arc::new(
+                dynimg
+                    .to_rgb32f()
+                    .pixels()
+                    .map(|p| Vec3::new(p[0], p[1], p[2]))
+                    .collect(),
+            ))
         }
         _ => {
             // 16-bit PNGs: still sRGB-encoded (Mitsuba linearises them too).
             let rgb = dynimg.to_rgb16();
-            rgb.pixels()
-                .map(|p| {
-                    Vec3::new(
-                        conv(p[0] as f32 / 65535.0),
-                        conv(p[1] as f32 / 65535.0),
-                        conv(p[2] as f32 / 65535.0),
-                    )
-                })
-                .collect()
+            Texels::Float(Arc::new(
+                rgb.pixels()
+                    .map(|p| {
+                        Vec3::new(
+                            conv(p[0] as f32 / 65535.0),
+                            conv(p[1] as f32 / 65535.0),
+                            conv(p[2] as f32 / 65535.0),
+                        )
+                    })
+                    .collect(),
+            ))
         }
     };
     Ok(LoadedImage {
         width,
         height,
-        texels: Texels::Float(std::sync::Arc::new(texels)),
+        texels,
     })
 }
 
@@ -126,7 +127,7 @@ fn load_exr(path: &Path) -> Result<LoadedImage, String> {
     Ok(LoadedImage {
         width: size.width() as u32,
         height: size.height() as u32,
-        texels: Texels::Float(std::sync::Arc::new(texels)),
+        texels: Texels::Float(Arc::new(texels)),
     })
 }
 
