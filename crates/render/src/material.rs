@@ -203,7 +203,7 @@ impl Side {
         }
     }
 
-    #[inline]
+    #[inline(always)]
     fn bsdf<'a>(&'a self, textures: &[TextureDesc], uv: glam::Vec2) -> Bsdf<'a> {
         let t = |r: TexRef| texture::eval(textures, r, uv);
         match self {
@@ -299,7 +299,7 @@ impl Material {
     }
 
     /// The BSDF at hit `si` for a ray travelling along `ray_d`, and its frame.
-    #[inline]
+    #[inline(always)]
     pub fn bsdf<'a>(
         &'a self,
         textures: &[TextureDesc],

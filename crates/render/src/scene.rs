@@ -162,7 +162,7 @@ impl Scene {
 
     /// The BSDF at a hit and the shading frame to evaluate it in; `ray_d` is
     /// the incoming ray direction (two-sided materials pick their side by it).
-    #[inline]
+    #[inline(always)]
     pub fn bsdf_at(&self, si: &SurfaceInteraction, ray_d: glam::Vec3) -> (Bsdf<'_>, Frame) {
         let m = &self.materials[self.shape_material[si.shape as usize] as usize];
         m.bsdf(&self.textures, si, ray_d)

@@ -444,7 +444,7 @@ impl Accel {
     }
 
     /// Shading data at a hit.
-    #[inline]
+    #[inline(always)]
     pub fn interaction(&self, ray: &Ray, hit: &Hit) -> SurfaceInteraction {
         let p = ray.o + ray.d * hit.t;
         let (ng, ns, uv) = match &self.shapes[hit.shape as usize] {
