@@ -210,6 +210,14 @@ pub const GUIDING_KEEP_RATIO: f64 = 0.8;
 /// threads, checks after iterations 1, 2, 3): cornell-box 2.71, 1.90, 1.69; veach-ajar 0.018
 /// (kept at once); door-ajar 0.96, 1.01, 0.95.
 pub const GUIDING_FALLBACK_RATIO: f64 = 1.25;
+/// Path tracing takes over at the first check already when guided sampling's efficiency cost
+/// is at least this multiple of path tracing's: a loss this clear is not made up by a tree
+/// trained on more samples, and on a short budget the second check's iteration alone costs a
+/// tenth of the budget. Measured first-check ratios (time budgets of 4-15 s at two threads):
+/// cornell-box 2.46-2.75 (then 1.3-1.9 at the second check: falls back either way); caustic
+/// 1.89 and materials 1.73 (wait for the second check); door-ajar 0.96-0.99; veach-ajar
+/// 0.02-0.04.
+pub const GUIDING_FALLBACK_FIRST_RATIO: f64 = 2.0;
 /// After this many checked iterations the verdict is final either way.
 pub const GUIDING_LAST_DECISION: usize = 4;
 
@@ -218,8 +226,9 @@ pub const GUIDING_LAST_DECISION: usize = 4;
 /// first; `path_cost`: the same for unguided path tracing (its latest estimate). Keep guiding
 /// once it is clearly more efficient ([`GUIDING_KEEP_RATIO`]); fall back once it has been
 /// clearly less efficient at the last two checks ([`GUIDING_FALLBACK_RATIO`], the earlier one
-/// against the path cost of now); at the [`GUIDING_LAST_DECISION`]-th check keep guiding unless
-/// it is clearly less efficient.
+/// against the path cost of now), or far less efficient at the first check
+/// ([`GUIDING_FALLBACK_FIRST_RATIO`]); at the [`GUIDING_LAST_DECISION`]-th check keep guiding
+/// unless it is clearly less efficient.
 pub fn guiding_verdict(guided_costs: &[f64], path_cost: f64) -> GuidingVerdict {
     let n = guided_costs.len();
     if n == 0 {
@@ -237,6 +246,8 @@ pub fn guiding_verdict(guided_costs: &[f64], path_cost: f64) -> GuidingVerdict {
     let last = ratio(guided_costs[n - 1]);
     if last <= GUIDING_KEEP_RATIO {
         GuidingVerdict::Keep
+    } else if n == 1 && last >= GUIDING_FALLBACK_FIRST_RATIO {
+        GuidingVerdict::FallBack
     } else if n >= 2
         && last >= GUIDING_FALLBACK_RATIO
         && ratio(guided_costs[n - 2]) >= GUIDING_FALLBACK_RATIO
