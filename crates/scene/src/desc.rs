@@ -176,7 +176,7 @@ pub struct GuidedParams {
     pub budget_type: GuidedBudgetType,
     /// `spp_per_pass` (4; 2019 preset 1).
     pub spp_per_pass: u32,
-    /// `s_tree_threshold` c (12000; 2019 preset 4000).
+    /// `s_tree_threshold` c (12000; 2019 preset 4000, pathfarm preset 2000).
     pub s_tree_threshold: f64,
     /// `d_tree_threshold` rho (0.01).
     pub d_tree_threshold: f64,
@@ -253,8 +253,16 @@ impl GuidedParams {
     /// beats the nearest one end to end: 30 CPU-s relMSE 0.085-0.095 vs 0.102-0.107 on
     /// veach-ajar and 0.00049-0.00054 vs 0.00061-0.00063 on door-ajar (3 seeds each), the
     /// Cornell box unchanged (it falls back to path tracing either way).
+    ///
+    /// Its spatial threshold is 2000 rather than 4000: at the benchmark resolution (320x180)
+    /// a pass records 16x fewer paths than at the 1280x720 the paper's values were set for,
+    /// so 4000 left the spatial tree coarse. Measured (2026-11-22, 2 seeds each, relMSE):
+    /// veach-ajar at 30 CPU-s 0.0755/0.0767 (2000) vs 0.0782/0.0844 (4000), 0.0737/0.0773
+    /// (1000), 0.0917/0.0932 (8000); at 120 CPU-s 0.0213 vs 0.0219 (1000: 0.0219); door-ajar
+    /// at 30 CPU-s 0.00049/0.00049 vs 0.00054/0.00055.
     pub fn preset_pathfarm() -> Self {
         Self {
+            s_tree_threshold: 2000.0,
             russian_roulette: GuidedRoulette::Guided,
             splitting: true,
             path_fallback: true,
