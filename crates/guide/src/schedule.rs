@@ -246,11 +246,10 @@ pub fn guiding_verdict(guided_costs: &[f64], path_cost: f64) -> GuidingVerdict {
     let last = ratio(guided_costs[n - 1]);
     if last <= GUIDING_KEEP_RATIO {
         GuidingVerdict::Keep
-    } else if n == 1 && last >= GUIDING_FALLBACK_FIRST_RATIO {
-        GuidingVerdict::FallBack
-    } else if n >= 2
-        && last >= GUIDING_FALLBACK_RATIO
-        && ratio(guided_costs[n - 2]) >= GUIDING_FALLBACK_RATIO
+    } else if (n == 1 && last >= GUIDING_FALLBACK_FIRST_RATIO)
+        || (n >= 2
+            && last >= GUIDING_FALLBACK_RATIO
+            && ratio(guided_costs[n - 2]) >= GUIDING_FALLBACK_RATIO)
     {
         GuidingVerdict::FallBack
     } else if n >= GUIDING_LAST_DECISION {

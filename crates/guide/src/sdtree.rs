@@ -199,6 +199,36 @@ impl SdTree {
         Some((uv_to_dir(uv), pdf_uv_to_solid_angle(p)))
     }
 
+    /// Asks the processor to start loading leaf `h`'s payload (its learned fraction and the
+    /// header of its sampling quadtree) into cache, without waiting for it. A hint only: no
+    /// effect on any result. A renderer that looks a leaf up well before it samples there
+    /// (e.g. before next-event estimation) calls this, then [`SdTree::prefetch_sampling`]
+    /// once other work has passed, so the leaf's cache misses overlap that work instead of
+    /// stalling the vertex.
+    #[inline]
+    pub fn prefetch_leaf(&self, h: LeafHandle) {
+        if let Some(leaf) = self.leaves.get(h.0 as usize) {
+            let p = (leaf as *const Leaf).cast::<u8>();
+            for line in (0..std::mem::size_of::<Leaf>()).step_by(64) {
+                prefetch(p.wrapping_add(line));
+            }
+        }
+    }
+
+    /// Asks the processor to start loading the top nodes of leaf `h`'s sampling quadtree (the
+    /// root and the line after it). Reads the leaf's header, so call it after
+    /// [`SdTree::prefetch_leaf`] has had time to bring that in. A hint only.
+    #[inline]
+    pub fn prefetch_sampling(&self, h: LeafHandle) {
+        if let Some(leaf) = self.leaves.get(h.0 as usize) {
+            let nodes = leaf.sampling.frozen.as_ptr().cast::<u8>();
+            if !leaf.sampling.frozen.is_empty() {
+                prefetch(nodes);
+                prefetch(nodes.wrapping_add(64));
+            }
+        }
+    }
+
     /// Solid-angle pdf of the guide sampling `dir` (world space, unit) at `p`; 0 before the first
     /// refinement.
     pub fn pdf(&self, p: Vec3, dir: Vec3) -> f32 {
@@ -580,4 +610,18 @@ fn halve(g: &GradAccum, second: bool) {
     h(&g.pos);
     h(&g.neg);
     h(&g.weight);
+}
+
+/// A cache-line prefetch hint (no-op where the target has none). Never faults, even for an
+/// address outside any allocation.
+#[inline(always)]
+fn prefetch(p: *const u8) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: prefetch is a hint; it does not access memory architecturally and cannot fault.
+    #[allow(unused_unsafe)]
+    unsafe {
+        std::arch::x86_64::_mm_prefetch(p.cast::<i8>(), std::arch::x86_64::_MM_HINT_T0);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
 }

@@ -109,14 +109,36 @@ impl VertexGuide {
     /// is built.
     #[inline]
     pub fn at(tree: &SdTree, p: Vec3) -> Self {
+        let mut g = Self::lookup(tree, p);
+        g.resolve(tree);
+        g
+    }
+
+    /// The first half of [`VertexGuide::at`]: the leaf, with its payload requested from
+    /// memory ([`SdTree::prefetch_leaf`]) but not read. [`VertexGuide::resolve`] must run
+    /// before the guide is used (sampling, pdf).
+    #[inline]
+    pub fn lookup(tree: &SdTree, p: Vec3) -> Self {
         let at = tree.lookup(p);
         let guided = tree.is_built();
-        let alpha = if guided {
-            tree.bsdf_sampling_fraction_leaf(LeafHandle(at.leaf))
-        } else {
-            1.0
-        };
-        Self { at, guided, alpha }
+        if guided {
+            tree.prefetch_leaf(LeafHandle(at.leaf));
+        }
+        Self {
+            at,
+            guided,
+            alpha: 1.0,
+        }
+    }
+
+    /// The second half of [`VertexGuide::at`]: reads the leaf's sampling fraction and
+    /// requests its quadtree's top nodes ([`SdTree::prefetch_sampling`]).
+    #[inline]
+    pub fn resolve(&mut self, tree: &SdTree) {
+        if self.guided {
+            tree.prefetch_sampling(self.leaf());
+            self.alpha = tree.bsdf_sampling_fraction_leaf(self.leaf());
+        }
     }
 
     /// The vertex's spatial leaf.
@@ -622,8 +644,10 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
             let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
             let wi = frame.to_local(-ray.d);
             let flags = bsdf.flags();
-            let vg = if flags.smooth && g.guide {
-                VertexGuide::at(tree, si.p)
+            // The leaf's payload is requested now and read after the light sample, so that its
+            // cache misses overlap the light sampling.
+            let mut vg = if flags.smooth && g.guide {
+                VertexGuide::lookup(tree, si.p)
             } else {
                 VertexGuide::unguided()
             };
@@ -631,7 +655,9 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
             // Next-event estimation, weighted against the mixture pdf.
             let do_nee = g.nee && flags.smooth;
             if do_nee {
-                if let Some(ls) = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d()) {
+                let ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
+                vg.resolve(tree);
+                if let Some(ls) = ls {
                     let wo = frame.to_local(ls.wi);
                     let f = bsdf.eval(wi, wo);
                     let mut w_light = 0.0;
@@ -665,9 +691,12 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                         tree.record(&r, &mut || rng.next_f32());
                     }
                 }
-            } else if g.nee {
-                rng.next_f32();
-                rng.next_2d();
+            } else {
+                vg.resolve(tree);
+                if g.nee {
+                    rng.next_f32();
+                    rng.next_2d();
+                }
             }
             let v = Vertex {
                 si,
