@@ -462,6 +462,7 @@ impl SdTree {
             work.push(c1);
             work.push(c0);
         }
+        self.stree.index();
         let rho = self.config.d_tree_threshold;
         let md = self.config.max_d_tree_depth;
         for l in &mut self.leaves {
@@ -487,7 +488,7 @@ impl SdTree {
             depth_histogram: hist,
             overflow_events: self.overflow_events(),
             memory_bytes: std::mem::size_of::<Self>()
-                + self.stree.nodes.capacity() * std::mem::size_of::<crate::stree::SNode>()
+                + self.stree.memory_bytes()
                 + self.leaves.capacity() * std::mem::size_of::<Leaf>(),
             ..Default::default()
         };

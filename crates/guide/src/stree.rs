@@ -40,12 +40,31 @@ pub struct SLookup {
     pub extent: Vec3,
 }
 
+/// Splits per axis that [`STree`]'s jump table resolves at once (the top `3 * JUMP_LEVELS`
+/// levels of the tree): a grid of `2^(3 * JUMP_LEVELS)` cells, 16 KB at 4.
+const JUMP_LEVELS: u32 = 4;
+
 /// The spatial binary tree: cube domain and node array.
-#[derive(Clone, Debug, PartialEq)]
+///
+/// Equality compares the domain and the nodes (the jump table is derived from them).
+#[derive(Clone, Debug)]
 pub struct STree {
     pub(crate) min: Vec3,
     pub(crate) size: f32,
     pub(crate) nodes: Vec<SNode>,
+    /// Jump table ([`STree::index`]): per cell of the `2^JUMP_LEVELS`-per-axis grid (x in the
+    /// low bits, then y, then z), the node where the descent through that cell reaches depth
+    /// `3 * JUMP_LEVELS`, or the leaf where it ends above that depth. Used by lookups while
+    /// `jump_nodes == nodes.len()` (splits only add nodes, so a split tree falls back to the
+    /// plain descent until it is indexed again).
+    jump: Vec<u32>,
+    jump_nodes: usize,
+}
+
+impl PartialEq for STree {
+    fn eq(&self, o: &Self) -> bool {
+        self.min == o.min && self.size == o.size && self.nodes == o.nodes
+    }
 }
 
 impl STree {
@@ -64,16 +83,73 @@ impl STree {
             size = 1.0;
         }
         size *= 1.0 + 1e-5;
-        Self {
-            min: centre - Vec3::splat(size * 0.5),
+        Self::from_parts(
+            centre - Vec3::splat(size * 0.5),
             size,
-            nodes: vec![SNode {
+            vec![SNode {
                 axis: 0,
                 children: [0, 0],
                 leaf: 0,
                 depth: 0,
             }],
+        )
+    }
+
+    /// A tree from its domain and nodes (as read from the wire format), indexed.
+    pub(crate) fn from_parts(min: Vec3, size: f32, nodes: Vec<SNode>) -> Self {
+        let mut t = Self {
+            min,
+            size,
+            nodes,
+            jump: Vec::new(),
+            jump_nodes: 0,
+        };
+        t.index();
+        t
+    }
+
+    /// A copy without the jump table (lookups take the plain descent), for tests.
+    #[cfg(test)]
+    pub(crate) fn without_index(&self) -> Self {
+        Self {
+            jump: Vec::new(),
+            jump_nodes: usize::MAX,
+            ..self.clone()
         }
+    }
+
+    /// Heap memory of the node array and the jump table, in bytes.
+    pub(crate) fn memory_bytes(&self) -> usize {
+        self.nodes.capacity() * std::mem::size_of::<SNode>()
+            + self.jump.capacity() * std::mem::size_of::<u32>()
+    }
+
+    /// Builds the jump table that lets lookups skip the top `3 * JUMP_LEVELS` levels. Call it
+    /// after a round of splits; results of lookups are the same with or without it.
+    pub(crate) fn index(&mut self) {
+        let cells = 1usize << (3 * JUMP_LEVELS);
+        let mut jump = Vec::with_capacity(cells);
+        for cell in 0..cells {
+            let c = [
+                cell & ((1 << JUMP_LEVELS) - 1),
+                (cell >> JUMP_LEVELS) & ((1 << JUMP_LEVELS) - 1),
+                cell >> (2 * JUMP_LEVELS),
+            ];
+            let mut idx = 0usize;
+            // Level l splits on axis l % 3 and reads that axis' digit l / 3 (most significant
+            // first), as lookup_normalised does.
+            for level in 0..3 * JUMP_LEVELS {
+                let n = &self.nodes[idx];
+                if n.is_leaf() {
+                    break;
+                }
+                let digit = (c[(level % 3) as usize] >> (JUMP_LEVELS - 1 - level / 3)) & 1;
+                idx = n.children[digit] as usize;
+            }
+            jump.push(idx as u32);
+        }
+        self.jump = jump;
+        self.jump_nodes = self.nodes.len();
     }
 
     /// Lower corner of the cube domain.
@@ -123,6 +199,18 @@ impl STree {
         let mut bits = digits;
         let mut idx = 0usize;
         let mut depth = 0u32;
+        if self.jump_nodes == self.nodes.len() {
+            // The top levels at once: the cell of the leading JUMP_LEVELS digits per axis.
+            let s = 32 - JUMP_LEVELS;
+            let cell = (digits[0] >> s) as usize
+                | ((digits[1] >> s) as usize) << JUMP_LEVELS
+                | ((digits[2] >> s) as usize) << (2 * JUMP_LEVELS);
+            idx = self.jump[cell] as usize;
+            depth = self.nodes[idx].depth;
+            // An inner node here is at depth 3 * JUMP_LEVELS: those digits are used up, and
+            // the next level splits on x again. (At a leaf the loop below stops at once.)
+            bits = digits.map(|d| d << JUMP_LEVELS);
+        }
         'descend: loop {
             for b in &mut bits {
                 let n = &self.nodes[idx];

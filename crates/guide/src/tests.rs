@@ -709,6 +709,45 @@ fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
 }
 
 #[test]
+fn stree_jump_table_finds_the_leaves_the_plain_descent_finds() {
+    // Leaves above and below the jump table's depth (12 levels), points everywhere
+    // (deterministic sweep, no significance level).
+    let cfg = GuideConfig {
+        s_tree_threshold: 20.0,
+        ..GuideConfig::default()
+    };
+    let t = warmed_tree(cfg, 7, 20_000, 2);
+    let st = t.stree();
+    let plain = st.without_index();
+    let depths: Vec<u32> = st
+        .nodes()
+        .iter()
+        .filter(|n| n.is_leaf())
+        .map(|n| n.depth)
+        .collect();
+    assert!(
+        depths.iter().any(|&d| d < 12) && depths.iter().any(|&d| d > 12),
+        "{depths:?}"
+    );
+    let mut rng = Pcg::new(11);
+    let mut deep = 0;
+    for i in 0..50_000 {
+        let p = if i % 2 == 0 {
+            Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2)
+        } else {
+            // near the leaves' lower corners: points on and next to split planes
+            let leaf = (rng.f32() * st.nodes().len() as f32) as u32 % st.nodes().len() as u32;
+            let (o, _) = st.node_box_normalised(leaf);
+            st.domain_min() + Vec3::from_array(o) * st.domain_size()
+        };
+        let (a, b) = (st.lookup(p), plain.lookup(p));
+        assert_eq!(a, b, "point {p}");
+        deep += (st.nodes()[a.node as usize].depth > 12) as u32;
+    }
+    assert!(deep > 0);
+}
+
+#[test]
 fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     let cfg = GuideConfig {
         s_tree_threshold: 300.0,

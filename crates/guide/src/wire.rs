@@ -572,7 +572,7 @@ impl SdTree {
         }
         Ok(SdTree {
             config,
-            stree: STree { min, size, nodes },
+            stree: STree::from_parts(min, size, nodes),
             leaves,
             built,
             overflow: AtomicU64::new(overflow),
