@@ -8,8 +8,17 @@ use pathfarm_scene::{byte_texel, BitmapDesc, TexFilter, TexRef, Texels, TextureD
 pub fn eval(textures: &[TextureDesc], r: TexRef, uv: Vec2) -> Vec3 {
     match r {
         TexRef::Const(c) => c,
-        TexRef::Texture(i) => eval_texture(&textures[i], uv),
+        TexRef::Texture(i) => eval_texture_in_register(&textures[i], uv).into(),
     }
+}
+
+/// [`eval_texture`] returning a SIMD vector, which comes back in a register: a `Vec3`
+/// return goes through memory, and merging it with the constant branch made the compiler
+/// store the constant to the stack in pieces and load it back whole, a store-forwarding
+/// stall on every constant-colour lookup.
+#[inline(never)]
+fn eval_texture_in_register(t: &TextureDesc, uv: Vec2) -> glam::Vec3A {
+    eval_texture(t, uv).into()
 }
 
 pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
