@@ -35,23 +35,39 @@ pub fn camera_hit<const ANALYTIC: bool>(scene: &Scene, ray: &mut Ray) -> Option<
 }
 
 /// [`camera_hit`] given the camera ray's first hit `hit`.
-#[inline]
+///
+/// Inlined, with the `hide_emitters` walk out of line: an `Option<Option<Hit>>` returned
+/// through memory was written in pieces by the callee and read back whole by the wavefront's
+/// camera loop, a store-forwarding stall per camera ray.
+#[inline(always)]
 pub fn camera_hit_from<const ANALYTIC: bool>(
+    scene: &Scene,
+    ray: &mut Ray,
+    hit: Option<Hit>,
+) -> Option<Option<Hit>> {
+    if scene.path.hide_emitters {
+        hidden_emitters_skipped::<ANALYTIC>(scene, ray, hit)
+    } else {
+        Some(hit)
+    }
+}
+
+/// [`camera_hit_from`] with `hide_emitters`: steps through directly visible emitters.
+#[inline(never)]
+fn hidden_emitters_skipped<const ANALYTIC: bool>(
     scene: &Scene,
     ray: &mut Ray,
     mut hit: Option<Hit>,
 ) -> Option<Option<Hit>> {
     let accel = &scene.accel;
-    if scene.path.hide_emitters {
-        while let Some(h) = hit {
-            if scene.shape_light[h.shape as usize].is_none() {
-                break;
-            }
-            let si = accel.interaction(ray, &h);
-            *ray = spawn_ray(si.p, si.ng, ray.d);
-            hit = accel.intersect::<ANALYTIC>(ray);
+    while let Some(h) = hit {
+        if scene.shape_light[h.shape as usize].is_none() {
+            break;
         }
-        hit?;
+        let si = accel.interaction(ray, &h);
+        *ray = spawn_ray(si.p, si.ng, ray.d);
+        hit = accel.intersect::<ANALYTIC>(ray);
     }
+    hit?;
     Some(hit)
 }
