@@ -182,7 +182,7 @@ impl VertexGuide {
 }
 
 /// A direction drawn from the BSDF/guide mixture.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 pub struct MixtureSample {
     /// Local (shading-frame) direction.
     pub wo: Vec3,
@@ -231,6 +231,29 @@ fn bsdf_at_outlined<'s>(
     d: Vec3,
 ) -> (Bsdf<'s>, pathfarm_bsdf::Frame) {
     scene.bsdf_at(si, d)
+}
+
+/// [`sample_mixture`] into `out` (false: absorbed, `out` unchanged). The integrator's form:
+/// an `Option<MixtureSample>` returned through memory was written field by field and read
+/// back in 32-byte blocks, a store-forwarding stall at every vertex; written into the
+/// caller's variable, its fields are read one by one.
+#[inline(never)]
+fn sample_mixture_into(
+    tree: &SdTree,
+    g: &VertexGuide,
+    bsdf: &Bsdf,
+    frame: &Frame,
+    wi: Vec3,
+    rng: &mut Rng,
+    out: &mut MixtureSample,
+) -> bool {
+    match sample_mixture(tree, g, bsdf, frame, wi, rng) {
+        Some(ms) => {
+            *out = ms;
+            true
+        }
+        None => false,
+    }
 }
 
 /// Samples the mixture at one vertex. `None` means the path is absorbed.
@@ -763,9 +786,10 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         let (si, bsdf, frame, wi, vg) = (&v.si, &v.bsdf, &v.frame, v.wi, &v.vg);
 
         // Direction sampling from the BSDF/guide mixture.
-        let Some(ms) = sample_mixture(tree, vg, bsdf, frame, wi, rng) else {
+        let mut ms = MixtureSample::default();
+        if !sample_mixture_into(tree, vg, bsdf, frame, wi, rng, &mut ms) {
             end_path!('paths)
-        };
+        }
         throughput *= ms.weight;
         eta *= ms.eta;
         if g.record {
