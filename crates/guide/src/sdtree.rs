@@ -208,10 +208,8 @@ impl SdTree {
     #[inline]
     pub fn prefetch_leaf(&self, h: LeafHandle) {
         if let Some(leaf) = self.leaves.get(h.0 as usize) {
-            let p = (leaf as *const Leaf).cast::<u8>();
-            for line in (0..std::mem::size_of::<Leaf>()).step_by(64) {
-                prefetch(p.wrapping_add(line));
-            }
+            prefetch((&leaf.alpha as *const f32).cast());
+            prefetch((&leaf.sampling.frozen as *const Vec<_>).cast());
         }
     }
 

@@ -54,11 +54,9 @@ pub struct STree {
     pub(crate) nodes: Vec<SNode>,
     /// Jump table ([`STree::index`]): per cell of the `2^JUMP_LEVELS`-per-axis grid (x in the
     /// low bits, then y, then z), the node where the descent through that cell reaches depth
-    /// `3 * JUMP_LEVELS`, or the leaf where it ends above that depth. Used by lookups while
-    /// `jump_nodes == nodes.len()` (splits only add nodes, so a split tree falls back to the
-    /// plain descent until it is indexed again).
+    /// `3 * JUMP_LEVELS`, or the leaf where it ends above that depth. Empty when not built:
+    /// a split clears it, and lookups take the plain descent until it is indexed again.
     jump: Vec<u32>,
-    jump_nodes: usize,
 }
 
 impl PartialEq for STree {
@@ -102,7 +100,6 @@ impl STree {
             size,
             nodes,
             jump: Vec::new(),
-            jump_nodes: 0,
         };
         t.index();
         t
@@ -113,7 +110,6 @@ impl STree {
     pub(crate) fn without_index(&self) -> Self {
         Self {
             jump: Vec::new(),
-            jump_nodes: usize::MAX,
             ..self.clone()
         }
     }
@@ -149,7 +145,6 @@ impl STree {
             jump.push(idx as u32);
         }
         self.jump = jump;
-        self.jump_nodes = self.nodes.len();
     }
 
     /// Lower corner of the cube domain.
@@ -199,7 +194,7 @@ impl STree {
         let mut bits = digits;
         let mut idx = 0usize;
         let mut depth = 0u32;
-        if self.jump_nodes == self.nodes.len() {
+        if !self.jump.is_empty() {
             // The top levels at once: the cell of the leading JUMP_LEVELS digits per axis.
             let s = 32 - JUMP_LEVELS;
             let cell = (digits[0] >> s) as usize
@@ -268,6 +263,8 @@ impl STree {
     /// Splits leaf node `node` at its midpoint: child 0 keeps payload `leaf0`, child 1 gets
     /// `leaf1`. Returns the two child node indices.
     pub(crate) fn split(&mut self, node: u32, leaf0: u32, leaf1: u32) -> [u32; 2] {
+        // The jump table no longer describes the tree (see `jump`).
+        self.jump.clear();
         let n = self.nodes.len() as u32;
         let parent = &self.nodes[node as usize];
         let axis = ((parent.axis as u32 + 1) % 3) as u8;

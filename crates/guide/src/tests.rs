@@ -735,9 +735,9 @@ fn stree_jump_table_finds_the_leaves_the_plain_descent_finds() {
         let p = if i % 2 == 0 {
             Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2)
         } else {
-            // near the leaves' lower corners: points on and next to split planes
-            let leaf = (rng.f32() * st.nodes().len() as f32) as u32 % st.nodes().len() as u32;
-            let (o, _) = st.node_box_normalised(leaf);
+            // nodes' lower corners: points on split planes
+            let node = (rng.f32() * st.nodes().len() as f32) as u32 % st.nodes().len() as u32;
+            let (o, _) = st.node_box_normalised(node);
             st.domain_min() + Vec3::from_array(o) * st.domain_size()
         };
         let (a, b) = (st.lookup(p), plain.lookup(p));

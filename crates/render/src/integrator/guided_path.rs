@@ -229,7 +229,7 @@ fn bsdf_at_outlined<'s>(
     scene: &'s Scene,
     si: &crate::geometry::SurfaceInteraction,
     d: Vec3,
-) -> (Bsdf<'s>, pathfarm_bsdf::Frame) {
+) -> (Bsdf<'s>, Frame) {
     scene.bsdf_at(si, d)
 }
 
@@ -247,13 +247,9 @@ fn sample_mixture_into(
     rng: &mut Rng,
     out: &mut MixtureSample,
 ) -> bool {
-    match sample_mixture(tree, g, bsdf, frame, wi, rng) {
-        Some(ms) => {
-            *out = ms;
-            true
-        }
-        None => false,
-    }
+    sample_mixture(tree, g, bsdf, frame, wi, rng)
+        .map(|ms| *out = ms)
+        .is_some()
 }
 
 /// Samples the mixture at one vertex. `None` means the path is absorbed.
