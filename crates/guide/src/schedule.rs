@@ -1,9 +1,8 @@
 //! Training schedule and combination of iteration images (pure functions, doc section 5).
 //!
 //! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel. The last iteration
-//! absorbs the remainder when what would be left after iteration k is less than
-//! [`tail_factor`] times iteration k: twice when training samples are thrown away (so the
-//! final iteration gets at least about half the budget), once when they are kept.
+//! absorbs the remainder when the iteration after it could not get at least twice its passes
+//! (so the final iteration always has at least about half the budget).
 
 /// How iteration images become the final image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -28,26 +27,6 @@ pub enum Budget {
     Seconds(f64),
 }
 
-/// How many times the size of iteration k the budget must still hold after it for k not to
-/// be the last iteration (the rest is then the final iteration, at least this many times
-/// iteration k).
-///
-/// Where the image is only the last iteration (`Discard`, `Automatic`) training is pure
-/// cost, so it stops once the final iteration would get less than twice the last training
-/// iteration (Müller et al.'s rule). `InverseVar` keeps every iteration's image, so one more
-/// doubling costs little and improves the guide of everything after it: it trains until the
-/// rest would be less than the next iteration itself. Measured (2026-11-22, pathfarm preset,
-/// `--time 15` on 2 threads, seeds 1-4, relMSE): veach-ajar 0.0705 / 0.0690 / 0.0770 /
-/// 0.0722 (factor 1: a 32-spp iteration, then ~67 final spp) vs 0.0717 / 0.0713 / 0.0796 /
-/// 0.0756 (factor 2: final ~117 spp after 16), every seed better; door-ajar 0.00046 / 0.00042
-/// / 0.00044 vs 0.00045 / 0.00043 / 0.00043 (equal); factor 0.5 no better than 1.
-pub fn tail_factor(combination: SampleCombination) -> u32 {
-    match combination {
-        SampleCombination::InverseVar => 1,
-        SampleCombination::Discard | SampleCombination::Automatic => 2,
-    }
-}
-
 /// Total passes for an spp budget: `ceil(spp / spp_per_pass)`.
 pub fn total_passes(spp: u32, spp_per_pass: u32) -> u32 {
     let s = spp_per_pass.max(1);
@@ -55,25 +34,23 @@ pub fn total_passes(spp: u32, spp_per_pass: u32) -> u32 {
 }
 
 /// Passes of iteration `k` given the passes still to render: `min(remaining, 2^k)`, extended to
-/// all `remaining` if what would be left is less than `tail` ([`tail_factor`]) times that.
-/// Returns `(passes, is_last)`.
-pub fn iteration_passes(k: u32, remaining_passes: u32, tail: u32) -> (u32, bool) {
+/// all `remaining` if what would be left is less than twice that. Returns `(passes, is_last)`.
+pub fn iteration_passes(k: u32, remaining_passes: u32) -> (u32, bool) {
     let base = if k >= 31 { u32::MAX } else { 1u32 << k };
     let mut p = remaining_passes.min(base);
-    if (remaining_passes - p) < p.saturating_mul(tail) {
+    if (remaining_passes - p) < p.saturating_mul(2) {
         p = remaining_passes;
     }
     (p, p >= remaining_passes)
 }
 
 /// The whole spp-budget plan: passes per iteration, summing to `total_passes(spp, spp_per_pass)`.
-pub fn plan_spp(spp: u32, spp_per_pass: u32, combination: SampleCombination) -> Vec<u32> {
+pub fn plan_spp(spp: u32, spp_per_pass: u32) -> Vec<u32> {
     let mut remaining = total_passes(spp, spp_per_pass);
-    let tail = tail_factor(combination);
     let mut out = Vec::new();
     let mut k = 0;
     while remaining > 0 {
-        let (p, _) = iteration_passes(k, remaining, tail);
+        let (p, _) = iteration_passes(k, remaining);
         out.push(p);
         remaining -= p;
         k += 1;
@@ -83,9 +60,9 @@ pub fn plan_spp(spp: u32, spp_per_pass: u32, combination: SampleCombination) -> 
 
 /// Time budget: whether iteration `k`, predicted to take `predicted_seconds` (e.g. twice the
 /// previous iteration), should be the last one and run until the budget ends: true when the
-/// time left after it would be less than `tail` ([`tail_factor`]) times its duration.
-pub fn time_iteration_is_last(remaining_seconds: f64, predicted_seconds: f64, tail: u32) -> bool {
-    remaining_seconds - predicted_seconds < f64::from(tail) * predicted_seconds
+/// time left after it would be less than twice its duration.
+pub fn time_iteration_is_last(remaining_seconds: f64, predicted_seconds: f64) -> bool {
+    remaining_seconds - predicted_seconds < 2.0 * predicted_seconds
 }
 
 /// Length of an iteration.
@@ -110,19 +87,17 @@ pub struct IterationPlan {
 ///
 /// * `Budget::Spp`: [`iteration_passes`] over `total_passes - passes_done`.
 /// * `Budget::Seconds`: `2^k` passes, predicted to take twice `previous_iteration_seconds`;
-///   if the time left after that would be less than [`tail_factor`] times the prediction
+///   if the time left after that would be less than twice the prediction
 ///   ([`time_iteration_is_last`]) the iteration is the last and runs until the budget.
 ///   Without a previous duration (k = 0) the iteration is not last.
 pub fn plan_iteration(
     k: u32,
     budget: Budget,
-    combination: SampleCombination,
     spp_per_pass: u32,
     passes_done: u32,
     elapsed_seconds: f64,
     previous_iteration_seconds: Option<f64>,
 ) -> Option<IterationPlan> {
-    let tail = tail_factor(combination);
     match budget {
         Budget::Spp(spp) => {
             let total = total_passes(spp, spp_per_pass);
@@ -130,7 +105,7 @@ pub fn plan_iteration(
             if remaining == 0 {
                 return None;
             }
-            let (p, is_last) = iteration_passes(k, remaining, tail);
+            let (p, is_last) = iteration_passes(k, remaining);
             Some(IterationPlan {
                 length: IterationLength::Passes(p),
                 is_last,
@@ -143,7 +118,7 @@ pub fn plan_iteration(
             }
             let passes = if k >= 31 { u32::MAX } else { 1u32 << k };
             match previous_iteration_seconds {
-                Some(prev) if time_iteration_is_last(remaining, 2.0 * prev, tail) => {
+                Some(prev) if time_iteration_is_last(remaining, 2.0 * prev) => {
                     Some(IterationPlan {
                         length: IterationLength::UntilSeconds(s),
                         is_last: true,

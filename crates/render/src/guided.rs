@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 
 pub use pathfarm_guide::schedule::Budget;
 pub use pathfarm_guide::schedule::GuidingVerdict;
-use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome, SampleCombination};
+use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome};
 pub use pathfarm_guide::SdTree;
 use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use pathfarm_scene::{
@@ -395,23 +395,12 @@ pub fn render_guided_with_policy(
         *invalid += st.invalid_samples;
     };
 
-    let combination = match params.sample_combination {
-        GuidedCombination::Discard => SampleCombination::Discard,
-        GuidedCombination::Automatic => SampleCombination::Automatic,
-        GuidedCombination::InverseVar => SampleCombination::InverseVar,
-    };
     let mut k = 0u32;
     loop {
         let elapsed = start.elapsed().as_secs_f64();
-        let Some(plan) = schedule::plan_iteration(
-            k,
-            budget,
-            combination,
-            spp_per_pass,
-            passes_done,
-            elapsed,
-            prev_secs,
-        ) else {
+        let Some(plan) =
+            schedule::plan_iteration(k, budget, spp_per_pass, passes_done, elapsed, prev_secs)
+        else {
             break;
         };
         let remaining_before = match budget {
