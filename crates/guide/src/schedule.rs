@@ -61,6 +61,10 @@ pub fn plan_spp(spp: u32, spp_per_pass: u32) -> Vec<u32> {
 /// Time budget: whether iteration `k`, predicted to take `predicted_seconds` (e.g. twice the
 /// previous iteration), should be the last one and run until the budget ends: true when the
 /// time left after it would be less than twice its duration.
+///
+/// Also with inverse-variance combination, where training samples are kept: training until
+/// the rest would be less than *once* the iteration (one more doubling at 30 CPU-s on
+/// veach-ajar) gave the same relMSE, 0.0756 vs 0.0756 (pathfarm preset, 8 seeds).
 pub fn time_iteration_is_last(remaining_seconds: f64, predicted_seconds: f64) -> bool {
     remaining_seconds - predicted_seconds < 2.0 * predicted_seconds
 }

@@ -24,6 +24,15 @@
 //!
 //! All random numbers come from the sample's own [`Rng`]: the image and the
 //! recorded statistics are deterministic.
+//!
+//! Unlike `path`, the estimator runs one path at a time. A batched ("wavefront") form of
+//! the passes that record nothing, with split copies kept in their sample's lane so that
+//! it gave identical bits, was measured slower on veach-ajar (2026-11-22, Zen 2,
+//! `bench/ab.py --scenes veach-guided`, pathfarm preset): 0.94x with the 16-pixel tiles
+//! (a guided pass has 1 spp, so a batch is 16 paths that soon thin out), 0.965x with
+//! 128-pixel tiles, 0.98x with 512; 8, 24 or 64 lanes alike. Its per-lane vertex (BSDF,
+//! frame, leaf: ~300 bytes written and read back every bounce) costs what overlapping
+//! the lanes' walks gains.
 
 // `!(x > 0.0)` is used on purpose: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -523,7 +532,9 @@ pub fn ppg_survival(guided_vertex: bool, built: bool, throughput_max: f32, eta: 
 /// (stochastically rounded, at most [`MAX_SPLIT`]), each sampling its own direction with
 /// `1 / copies` of the throughput. (veach-ajar 320x180, pathfarm preset, 30 CPU-s, relMSE
 /// over seeds 11-13: window 1: 0.169-0.187, 2: 0.144-0.156, 3: 0.152-0.182, 4: 0.168-0.207,
-/// no splitting: 0.172-0.212.)
+/// no splitting: 0.172-0.212.) Splitting in the training passes too (each copy's vertices
+/// committed when the copy ends, the shared prefix learning the copies' mean) was neutral:
+/// median relMSE 0.0697 vs 0.0703 over 4 seeds, the early iterations slower (2026-11-22).
 pub const SPLIT_WINDOW: f32 = 2.0;
 /// Most copies one split makes.
 pub const MAX_SPLIT: u32 = 4;
