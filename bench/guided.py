@@ -192,6 +192,21 @@ def mitsuba_worker(a):
     print("RESULT " + json.dumps({"rate": rate, "rates": rates, "spp": spp, "cpu_s": cpu, "wall_s": wall}), flush=True)
 
 
+def mitsuba_preflight():
+    """Stops the benchmark before its first run if Mitsuba's llvm_ad_rgb cannot render here.
+
+    With only libLLVM 14/15 installed, Dr.Jit loads one of those and every render dies in
+    LLVM's instruction selection ("Cannot select ... fminimum"), which would leave the table
+    without its reference column after an hour of pathfarm runs.
+    """
+    code = ("import mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\n"
+            "mi.render(mi.load_dict(mi.cornell_box()), spp=1)\n")
+    p = subprocess.run([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    if p.returncode != 0:
+        raise SystemExit("Mitsuba llvm_ad_rgb cannot render on this machine (install Debian's libllvm19: "
+                         "`apt-get install libllvm19`):\n" + p.stderr[-1500:])
+
+
 def run_mitsuba(a, xml, res, md, out, budget, seed):
     args = [sys.executable, os.path.abspath(__file__), "_mitsuba_worker", "--scene", xml,
             "--res", str(res[0]), str(res[1]), "--max-depth", str(md), "--rate-cpu", str(a.rate_cpu),
@@ -472,6 +487,8 @@ def main():
     import hashlib
     binary_sha = hashlib.sha256(open(a.pathfarm, "rb").read()).hexdigest()[:16]
     log("pathfarm binary %s sha256 %s" % (a.pathfarm, binary_sha))
+    if "mi-path" in a.configs:
+        mitsuba_preflight()
     refs = {}
     tmp = tempfile.mkdtemp(prefix="pathfarm-guided-")
     t_start = time.time()
