@@ -30,9 +30,9 @@
 //! it gave identical bits, was measured slower on veach-ajar (2026-11-22, Zen 2,
 //! `bench/ab.py --scenes veach-guided`, pathfarm preset): 0.94x with the 16-pixel tiles
 //! (a guided pass has 1 spp, so a batch is 16 paths that soon thin out), 0.965x with
-//! 128-pixel tiles, 0.98x with 512; 8, 24 or 64 lanes alike. Its per-lane vertex (BSDF,
-//! frame, leaf: ~300 bytes written and read back every bounce) costs what overlapping
-//! the lanes' walks gains.
+//! 128-pixel tiles, 0.98x with 512; 8, 24 or 64 lanes alike. Its profile showed no faster
+//! BVH or quadtree walks, and stalls on copying each lane's vertex (BSDF, frame, leaf: ~300
+//! bytes written and read back every bounce).
 
 // `!(x > 0.0)` is used on purpose: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
