@@ -192,6 +192,10 @@ fn print_stats(tree: &SdTree) {
     println!("deepest quadtree: {}", s.max_dtree_depth);
     println!("memory: {:.3} MiB", s.memory_bytes as f64 / 1048576.0);
     println!("fixed-point overflow events: {}", s.overflow_events);
+    println!(
+        "leaves per BSDF-sampling fraction (0-0.1, ..., 0.9-1): {:?}",
+        s.fraction_histogram
+    );
 }
 
 fn stats(a: StatsArgs) -> Result<()> {

@@ -77,8 +77,9 @@ pub struct AdamConfig {
     pub epsilon: f64,
     /// L2 regularisation factor on theta (0.01).
     pub l2: f64,
-    /// A leaf takes an Adam step only once its accumulated record weight exceeds this (1.0);
-    /// otherwise the gradient keeps accumulating until the next `step_fractions`.
+    /// Record weight per Adam step (1.0: one step per record, as \[G\] takes them). At each
+    /// `step_fractions` a leaf takes one step per this much weight recorded since its last
+    /// step, none while that weight is at most this (see [`crate::fraction`]).
     pub min_batch_weight: f64,
     /// Per-record gradient magnitude clamp (1e12) before fixed-point accumulation.
     pub gradient_clamp: f64,

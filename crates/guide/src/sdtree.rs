@@ -4,10 +4,10 @@
 use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter};
 use crate::dtree::DTree;
 use crate::filter::{spatial_box_overlaps, stochastic_jitter};
-use crate::fraction::{dloss_dalpha, FractionState, GradAccum};
+use crate::fraction::{FractionState, GradAccum};
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
-use crate::stats::{add_counted, split_exact, to_fixed, Acc128};
+use crate::stats::{add_counted, split_exact, to_fixed};
 use crate::stree::{SLookup, STree};
 use crate::wire::{Hasher64, IterationStats, LeafStats, StatsError};
 use glam::Vec3;
@@ -92,6 +92,10 @@ pub struct TreeStats {
     pub memory_bytes: usize,
     /// Number of fixed-point overflow events so far (should be 0; see [`crate::stats`]).
     pub overflow_events: u64,
+    /// Spatial leaves by the BSDF-sampling fraction they sample with
+    /// ([`SdTree::bsdf_sampling_fraction_leaf`]): bin `i` counts fractions in
+    /// `[i / 10, (i + 1) / 10)`, the last bin includes 1.
+    pub fraction_histogram: [usize; 10],
 }
 
 /// The SD-tree guide. Recording takes `&self` and may run on many threads at once; the learned
@@ -360,25 +364,24 @@ impl SdTree {
         }
         if let FractionMode::Learned { loss } = self.config.bsdf_sampling_fraction {
             if !rec.is_delta && w_share > 0.0 {
-                if let Some(g) = dloss_dalpha(
-                    l.fraction.alpha(),
+                l.grad.accumulate(
+                    w_share,
                     loss,
                     rec.product,
                     rec.pdf_bsdf,
                     rec.pdf_guide,
                     rec.pdf_mix,
-                ) {
-                    l.grad
-                        .accumulate(w_share, g, self.config.adam.gradient_clamp, &self.overflow);
-                }
+                    self.config.adam.gradient_clamp,
+                    &self.overflow,
+                );
             }
         }
     }
 
-    /// One Adam step per leaf whose accumulated fraction-gradient weight exceeds
-    /// `config.adam.min_batch_weight` (others keep accumulating). Call it at a fixed point of
-    /// the schedule, e.g. at the end of every pass, so training is deterministic. No-op in
-    /// fixed-fraction mode. Returns the number of leaves stepped.
+    /// Adam steps of every leaf's learned fraction: one per `config.adam.min_batch_weight` of
+    /// record weight since the leaf's last step ([`FractionState::step`]). Call it at fixed
+    /// points of the schedule, e.g. at the end of every pass, so training is deterministic.
+    /// No-op in fixed-fraction mode. Returns the number of leaves stepped.
     pub fn step_fractions(&mut self) -> usize {
         if !matches!(
             self.config.bsdf_sampling_fraction,
@@ -402,13 +405,15 @@ impl SdTree {
     ///    (`sampling := building`);
     /// 2. refine the S-tree: a leaf splits while its building W exceeds the threshold of the
     ///    iteration about to start, `c * sqrt(2^(k+1) * spp_per_pass / 4)` (as \[G\] refines at the
-    ///    start of iteration k+1); both children copy the whole payload with W (and the pending
-    ///    fraction batch) halved, and are re-tested; `max_nodes` stops splitting, and so does
+    ///    start of iteration k+1); both children copy the whole payload with W halved, and are
+    ///    re-tested (the fraction-gradient batches are cleared first: they were measured
+    ///    against the sampling trees being replaced); `max_nodes` stops splitting, and so does
     ///    depth [`MAX_SPATIAL_DEPTH`]; the threshold is never taken below 1;
     /// 3. reset every building quadtree from its built sums (rho = `d_tree_threshold`), which
     ///    zeroes the statistics.
     pub fn refine(&mut self, k: u32) {
         for l in &mut self.leaves {
+            l.grad.clear();
             l.building.build();
             let w = l.building.weight();
             l.flux = if w > 0.0 {
@@ -449,12 +454,10 @@ impl SdTree {
                 let l = &mut self.leaves[li as usize];
                 l.building.set_weight_fixed(w0);
                 l.sampling.set_weight_fixed(l.sampling.weight_fixed() / 2);
-                halve(&l.grad, false);
             }
             child.building.set_weight_fixed(w1);
             let sw = child.sampling.weight_fixed();
             child.sampling.set_weight_fixed(sw - sw / 2);
-            halve(&child.grad, true);
             self.leaves.push(child);
             let [c0, c1] = self.stree.split(node, li, new_li);
             work.push(c1);
@@ -490,7 +493,9 @@ impl SdTree {
                 + self.leaves.capacity() * std::mem::size_of::<Leaf>(),
             ..Default::default()
         };
-        for l in &self.leaves {
+        for (i, l) in self.leaves.iter().enumerate() {
+            let a = self.bsdf_sampling_fraction_leaf(LeafHandle(i as u32));
+            s.fraction_histogram[((a * 10.0) as usize).min(9)] += 1;
             s.sampling_dtree_nodes += l.sampling.node_count();
             s.building_dtree_nodes += l.building.node_count();
             s.max_dtree_depth = s.max_dtree_depth.max(l.sampling.depth());
@@ -533,11 +538,12 @@ impl SdTree {
             let mut ls = LeafStats {
                 leaf: i as u32,
                 weight: l.building.weight.take(),
-                grad_pos: l.grad.pos.take(),
-                grad_neg: l.grad.neg.take(),
+                grad_pos: std::array::from_fn(|k| l.grad.pos[k].take()),
+                grad_neg: std::array::from_fn(|k| l.grad.neg[k].take()),
                 grad_weight: l.grad.weight.take(),
                 nodes: Vec::new(),
             };
+            l.grad.stepped.set(0);
             for (ni, n) in l.building.nodes.iter().enumerate() {
                 let s = [
                     n.sums[0].take(),
@@ -550,8 +556,8 @@ impl SdTree {
                 }
             }
             if ls.weight != 0
-                || ls.grad_pos != 0
-                || ls.grad_neg != 0
+                || ls.grad_pos.iter().any(|&x| x != 0)
+                || ls.grad_neg.iter().any(|&x| x != 0)
                 || ls.grad_weight != 0
                 || !ls.nodes.is_empty()
             {
@@ -587,7 +593,7 @@ impl SdTree {
                 .weight
                 .set(add_counted(l.building.weight.get(), ls.weight, &mut of));
             l.grad
-                .add_from(ls.grad_pos, ls.grad_neg, ls.grad_weight, &mut of);
+                .add_from(&ls.grad_pos, &ls.grad_neg, ls.grad_weight, &mut of);
             for &(n, sums) in &ls.nodes {
                 let node = &l.building.nodes[n as usize];
                 for q in 0..4 {
@@ -598,17 +604,6 @@ impl SdTree {
         self.overflow.fetch_add(of + s.overflow_events, Relaxed);
         Ok(())
     }
-}
-
-/// Halves an exact gradient batch: the first child gets `floor(x/2)`, the second `x - floor(x/2)`.
-fn halve(g: &GradAccum, second: bool) {
-    let h = |a: &Acc128| {
-        let v = a.get();
-        a.set(if second { v - v / 2 } else { v / 2 });
-    };
-    h(&g.pos);
-    h(&g.neg);
-    h(&g.weight);
 }
 
 /// A cache-line prefetch hint (no-op where the target has none). Never faults, even for an

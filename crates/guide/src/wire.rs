@@ -12,7 +12,7 @@ use crate::config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
 };
 use crate::dtree::{DNode, DTree, MAX_DEPTH};
-use crate::fraction::{FractionState, GradAccum};
+use crate::fraction::{FractionState, GradAccum, GRID_LEN};
 use crate::sdtree::{Leaf, SdTree};
 use crate::stats::{add_counted, Acc128};
 use crate::stree::{SNode, STree};
@@ -20,7 +20,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 2;
+pub const VERSION: u16 = 3;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -187,6 +187,14 @@ impl<'a> R<'a> {
         Ok(f64::from_bits(self.u64()?))
     }
     /// A count that must be plausible given the bytes left (each element >= `min_size` bytes).
+    fn u128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
+        let mut v = [0u128; GRID_LEN];
+        for x in &mut v {
+            *x = self.u128()?;
+        }
+        Ok(v)
+    }
+
     fn count(&mut self, min_size: usize) -> Result<usize, WireError> {
         let n = self.u32()? as usize;
         if n.saturating_mul(min_size) > self.b.len() - self.p {
@@ -464,9 +472,11 @@ impl SdTree {
             w.f64(f.m);
             w.f64(f.v);
             w.u64(f.t);
-            w.u128(l.grad.pos.get());
-            w.u128(l.grad.neg.get());
+            for a in l.grad.pos.iter().chain(l.grad.neg.iter()) {
+                w.u128(a.get());
+            }
             w.u128(l.grad.weight.get());
+            w.u128(l.grad.stepped.get());
             w.f32(l.flux);
             put_dtree(&mut w, &l.building);
             put_dtree(&mut w, &l.sampling);
@@ -497,7 +507,7 @@ impl SdTree {
                 depth: r.u32()?,
             });
         }
-        let nl = r.count(100)?;
+        let nl = r.count(340)?;
         // validate the S-tree
         if nn == 0 || !(size > 0.0) || !min.is_finite() {
             return Err(WireError::Malformed("spatial domain"));
@@ -546,10 +556,15 @@ impl SdTree {
                 v: r.f64()?,
                 t: r.u64()?,
             };
+            let mut g = [0u128; 2 * GRID_LEN + 2];
+            for x in &mut g {
+                *x = r.u128()?;
+            }
             let grad = GradAccum {
-                pos: Acc128::from_u128(r.u128()?),
-                neg: Acc128::from_u128(r.u128()?),
-                weight: Acc128::from_u128(r.u128()?),
+                pos: std::array::from_fn(|k| Acc128::from_u128(g[k])),
+                neg: std::array::from_fn(|k| Acc128::from_u128(g[GRID_LEN + k])),
+                weight: Acc128::from_u128(g[2 * GRID_LEN]),
+                stepped: Acc128::from_u128(g[2 * GRID_LEN + 1]),
             };
             let flux = r.f32()?;
             if !(flux >= 0.0 && flux.is_finite()) {
@@ -589,10 +604,10 @@ pub struct LeafStats {
     pub leaf: u32,
     /// Building statistical weight W.
     pub weight: u128,
-    /// Positive fraction-gradient sum.
-    pub grad_pos: u128,
-    /// Negative fraction-gradient magnitude sum.
-    pub grad_neg: u128,
+    /// Positive fraction-gradient sums, one per alpha of [`crate::fraction::GRID`].
+    pub grad_pos: [u128; GRID_LEN],
+    /// Negative fraction-gradient magnitude sums, one per alpha of [`crate::fraction::GRID`].
+    pub grad_neg: [u128; GRID_LEN],
     /// Fraction-gradient weight sum.
     pub grad_weight: u128,
     /// Touched building quadtree nodes `(node index, 4 quadrant sums)`, ascending by index.
@@ -638,8 +653,12 @@ impl IterationStats {
                 out.push(LeafStats {
                     leaf: x.leaf,
                     weight: add_counted(x.weight, y.weight, &mut of),
-                    grad_pos: add_counted(x.grad_pos, y.grad_pos, &mut of),
-                    grad_neg: add_counted(x.grad_neg, y.grad_neg, &mut of),
+                    grad_pos: std::array::from_fn(|k| {
+                        add_counted(x.grad_pos[k], y.grad_pos[k], &mut of)
+                    }),
+                    grad_neg: std::array::from_fn(|k| {
+                        add_counted(x.grad_neg[k], y.grad_neg[k], &mut of)
+                    }),
                     grad_weight: add_counted(x.grad_weight, y.grad_weight, &mut of),
                     nodes: merge_nodes(&x.nodes, &y.nodes, &mut of),
                 });
@@ -676,8 +695,9 @@ impl IterationStats {
         for l in &self.leaves {
             w.u32(l.leaf);
             w.u128(l.weight);
-            w.u128(l.grad_pos);
-            w.u128(l.grad_neg);
+            for x in l.grad_pos.iter().chain(l.grad_neg.iter()) {
+                w.u128(*x);
+            }
             w.u128(l.grad_weight);
             w.u32(l.nodes.len() as u32);
             for (n, s) in &l.nodes {
@@ -694,7 +714,7 @@ impl IterationStats {
         let mut r = R { b: payload, p: 0 };
         let structure_hash = r.u64()?;
         let overflow_events = r.u64()?;
-        let nl = r.count(72)?;
+        let nl = r.count(296)?;
         let mut leaves: Vec<LeafStats> = Vec::with_capacity(nl);
         for _ in 0..nl {
             let leaf = r.u32()?;
@@ -704,8 +724,8 @@ impl IterationStats {
             let mut ls = LeafStats {
                 leaf,
                 weight: r.u128()?,
-                grad_pos: r.u128()?,
-                grad_neg: r.u128()?,
+                grad_pos: r.u128s()?,
+                grad_neg: r.u128s()?,
                 grad_weight: r.u128()?,
                 nodes: Vec::new(),
             };

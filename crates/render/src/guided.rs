@@ -3,7 +3,8 @@
 //! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel over
 //! the whole image with [`crate::integrator::guided_path`], recording into the
 //! SD-tree's building statistics (all but the final iteration); after every
-//! pass the learned fractions take an Adam step ([`SdTree::step_fractions`]),
+//! pass the learned fractions take their Adam steps, one per record of the pass
+//! ([`SdTree::step_fractions`]),
 //! after every training iteration the tree is refined ([`SdTree::refine`]).
 //! The budget (spp or seconds) covers training and the final iteration
 //! ([`pathfarm_guide::schedule`]). The final image:
