@@ -161,19 +161,31 @@ impl GradAccum {
         if dloss_dalpha(0.5, loss, product, pdf_bsdf, pdf_guide, pdf_sample).is_none() {
             return;
         }
+        // dloss_dalpha at every grid alpha, with what does not depend on alpha taken out:
+        // -(F / q)^p d / p_sample, d = p_bsdf - p_guide, q = p_guide + alpha d. All terms
+        // share the sign of -d.
+        let (f, pg, ps) = (product as f64, pdf_guide as f64, pdf_sample as f64);
+        let d = pdf_bsdf as f64 - pg;
         let mut bad = false;
-        for (k, &alpha) in GRID.iter().enumerate() {
-            let Some(g) = dloss_dalpha(alpha, loss, product, pdf_bsdf, pdf_guide, pdf_sample)
-            else {
-                continue;
-            };
-            let wg = (w * g).clamp(-clamp, clamp);
-            let (q, o) = to_fixed(wg.abs());
-            bad |= o;
-            if wg > 0.0 {
-                self.pos[k].add(q, overflow);
-            } else if wg < 0.0 {
-                self.neg[k].add(q, overflow);
+        if d != 0.0 {
+            let target = if d < 0.0 { &self.pos } else { &self.neg };
+            let a = w * d.abs() / ps;
+            for (k, &alpha) in GRID.iter().enumerate() {
+                let q = pg + alpha * d;
+                if !(q > 0.0) {
+                    continue;
+                }
+                let r = f / q;
+                let wg = match loss {
+                    FractionLoss::Kl => a * r,
+                    FractionLoss::Var => a * r * r,
+                };
+                if !wg.is_finite() {
+                    continue;
+                }
+                let (x, o) = to_fixed(wg.min(clamp));
+                bad |= o;
+                target[k].add(x, overflow);
             }
         }
         let (qw, o) = to_fixed(w);

@@ -39,7 +39,10 @@ pub fn to_fixed(x: f64) -> (u128, bool) {
         return (0, false);
     }
     let s = (x * SCALE).round();
-    if s >= 3.402_823_669_209_385e38 {
+    if s < 18_446_744_073_709_551_616.0 {
+        // Below 2^64 (x < 65536, nearly every value): the cheap conversion, same result.
+        (s as u64 as u128, false)
+    } else if s >= 3.402_823_669_209_385e38 {
         (u128::MAX, true)
     } else {
         (s as u128, false)
