@@ -1042,21 +1042,25 @@ fn toy_expected_grad(theta: f64, p: i32) -> f64 {
     g * a * (1.0 - a) + 0.01 * theta
 }
 
+/// The toy's optimal fraction: the root of [`toy_expected_grad`] (bisection over theta).
+fn toy_optimum(p: i32) -> f64 {
+    let (mut lo, mut hi) = (-5.0f64, 5.0f64);
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if toy_expected_grad(mid, p) > 0.0 {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    1.0 / (1.0 + (-(0.5 * (lo + hi))).exp())
+}
+
 #[test]
 fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
     for loss in [FractionLoss::Kl, FractionLoss::Var] {
         let p = loss.exponent();
-        // analytic optimum: root of the expected gradient (bisection)
-        let (mut lo, mut hi) = (-5.0f64, 5.0f64);
-        for _ in 0..100 {
-            let mid = 0.5 * (lo + hi);
-            if toy_expected_grad(mid, p) > 0.0 {
-                hi = mid;
-            } else {
-                lo = mid;
-            }
-        }
-        let alpha_opt = 1.0 / (1.0 + (-(0.5 * (lo + hi))).exp());
+        let alpha_opt = toy_optimum(p);
         // Without the L2 term the optimum is exactly 0.3 (q = F); L2 pulls it towards 0.5.
         assert!(alpha_opt > 0.3 && alpha_opt < 0.45, "optimum {alpha_opt}");
         let unreg =
@@ -1076,24 +1080,7 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
         let mut tail = 0.0;
         for s in 0..steps {
             let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
-            for _ in 0..128 {
-                let x = if rng.f64() < alpha {
-                    rng.f64()
-                } else {
-                    rng.f64().sqrt()
-                };
-                let (pb, pg) = (1.0, 2.0 * x);
-                let rec = Record {
-                    position: Vec3::ZERO,
-                    direction: Vec3::Z,
-                    radiance: 0.0,
-                    pdf_mix: (alpha * pb + (1.0 - alpha) * pg) as f32,
-                    weight: 1.0,
-                    product: (0.3 + 1.4 * x) as f32,
-                    pdf_bsdf: pb as f32,
-                    pdf_guide: pg as f32,
-                    is_delta: false,
-                };
+            for rec in toy_records(&mut rng, alpha, 128) {
                 t.record(&rec, &mut rng.rng());
             }
             assert_eq!(t.step_fractions(), 1);
@@ -1139,16 +1126,7 @@ fn learned_fraction_reaches_its_optimum_in_a_few_passes() {
     // One step_fractions per pass, as the renderer calls it. The first version took one Adam
     // step per call, so 8 passes moved alpha by at most 8 x 0.01 in theta (alpha 0.48-0.52).
     let p = FractionLoss::Kl.exponent();
-    let (mut lo, mut hi) = (-5.0f64, 5.0f64);
-    for _ in 0..100 {
-        let mid = 0.5 * (lo + hi);
-        if toy_expected_grad(mid, p) > 0.0 {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    let alpha_opt = 1.0 / (1.0 + (-(0.5 * (lo + hi))).exp());
+    let alpha_opt = toy_optimum(p);
     let cfg = GuideConfig {
         s_tree_threshold: 1e15,
         bsdf_sampling_fraction: FractionMode::Learned {
