@@ -186,7 +186,7 @@ impl<'a> R<'a> {
     fn f64(&mut self) -> Result<f64, WireError> {
         Ok(f64::from_bits(self.u64()?))
     }
-    /// A count that must be plausible given the bytes left (each element >= `min_size` bytes).
+    /// One `u128` per fraction-grid alpha.
     fn u128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
         let mut v = [0u128; GRID_LEN];
         for x in &mut v {
@@ -194,7 +194,7 @@ impl<'a> R<'a> {
         }
         Ok(v)
     }
-
+    /// A count that must be plausible given the bytes left (each element >= `min_size` bytes).
     fn count(&mut self, min_size: usize) -> Result<usize, WireError> {
         let n = self.u32()? as usize;
         if n.saturating_mul(min_size) > self.b.len() - self.p {
