@@ -107,6 +107,24 @@ impl GradAccum {
     }
 }
 
+/// A record's `(F, p_bsdf, p_guide, p_sample)` in f64 if they can give a gradient: `F > 0`,
+/// both pdfs non-negative, `p_sample > 0`, all finite.
+fn record_inputs(
+    product: f32,
+    pdf_bsdf: f32,
+    pdf_guide: f32,
+    pdf_sample: f32,
+) -> Option<(f64, f64, f64, f64)> {
+    let (f, pb, pg, ps) = (
+        product as f64,
+        pdf_bsdf as f64,
+        pdf_guide as f64,
+        pdf_sample as f64,
+    );
+    let ok = f > 0.0 && f.is_finite() && pb >= 0.0 && pb.is_finite() && pg >= 0.0;
+    (ok && pg.is_finite() && ps > 0.0 && ps.is_finite()).then_some((f, pb, pg, ps))
+}
+
 /// The per-record derivative of the loss with respect to alpha (before the sigmoid chain rule),
 /// or `None` when the record does not contribute (non-finite inputs, `F <= 0`, `q <= 0`,
 /// `p_sample <= 0`).
@@ -118,17 +136,7 @@ pub fn dloss_dalpha(
     pdf_guide: f32,
     pdf_sample: f32,
 ) -> Option<f64> {
-    let (f, pb, pg, ps) = (
-        product as f64,
-        pdf_bsdf as f64,
-        pdf_guide as f64,
-        pdf_sample as f64,
-    );
-    if !(f > 0.0 && f.is_finite() && pb >= 0.0 && pb.is_finite() && pg >= 0.0 && pg.is_finite())
-        || !(ps > 0.0 && ps.is_finite())
-    {
-        return None;
-    }
+    let (f, pb, pg, ps) = record_inputs(product, pdf_bsdf, pdf_guide, pdf_sample)?;
     let q = alpha * pb + (1.0 - alpha) * pg;
     if !(q > 0.0) {
         return None;
@@ -144,8 +152,8 @@ pub fn dloss_dalpha(
 
 impl GradAccum {
     /// Accumulates one record: `w * dL/dalpha` at every grid alpha (each clamped to `+-clamp`)
-    /// and its weight `w`. Records that do not contribute ([`dloss_dalpha`] is `None` at the
-    /// grid's middle) add nothing, not even weight.
+    /// and its weight `w`. Records that do not contribute (invalid inputs, or both pdfs zero:
+    /// [`dloss_dalpha`] is `None` at every alpha) add nothing, not even weight.
     #[allow(clippy::too_many_arguments)]
     pub fn accumulate(
         &self,
@@ -158,14 +166,16 @@ impl GradAccum {
         clamp: f64,
         overflow: &AtomicU64,
     ) {
-        if dloss_dalpha(0.5, loss, product, pdf_bsdf, pdf_guide, pdf_sample).is_none() {
+        let Some((f, pb, pg, ps)) = record_inputs(product, pdf_bsdf, pdf_guide, pdf_sample) else {
+            return;
+        };
+        if !(pb + pg > 0.0) {
             return;
         }
         // dloss_dalpha at every grid alpha, with what does not depend on alpha taken out:
         // -(F / q)^p d / p_sample, d = p_bsdf - p_guide, q = p_guide + alpha d. All terms
         // share the sign of -d.
-        let (f, pg, ps) = (product as f64, pdf_guide as f64, pdf_sample as f64);
-        let d = pdf_bsdf as f64 - pg;
+        let d = pb - pg;
         let mut bad = false;
         if d != 0.0 {
             let target = if d < 0.0 { &self.pos } else { &self.neg };
@@ -210,11 +220,16 @@ impl GradAccum {
         Some(num / from_fixed(w))
     }
 
+    /// [`GradAccum::mean_at_grid`] at every grid point, `None` if the weight is zero.
+    pub fn grid_means(&self) -> Option<[f64; GRID_LEN]> {
+        (self.weight.get() != 0)
+            .then(|| std::array::from_fn(|k| self.mean_at_grid(k).unwrap_or(0.0)))
+    }
+
     /// The batch's mean `dL/dalpha` at `alpha`: linear between grid points, the end values
     /// beyond them. `None` if the weight is zero.
     pub fn mean(&self, alpha: f64) -> Option<f64> {
-        let m: [f64; GRID_LEN] = std::array::from_fn(|k| self.mean_at_grid(k).unwrap_or(0.0));
-        self.weight.get().ne(&0).then(|| interpolate(&m, alpha))
+        self.grid_means().map(|m| interpolate(&m, alpha))
     }
 }
 
@@ -244,11 +259,16 @@ impl FractionState {
         if !g.is_finite() {
             return;
         }
+        let t = (self.t + 1).min(i32::MAX as u64) as i32;
+        self.adam_update(g, c, c.beta1.powi(t), c.beta2.powi(t));
+    }
+
+    /// The Adam update for a finite `g`, given `beta1^t` and `beta2^t` of this step's `t`.
+    fn adam_update(&mut self, g: f64, c: &AdamConfig, beta1_t: f64, beta2_t: f64) {
         self.t += 1;
         self.m = c.beta1 * self.m + (1.0 - c.beta1) * g;
         self.v = c.beta2 * self.v + (1.0 - c.beta2) * g * g;
-        let mh = self.m / (1.0 - c.beta1.powi(self.t.min(i32::MAX as u64) as i32));
-        let vh = self.v / (1.0 - c.beta2.powi(self.t.min(i32::MAX as u64) as i32));
+        let (mh, vh) = (self.m / (1.0 - beta1_t), self.v / (1.0 - beta2_t));
         self.theta -= c.learning_rate * mh / (vh.sqrt() + c.epsilon);
         self.theta = self.theta.clamp(-THETA_LIMIT, THETA_LIMIT);
     }
@@ -263,9 +283,11 @@ impl FractionState {
         if !(fresh > c.min_batch_weight) {
             return false;
         }
-        let m: [f64; GRID_LEN] = std::array::from_fn(|k| batch.mean_at_grid(k).unwrap_or(0.0));
+        let Some(m) = batch.grid_means() else {
+            return false;
+        };
         let n = ((fresh / c.min_batch_weight.max(1e-9)) as u64).clamp(1, MAX_STEPS_PER_CALL);
-        // `adam_step` unrolled with the bias-correction powers carried from step to step.
+        // The bias-correction powers are carried from step to step (no powi per step).
         let t = self.t.min(i32::MAX as u64) as i32;
         let (mut p1, mut p2) = (c.beta1.powi(t), c.beta2.powi(t));
         for _ in 0..n {
@@ -274,14 +296,9 @@ impl FractionState {
             if !g.is_finite() {
                 break;
             }
-            self.t += 1;
             p1 *= c.beta1;
             p2 *= c.beta2;
-            self.m = c.beta1 * self.m + (1.0 - c.beta1) * g;
-            self.v = c.beta2 * self.v + (1.0 - c.beta2) * g * g;
-            let (mh, vh) = (self.m / (1.0 - p1), self.v / (1.0 - p2));
-            self.theta -= c.learning_rate * mh / (vh.sqrt() + c.epsilon);
-            self.theta = self.theta.clamp(-THETA_LIMIT, THETA_LIMIT);
+            self.adam_update(g, c, p1, p2);
         }
         batch.stepped.set(w);
         true

@@ -556,15 +556,11 @@ impl SdTree {
                 v: r.f64()?,
                 t: r.u64()?,
             };
-            let mut g = [0u128; 2 * GRID_LEN + 2];
-            for x in &mut g {
-                *x = r.u128()?;
-            }
             let grad = GradAccum {
-                pos: std::array::from_fn(|k| Acc128::from_u128(g[k])),
-                neg: std::array::from_fn(|k| Acc128::from_u128(g[GRID_LEN + k])),
-                weight: Acc128::from_u128(g[2 * GRID_LEN]),
-                stepped: Acc128::from_u128(g[2 * GRID_LEN + 1]),
+                pos: r.u128s()?.map(Acc128::from_u128),
+                neg: r.u128s()?.map(Acc128::from_u128),
+                weight: Acc128::from_u128(r.u128()?),
+                stepped: Acc128::from_u128(r.u128()?),
             };
             let flux = r.f32()?;
             if !(flux >= 0.0 && flux.is_finite()) {
