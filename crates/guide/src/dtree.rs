@@ -9,6 +9,7 @@
 //! Records add to the leaf cell only; [`DTree::build`] makes every inner quadrant the exact
 //! integer sum of its child's four quadrants.
 
+use crate::region::{CellMask, Restriction};
 use crate::stats::{from_fixed, split_exact, Acc128};
 use glam::Vec2;
 use std::sync::atomic::AtomicU64;
@@ -134,6 +135,8 @@ pub struct DTree {
     /// Optional cache of what sampling and pdf read per node (see [`SampleNode`]); valid only
     /// when its length equals the node count (see [`DTree::freeze`]).
     pub(crate) frozen: Vec<SampleNode>,
+    /// With `frozen`: the probability of each cell of the 4x4 grid ([`DTree::cell_masses`]).
+    pub(crate) frozen_cells: [f32; 16],
 }
 
 impl PartialEq for DTree {
@@ -192,6 +195,17 @@ fn next_unit(rng: &mut impl FnMut() -> f32) -> f64 {
     }
 }
 
+/// A point uniformly in the square with corner `origin` and side `size` (two random numbers),
+/// strictly inside it in f32.
+#[inline(always)]
+fn uniform_in(origin: [f64; 2], size: f64, rng: &mut impl FnMut() -> f32) -> Vec2 {
+    let r3 = next_unit(rng);
+    let r4 = next_unit(rng);
+    let u = to_f32_inside(origin[0] + r3 * size, origin[0], origin[0] + size);
+    let v = to_f32_inside(origin[1] + r4 * size, origin[1], origin[1] + size);
+    Vec2::new(u, v)
+}
+
 impl DTree {
     /// A tree with only the root node (4 empty leaf cells), weight 0.
     pub fn new() -> Self {
@@ -199,6 +213,7 @@ impl DTree {
             nodes: vec![DNode::default()],
             weight: Acc128::default(),
             frozen: Vec::new(),
+            frozen_cells: [0.0; 16],
         }
     }
 
@@ -210,6 +225,7 @@ impl DTree {
         self.frozen = (0..self.nodes.len())
             .map(|i| self.compute_node(i))
             .collect();
+        self.frozen_cells = self.cell_masses_in(&|i| self.frozen[i]);
     }
 
     /// Drops the sampling cache.
@@ -570,17 +586,23 @@ impl DTree {
     ) -> (Vec2, f32) {
         let root = node(0);
         if root.factor == [0.0; 4] {
-            let a = next_unit(rng);
-            let b = next_unit(rng);
-            return (
-                Vec2::new(to_f32_inside(a, 0.0, 1.0), to_f32_inside(b, 0.0, 1.0)),
-                1.0,
-            );
+            return (uniform_in([0.0, 0.0], 1.0, rng), 1.0);
         }
-        let mut n = root;
-        let mut origin = [0.0f64; 2];
-        let mut size = 1.0f64;
-        let mut pdf = 1.0f32;
+        Self::sample_below(node, root, [0.0, 0.0], 1.0, 1.0, rng)
+    }
+
+    /// Samples below node `n`, whose square has corner `origin` and side `size`, the density
+    /// so far being `pdf`: per level a column then a row, then a point uniformly in the leaf
+    /// cell.
+    #[inline(always)]
+    fn sample_below(
+        node: &impl Fn(usize) -> SampleNode,
+        mut n: SampleNode,
+        mut origin: [f64; 2],
+        mut size: f64,
+        mut pdf: f32,
+        rng: &mut impl FnMut() -> f32,
+    ) -> (Vec2, f32) {
         loop {
             let mut col = (unit_f32(rng) >= n.p_col0()) as usize;
             if !(n.factor[col] > 0.0 || n.factor[col + 2] > 0.0) {
@@ -596,14 +618,140 @@ impl DTree {
             size *= 0.5;
             let c = n.children[q];
             if c == 0 {
-                let r3 = next_unit(rng);
-                let r4 = next_unit(rng);
-                let u = to_f32_inside(origin[0] + r3 * size, origin[0], origin[0] + size);
-                let v = to_f32_inside(origin[1] + r4 * size, origin[1], origin[1] + size);
-                return (Vec2::new(u, v), pdf);
+                return (uniform_in(origin, size, rng), pdf);
             }
             n = node(c as usize);
         }
+    }
+
+    /// Probability of each cell of the 4x4 grid over `(u, v)` (index `iu + 4 iv`, see
+    /// [`CellMask`]): the product of the two top levels' factors over 16, in f32 (an empty
+    /// tree: 1/16 each). Cached by [`DTree::freeze`].
+    pub fn cell_masses(&self) -> [f32; 16] {
+        if self.frozen.len() == self.nodes.len() {
+            self.frozen_cells
+        } else {
+            self.cell_masses_in(&|i| self.compute_node(i))
+        }
+    }
+
+    fn cell_masses_in(&self, node: &impl Fn(usize) -> SampleNode) -> [f32; 16] {
+        let root = node(0);
+        if root.factor == [0.0; 4] {
+            return [1.0 / 16.0; 16];
+        }
+        let mut m = [0.0f32; 16];
+        for q1 in 0..4usize {
+            let f1 = root.factor[q1] * 0.25;
+            let c1 = root.children[q1];
+            let f2 = if c1 == 0 {
+                [0.25; 4]
+            } else {
+                node(c1 as usize).factor.map(|f| f * 0.25)
+            };
+            for q2 in 0..4usize {
+                let iu = ((q1 & 1) << 1) | (q2 & 1);
+                let iv = ((q1 >> 1) << 1) | (q2 >> 1);
+                m[iu + 4 * iv] = f1 * f2[q2];
+            }
+        }
+        m
+    }
+
+    /// The tree's density restricted to the cells of `mask` (see [`crate::region`]): their
+    /// mass, summed in cell order. No restriction (mass exactly 1) for [`CellMask::ALL`] and
+    /// when the cells hold no probability, so the result can always be sampled.
+    #[inline]
+    pub fn restrict(&self, mask: CellMask) -> Restriction {
+        if mask == CellMask::ALL {
+            return Restriction::NONE;
+        }
+        let m = self.cell_masses();
+        let mut mass = 0.0f32;
+        for (i, mi) in m.iter().enumerate() {
+            if mask.0 & (1 << i) != 0 {
+                mass += mi;
+            }
+        }
+        if mass > 0.0 {
+            Restriction { mask, mass }
+        } else {
+            Restriction::NONE
+        }
+    }
+
+    /// [`DTree::sample_with_pdf`] from the density restricted by `r` (from [`DTree::restrict`]
+    /// on this tree): a cell of the mask chosen by its mass (one random number), then the
+    /// usual descent from the cell's node. The density returned equals
+    /// [`DTree::pdf_restricted`] of the point bit for bit.
+    pub fn sample_restricted(&self, r: Restriction, rng: &mut impl FnMut() -> f32) -> (Vec2, f32) {
+        if r.mask == CellMask::ALL {
+            return self.sample_with_pdf(rng);
+        }
+        if self.frozen.len() == self.nodes.len() {
+            Self::sample_cell_in(&|i| self.frozen[i], &self.frozen_cells, r, rng)
+        } else {
+            let m = self.cell_masses();
+            Self::sample_cell_in(&|i| self.compute_node(i), &m, r, rng)
+        }
+    }
+
+    #[inline(always)]
+    fn sample_cell_in(
+        node: &impl Fn(usize) -> SampleNode,
+        masses: &[f32; 16],
+        r: Restriction,
+        rng: &mut impl FnMut() -> f32,
+    ) -> (Vec2, f32) {
+        // The cell: the first whose running mass exceeds u * mass (rounding guard: else the
+        // last cell of the mask with mass).
+        let target = unit_f32(rng) * r.mass;
+        let mut acc = 0.0f32;
+        let mut cell = usize::MAX;
+        for (i, &m) in masses.iter().enumerate() {
+            if r.mask.0 & (1 << i) != 0 && m > 0.0 {
+                acc += m;
+                cell = i;
+                if acc > target {
+                    break;
+                }
+            }
+        }
+        let (iu, iv) = (cell % 4, cell / 4);
+        let origin = [iu as f64 * 0.25, iv as f64 * 0.25];
+        let root = node(0);
+        let (uv, pdf) = if root.factor == [0.0; 4] {
+            (uniform_in(origin, 0.25, rng), 1.0)
+        } else {
+            let q1 = (iu >> 1) | ((iv >> 1) << 1);
+            let q2 = (iu & 1) | ((iv & 1) << 1);
+            let pdf = 1.0 * root.factor[q1];
+            match root.children[q1] {
+                0 => (uniform_in(origin, 0.25, rng), pdf),
+                c1 => {
+                    let n1 = node(c1 as usize);
+                    let pdf = pdf * n1.factor[q2];
+                    match n1.children[q2] {
+                        0 => (uniform_in(origin, 0.25, rng), pdf),
+                        c2 => Self::sample_below(node, node(c2 as usize), origin, 0.25, pdf, rng),
+                    }
+                }
+            }
+        };
+        (uv, pdf / r.mass)
+    }
+
+    /// Density at `uv` of the tree restricted by `r` (from [`DTree::restrict`] on this tree):
+    /// [`DTree::pdf`] divided by the mass inside the mask, 0 outside.
+    #[inline]
+    pub fn pdf_restricted(&self, r: Restriction, uv: Vec2) -> f32 {
+        if r.mask == CellMask::ALL {
+            return self.pdf(uv);
+        }
+        if !r.mask.contains_uv(uv) {
+            return 0.0;
+        }
+        self.pdf(uv) / r.mass
     }
 
     /// All leaf cells with their geometry, in depth-first order.

@@ -40,6 +40,7 @@ pub mod filter;
 pub mod fraction;
 pub mod mapping;
 pub mod record;
+pub mod region;
 pub mod schedule;
 pub mod sdtree;
 pub mod stats;
@@ -53,6 +54,7 @@ pub use config::{
 pub use dtree::{Cell, DTree};
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;
+pub use region::{CellMask, Restriction};
 pub use sdtree::{Leaf, LeafHandle, SdTree, TreeStats};
 pub use stree::{SLookup, STree};
 pub use wire::{IterationStats, LeafStats, StatsError, WireError};

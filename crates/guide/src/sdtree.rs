@@ -7,6 +7,7 @@ use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
+use crate::region::{CellMask, Restriction};
 use crate::stats::{add_counted, split_exact, to_fixed};
 use crate::stree::{SLookup, STree};
 use crate::wire::{Hasher64, IterationStats, LeafStats, StatsError};
@@ -201,6 +202,48 @@ impl SdTree {
         }
         let (uv, p) = self.leaves[h.0 as usize].sampling.sample_with_pdf(rng);
         Some((uv_to_dir(uv), pdf_uv_to_solid_angle(p)))
+    }
+
+    /// The guide at leaf `h` restricted to the cells of `mask` (e.g.
+    /// [`CellMask::hemisphere`] of a surface's normal; see [`crate::region`]): pass it to
+    /// [`SdTree::sample_leaf_restricted`] and [`SdTree::pdf_leaf_restricted`]. No restriction
+    /// before the first refinement or when the cells hold no probability.
+    #[inline]
+    pub fn restriction_leaf(&self, h: LeafHandle, mask: CellMask) -> Restriction {
+        if !self.built {
+            return Restriction::NONE;
+        }
+        self.leaves[h.0 as usize].sampling.restrict(mask)
+    }
+
+    /// [`SdTree::sample_leaf`] from the guide restricted by `r` (from
+    /// [`SdTree::restriction_leaf`] for the same leaf). The pdf is the restricted density's.
+    #[inline]
+    pub fn sample_leaf_restricted(
+        &self,
+        h: LeafHandle,
+        r: Restriction,
+        rng: &mut impl FnMut() -> f32,
+    ) -> Option<(Vec3, f32)> {
+        if !self.built {
+            return None;
+        }
+        let (uv, p) = self.leaves[h.0 as usize].sampling.sample_restricted(r, rng);
+        Some((uv_to_dir(uv), pdf_uv_to_solid_angle(p)))
+    }
+
+    /// [`SdTree::pdf_leaf`] of the guide restricted by `r` (from
+    /// [`SdTree::restriction_leaf`] for the same leaf).
+    #[inline]
+    pub fn pdf_leaf_restricted(&self, h: LeafHandle, r: Restriction, dir: Vec3) -> f32 {
+        if !self.built {
+            return 0.0;
+        }
+        pdf_uv_to_solid_angle(
+            self.leaves[h.0 as usize]
+                .sampling
+                .pdf_restricted(r, dir_to_uv(dir)),
+        )
     }
 
     /// Asks the processor to start loading leaf `h`'s payload (its learned fraction and the

@@ -1,4 +1,5 @@
-//! Library-level correctness tests (doc section 11, items 1-5 and 9-12).
+//! Library-level correctness tests (doc section 11, items 1-5 and 9-12, and the hemisphere
+//! restriction).
 //!
 //! Statistical tests use fixed seeds and state their significance level; chi-square p-values
 //! come from our own regularised incomplete gamma function.
@@ -7,6 +8,7 @@ use crate::config::*;
 use crate::dtree::{DTree, MAX_DEPTH};
 use crate::mapping::{dir_to_uv, uv_to_dir, JACOBIAN};
 use crate::record::Record;
+use crate::region::{CellMask, Restriction, HEMISPHERE_EPSILON};
 use crate::schedule::*;
 use crate::sdtree::{LeafHandle, SdTree};
 use crate::stats::{to_fixed, FIXED_ONE};
@@ -1696,4 +1698,176 @@ fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses_or_one
     assert_eq!(v(&[3.0, 3.0], 0.0), Undecided);
     assert_eq!(v(&[3.0, 3.0, 3.0, 3.0], f64::NAN), Keep);
     assert_eq!(v(&[f64::NAN, 3.0], 1.0), Undecided);
+}
+
+// ------------------------------------------------------------------ 13. hemisphere restriction
+
+fn random_unit(rng: &mut Pcg) -> Vec3 {
+    loop {
+        let v = Vec3::new(rng.gauss() as f32, rng.gauss() as f32, rng.gauss() as f32);
+        if v.length() > 1e-3 {
+            return v.normalize();
+        }
+    }
+}
+
+/// Largest `n . w` over a 65x65 grid of directions covering cell `cell` (edges included).
+fn scanned_max(n: Vec3, cell: u32) -> f32 {
+    let (iu, iv) = ((cell % 4) as f32, (cell / 4) as f32);
+    let mut m = f32::NEG_INFINITY;
+    for a in 0..=64 {
+        for b in 0..=64 {
+            let uv = Vec2::new((iu + a as f32 / 64.0) / 4.0, (iv + b as f32 / 64.0) / 4.0);
+            m = m.max(n.dot(uv_to_dir(uv)));
+        }
+    }
+    m
+}
+
+#[test]
+fn hemisphere_mask_is_exact_for_axis_normals_and_keeps_every_cell_reaching_above() {
+    // Deterministic geometry (no significance level).
+    for n in [Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z] {
+        let m = CellMask::hemisphere(n);
+        assert_eq!(m.0.count_ones(), 8, "{n}: half the cells");
+        for cell in 0..16u32 {
+            let (iu, iv) = ((cell % 4) as f32, (cell / 4) as f32);
+            let centre = uv_to_dir(Vec2::new((iu + 0.5) / 4.0, (iv + 0.5) / 4.0));
+            assert_eq!(
+                m.0 & (1 << cell) != 0,
+                n.dot(centre) > 0.0,
+                "{n} cell {cell}"
+            );
+        }
+    }
+    // Any normal: a cell is kept exactly when some direction in it lies above the surface
+    // (by more than the epsilon); the scan approaches the cell's maximum from below.
+    let mut rng = Pcg::new(41);
+    let mut dropped = 0;
+    for _ in 0..150 {
+        let n = random_unit(&mut rng);
+        let m = CellMask::hemisphere(n);
+        assert!(m.contains_uv(dir_to_uv(n)), "{n}: its own direction");
+        for cell in 0..16u32 {
+            let s = scanned_max(n, cell);
+            if m.0 & (1 << cell) != 0 {
+                assert!(
+                    s > HEMISPHERE_EPSILON - 2e-3,
+                    "{n} cell {cell}: kept, max {s}"
+                );
+            } else {
+                dropped += 1;
+                assert!(
+                    s <= HEMISPHERE_EPSILON + 1e-5,
+                    "{n} cell {cell}: dropped, max {s}"
+                );
+            }
+        }
+    }
+    // Half the sphere is below any surface, but the cells straddling the horizon are kept:
+    // about 3.4 of the 16 cells are dropped per random normal (8 for axis-aligned ones).
+    assert!(dropped >= 150 * 3, "only {dropped} cells dropped");
+    assert_eq!(CellMask::hemisphere(Vec3::ZERO), CellMask::ALL);
+    assert_eq!(CellMask::hemisphere(Vec3::NAN), CellMask::ALL);
+}
+
+#[test]
+fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
+    // Overall significance 0.01 over all (tree, mask) pairs, Šidák corrected. Bins: the 16x16
+    // grid over (u, v), which nests in the 4x4 cells of a mask.
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    let mut rng = Pcg::new(43);
+    let mut cases = Vec::new();
+    for i in 0..9u64 {
+        let t = random_dtree(300 + i, kinds[i as usize % 3]);
+        cases.push((t.clone(), CellMask::hemisphere(random_unit(&mut rng))));
+        cases.push((t, CellMask(rng.next_u32() as u16 | 1)));
+    }
+    cases.push((DTree::new(), CellMask::hemisphere(Vec3::Y)));
+    let level = sidak(0.01, cases.len());
+    let n = 40_000;
+    let edges: Vec<f64> = (0..=16).map(|i| i as f64 / 16.0).collect();
+    let mut restricted = 0;
+    for (k, (mut t, mask)) in cases.into_iter().enumerate() {
+        if k % 2 == 0 {
+            t.freeze(); // both the cached and the computed masses
+        }
+        let r = t.restrict(mask);
+        let mut exp = bin_masses(&t, &edges, 16);
+        for (b, e) in exp.iter_mut().enumerate() {
+            let uv = Vec2::new((b / 16) as f32 / 16.0 + 0.01, (b % 16) as f32 / 16.0 + 0.01);
+            if !r.mask.contains_uv(uv) {
+                *e = 0.0;
+            }
+        }
+        let mass: f64 = exp.iter().sum();
+        assert!(
+            (r.mass as f64 - mass).abs() <= 1e-5 * mass.max(1.0),
+            "case {k}: mass {} vs exact {mass}",
+            r.mass
+        );
+        restricted += (r.mask != CellMask::ALL) as u32;
+        let mut obs = vec![0.0; 256];
+        let mut g = Pcg::new(k as u64);
+        for _ in 0..n {
+            let (uv, p) = t.sample_restricted(r, &mut g.rng());
+            assert!(p > 0.0 && r.mask.contains_uv(uv), "case {k}: {uv} pdf {p}");
+            assert_eq!(
+                p.to_bits(),
+                t.pdf_restricted(r, uv).to_bits(),
+                "case {k}: sampled pdf vs pdf"
+            );
+            obs[bin_index(&edges, uv.x as f64) * 16 + ((uv.y * 16.0) as usize).min(15)] += 1.0;
+        }
+        let exp: Vec<f64> = exp.iter().map(|e| e / mass * n as f64).collect();
+        let p = chi2_test(&obs, &exp);
+        assert!(p > level, "case {k}: chi2 p = {p:e} (level {level:e})");
+    }
+    assert!(restricted >= 15, "most cases must restrict ({restricted})");
+}
+
+#[test]
+fn restricted_pdf_integrates_to_one_and_vanishes_outside_the_mask() {
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    let mut rng = Pcg::new(47);
+    for i in 0..9u64 {
+        let t = random_dtree(400 + i, kinds[i as usize % 3]);
+        let r = t.restrict(CellMask::hemisphere(random_unit(&mut rng)));
+        // Leaf cells of depth >= 2 lie in one grid cell; the top levels' leaves are cut by it.
+        let mut s = 0.0f64;
+        for c in t.leaf_cells() {
+            for cell in 0..16u32 {
+                let (g0, g1) = ((cell % 4) as f64 * 0.25, (cell / 4) as f64 * 0.25);
+                let ou = (c.origin[0] + c.size).min(g0 + 0.25) - c.origin[0].max(g0);
+                let ov = (c.origin[1] + c.size).min(g1 + 0.25) - c.origin[1].max(g1);
+                if ou <= 0.0 || ov <= 0.0 {
+                    continue;
+                }
+                let centre = Vec2::new(
+                    (c.origin[0].max(g0) + ou * 0.5) as f32,
+                    (c.origin[1].max(g1) + ov * 0.5) as f32,
+                );
+                let p = t.pdf_restricted(r, centre);
+                if r.mask.0 & (1 << cell) == 0 {
+                    assert_eq!(p, 0.0, "tree {i}: density outside the mask");
+                }
+                s += p as f64 * ou * ov;
+            }
+        }
+        assert!((s - 1.0).abs() < 1e-4, "tree {i}: integral {s}");
+    }
+    // Cells without probability cannot be sampled: no restriction then.
+    let ov = AtomicU64::new(0);
+    let mut t = DTree::new();
+    t.deposit(Vec2::new(0.9, 0.1), to_fixed(1.0).0, &ov);
+    t.build();
+    let r = t.restrict(CellMask::hemisphere(-Vec3::Z)); // u < 0.5 only: no mass there
+    assert_eq!(r, Restriction::NONE);
+    assert_eq!(t.restrict(CellMask::hemisphere(Vec3::Z)).mass, 1.0);
+    // The empty tree: uniform over the kept cells.
+    let e = DTree::new();
+    let r = e.restrict(CellMask::hemisphere(Vec3::X));
+    assert_eq!(r.mass, 0.5);
+    assert_eq!(e.pdf_restricted(r, Vec2::new(0.3, 0.1)), 2.0);
+    assert_eq!(e.pdf_restricted(r, Vec2::new(0.3, 0.5)), 0.0);
 }

@@ -437,6 +437,7 @@ fn get_dtree(r: &mut R) -> Result<DTree, WireError> {
         nodes,
         weight: Acc128::from_u128(weight),
         frozen: Vec::new(),
+        frozen_cells: [0.0; 16],
     };
     if t.depth() > MAX_DEPTH {
         return Err(WireError::Malformed("quadtree too deep"));

@@ -366,6 +366,7 @@ pub fn render_guided_with_policy(
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
             ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
+            hemisphere: params.guide_hemisphere,
             split: params.splitting && split,
             splits: Some(&splits_counter),
             rays: Some(rays),

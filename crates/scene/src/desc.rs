@@ -203,6 +203,11 @@ pub struct GuidedParams {
     /// guided sampling with an unguided probe and render the rest of the budget as plain path
     /// tracing when guiding does not pay. false in the 2017 and 2019 presets, true in pathfarm's.
     pub path_fallback: bool,
+    /// `guide_hemisphere`: at BSDFs that cannot transmit, sample the guide only in the
+    /// hemisphere they reflect into (exactly for axis-aligned normals, else the cells of the
+    /// 4x4 direction grid that reach above the surface), so no guide sample is spent below an
+    /// opaque surface. false in the 2017 and 2019 presets (as the papers), true in pathfarm's.
+    pub guide_hemisphere: bool,
     /// `max_memory_mb`: approximate cap on the tree's memory (default none).
     pub max_memory_mb: Option<f64>,
     /// `max_nodes`: cap on the number of spatial nodes (default none).
@@ -228,6 +233,7 @@ impl GuidedParams {
             russian_roulette: GuidedRoulette::Ppg,
             splitting: false,
             path_fallback: false,
+            guide_hemisphere: false,
             max_memory_mb: None,
             max_nodes: None,
         }
@@ -266,6 +272,7 @@ impl GuidedParams {
             russian_roulette: GuidedRoulette::Guided,
             splitting: true,
             path_fallback: true,
+            guide_hemisphere: true,
             ..Self::preset_2019()
         }
     }
