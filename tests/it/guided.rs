@@ -186,6 +186,10 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     let (path_scene, mut guided_scene) = cornell_box_pair("");
     // guiding itself is under test: no fallback to path tracing
     guided_scene.guided.as_mut().unwrap().path_fallback = false;
+    assert!(
+        guided_scene.guided.as_ref().unwrap().guide_hemisphere,
+        "the pathfarm preset's hemisphere restriction is under test too"
+    );
     let spp = 256;
     let reference = render(
         &path_scene,
@@ -344,7 +348,7 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
     assert_eq!(p.s_tree_threshold, 4000.0);
     assert_eq!(p.path.max_depth, 7);
     assert!(
-        !p.path_fallback,
+        !p.path_fallback && !p.guide_hemisphere,
         "the 2019 preset keeps the paper's behaviour"
     );
     let integ = r#"<integrator type="guided_path"><boolean name="path_fallback" value="false"/></integrator>"#;
@@ -357,6 +361,7 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
         "explicit value over the pathfarm preset's"
     );
     assert_eq!(p.directional_filter, GuidedDirectionalFilter::Box);
+    assert!(p.guide_hemisphere, "the pathfarm preset's");
     for bad in [
         r#"<integrator type="guided_path"><float name="budgett" value="3"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,

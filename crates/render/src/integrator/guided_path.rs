@@ -1053,6 +1053,37 @@ mod tests {
     }
 
     #[test]
+    fn guide_mask_restricts_opaque_bsdfs_to_the_side_of_wi() {
+        // Deterministic (no significance level).
+        let frame = Frame::from_normal(Vec3::Y);
+        let diffuse = Bsdf::Diffuse(Diffuse::new(Vec3::splat(0.5))).flags();
+        let glass = Bsdf::Dielectric(pathfarm_bsdf::dielectric::Dielectric::new(
+            1.5,
+            Vec3::ONE,
+            Vec3::ONE,
+        ))
+        .flags();
+        let front = Vec3::new(0.1, 0.2, 0.9).normalize();
+        let back = Vec3::new(0.1, 0.2, -0.9).normalize();
+        assert_eq!(
+            guide_mask(true, diffuse, &frame, front),
+            CellMask::hemisphere(Vec3::Y)
+        );
+        assert_eq!(
+            guide_mask(true, diffuse, &frame, back),
+            CellMask::hemisphere(-Vec3::Y),
+            "seen from behind (two-sided): the other hemisphere"
+        );
+        assert_eq!(CellMask::hemisphere(Vec3::Y).0.count_ones(), 8);
+        assert_eq!(guide_mask(false, diffuse, &frame, front), CellMask::ALL);
+        assert_eq!(
+            guide_mask(true, glass, &frame, front),
+            CellMask::ALL,
+            "transmission: the whole sphere"
+        );
+    }
+
+    #[test]
     fn mixture_sampling_is_unbiased_for_a_diffuse_bsdf() {
         // E[f cos / p_mix] = albedo for any alpha and guide, restricted to the hemisphere or
         // not, for an axis-aligned and a tilted normal. 200k samples, tolerance 5 standard
