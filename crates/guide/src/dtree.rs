@@ -725,7 +725,7 @@ impl DTree {
         } else {
             let q1 = (iu >> 1) | ((iv >> 1) << 1);
             let q2 = (iu & 1) | ((iv & 1) << 1);
-            let pdf = 1.0 * root.factor[q1];
+            let pdf = root.factor[q1]; // pdf() multiplies from 1.0: the same bits
             match root.children[q1] {
                 0 => (uniform_in(origin, 0.25, rng), pdf),
                 c1 => {

@@ -197,11 +197,7 @@ impl SdTree {
 
     /// [`SdTree::sample`] for a leaf handle.
     pub fn sample_leaf(&self, h: LeafHandle, rng: &mut impl FnMut() -> f32) -> Option<(Vec3, f32)> {
-        if !self.built {
-            return None;
-        }
-        let (uv, p) = self.leaves[h.0 as usize].sampling.sample_with_pdf(rng);
-        Some((uv_to_dir(uv), pdf_uv_to_solid_angle(p)))
+        self.sample_leaf_restricted(h, Restriction::NONE, rng)
     }
 
     /// The guide at leaf `h` restricted to the cells of `mask` (e.g.
@@ -282,10 +278,7 @@ impl SdTree {
 
     /// [`SdTree::pdf`] for a leaf handle.
     pub fn pdf_leaf(&self, h: LeafHandle, dir: Vec3) -> f32 {
-        if !self.built {
-            return 0.0;
-        }
-        pdf_uv_to_solid_angle(self.leaves[h.0 as usize].sampling.pdf(dir_to_uv(dir)))
+        self.pdf_leaf_restricted(h, Restriction::NONE, dir)
     }
 
     /// Estimated incident radiance (mean over RGB) arriving at leaf `h` from `dir`, given the
