@@ -217,11 +217,17 @@ pub const GUIDING_FALLBACK_RATIO: f64 = 1.25;
 /// Path tracing takes over at the first check already when guided sampling's efficiency cost
 /// is at least this multiple of path tracing's: a loss this clear is not made up by a tree
 /// trained on more samples, and on a short budget the second check's iteration alone costs a
-/// tenth of the budget. Measured first-check ratios (time budgets of 4-15 s at two threads):
-/// cornell-box 2.46-2.75 (then 1.3-1.9 at the second check: falls back either way); caustic
-/// 1.89 and materials 1.73 (wait for the second check); door-ajar 0.96-0.99; veach-ajar
-/// 0.02-0.04.
-pub const GUIDING_FALLBACK_FIRST_RATIO: f64 = 2.0;
+/// tenth of the budget. The first check judges a tree trained on one spp, so it separates
+/// scenes poorly and the threshold sits between them. Measured first-check ratios (pathfarm
+/// preset, 2 threads, 7.5-30 CPU-s, 2026-11-23, Xeon with AVX-512): cornell-box 2.74-3.62
+/// (11 seeds; falls back at the second check too, at 1.3-1.9); door-ajar 1.15-1.99 (9 seeds;
+/// guiding wins from the second check on, at 0.5-0.8, and a benchmark run that fell back
+/// at the first check under the earlier threshold of 2.0 had 1.56x the relMSE of one that
+/// did not); materials 2.16-2.96; caustic 0.009 or 2.58 (its 1-spp path probe's variance is
+/// mostly one firefly or none). A door-ajar-like fallback costs far more than a
+/// cornell-box-like second check (about 4 % of a 7.5 CPU-s budget), hence the margin sits
+/// more on door-ajar's side.
+pub const GUIDING_FALLBACK_FIRST_RATIO: f64 = 2.4;
 /// After this many checked iterations the verdict is final either way.
 pub const GUIDING_LAST_DECISION: usize = 4;
 
