@@ -1671,7 +1671,7 @@ fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses_or_one
     assert_eq!(v(&[0.5], 1.0), Keep, "clearly better at the first check");
     assert_eq!(v(&[2.3], 1.0), Undecided, "one clear loss is not enough");
     assert_eq!(v(&[2.4], 1.0), FallBack, "a far loss at the first check is");
-    assert_eq!(v(&[200.0], 100.0), FallBack);
+    assert_eq!(v(&[240.0], 100.0), FallBack);
     assert_eq!(
         v(&[1.9, 1.2], 1.0),
         Undecided,
