@@ -187,8 +187,51 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     // guiding itself is under test: no fallback to path tracing
     guided_scene.guided.as_mut().unwrap().path_fallback = false;
     assert!(
-        guided_scene.guided.as_ref().unwrap().guide_hemisphere,
-        "the pathfarm preset's hemisphere restriction is under test too"
+        guided_scene.guided.as_ref().unwrap().guide_cosine,
+        "the pathfarm preset's cosine-weighted hemisphere is under test too"
+    );
+    let spp = 256;
+    let reference = render(
+        &path_scene,
+        &RenderSettings::new(Some(spp), None, 1),
+        &|_| {},
+    )
+    .0;
+    let (film, stats, _) = guided(&guided_scene, spp, 2);
+    assert_eq!(stats.spp, spp);
+    assert_agrees_with(&film, &reference, "guided");
+}
+
+#[test]
+fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splitting() {
+    // The project's door-ajar (light through a door gap: the pathfarm preset splits paths
+    // there by the thousand, where the Cornell box splits one path a render or none) at 48x27
+    // with a box filter, 256 spp. Same statistics as the Cornell box test.
+    let xml = std::fs::read_to_string(project_scene("door-ajar"))
+        .unwrap()
+        .replace(
+            r#"<rfilter type="gaussian" />"#,
+            r#"<rfilter type="box" />"#,
+        );
+    assert!(xml.contains(r#"<rfilter type="box" />"#));
+    let path = write_scene("door-agree", &xml);
+    let dir = path.parent().unwrap();
+    let mesh = "icosphere.obj";
+    std::fs::copy(
+        project_scene("door-ajar").parent().unwrap().join(mesh),
+        dir.join(mesh),
+    )
+    .expect("copy the scene's mesh");
+    let defs = [("resx", "48"), ("resy", "27")];
+    let path_scene = load(&path, &defs);
+    let mut gdefs = defs.to_vec();
+    gdefs.push(("integrator", "guided_path"));
+    let mut guided_scene = load(&path, &gdefs);
+    guided_scene.guided.as_mut().unwrap().path_fallback = false;
+    let p = guided_scene.guided.as_ref().unwrap();
+    assert!(
+        p.splitting && p.guide_hemisphere && p.guide_cosine,
+        "the pathfarm preset"
     );
     let spp = 256;
     let reference = render(
@@ -200,10 +243,11 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
     let (film, stats, _) = guided(&guided_scene, spp, 2);
     assert_eq!(stats.spp, spp);
     assert!(
-        stats.split_paths > 0,
-        "the pathfarm preset's splitting is under test too: {stats:?}"
+        stats.split_paths > 1000,
+        "splitting is under test: {} split paths",
+        stats.split_paths
     );
-    assert_agrees_with(&film, &reference, "guided");
+    assert_agrees_with(&film, &reference, "guided door-ajar");
 }
 
 /// Per pixel, |a - b| / sqrt(var_a + var_b) above the two-sided 0.001 quantile fails; at most
@@ -299,11 +343,11 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
 
 #[test]
 fn guided_image_and_tree_are_bit_identical_on_one_and_two_threads() {
-    // 2019 preset (stochastic spatial filter, learned fraction) with NEE kick-start: every
-    // recording path is exercised.
+    // 2019 preset (stochastic spatial filter, learned fraction) with NEE kick-start and the
+    // cosine-weighted hemisphere: every recording path is exercised.
     let xml = std::fs::read_to_string(project_scene("cornell-box"))
         .unwrap()
-        .replace(r#"<integer name="max_depth" value="$max_depth" />"#, r#"<integer name="max_depth" value="$max_depth" /><string name="preset" value="2019"/><string name="nee" value="kickstart"/><float name="s_tree_threshold" value="300"/>"#);
+        .replace(r#"<integer name="max_depth" value="$max_depth" />"#, r#"<integer name="max_depth" value="$max_depth" /><string name="preset" value="2019"/><string name="nee" value="kickstart"/><float name="s_tree_threshold" value="300"/><boolean name="guide_hemisphere" value="true"/><boolean name="guide_cosine" value="true"/>"#);
     let scene = load(
         &write_scene("det", &xml),
         &[
@@ -348,7 +392,7 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
     assert_eq!(p.s_tree_threshold, 4000.0);
     assert_eq!(p.path.max_depth, 7);
     assert!(
-        !p.path_fallback && !p.guide_hemisphere,
+        !p.path_fallback && !p.guide_hemisphere && !p.guide_cosine,
         "the 2019 preset keeps the paper's behaviour"
     );
     let integ = r#"<integrator type="guided_path"><boolean name="path_fallback" value="false"/></integrator>"#;
@@ -361,7 +405,10 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
         "explicit value over the pathfarm preset's"
     );
     assert_eq!(p.directional_filter, GuidedDirectionalFilter::Box);
-    assert!(p.guide_hemisphere, "the pathfarm preset's");
+    assert!(
+        p.guide_hemisphere && p.guide_cosine,
+        "the pathfarm preset's"
+    );
     for bad in [
         r#"<integrator type="guided_path"><float name="budgett" value="3"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,

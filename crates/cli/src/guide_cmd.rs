@@ -10,7 +10,7 @@ use clap::{Args, Subcommand};
 use glam::{Vec2, Vec3};
 use pathfarm_guide::{mapping, viz, DTree, SdTree};
 use pathfarm_render::guided::{self, Budget};
-use pathfarm_render::integrator::guided_path::{guide_mask, sample_mixture, VertexGuide};
+use pathfarm_render::integrator::guided_path::{guide_region, sample_mixture, VertexGuide};
 use pathfarm_render::rng::Rng;
 use pathfarm_render::{RenderSettings, Scene};
 use pathfarm_scene::{load_scene, GuidedParams, IntegratorDesc};
@@ -279,8 +279,14 @@ fn scatter(a: ScatterArgs) -> Result<()> {
     let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
     let wi = frame.to_local(-ray.d);
     let guide = if bsdf.flags().smooth {
-        let mask = guide_mask(params.guide_hemisphere, bsdf.flags(), &frame, wi);
-        VertexGuide::at(&tree, si.p, mask)
+        let region = guide_region(
+            params.guide_hemisphere,
+            params.guide_cosine,
+            bsdf.flags(),
+            &frame,
+            wi,
+        );
+        VertexGuide::at(&tree, si.p, region)
     } else {
         VertexGuide::unguided()
     };

@@ -9,7 +9,7 @@
 //! Records add to the leaf cell only; [`DTree::build`] makes every inner quadrant the exact
 //! integer sum of its child's four quadrants.
 
-use crate::region::{CellMask, Restriction};
+use crate::region::{CellMask, CellWeights, Restriction};
 use crate::stats::{from_fixed, split_exact, Acc128};
 use glam::Vec2;
 use std::sync::atomic::AtomicU64;
@@ -658,34 +658,36 @@ impl DTree {
         m
     }
 
-    /// The tree's density restricted to the cells of `mask` (see [`crate::region`]): their
-    /// mass, summed in cell order. No restriction (mass exactly 1) for [`CellMask::ALL`] and
-    /// when the cells hold no probability, so the result can always be sampled.
+    /// The tree's density restricted to the cells of a mask, each cell's density times its
+    /// weight (a [`CellMask`] or [`CellWeights`]; see [`crate::region`]): their weighted mass,
+    /// summed in cell order. No restriction (mass exactly 1) for all cells unweighted and when
+    /// the cells hold no probability, so the result can always be sampled.
     #[inline]
-    pub fn restrict(&self, mask: CellMask) -> Restriction {
-        if mask == CellMask::ALL {
+    pub fn restrict(&self, region: impl Into<CellWeights>) -> Restriction {
+        let CellWeights { mask, weight } = region.into();
+        if mask == CellMask::ALL && weight == [1.0; 16] {
             return Restriction::NONE;
         }
         let m = self.cell_masses();
         let mut mass = 0.0f32;
         for (i, mi) in m.iter().enumerate() {
             if mask.0 & (1 << i) != 0 {
-                mass += mi;
+                mass += mi * weight[i];
             }
         }
         if mass > 0.0 {
-            Restriction { mask, mass }
+            Restriction { mask, mass, weight }
         } else {
             Restriction::NONE
         }
     }
 
     /// [`DTree::sample_with_pdf`] from the density restricted by `r` (from [`DTree::restrict`]
-    /// on this tree): a cell of the mask chosen by its mass (one random number), then the
+    /// on this tree): a cell of the mask chosen by its weighted mass (one random number), then the
     /// usual descent from the cell's node. The density returned equals
     /// [`DTree::pdf_restricted`] of the point bit for bit.
     pub fn sample_restricted(&self, r: Restriction, rng: &mut impl FnMut() -> f32) -> (Vec2, f32) {
-        if r.mask == CellMask::ALL {
+        if r.mask == CellMask::ALL && r.weight == [1.0; 16] {
             return self.sample_with_pdf(rng);
         }
         if self.frozen.len() == self.nodes.len() {
@@ -710,7 +712,7 @@ impl DTree {
         let mut cell = usize::MAX;
         for (i, &m) in masses.iter().enumerate() {
             if r.mask.0 & (1 << i) != 0 && m > 0.0 {
-                acc += m;
+                acc += m * r.weight[i];
                 cell = i;
                 if acc > target {
                     break;
@@ -738,20 +740,22 @@ impl DTree {
                 }
             }
         };
-        (uv, pdf / r.mass)
+        (uv, pdf * r.weight[cell] / r.mass)
     }
 
     /// Density at `uv` of the tree restricted by `r` (from [`DTree::restrict`] on this tree):
-    /// [`DTree::pdf`] divided by the mass inside the mask, 0 outside.
+    /// [`DTree::pdf`] times the cell's weight, divided by the weighted mass inside the mask; 0
+    /// outside.
     #[inline]
     pub fn pdf_restricted(&self, r: Restriction, uv: Vec2) -> f32 {
-        if r.mask == CellMask::ALL {
+        if r.mask == CellMask::ALL && r.weight == [1.0; 16] {
             return self.pdf(uv);
         }
-        if !r.mask.contains_uv(uv) {
+        let cell = CellMask::cell_of(uv);
+        if r.mask.0 & (1 << cell) == 0 {
             return 0.0;
         }
-        self.pdf(uv) / r.mass
+        self.pdf(uv) * r.weight[cell as usize] / r.mass
     }
 
     /// All leaf cells with their geometry, in depth-first order.

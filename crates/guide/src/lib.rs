@@ -54,7 +54,7 @@ pub use config::{
 pub use dtree::{Cell, DTree};
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;
-pub use region::{CellMask, Restriction};
+pub use region::{CellMask, CellWeights, Restriction};
 pub use sdtree::{Leaf, LeafHandle, SdTree, TreeStats};
 pub use stree::{SLookup, STree};
 pub use wire::{IterationStats, LeafStats, StatsError, WireError};

@@ -12,8 +12,13 @@
 //! is what architectural scenes are made of; for other normals the mask keeps every cell that
 //! reaches above the surface, so less is gained but nothing is lost.
 //!
-//! Any mask is unbiased as long as sampling and pdf use the same one, and the BSDF side of the
-//! mixture still covers every direction the guide leaves out.
+//! The cells can also carry weights ([`CellWeights`]): [`CellWeights::cosine`] approximates the
+//! clamped cosine of a surface per cell, so that the guide samples incident radiance x cosine,
+//! the product a diffuse surface integrates, instead of incident radiance alone (a coarse
+//! product: the weight is constant over a cell; within it the quadtree decides).
+//!
+//! Any mask and any positive weights are unbiased as long as sampling and pdf use the same
+//! ones, and the BSDF side of the mixture still covers every direction the guide leaves out.
 
 use glam::{Vec2, Vec3};
 
@@ -54,48 +59,147 @@ impl CellMask {
         if !n.is_finite() || n == Vec3::ZERO {
             return Self::ALL;
         }
-        // Over a cell, n . w = nz z + sqrt(1 - z^2) (nx cos phi + ny sin phi). For a quarter
-        // k of phi, [k pi/2, (k+1) pi/2], the largest value of the bracket is |n_xy| when
-        // n's azimuth lies in the quarter, else the larger of its values at the two edges,
-        // which are e_k and e_{k+1} with e = (nx, ny, -nx, -ny).
-        let e = [n.x, n.y, -n.x, -n.y];
-        let r = (n.x * n.x + n.y * n.y).sqrt();
-        // z at the band edges and sqrt(1 - z^2) there.
-        const Z: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
-        const S: [f32; 5] = [0.0, 0.866_025_4, 1.0, 0.866_025_4, 0.0];
+        let max = cell_max_cosines(n);
         let mut mask = 0u16;
-        for k in 0..4 {
-            let (a, b) = (e[k], e[(k + 1) % 4]);
-            let c = if a >= 0.0 && b >= 0.0 { r } else { a.max(b) };
-            // g(z) = nz z + c sqrt(1 - z^2): concave for c > 0 (maximum at
-            // z* = nz / sqrt(nz^2 + c^2), value sqrt(nz^2 + c^2)), else largest at an end.
-            let peak = (n.z * n.z + c * c).sqrt();
-            let z_star = if c > 0.0 { n.z / peak } else { f32::NAN };
-            for iu in 0..4 {
-                let (z0, z1) = (Z[iu], Z[iu + 1]);
-                let mut m = (n.z * z0 + c * S[iu]).max(n.z * z1 + c * S[iu + 1]);
-                if z_star >= z0 && z_star <= z1 {
-                    m = m.max(peak);
-                }
-                if m > HEMISPHERE_EPSILON {
-                    mask |= 1 << (iu + 4 * k);
-                }
+        for (i, m) in max.iter().enumerate() {
+            if *m > HEMISPHERE_EPSILON {
+                mask |= 1 << i;
             }
         }
         Self(mask)
     }
 }
 
-/// A quadtree's density restricted to the cells of `mask`: the density is the tree's divided
-/// by `mass` (the probability the tree gives those cells) inside them and 0 outside. Made by
+/// The exact maximum of `n . w` over each cell of the 4x4 grid (index `iu + 4 iv`).
+#[inline]
+fn cell_max_cosines(n: Vec3) -> [f32; 16] {
+    // Over a cell, n . w = nz z + sqrt(1 - z^2) (nx cos phi + ny sin phi). For a quarter
+    // k of phi, [k pi/2, (k+1) pi/2], the largest value of the bracket is |n_xy| when
+    // n's azimuth lies in the quarter, else the larger of its values at the two edges,
+    // which are e_k and e_{k+1} with e = (nx, ny, -nx, -ny).
+    let e = [n.x, n.y, -n.x, -n.y];
+    let r = (n.x * n.x + n.y * n.y).sqrt();
+    // z at the band edges and sqrt(1 - z^2) there.
+    const Z: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
+    const S: [f32; 5] = [0.0, 0.866_025_4, 1.0, 0.866_025_4, 0.0];
+    let mut out = [0.0f32; 16];
+    for k in 0..4 {
+        let (a, b) = (e[k], e[(k + 1) % 4]);
+        let c = if a >= 0.0 && b >= 0.0 { r } else { a.max(b) };
+        // g(z) = nz z + c sqrt(1 - z^2): concave for c > 0 (maximum at
+        // z* = nz / sqrt(nz^2 + c^2), value sqrt(nz^2 + c^2)), else largest at an end.
+        let peak = (n.z * n.z + c * c).sqrt();
+        let z_star = if c > 0.0 { n.z / peak } else { f32::NAN };
+        for iu in 0..4 {
+            let (z0, z1) = (Z[iu], Z[iu + 1]);
+            let mut m = (n.z * z0 + c * S[iu]).max(n.z * z1 + c * S[iu + 1]);
+            if z_star >= z0 && z_star <= z1 {
+                m = m.max(peak);
+            }
+            out[iu + 4 * k] = m;
+        }
+    }
+    out
+}
+
+/// Mean of `w` over each cell (index `iu + 4 iv`) as `(x, y, z)` coefficients: the mean of
+/// `n . w` over the cell is `n . MEAN_DIR[cell]` (exact, the integral is linear in `n`).
+/// Over a cell `[z0, z1] x [p0, p1]` (area `(z1 - z0)(p1 - p0)` = pi / 4), the integral of
+/// `w_x` is `(F(z1) - F(z0)) (sin p1 - sin p0)` with `F(z) = (z sqrt(1 - z^2) + asin z) / 2`,
+/// of `w_y` `(F(z1) - F(z0)) (cos p0 - cos p1)`, of `w_z` `(z1^2 - z0^2) / 2 (p1 - p0)`.
+fn cell_mean_dirs() -> [Vec3; 16] {
+    let f = |z: f64| (z * (1.0 - z * z).max(0.0).sqrt() + z.asin()) * 0.5;
+    let mut out = [Vec3::ZERO; 16];
+    for iv in 0..4 {
+        let (p0, p1) = (
+            iv as f64 * std::f64::consts::FRAC_PI_2,
+            (iv + 1) as f64 * std::f64::consts::FRAC_PI_2,
+        );
+        for iu in 0..4 {
+            let (z0, z1) = (iu as f64 * 0.5 - 1.0, (iu + 1) as f64 * 0.5 - 1.0);
+            let area = (z1 - z0) * (p1 - p0);
+            let fz = f(z1) - f(z0);
+            out[iu + 4 * iv] = Vec3::new(
+                (fz * (p1.sin() - p0.sin()) / area) as f32,
+                (fz * (p0.cos() - p1.cos()) / area) as f32,
+                ((z1 * z1 - z0 * z0) * 0.5 * (p1 - p0) / area) as f32,
+            );
+        }
+    }
+    out
+}
+
+static MEAN_DIRS: std::sync::LazyLock<[Vec3; 16]> = std::sync::LazyLock::new(cell_mean_dirs);
+
+/// A [`CellMask`] with a weight per cell: the part of the sphere a guide samples from, each
+/// cell's density scaled by its weight before renormalising (see [`Restriction`]). Weights
+/// outside the mask are unused and kept at 1.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CellWeights {
+    /// The cells sampled from.
+    pub mask: CellMask,
+    /// Factor of each cell's density, positive in the mask (index `iu + 4 iv`).
+    pub weight: [f32; 16],
+}
+
+impl CellWeights {
+    /// Every cell, unweighted: no restriction.
+    pub const ALL: Self = Self {
+        mask: CellMask::ALL,
+        weight: [1.0; 16],
+    };
+
+    /// The clamped cosine `max(0, n . w)` of the surface with unit normal `n`, approximated
+    /// per cell: the cells of [`CellMask::hemisphere`], weighted by the cell's mean of `n . w`
+    /// where that is at least a quarter of the cell's maximum, else by that quarter (cells
+    /// straddling the horizon, whose mean counts the part below as negative). Exact means for
+    /// cells wholly above the surface, e.g. 0.25 and 0.75 for the two bands of a horizontal
+    /// floor. Guiding toward radiance x cosine is the product a diffuse surface integrates;
+    /// any positive weights stay unbiased (the sampler and the pdf use the same ones).
+    /// [`CellWeights::ALL`] for a non-finite or zero `n`.
+    pub fn cosine(n: Vec3) -> Self {
+        if !n.is_finite() || n == Vec3::ZERO {
+            return Self::ALL;
+        }
+        let max = cell_max_cosines(n);
+        let dirs = &*MEAN_DIRS;
+        let mut weight = [1.0f32; 16];
+        let mut mask = 0u16;
+        for i in 0..16 {
+            if max[i] > HEMISPHERE_EPSILON {
+                mask |= 1 << i;
+                weight[i] = n.dot(dirs[i]).max(0.25 * max[i]);
+            }
+        }
+        Self {
+            mask: CellMask(mask),
+            weight,
+        }
+    }
+}
+
+impl From<CellMask> for CellWeights {
+    fn from(mask: CellMask) -> Self {
+        Self {
+            mask,
+            weight: [1.0; 16],
+        }
+    }
+}
+
+/// A quadtree's density restricted to the cells of `mask` and weighted per cell: the density
+/// is the tree's times the cell's `weight`, divided by `mass` (the weighted probability the
+/// tree gives those cells), inside them and 0 outside. Made by
 /// [`crate::DTree::restrict`], which falls back to no restriction (`ALL`, mass exactly 1) when
 /// the mask holds no probability.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Restriction {
     /// The cells sampled from.
     pub mask: CellMask,
-    /// The tree's probability of those cells (1 for `ALL`).
+    /// The tree's probability of those cells, each times its weight (1 for `NONE`).
     pub mass: f32,
+    /// Factor of each cell's density before renormalising (1 for a plain mask).
+    pub weight: [f32; 16],
 }
 
 impl Restriction {
@@ -103,6 +207,7 @@ impl Restriction {
     pub const NONE: Self = Self {
         mask: CellMask::ALL,
         mass: 1.0,
+        weight: [1.0; 16],
     };
 }
 

@@ -7,7 +7,7 @@ use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
-use crate::region::{CellMask, Restriction};
+use crate::region::{CellWeights, Restriction};
 use crate::stats::{add_counted, split_exact, to_fixed};
 use crate::stree::{SLookup, STree};
 use crate::wire::{Hasher64, IterationStats, LeafStats, StatsError};
@@ -200,16 +200,17 @@ impl SdTree {
         self.sample_leaf_restricted(h, Restriction::NONE, rng)
     }
 
-    /// The guide at leaf `h` restricted to the cells of `mask` (e.g.
-    /// [`CellMask::hemisphere`] of a surface's normal; see [`crate::region`]): pass it to
+    /// The guide at leaf `h` restricted to the cells of a mask, optionally weighted (e.g.
+    /// [`crate::CellMask::hemisphere`] or [`crate::CellWeights::cosine`] of a surface's
+    /// normal; see [`crate::region`]): pass it to
     /// [`SdTree::sample_leaf_restricted`] and [`SdTree::pdf_leaf_restricted`]. No restriction
     /// before the first refinement or when the cells hold no probability.
     #[inline]
-    pub fn restriction_leaf(&self, h: LeafHandle, mask: CellMask) -> Restriction {
+    pub fn restriction_leaf(&self, h: LeafHandle, region: impl Into<CellWeights>) -> Restriction {
         if !self.built {
             return Restriction::NONE;
         }
-        self.leaves[h.0 as usize].sampling.restrict(mask)
+        self.leaves[h.0 as usize].sampling.restrict(region)
     }
 
     /// [`SdTree::sample_leaf`] from the guide restricted by `r` (from

@@ -8,7 +8,7 @@ use crate::config::*;
 use crate::dtree::{DTree, MAX_DEPTH};
 use crate::mapping::{dir_to_uv, uv_to_dir, JACOBIAN};
 use crate::record::Record;
-use crate::region::{CellMask, Restriction, HEMISPHERE_EPSILON};
+use crate::region::{CellMask, CellWeights, Restriction, HEMISPHERE_EPSILON};
 use crate::schedule::*;
 use crate::sdtree::{LeafHandle, SdTree};
 use crate::stats::{to_fixed, FIXED_ONE};
@@ -1771,32 +1771,117 @@ fn hemisphere_mask_is_exact_for_axis_normals_and_keeps_every_cell_reaching_above
     assert_eq!(CellMask::hemisphere(Vec3::NAN), CellMask::ALL);
 }
 
+/// Mean and minimum of `n . w` over a 64x64 midpoint grid of cell `cell` (the cylindrical
+/// mapping preserves area, so the grid's mean is the cell's mean over solid angle).
+fn scanned_mean_min(n: Vec3, cell: u32) -> (f64, f32) {
+    let (iu, iv) = ((cell % 4) as f32, (cell / 4) as f32);
+    let (mut s, mut lo) = (0.0f64, f32::INFINITY);
+    for a in 0..64 {
+        for b in 0..64 {
+            let uv = Vec2::new(
+                (iu + (a as f32 + 0.5) / 64.0) / 4.0,
+                (iv + (b as f32 + 0.5) / 64.0) / 4.0,
+            );
+            let c = n.dot(uv_to_dir(uv));
+            s += c as f64;
+            lo = lo.min(c);
+        }
+    }
+    (s / 4096.0, lo)
+}
+
+#[test]
+fn cosine_weights_are_the_cells_mean_cosine_and_bounded_at_the_horizon() {
+    // Deterministic geometry (no significance level); tolerances cover the 64x64 quadrature.
+    // A floor: the bands z in [0, 0.5) and [0.5, 1] have mean cosines 1/4 and 3/4.
+    let w = CellWeights::cosine(Vec3::Z);
+    assert_eq!(w.mask, CellMask::hemisphere(Vec3::Z));
+    for iv in 0..4 {
+        assert!((w.weight[2 + 4 * iv] - 0.25).abs() < 1e-6, "{:?}", w.weight);
+        assert!((w.weight[3 + 4 * iv] - 0.75).abs() < 1e-6, "{:?}", w.weight);
+    }
+    let mut rng = Pcg::new(53);
+    let (mut inside, mut straddling) = (0, 0);
+    for _ in 0..100 {
+        let n = random_unit(&mut rng);
+        let w = CellWeights::cosine(n);
+        assert_eq!(
+            w.mask,
+            CellMask::hemisphere(n),
+            "{n}: the hemisphere's cells"
+        );
+        for cell in 0..16u32 {
+            let wc = w.weight[cell as usize];
+            if w.mask.0 & (1 << cell) == 0 {
+                assert_eq!(wc, 1.0, "{n} cell {cell}: unused weights stay 1");
+                continue;
+            }
+            let (mean, lo) = scanned_mean_min(n, cell);
+            let max = scanned_max(n, cell);
+            assert!(
+                wc > 0.0 && wc <= max + 1e-5,
+                "{n} cell {cell}: {wc} vs max {max}"
+            );
+            if lo > 0.0 {
+                inside += 1;
+                assert!(
+                    (wc as f64 - mean).abs() < 2e-4,
+                    "{n} cell {cell}: {wc} vs mean {mean}"
+                );
+            } else {
+                straddling += 1;
+                assert!(
+                    wc as f64 >= mean.max(0.25 * max as f64) - 2e-3,
+                    "{n} cell {cell}: {wc} vs mean {mean}, max {max}"
+                );
+            }
+        }
+    }
+    assert!(inside > 200 && straddling > 200, "{inside} {straddling}");
+    assert_eq!(CellWeights::cosine(Vec3::NAN), CellWeights::ALL);
+    assert_eq!(CellWeights::cosine(Vec3::ZERO), CellWeights::ALL);
+}
+
 #[test]
 fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
-    // Overall significance 0.01 over all (tree, mask) pairs, Šidák corrected. Bins: the 16x16
-    // grid over (u, v), which nests in the 4x4 cells of a mask.
+    // Overall significance 0.01 over all (tree, mask or weighted mask) pairs, Šidák corrected.
+    // Bins: the 16x16 grid over (u, v), which nests in the 4x4 cells of a mask.
     let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
     let mut rng = Pcg::new(43);
     let mut cases = Vec::new();
     for i in 0..9u64 {
         let t = random_dtree(300 + i, kinds[i as usize % 3]);
-        cases.push((t.clone(), CellMask::hemisphere(random_unit(&mut rng))));
-        cases.push((t, CellMask(rng.next_u32() as u16 | 1)));
+        cases.push((
+            t.clone(),
+            CellMask::hemisphere(random_unit(&mut rng)).into(),
+        ));
+        cases.push((t.clone(), CellMask(rng.next_u32() as u16 | 1).into()));
+        cases.push((t.clone(), CellWeights::cosine(random_unit(&mut rng))));
+        // any mask with any positive weights (spanning three decades)
+        let mut weight = [1.0f32; 16];
+        for w in &mut weight {
+            *w = 10f32.powf(3.0 * rng.f32() - 2.0);
+        }
+        let mask = CellMask(rng.next_u32() as u16 | 1);
+        cases.push((t, CellWeights { mask, weight }));
     }
-    cases.push((DTree::new(), CellMask::hemisphere(Vec3::Y)));
+    cases.push((DTree::new(), CellMask::hemisphere(Vec3::Y).into()));
+    cases.push((DTree::new(), CellWeights::cosine(Vec3::Y)));
     let level = sidak(0.01, cases.len());
     let n = 40_000;
     let edges: Vec<f64> = (0..=16).map(|i| i as f64 / 16.0).collect();
     let mut restricted = 0;
-    for (k, (mut t, mask)) in cases.into_iter().enumerate() {
-        if k % 2 == 0 {
+    for (k, (mut t, region)) in cases.into_iter().enumerate() {
+        if k % 3 == 0 {
             t.freeze(); // both the cached and the computed masses
         }
-        let r = t.restrict(mask);
+        let r = t.restrict(region);
         let mut exp = bin_masses(&t, &edges, 16);
         for (b, e) in exp.iter_mut().enumerate() {
             let uv = Vec2::new((b / 16) as f32 / 16.0 + 0.01, (b % 16) as f32 / 16.0 + 0.01);
-            if !r.mask.contains_uv(uv) {
+            if r.mask.contains_uv(uv) {
+                *e *= r.weight[CellMask::cell_of(uv) as usize] as f64;
+            } else {
                 *e = 0.0;
             }
         }
@@ -1823,16 +1908,23 @@ fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
         let p = chi2_test(&obs, &exp);
         assert!(p > level, "case {k}: chi2 p = {p:e} (level {level:e})");
     }
-    assert!(restricted >= 15, "most cases must restrict ({restricted})");
+    assert!(restricted >= 30, "most cases must restrict ({restricted})");
 }
 
 #[test]
 fn restricted_pdf_integrates_to_one_and_vanishes_outside_the_mask() {
+    // Deterministic quadrature (exact for piecewise-constant densities; no significance level).
+    // Plain and cosine-weighted hemispheres.
     let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
     let mut rng = Pcg::new(47);
-    for i in 0..9u64 {
+    for i in 0..18u64 {
         let t = random_dtree(400 + i, kinds[i as usize % 3]);
-        let r = t.restrict(CellMask::hemisphere(random_unit(&mut rng)));
+        let n = random_unit(&mut rng);
+        let r = if i < 9 {
+            t.restrict(CellMask::hemisphere(n))
+        } else {
+            t.restrict(CellWeights::cosine(n))
+        };
         // Leaf cells of depth >= 2 lie in one grid cell; the top levels' leaves are cut by it.
         let mut s = 0.0f64;
         for c in t.leaf_cells() {

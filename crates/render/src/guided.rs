@@ -367,6 +367,7 @@ pub fn render_guided_with_policy(
             record,
             ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
             hemisphere: params.guide_hemisphere,
+            cosine: params.guide_cosine,
             split: params.splitting && split,
             splits: Some(&splits_counter),
             rays: Some(rays),

@@ -208,6 +208,11 @@ pub struct GuidedParams {
     /// 4x4 direction grid that reach above the surface), so no guide sample is spent below an
     /// opaque surface. false in the 2017 and 2019 presets (as the papers), true in pathfarm's.
     pub guide_hemisphere: bool,
+    /// `guide_cosine`: with `guide_hemisphere`, weight the hemisphere's cells by the surface's
+    /// clamped cosine (the cell's mean of it), so the guide samples incident radiance x cosine,
+    /// the product a diffuse surface integrates, instead of incident radiance alone. false in
+    /// the 2017 and 2019 presets, true in pathfarm's.
+    pub guide_cosine: bool,
     /// `max_memory_mb`: approximate cap on the tree's memory (default none).
     pub max_memory_mb: Option<f64>,
     /// `max_nodes`: cap on the number of spatial nodes (default none).
@@ -234,6 +239,7 @@ impl GuidedParams {
             splitting: false,
             path_fallback: false,
             guide_hemisphere: false,
+            guide_cosine: false,
             max_memory_mb: None,
             max_nodes: None,
         }
@@ -273,6 +279,7 @@ impl GuidedParams {
             splitting: true,
             path_fallback: true,
             guide_hemisphere: true,
+            guide_cosine: true,
             ..Self::preset_2019()
         }
     }

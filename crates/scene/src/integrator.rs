@@ -164,6 +164,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
         splitting: p.bool("splitting", d.splitting)?,
         path_fallback: p.bool("path_fallback", d.path_fallback)?,
         guide_hemisphere: p.bool("guide_hemisphere", d.guide_hemisphere)?,
+        guide_cosine: p.bool("guide_cosine", d.guide_cosine)?,
         nee: choice(
             p,
             "nee",
