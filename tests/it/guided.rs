@@ -190,16 +190,25 @@ fn guided_and_unguided_cornell_box_agree_within_confidence_intervals() {
         guided_scene.guided.as_ref().unwrap().guide_cosine,
         "the pathfarm preset's cosine-weighted hemisphere is under test too"
     );
-    let spp = 256;
+    let (reference, film, _) = path_and_guided(&path_scene, &guided_scene, 256);
+    assert_agrees_with(&film, &reference, "guided");
+}
+
+/// `path_scene` rendered unguided (seed 1) and `guided_scene` guided (seed 2), both at `spp`.
+fn path_and_guided(
+    path_scene: &Scene,
+    guided_scene: &Scene,
+    spp: u32,
+) -> (Film, Film, GuidedStats) {
     let reference = render(
-        &path_scene,
+        path_scene,
         &RenderSettings::new(Some(spp), None, 1),
         &|_| {},
     )
     .0;
-    let (film, stats, _) = guided(&guided_scene, spp, 2);
+    let (film, stats, _) = guided(guided_scene, spp, 2);
     assert_eq!(stats.spp, spp);
-    assert_agrees_with(&film, &reference, "guided");
+    (reference, film, stats)
 }
 
 #[test]
@@ -233,15 +242,7 @@ fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splittin
         p.splitting && p.guide_hemisphere && p.guide_cosine,
         "the pathfarm preset"
     );
-    let spp = 256;
-    let reference = render(
-        &path_scene,
-        &RenderSettings::new(Some(spp), None, 1),
-        &|_| {},
-    )
-    .0;
-    let (film, stats, _) = guided(&guided_scene, spp, 2);
-    assert_eq!(stats.spp, spp);
+    let (reference, film, stats) = path_and_guided(&path_scene, &guided_scene, 256);
     assert!(
         stats.split_paths > 1000,
         "splitting is under test: {} split paths",

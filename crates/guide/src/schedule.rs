@@ -219,8 +219,9 @@ pub const GUIDING_FALLBACK_RATIO: f64 = 1.25;
 /// trained on more samples, and on a short budget the second check's iteration alone costs a
 /// tenth of the budget. The first check judges a tree trained on one spp, so it separates
 /// scenes poorly and the threshold sits between them. Measured first-check ratios (pathfarm
-/// preset, 2 threads, 7.5-30 CPU-s, 2026-11-23, Xeon with AVX-512): cornell-box 2.74-3.62
-/// (11 seeds; falls back at the second check too, at 1.3-1.9); door-ajar 1.15-1.99 (9 seeds;
+/// preset, 2 threads, 4-30 CPU-s, 2026-11-23, Xeon with AVX-512): cornell-box 2.74-3.62
+/// (11 seeds), 2.59-3.00 with `guide_cosine` (6 seeds; it falls back at the second check
+/// too, at 1.3-1.9); door-ajar 1.15-1.99 (9 seeds), 1.80-1.99 with `guide_cosine` (6 seeds;
 /// guiding wins from the second check on, at 0.5-0.8, and a benchmark run that fell back
 /// at the first check under the earlier threshold of 2.0 had 1.56x the relMSE of one that
 /// did not); materials 2.16-2.96; caustic 0.009 or 2.58 (its 1-spp path probe's variance is
