@@ -46,6 +46,23 @@ impl CellMask {
         iu + 4 * iv
     }
 
+    /// The cell of the direction `d` without the azimuth's arctangent: the band from `d.z` as
+    /// [`crate::dir_to_uv`] computes `u`, the quarter of phi from the signs of `d.x` and `d.y`.
+    /// Equal to `cell_of(dir_to_uv(d))` except within rounding of a quarter's edge (where the
+    /// mapping's arctangent may land on the other side): for estimates, not for pdfs.
+    #[inline]
+    pub fn cell_of_dir(d: Vec3) -> u32 {
+        let u = ((d.z.clamp(-1.0, 1.0) + 1.0) * 0.5).clamp(0.0, 1.0);
+        let iu = ((u * 4.0) as u32).min(3);
+        let iv = match (d.x >= 0.0, d.y >= 0.0) {
+            (true, true) => 0,
+            (false, true) => 1,
+            (false, false) => 2,
+            (true, false) => 3,
+        };
+        iu + 4 * iv
+    }
+
     /// Whether the cell of `uv` is in the mask.
     #[inline]
     pub fn contains_uv(self, uv: Vec2) -> bool {

@@ -1843,6 +1843,27 @@ fn cosine_weights_are_the_cells_mean_cosine_and_bounded_at_the_horizon() {
 }
 
 #[test]
+fn cell_of_dir_agrees_with_the_mapping_away_from_quarter_edges() {
+    // Deterministic (no significance level): random directions, the axes, and directions a
+    // hair off the quarter edges (either cell is right there).
+    let mut rng = Pcg::new(59);
+    let mut dirs: Vec<Vec3> = (0..100_000).map(|_| random_unit(&mut rng)).collect();
+    dirs.extend([Vec3::X, -Vec3::X, Vec3::Y, -Vec3::Y, Vec3::Z, -Vec3::Z]);
+    let mut near_edge = 0;
+    for d in dirs {
+        let want = CellMask::cell_of(dir_to_uv(d));
+        let got = CellMask::cell_of_dir(d);
+        if d.x.abs().min(d.y.abs()) < 1e-5 {
+            near_edge += 1;
+            assert_eq!(got % 4, want % 4, "{d}: the band is exact");
+        } else {
+            assert_eq!(got, want, "{d}");
+        }
+    }
+    assert!(near_edge >= 6, "{near_edge}");
+}
+
+#[test]
 fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
     // Overall significance 0.01 over all (tree, mask or weighted mask) pairs, Šidák corrected.
     // Bins: the 16x16 grid over (u, v), which nests in the 4x4 cells of a mask.

@@ -134,14 +134,15 @@ pub fn guide_region(
 
 /// The unrestricted guide's density in the direction of `ms` (its `p_guide` is the restricted
 /// one): what guided roulette's radiance estimate (flux x pdf) needs. 0 where the restriction
-/// leaves the direction out.
+/// leaves the direction out. The cell's weight is looked up by [`CellMask::cell_of_dir`] (no
+/// arctangent; 1.7 % of a veach-ajar render with `dir_to_uv`), which may pick the neighbouring
+/// quarter within rounding of its edge: that only moves a survival probability.
 #[inline]
 fn unrestricted_guide_pdf(r: &Restriction, ms: &MixtureSample) -> f32 {
     if r.weight == [1.0; 16] {
         ms.p_guide * r.mass
     } else {
-        let w = r.weight[CellMask::cell_of(pathfarm_guide::dir_to_uv(ms.wo_world)) as usize];
-        ms.p_guide * r.mass / w
+        ms.p_guide * r.mass / r.weight[CellMask::cell_of_dir(ms.wo_world) as usize]
     }
 }
 
