@@ -194,8 +194,9 @@ impl VertexGuide {
     }
 
     /// The second half of [`VertexGuide::at`]: reads the leaf's sampling fraction, restricts
-    /// the guide to the cells of `mask` ([`CellMask::ALL`]: no restriction; see
-    /// [`guide_mask`]) and requests its quadtree's top nodes ([`SdTree::prefetch_sampling`]).
+    /// the guide to `region`, a mask or weighted cells ([`CellWeights::ALL`]: no restriction;
+    /// see [`guide_region`]), and requests its quadtree's top nodes
+    /// ([`SdTree::prefetch_sampling`]).
     #[inline]
     pub fn resolve(&mut self, tree: &SdTree, region: impl Into<CellWeights>) {
         if self.guided {
