@@ -273,7 +273,7 @@ where
         let filter = scene.filter;
         let reach = filter.reach();
         let span = 2 * reach as usize + 1;
-        weights.clear();
+        // (every entry is written below: resizing keeps old values instead of zeroing)
         weights.resize(npix * n * 2 * span, 0.0);
         weights
             .par_chunks_mut(tile * n * 2 * span)

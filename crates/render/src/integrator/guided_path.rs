@@ -103,15 +103,21 @@ pub fn mixture_pdf(guided: bool, alpha: f32, p_bsdf: f32, p_guide: f32) -> f32 {
     }
 }
 
+/// The shading normal on the side of `wi` (local) at a BSDF that cannot transmit: the
+/// hemisphere around it is where alone the BSDF is nonzero. None for transmissive BSDFs.
+#[inline]
+fn reflecting_normal(flags: BsdfFlags, frame: &Frame, wi: Vec3) -> Option<Vec3> {
+    (!flags.transmission).then(|| if wi.z < 0.0 { -frame.n } else { frame.n })
+}
+
 /// The cells the guide samples from at a vertex (see [`pathfarm_guide::region`]): with
 /// `hemisphere`, at a BSDF that cannot transmit, the hemisphere of the shading normal on the
 /// side of `wi` (local), where alone the BSDF is nonzero; else everything.
 #[inline]
 pub fn guide_mask(hemisphere: bool, flags: BsdfFlags, frame: &Frame, wi: Vec3) -> CellMask {
-    if hemisphere && !flags.transmission {
-        CellMask::hemisphere(if wi.z < 0.0 { -frame.n } else { frame.n })
-    } else {
-        CellMask::ALL
+    match reflecting_normal(flags, frame, wi) {
+        Some(n) if hemisphere => CellMask::hemisphere(n),
+        _ => CellMask::ALL,
     }
 }
 
@@ -125,10 +131,10 @@ pub fn guide_region(
     frame: &Frame,
     wi: Vec3,
 ) -> CellWeights {
-    if hemisphere && cosine && !flags.transmission {
-        CellWeights::cosine(if wi.z < 0.0 { -frame.n } else { frame.n })
-    } else {
-        guide_mask(hemisphere, flags, frame, wi).into()
+    match reflecting_normal(flags, frame, wi) {
+        Some(n) if hemisphere && cosine => CellWeights::cosine(n),
+        Some(n) if hemisphere => CellMask::hemisphere(n).into(),
+        _ => CellWeights::ALL,
     }
 }
 
@@ -136,14 +142,11 @@ pub fn guide_region(
 /// one): what guided roulette's radiance estimate (flux x pdf) needs. 0 where the restriction
 /// leaves the direction out. The cell's weight is looked up by [`CellMask::cell_of_dir`] (no
 /// arctangent; 1.7 % of a veach-ajar render with `dir_to_uv`), which may pick the neighbouring
-/// quarter within rounding of its edge: that only moves a survival probability.
+/// quarter within rounding of its edge: that only moves a survival probability. (Unweighted
+/// cells have weight exactly 1, so a plain mask divides by 1.)
 #[inline]
 fn unrestricted_guide_pdf(r: &Restriction, ms: &MixtureSample) -> f32 {
-    if r.weight == [1.0; 16] {
-        ms.p_guide * r.mass
-    } else {
-        ms.p_guide * r.mass / r.weight[CellMask::cell_of_dir(ms.wo_world) as usize]
-    }
+    ms.p_guide * r.mass / r.weight[CellMask::cell_of_dir(ms.wo_world) as usize]
 }
 
 /// Power-heuristic weight of the strategy with pdf `a` against the one with `b` (light
