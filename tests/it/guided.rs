@@ -211,11 +211,9 @@ fn path_and_guided(
     (reference, film, stats)
 }
 
-#[test]
-fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splitting() {
-    // The project's door-ajar (light through a door gap: the pathfarm preset splits paths
-    // there by the thousand, where the Cornell box splits one path a render or none) at 48x27
-    // with a box filter, 256 spp. Same statistics as the Cornell box test.
+/// The project's door-ajar at 48x27 with a box filter as (`path` scene, `guided_path` scene
+/// with the pathfarm preset and no path fallback); `tag` keeps temp files apart.
+fn door_ajar_pair(tag: &str) -> (Scene, Scene) {
     let xml = std::fs::read_to_string(project_scene("door-ajar"))
         .unwrap()
         .replace(
@@ -223,7 +221,7 @@ fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splittin
             r#"<rfilter type="box" />"#,
         );
     assert!(xml.contains(r#"<rfilter type="box" />"#));
-    let path = write_scene("door-agree", &xml);
+    let path = write_scene(&format!("door-{tag}"), &xml);
     let dir = path.parent().unwrap();
     let mesh = "icosphere.obj";
     std::fs::copy(
@@ -237,11 +235,22 @@ fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splittin
     gdefs.push(("integrator", "guided_path"));
     let mut guided_scene = load(&path, &gdefs);
     guided_scene.guided.as_mut().unwrap().path_fallback = false;
+    (path_scene, guided_scene)
+}
+
+#[test]
+fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splitting() {
+    // The project's door-ajar (light through a door gap: the pathfarm preset splits paths
+    // there by the thousand, where the Cornell box splits one path a render or none) at 48x27
+    // with a box filter, 256 spp. Same statistics as the Cornell box test. Guided roulette
+    // runs from the preset's guided_rr_depth (3), two bounces before rr_depth.
+    let (path_scene, guided_scene) = door_ajar_pair("agree");
     let p = guided_scene.guided.as_ref().unwrap();
     assert!(
         p.splitting && p.guide_hemisphere && p.guide_cosine,
         "the pathfarm preset"
     );
+    assert!(p.guided_rr_depth < p.path.rr_depth, "early guided roulette");
     let (reference, film, stats) = path_and_guided(&path_scene, &guided_scene, 256);
     assert!(
         stats.split_paths > 1000,
@@ -249,6 +258,29 @@ fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splittin
         stats.split_paths
     );
     assert_agrees_with(&film, &reference, "guided door-ajar");
+}
+
+#[test]
+fn guided_roulette_starts_at_guided_rr_depth() {
+    // The same job with guided roulette from depth 2 and from depth 13 (= max_depth: never):
+    // the training iterations before the tree is built are identical (no guided roulette
+    // yet), the later ones trace fewer rays per sample with the earlier start, and the
+    // final image differs.
+    let (_, mut early) = door_ajar_pair("rr-early");
+    let (_, mut late) = door_ajar_pair("rr-late");
+    early.guided.as_mut().unwrap().guided_rr_depth = 2;
+    late.guided.as_mut().unwrap().guided_rr_depth = 13;
+    let (film_e, stats_e, _) = guided(&early, 16, 3);
+    let (film_l, stats_l, _) = guided(&late, 16, 3);
+    let rays =
+        |s: &GuidedStats| -> Vec<f64> { s.iterations.iter().map(|i| i.rays_per_sample).collect() };
+    let (re, rl) = (rays(&stats_e), rays(&stats_l));
+    assert_eq!(re.len(), rl.len());
+    assert_eq!(re[0], rl[0], "iteration 0 has no tree: no guided roulette");
+    for k in 2..re.len() {
+        assert!(re[k] < rl[k], "iteration {k}: {} vs {} rays", re[k], rl[k]);
+    }
+    assert!(film_e.mean_rgb() != film_l.mean_rgb());
 }
 
 /// Per pixel, |a - b| / sqrt(var_a + var_b) above the two-sided 0.001 quantile fails; at most
@@ -410,7 +442,15 @@ fn guided_parameters_follow_the_preset_and_explicit_values_override_it() {
         p.guide_hemisphere && p.guide_cosine,
         "the pathfarm preset's"
     );
+    assert_eq!((p.guided_rr_depth, p.path.rr_depth), (3, 5));
+    let integ = r#"<integrator type="guided_path"><integer name="guided_rr_depth" value="6"/></integrator>"#;
+    let desc = load_scene(&write_scene("params-rr", &furnace(integ)), &[]).unwrap();
+    let IntegratorDesc::GuidedPath(p) = desc.integrator else {
+        panic!("not guided")
+    };
+    assert_eq!(p.guided_rr_depth, 6);
     for bad in [
+        r#"<integrator type="guided_path"><integer name="guided_rr_depth" value="0"/></integrator>"#,
         r#"<integrator type="guided_path"><float name="budgett" value="3"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="nee" value="sometimes"/></integrator>"#,
         r#"<integrator type="guided_path"><string name="preset" value="2018"/></integrator>"#,

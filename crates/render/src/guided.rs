@@ -366,6 +366,7 @@ pub fn render_guided_with_policy(
             kickstart: params.nee == GuidedNee::Kickstart && nee,
             record,
             ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
+            guided_rr_depth: params.guided_rr_depth,
             hemisphere: params.guide_hemisphere,
             cosine: params.guide_cosine,
             split: params.splitting && split,

@@ -161,6 +161,12 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
                 ("guided", GuidedRoulette::Guided),
             ],
         )?,
+        guided_rr_depth: p.int_in(
+            "guided_rr_depth",
+            d.guided_rr_depth as i64,
+            1,
+            u32::MAX as i64,
+        )? as u32,
         splitting: p.bool("splitting", d.splitting)?,
         path_fallback: p.bool("path_fallback", d.path_fallback)?,
         guide_hemisphere: p.bool("guide_hemisphere", d.guide_hemisphere)?,

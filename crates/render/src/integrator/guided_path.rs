@@ -12,10 +12,13 @@
 //! * NEE is weighted with the power heuristic against the *same* `p_mix`
 //!   (same leaf, same alpha), and emitters hit by the sampled direction are
 //!   weighted with `p_mix` on the BSDF side ([`mixture_pdf`], [`mis_weight`]).
-//! * Russian roulette is Mitsuba's (unchanged from `path`): survival
-//!   `min(max(throughput) eta^2, 0.95)` from `rr_depth` on. \[G\] effectively
-//!   disables it once the tree is built; keeping Mitsuba's keeps the
-//!   integrator's documented semantics and is unbiased either way.
+//! * Russian roulette (`russian_roulette`): Mitsuba's (as `path`: survival
+//!   `min(max(throughput) eta^2, 0.95)` from `rr_depth` on); \[G\]'s, which
+//!   effectively disables it once the tree is built ([`ppg_survival`]); or guided
+//!   (the pathfarm preset): at guided vertices, once pixel estimates exist, from
+//!   `guided_rr_depth` on, survival by the path's expected contribution against
+//!   the pixel's value ([`guided_survival`]), and Mitsuba's elsewhere. All are
+//!   unbiased.
 //! * Recording (training iterations only) uses the forward-loop suffix-radiance
 //!   bookkeeping of [`PathRecorder`]: every contribution added to the pixel is
 //!   added to the accumulator of every open vertex; at path end
@@ -73,6 +76,9 @@ pub struct GuideCtx<'a> {
     /// Guided Russian roulette: each pixel's estimated value (index `y * width + x`), from
     /// the previous iterations. `None`: Mitsuba's throughput-based roulette everywhere.
     pub pixel_estimate: Option<&'a [f32]>,
+    /// Depth from which guided roulette (with `pixel_estimate`, at guided vertices) applies
+    /// (`guided_rr_depth`); elsewhere roulette starts at `rr_depth`.
+    pub guided_rr_depth: u32,
     /// Russian roulette of Müller's reference implementation (`russian_roulette` = `ppg`):
     /// from `rr_depth` on, at vertices with a smooth BSDF whose sampled lobe is not delta,
     /// survival `clamp(max(throughput) eta^2, 0.1, 0.99)` before the tree is built and 0.99
@@ -891,27 +897,34 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         prev_nee = v.nee;
         depth += 1;
 
-        // Russian roulette: the reference implementation's, guided (weight window) where the
-        // guide applies and pixel estimates exist, else as Mitsuba does it.
+        // Russian roulette: the reference implementation's, guided (weight window, from
+        // `guided_rr_depth`) where the guide applies and pixel estimates exist, else as
+        // Mitsuba does it.
         let tp_max = throughput.max_element();
-        if depth >= params.rr_depth {
+        let guided_estimate = match g.pixel_estimate {
+            Some(est) if !g.ppg_roulette && vg.guided && !ms.delta => Some(est),
+            _ => None,
+        };
+        let rr_from = if guided_estimate.is_some() {
+            g.guided_rr_depth
+        } else {
+            params.rr_depth
+        };
+        if depth >= rr_from {
             let q = if g.ppg_roulette {
                 ppg_survival(v.smooth && !ms.delta, tree.is_built(), tp_max, eta)
+            } else if let Some(est) = guided_estimate {
+                let e = expected_contribution(
+                    tree,
+                    vg,
+                    throughput,
+                    // (the unrestricted guide's pdf: the radiance estimate is flux x pdf)
+                    ROULETTE_DIRECTIONAL * unrestricted_guide_pdf(&vg.region, &ms)
+                        + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
+                );
+                guided_survival(e, est.get(pixel).copied().unwrap_or(f32::NAN))
             } else {
-                match g.pixel_estimate {
-                    Some(est) if vg.guided && !ms.delta => {
-                        let e = expected_contribution(
-                            tree,
-                            vg,
-                            throughput,
-                            // (the unrestricted guide's pdf: the radiance estimate is flux x pdf)
-                            ROULETTE_DIRECTIONAL * unrestricted_guide_pdf(&vg.region, &ms)
-                                + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
-                        );
-                        guided_survival(e, est.get(pixel).copied().unwrap_or(f32::NAN))
-                    }
-                    _ => mitsuba_survival(tp_max, eta),
-                }
+                mitsuba_survival(tp_max, eta)
             };
             if rng.next_f32() >= q {
                 end_path!('paths)
