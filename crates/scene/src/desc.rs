@@ -203,6 +203,8 @@ pub struct GuidedParams {
     /// roulette does not. Measured (pathfarm preset, 30 CPU-s, relMSE, paired medians over
     /// 6 seeds, 2026-11-23, AMD EPYC Zen 3): veach-ajar 0.86 (6 of 6 seeds better) at 3,
     /// 0.88 at 4, 0.82 at 2; door-ajar 1.00 at 3 (12 seeds), 1.00 at 4, 1.08 at 2, 1.09 at 1.
+    /// At 120 CPU-s on veach-ajar 3 was neutral: 1.03 over 7 seeds (3 better), the gain is
+    /// at short budgets, where the early roulette saves the most time.
     pub guided_rr_depth: u32,
     /// `splitting`: with guided Russian roulette, split paths whose expected contribution is
     /// well above the pixel's estimated value (the weight window's upper edge), in the passes
