@@ -266,12 +266,15 @@ fn guided_roulette_starts_at_guided_rr_depth() {
     // the training iterations before the tree is built are identical (no guided roulette
     // yet), the later ones trace fewer rays per sample with the earlier start, and the
     // final image differs.
-    let (_, mut early) = door_ajar_pair("rr-early");
-    let (_, mut late) = door_ajar_pair("rr-late");
-    early.guided.as_mut().unwrap().guided_rr_depth = 2;
-    late.guided.as_mut().unwrap().guided_rr_depth = 13;
-    let (film_e, stats_e, _) = guided(&early, 16, 3);
-    let (film_l, stats_l, _) = guided(&late, 16, 3);
+    let (_, scene) = door_ajar_pair("rr");
+    let from = |depth: u32| {
+        let mut params = scene.guided.clone().unwrap();
+        params.guided_rr_depth = depth;
+        let settings = RenderSettings::new(Some(16), None, 3);
+        render_guided(&scene, &params, Budget::Spp(16), &settings, &|_| {})
+    };
+    let (film_e, stats_e, _) = from(2);
+    let (film_l, stats_l, _) = from(13);
     let rays =
         |s: &GuidedStats| -> Vec<f64> { s.iterations.iter().map(|i| i.rays_per_sample).collect() };
     let (re, rl) = (rays(&stats_e), rays(&stats_l));
