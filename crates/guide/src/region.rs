@@ -88,23 +88,74 @@ impl CellMask {
 }
 
 /// The exact maximum of `n . w` over each cell of the 4x4 grid (index `iu + 4 iv`).
+///
+/// Over a cell, n . w = nz z + sqrt(1 - z^2) (nx cos phi + ny sin phi). For a quarter k of
+/// phi, [k pi/2, (k+1) pi/2], the largest value of the bracket is |n_xy| when n's azimuth
+/// lies in the quarter, else the larger of its values at the two edges, which are e_k and
+/// e_{k+1} with e = (nx, ny, -nx, -ny). Then g(z) = nz z + c sqrt(1 - z^2) is concave for
+/// c > 0 (maximum at z* = nz / sqrt(nz^2 + c^2), value sqrt(nz^2 + c^2)), else largest at an
+/// end of the band.
+///
+/// The per-quarter values are computed once (4 lanes) and the per-cell ones over all 16 cells
+/// at once from constant tables, so that it compiles to vector code (it runs at every guided
+/// vertex); the arithmetic is the scalar loop's, operation for operation (a test compares
+/// the bits).
 #[inline]
-fn cell_max_cosines(n: Vec3) -> [f32; 16] {
-    // Over a cell, n . w = nz z + sqrt(1 - z^2) (nx cos phi + ny sin phi). For a quarter
-    // k of phi, [k pi/2, (k+1) pi/2], the largest value of the bracket is |n_xy| when
-    // n's azimuth lies in the quarter, else the larger of its values at the two edges,
-    // which are e_k and e_{k+1} with e = (nx, ny, -nx, -ny).
+pub(crate) fn cell_max_cosines(n: Vec3) -> [f32; 16] {
     let e = [n.x, n.y, -n.x, -n.y];
     let r = (n.x * n.x + n.y * n.y).sqrt();
-    // z at the band edges and sqrt(1 - z^2) there.
+    let mut c4 = [0.0f32; 4];
+    let mut peak4 = [0.0f32; 4];
+    let mut zs4 = [0.0f32; 4];
+    for k in 0..4 {
+        let (a, b) = (e[k], e[(k + 1) % 4]);
+        let c = if a >= 0.0 && b >= 0.0 { r } else { a.max(b) };
+        let peak = (n.z * n.z + c * c).sqrt();
+        c4[k] = c;
+        peak4[k] = peak;
+        zs4[k] = if c > 0.0 { n.z / peak } else { f32::NAN };
+    }
+    let mut out = [0.0f32; 16];
+    for i in 0..16 {
+        let k = i >> 2;
+        let (c, peak, zs) = (c4[k], peak4[k], zs4[k]);
+        let m = (n.z * BAND_Z0[i] + c * BAND_S0[i]).max(n.z * BAND_Z1[i] + c * BAND_S1[i]);
+        out[i] = if zs >= BAND_Z0[i] && zs <= BAND_Z1[i] {
+            m.max(peak)
+        } else {
+            m
+        };
+    }
+    out
+}
+
+/// Per cell `iu + 4 iv`: the lower and upper `z` of its band and `sqrt(1 - z^2)` there.
+const BAND_Z0: [f32; 16] = band_table([-1.0, -0.5, 0.0, 0.5]);
+const BAND_Z1: [f32; 16] = band_table([-0.5, 0.0, 0.5, 1.0]);
+const BAND_S0: [f32; 16] = band_table([0.0, 0.866_025_4, 1.0, 0.866_025_4]);
+const BAND_S1: [f32; 16] = band_table([0.866_025_4, 1.0, 0.866_025_4, 0.0]);
+
+const fn band_table(per_band: [f32; 4]) -> [f32; 16] {
+    let mut t = [0.0; 16];
+    let mut i = 0;
+    while i < 16 {
+        t[i] = per_band[i & 3];
+        i += 1;
+    }
+    t
+}
+
+/// The scalar form of [`cell_max_cosines`], which the tests compare it with bit for bit.
+#[cfg(test)]
+pub(crate) fn cell_max_cosines_scalar(n: Vec3) -> [f32; 16] {
+    let e = [n.x, n.y, -n.x, -n.y];
+    let r = (n.x * n.x + n.y * n.y).sqrt();
     const Z: [f32; 5] = [-1.0, -0.5, 0.0, 0.5, 1.0];
     const S: [f32; 5] = [0.0, 0.866_025_4, 1.0, 0.866_025_4, 0.0];
     let mut out = [0.0f32; 16];
     for k in 0..4 {
         let (a, b) = (e[k], e[(k + 1) % 4]);
         let c = if a >= 0.0 && b >= 0.0 { r } else { a.max(b) };
-        // g(z) = nz z + c sqrt(1 - z^2): concave for c > 0 (maximum at
-        // z* = nz / sqrt(nz^2 + c^2), value sqrt(nz^2 + c^2)), else largest at an end.
         let peak = (n.z * n.z + c * c).sqrt();
         let z_star = if c > 0.0 { n.z / peak } else { f32::NAN };
         for iu in 0..4 {
@@ -117,6 +168,29 @@ fn cell_max_cosines(n: Vec3) -> [f32; 16] {
         }
     }
     out
+}
+
+/// The scalar form of [`CellWeights::cosine`] over [`cell_max_cosines_scalar`], which the
+/// tests compare it with bit for bit.
+#[cfg(test)]
+pub(crate) fn cosine_weights_scalar(n: Vec3) -> CellWeights {
+    if !n.is_finite() || n == Vec3::ZERO {
+        return CellWeights::ALL;
+    }
+    let max = cell_max_cosines_scalar(n);
+    let dirs = &*MEAN_DIRS;
+    let mut weight = [1.0f32; 16];
+    let mut mask = 0u16;
+    for i in 0..16 {
+        if max[i] > HEMISPHERE_EPSILON {
+            mask |= 1 << i;
+            weight[i] = n.dot(dirs[i]).max(0.25 * max[i]);
+        }
+    }
+    CellWeights {
+        mask: CellMask(mask),
+        weight,
+    }
 }
 
 /// Mean of `w` over each cell (index `iu + 4 iv`) as `(x, y, z)` coefficients: the mean of
@@ -147,6 +221,12 @@ fn cell_mean_dirs() -> [Vec3; 16] {
 }
 
 static MEAN_DIRS: std::sync::LazyLock<[Vec3; 16]> = std::sync::LazyLock::new(cell_mean_dirs);
+
+/// [`MEAN_DIRS`] by component (`[x; 16], [y; 16], [z; 16]`), for vector code.
+static MEAN_DIRS_SOA: std::sync::LazyLock<[[f32; 16]; 3]> = std::sync::LazyLock::new(|| {
+    let d = &*MEAN_DIRS;
+    [d.map(|v| v.x), d.map(|v| v.y), d.map(|v| v.z)]
+});
 
 /// A [`CellMask`] with a weight per cell: the part of the sphere a guide samples from, each
 /// cell's density scaled by its weight before renormalising (see [`Restriction`]). Weights
@@ -179,14 +259,15 @@ impl CellWeights {
             return Self::ALL;
         }
         let max = cell_max_cosines(n);
-        let dirs = &*MEAN_DIRS;
+        let [dx, dy, dz] = &*MEAN_DIRS_SOA;
         let mut weight = [1.0f32; 16];
         let mut mask = 0u16;
+        // (n . d as glam's Vec3::dot computes it: x, then + y, then + z)
         for i in 0..16 {
-            if max[i] > HEMISPHERE_EPSILON {
-                mask |= 1 << i;
-                weight[i] = n.dot(dirs[i]).max(0.25 * max[i]);
-            }
+            let inside = max[i] > HEMISPHERE_EPSILON;
+            let w = (n.x * dx[i] + n.y * dy[i] + n.z * dz[i]).max(0.25 * max[i]);
+            weight[i] = if inside { w } else { 1.0 };
+            mask |= (inside as u16) << i;
         }
         Self {
             mask: CellMask(mask),

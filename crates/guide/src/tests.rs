@@ -1791,6 +1791,42 @@ fn scanned_mean_min(n: Vec3, cell: u32) -> (f64, f32) {
 }
 
 #[test]
+fn vectorised_cell_cosines_equal_the_scalar_form_bit_for_bit() {
+    // Deterministic arithmetic (no significance level): the 16-lane form must round exactly
+    // as the scalar loop, or images change with the compiler's choice of code.
+    let mut rng = Pcg::new(71);
+    let mut normals: Vec<Vec3> = (0..20_000).map(|_| random_unit(&mut rng)).collect();
+    // Axis-aligned normals and normals a rounding error off them (walls and floors), where
+    // the band edges and the azimuth quarters are hit exactly.
+    for a in [Vec3::X, Vec3::Y, Vec3::Z, -Vec3::X, -Vec3::Y, -Vec3::Z] {
+        normals.push(a);
+        for e in [1e-7f32, -1e-7, 1e-4] {
+            normals.push((a + Vec3::splat(e)).normalize());
+            normals.push((a + Vec3::new(e, -e, 0.5 * e)).normalize());
+        }
+    }
+    normals.push(Vec3::new(0.5, 0.5, 0.5f32.sqrt()).normalize());
+    normals.push(Vec3::new(0.0, 0.6, -0.8));
+    for n in normals {
+        let (v, s) = (
+            crate::region::cell_max_cosines(n),
+            crate::region::cell_max_cosines_scalar(n),
+        );
+        assert_eq!(v.map(f32::to_bits), s.map(f32::to_bits), "{n}: maxima");
+        let (v, s) = (
+            CellWeights::cosine(n),
+            crate::region::cosine_weights_scalar(n),
+        );
+        assert_eq!(v.mask, s.mask, "{n}");
+        assert_eq!(
+            v.weight.map(f32::to_bits),
+            s.weight.map(f32::to_bits),
+            "{n}: weights"
+        );
+    }
+}
+
+#[test]
 fn cosine_weights_are_the_cells_mean_cosine_and_bounded_at_the_horizon() {
     // Deterministic geometry (no significance level); tolerances cover the 64x64 quadrature.
     // A floor: the bands z in [0, 0.5) and [0.5, 1] have mean cosines 1/4 and 3/4.
