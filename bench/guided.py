@@ -30,6 +30,12 @@ Equal-time relMSE at CPU-second budgets (default 30 and 120). Same conventions a
     and stored ("other_cpu_s"; for pathfarm it includes its own scene loading, ~1.5-2 CPU-s on
     veach-ajar, which is not part of the summary's render-phase cpu_s). Runs with other_cpu_s > 3
     are contaminated: move them out of guided.jsonl and re-run with --resume.
+  - cornell-box (whose target is a ratio to pathfarm path of at most 1.10, smaller than the
+    10-20 % by which throughput drifts between consecutive runs on shared machines): each guided
+    configuration runs at the same time as a pathfarm path run with the same seed, both
+    single-threaded (`--threads 1 --time budget`), pinned to one core each with taskset, cores
+    swapped every repetition. The target line gives the median of these paired ratios; the
+    path rows carry "partner_of". `--no-pair-cornell` runs them one after another as above.
   - Repetitions use different seeds; the table shows medians over repetitions.
 Raw results: results/guided.jsonl (one line per run); table: results/guided.md; images:
 results/renders/guided-*.exr/.png (git-ignored).
@@ -132,26 +138,28 @@ def guided_wrapper(xml, preset, tmp):
     return os.path.join(d, "scene.xml")
 
 
-def run_pathfarm(a, xml, res, md, out, tlimit, seed, integrator=None):
-    args = [a.pathfarm, "render", xml, "-o", out, "--seed", str(seed), "--threads", str(a.threads),
+def pathfarm_args(a, xml, res, md, out, tlimit, seed, integrator=None, threads=None, cpu=None):
+    threads = threads or a.threads
+    args = [a.pathfarm, "render", xml, "-o", out, "--seed", str(seed), "--threads", str(threads),
             "--time", "%.3f" % tlimit,
             "-D", "resx=%d" % res[0], "-D", "resy=%d" % res[1], "-D", "max_depth=%d" % md]
     if integrator:
         args += ["-D", "integrator=%s" % integrator]
-    b0, c0 = cpu_busy_s(), time.time()
-    p = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    busy = cpu_busy_s() - b0
-    if p.returncode != 0:
-        raise RuntimeError("pathfarm failed (%d): %s\n%s" % (p.returncode, " ".join(args), p.stderr[-2000:]))
+    return (["taskset", "-c", str(cpu)] if cpu is not None else []) + args
+
+
+def parse_pathfarm(args, p_returncode, stdout, stderr):
+    """The result record of one finished `pathfarm render` (summary and guided lines)."""
+    if p_returncode != 0:
+        raise RuntimeError("pathfarm failed (%d): %s\n%s" % (p_returncode, " ".join(args), stderr[-2000:]))
     m = None
-    for line in p.stdout.splitlines():
+    for line in stdout.splitlines():
         m = R.SUMMARY_RE.search(line) or m
     if not m:
-        raise RuntimeError("no summary line in pathfarm output:\n" + p.stdout[-2000:])
+        raise RuntimeError("no summary line in pathfarm output:\n" + stdout[-2000:])
     w, h, spp, wall, cpu, _ = m.groups()
-    r = {"spp": int(spp), "wall_s": float(wall), "cpu_s": float(cpu), "cmd": " ".join(args),
-         "other_cpu_s": max(0.0, busy - float(cpu)), "elapsed_s": time.time() - c0}
-    err = ANSI.sub("", p.stderr)
+    r = {"spp": int(spp), "wall_s": float(wall), "cpu_s": float(cpu), "cmd": " ".join(args)}
+    err = ANSI.sub("", stderr)
     g = GUIDED_RE.search(err)
     if g:
         r["training_fraction"] = float(g.group(1))
@@ -163,6 +171,35 @@ def run_pathfarm(a, xml, res, md, out, tlimit, seed, integrator=None):
         fb = FALLBACK_RE.search(err)
         r["path_fallback"] = fb.group(1) if fb else "no"
     return r
+
+
+def run_pathfarm(a, xml, res, md, out, tlimit, seed, integrator=None):
+    args = pathfarm_args(a, xml, res, md, out, tlimit, seed, integrator)
+    b0, c0 = cpu_busy_s(), time.time()
+    p = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    busy = cpu_busy_s() - b0
+    r = parse_pathfarm(args, p.returncode, p.stdout, p.stderr)
+    r.update({"other_cpu_s": max(0.0, busy - r["cpu_s"]), "elapsed_s": time.time() - c0})
+    return r
+
+
+def run_pathfarm_pair(a, jobs, budget):
+    """Runs two `pathfarm render`s at the same time, single-threaded, one pinned to each core,
+    each with the whole CPU-second budget as its wall-clock limit: both see the same machine
+    (consecutive runs differ by 10-20 % in throughput on shared machines, which is the size of
+    the Cornell target). jobs = [(xml, res, md, out, seed, integrator, cpu)] x 2."""
+    procs = []
+    b0, c0 = cpu_busy_s(), time.time()
+    for xml, res, md, out, seed, integ, cpu in jobs:
+        args = pathfarm_args(a, xml, res, md, out, budget, seed, integ, threads=1, cpu=cpu)
+        procs.append((args, subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)))
+    outs = [(args, p.communicate(), p.returncode) for args, p in procs]
+    busy = cpu_busy_s() - b0
+    rs = [parse_pathfarm(args, rc, o, e) for args, (o, e), rc in outs]
+    other = max(0.0, busy - sum(r["cpu_s"] for r in rs))
+    for r in rs:
+        r.update({"other_cpu_s": other, "elapsed_s": time.time() - c0, "threads": 1, "cpu": r["cmd"].split()[2]})
+    return rs
 
 
 # ----------------------------------------------------------------------------------------------
@@ -286,7 +323,12 @@ def write_table(a):
              "spp = total spp (guided: training + final), final = spp of the last iteration. "
              "other CPU-s = CPU time of other processes during the run (should be ~0). "
              "fallback = runs (of n) in which the path fallback rendered the rest as plain path tracing.",
-             "",
+             ""]
+    if any(r.get("partner_of") for r in rows):
+        lines += ["cornell-box: each guided run was made at the same time as a path run (same seed, `--threads 1 "
+                  "--time budget` each, one core each, cores swapped per repetition); the path row holds all of "
+                  "them, and the target lines use the per-pair ratios.", ""]
+    lines += [
              "| scene | budget CPU-s | renderer | relMSE | relMSE excl. edges | ratio vs Mitsuba path | spp (final) | CPU-s used | "
              "training fraction | tree MB | fallback | n | other CPU-s (max) |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -319,8 +361,20 @@ def write_table(a):
             lines.append("- veach-ajar @ %g CPU-s: Mitsuba path relMSE / %s relMSE = %.2f (target >= 5: %s%s)."
                          % (b, gl, f, "met" if f >= 5 else "MISSED", "" if f >= 5 else
                             "; %s is %.2fx *higher*" % (gl, 1 / f) if f < 1 else ", %.1fx short" % (5 / f)))
+        pairs = [(r, p) for r in groups.get(("cornell-box", b, gc), [])
+                 for p in groups.get(("cornell-box", b, "pf-path"), [])
+                 if p.get("partner_of") == gc and p["rep"] == r["rep"]]
         g, p = meds.get(("cornell-box", b, gc)), meds.get(("cornell-box", b, "pf-path"))
-        if g and p:
+        if pairs:
+            # Runs made side by side: the median of the per-pair ratios.
+            f1 = statistics.median(r["relmse_masked"] / p["relmse_masked"] for r, p in pairs)
+            f0 = statistics.median(r["relmse"] / p["relmse"] for r, p in pairs)
+            lines.append("- cornell-box @ %g CPU-s: %s / pathfarm path relMSE = %.3f excl. emitter edges, %.3f plain "
+                         "(target <= 1.10: %s); median of %d ratios of runs made side by side: %s; spp guided / "
+                         "path: %s." % (b, gl, f1, f0, "met" if f1 <= 1.10 else "MISSED", len(pairs),
+                                        ", ".join("%.3f" % (r["relmse_masked"] / p["relmse_masked"]) for r, p in pairs),
+                                        ", ".join("%d/%d" % (r["spp"], p["spp"]) for r, p in pairs)))
+        elif g and p:
             f1 = g["relmse_masked"] / p["relmse_masked"]
             f0 = g["relmse"] / p["relmse"]
             lines.append("- cornell-box @ %g CPU-s: %s / pathfarm path relMSE = %.3f excl. emitter edges, %.3f plain "
@@ -463,6 +517,9 @@ def main():
     ap.add_argument("--cornell-all-budgets", action="store_true", help="also run cornell-box at budgets > the smallest")
     ap.add_argument("--resume", action="store_true", help="keep results/guided.jsonl and skip runs already in it")
     ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--no-pair-cornell", dest="pair_cornell", action="store_false",
+                    help="run cornell-box's path and guided configurations one after another (default: each "
+                         "guided configuration at the same time as a path run, one core each)")
     ap.add_argument("--no-wait", action="store_true", help="do not wait for an idle machine (testing only)")
     ap.add_argument("--make-door-reference", action="store_true")
     ap.add_argument("--workdir", default=os.path.join(RESULTS, "renders"))
@@ -481,7 +538,8 @@ def main():
     if a.resume and os.path.exists(jl):
         for l in open(jl):
             r = json.loads(l)
-            done.add((r["scene"], r["budget"], r["config"], r["rep"]))
+            # (a path run beside a guided one is done with its guided partner)
+            done.add((r["scene"], r["budget"], r["config"], r["rep"], r.get("partner_of", "")))
     elif os.path.exists(jl):
         os.rename(jl, jl + ".old")
     import hashlib
@@ -505,16 +563,29 @@ def main():
                         refs[name] = (ref, R.emitter_edge_mask(ref))
                     ref, mask = refs[name]
                     for c in PLAN[name]:
-                        if c not in a.configs or (name, b, c, rep) in done:
+                        paired = a.pair_cornell and name == "cornell-box" and "pf-path" in a.configs
+                        if paired and c == "pf-path":
+                            continue  # runs beside each guided configuration (below)
+                        if c not in a.configs or (name, b, c, rep, "") in done:
                             continue
                         stem = os.path.join(a.workdir, "guided-%s-%g-%s-r%d" % (name, b, c, rep))
                         if not a.no_wait:
                             wait_idle()
                         t0 = time.time()
+                        runs = []  # (record, image path, partner_of)
                         try:
                             if c == "mi-path":
                                 r = run_mitsuba(a, xml, res, md, stem + ".npy", b, seed=100000 * (rep + 1))
-                                img = R.load_image(stem + ".npy")
+                                runs.append((r, stem + ".npy", None))
+                            elif paired:
+                                # Guided and path at the same time, one core each; the cores
+                                # swap every repetition.
+                                cpus = (0, 1) if rep % 2 == 0 else (1, 0)
+                                gx = guided_wrapper(xml, c[3:], tmp)
+                                rg, rp = run_pathfarm_pair(a, [
+                                    (gx, res, md, stem + ".exr", 100 + rep, None, cpus[0]),
+                                    (xml, res, md, stem + "-path.exr", 100 + rep, "path", cpus[1])], b)
+                                runs += [(rg, stem + ".exr", None), (rp, stem + "-path.exr", c)]
                             else:
                                 if c == "pf-path":
                                     x, integ = xml, "path"
@@ -522,22 +593,28 @@ def main():
                                     x, integ = guided_wrapper(xml, c[3:], tmp), None
                                 r = run_pathfarm(a, x, res, md, stem + ".exr", b / a.threads, seed=100 + rep,
                                                  integrator=integ)
-                                img = R.load_image(stem + ".exr")
+                                runs.append((r, stem + ".exr", None))
                         except Exception as e:
                             log("[%s %g %s r%d] ERROR %s" % (name, b, c, rep, str(e)[:500]))
                             continue
-                        r.update({"scene": name, "budget": b, "config": c, "rep": rep,
-                                  "relmse": R.relmse(img, ref), "relmse_masked": R.relmse(img, ref, mask),
-                                  "mean_rgb": [float(x) for x in img.reshape(-1, 3).mean(0)],
-                                  "ref_mean_rgb": [float(x) for x in ref.reshape(-1, 3).mean(0)],
-                                  "time_utc": time.strftime("%H:%M:%S", time.gmtime()),
-                                  "pathfarm_sha256": binary_sha})
-                        with open(jl, "a") as f:
-                            f.write(json.dumps(r) + "\n")
-                        log("[%s %g %s r%d] %.0fs: relMSE %.4g (excl. edges %.4g) spp %s cpu %.1f%s other %.1f"
-                            % (name, b, c, rep, time.time() - t0, r["relmse"], r["relmse_masked"], r["spp"], r["cpu_s"],
-                               " train %.3f tree %.2f MB" % (r["training_fraction"], r["tree_memory_mb"])
-                               if "training_fraction" in r else "", r.get("other_cpu_s", 0)))
+                        for r, img_path, partner_of in runs:
+                            img = R.load_image(img_path)
+                            cfg = "pf-path" if partner_of else c
+                            r.update({"scene": name, "budget": b, "config": cfg, "rep": rep,
+                                      "relmse": R.relmse(img, ref), "relmse_masked": R.relmse(img, ref, mask),
+                                      "mean_rgb": [float(x) for x in img.reshape(-1, 3).mean(0)],
+                                      "ref_mean_rgb": [float(x) for x in ref.reshape(-1, 3).mean(0)],
+                                      "time_utc": time.strftime("%H:%M:%S", time.gmtime()),
+                                      "pathfarm_sha256": binary_sha})
+                            if partner_of:
+                                r["partner_of"] = partner_of
+                            with open(jl, "a") as f:
+                                f.write(json.dumps(r) + "\n")
+                            log("[%s %g %s%s r%d] %.0fs: relMSE %.4g (excl. edges %.4g) spp %s cpu %.1f%s other %.1f"
+                                % (name, b, cfg, " (beside %s)" % partner_of if partner_of else "", rep,
+                                   time.time() - t0, r["relmse"], r["relmse_masked"], r["spp"], r["cpu_s"],
+                                   " train %.3f tree %.2f MB" % (r["training_fraction"], r["tree_memory_mb"])
+                                   if "training_fraction" in r else "", r.get("other_cpu_s", 0)))
                 write_table(a)
                 write_curves(a)
     finally:
