@@ -197,8 +197,8 @@ def run_pathfarm_pair(a, jobs, budget):
     busy = cpu_busy_s() - b0
     rs = [parse_pathfarm(args, rc, o, e) for args, (o, e), rc in outs]
     other = max(0.0, busy - sum(r["cpu_s"] for r in rs))
-    for r in rs:
-        r.update({"other_cpu_s": other, "elapsed_s": time.time() - c0, "threads": 1, "cpu": r["cmd"].split()[2]})
+    for r, job in zip(rs, jobs):
+        r.update({"other_cpu_s": other, "elapsed_s": time.time() - c0, "threads": 1, "cpu": job[6]})
     return rs
 
 

@@ -178,13 +178,13 @@ pub(crate) fn cosine_weights_scalar(n: Vec3) -> CellWeights {
         return CellWeights::ALL;
     }
     let max = cell_max_cosines_scalar(n);
-    let dirs = &*MEAN_DIRS;
+    let [dx, dy, dz] = &*MEAN_DIRS;
     let mut weight = [1.0f32; 16];
     let mut mask = 0u16;
     for i in 0..16 {
         if max[i] > HEMISPHERE_EPSILON {
             mask |= 1 << i;
-            weight[i] = n.dot(dirs[i]).max(0.25 * max[i]);
+            weight[i] = n.dot(Vec3::new(dx[i], dy[i], dz[i])).max(0.25 * max[i]);
         }
     }
     CellWeights {
@@ -194,13 +194,14 @@ pub(crate) fn cosine_weights_scalar(n: Vec3) -> CellWeights {
 }
 
 /// Mean of `w` over each cell (index `iu + 4 iv`) as `(x, y, z)` coefficients: the mean of
-/// `n . w` over the cell is `n . MEAN_DIRS[cell]` (exact: the integral is linear in `n`).
+/// `n . w` over the cell is `n . d` with `d = (x[cell], y[cell], z[cell])` (exact: the integral is linear in `n`).
 /// Over a cell `[z0, z1] x [p0, p1]` (area `(z1 - z0)(p1 - p0)` = pi / 4), the integral of
 /// `w_x` is `(F(z1) - F(z0)) (sin p1 - sin p0)` with `F(z) = (z sqrt(1 - z^2) + asin z) / 2`,
 /// of `w_y` `(F(z1) - F(z0)) (cos p0 - cos p1)`, of `w_z` `(z1^2 - z0^2) / 2 (p1 - p0)`.
-fn cell_mean_dirs() -> [Vec3; 16] {
+/// By component (`[x; 16], [y; 16], [z; 16]`), for vector code.
+fn cell_mean_dirs() -> [[f32; 16]; 3] {
     let f = |z: f64| (z * (1.0 - z * z).max(0.0).sqrt() + z.asin()) * 0.5;
-    let mut out = [Vec3::ZERO; 16];
+    let mut out = [[0.0f32; 16]; 3];
     for iv in 0..4 {
         let (p0, p1) = (
             iv as f64 * std::f64::consts::FRAC_PI_2,
@@ -210,23 +211,16 @@ fn cell_mean_dirs() -> [Vec3; 16] {
             let (z0, z1) = (iu as f64 * 0.5 - 1.0, (iu + 1) as f64 * 0.5 - 1.0);
             let area = (z1 - z0) * (p1 - p0);
             let fz = f(z1) - f(z0);
-            out[iu + 4 * iv] = Vec3::new(
-                (fz * (p1.sin() - p0.sin()) / area) as f32,
-                (fz * (p0.cos() - p1.cos()) / area) as f32,
-                ((z1 * z1 - z0 * z0) * 0.5 * (p1 - p0) / area) as f32,
-            );
+            let cell = iu + 4 * iv;
+            out[0][cell] = (fz * (p1.sin() - p0.sin()) / area) as f32;
+            out[1][cell] = (fz * (p0.cos() - p1.cos()) / area) as f32;
+            out[2][cell] = ((z1 * z1 - z0 * z0) * 0.5 * (p1 - p0) / area) as f32;
         }
     }
     out
 }
 
-static MEAN_DIRS: std::sync::LazyLock<[Vec3; 16]> = std::sync::LazyLock::new(cell_mean_dirs);
-
-/// [`MEAN_DIRS`] by component (`[x; 16], [y; 16], [z; 16]`), for vector code.
-static MEAN_DIRS_SOA: std::sync::LazyLock<[[f32; 16]; 3]> = std::sync::LazyLock::new(|| {
-    let d = &*MEAN_DIRS;
-    [d.map(|v| v.x), d.map(|v| v.y), d.map(|v| v.z)]
-});
+static MEAN_DIRS: std::sync::LazyLock<[[f32; 16]; 3]> = std::sync::LazyLock::new(cell_mean_dirs);
 
 /// A [`CellMask`] with a weight per cell: the part of the sphere a guide samples from, each
 /// cell's density scaled by its weight before renormalising (see [`Restriction`]). Weights
@@ -259,7 +253,7 @@ impl CellWeights {
             return Self::ALL;
         }
         let max = cell_max_cosines(n);
-        let [dx, dy, dz] = &*MEAN_DIRS_SOA;
+        let [dx, dy, dz] = &*MEAN_DIRS;
         let mut weight = [1.0f32; 16];
         let mut mask = 0u16;
         // (n . d as glam's Vec3::dot computes it: x, then + y, then + z)
