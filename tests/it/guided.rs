@@ -345,7 +345,7 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
                     &RenderSettings::new(Some(spp), None, 3),
                     &|_| {},
                     &|_| {},
-                    &|_, _| verdict,
+                    &|_, _, _| verdict,
                 )
             })
     };
@@ -367,6 +367,14 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
         &|_| {},
     )
     .0;
+    assert_eq!(stats.weights[0], 0.0, "{stats:?}");
+    assert!(stats.weights[1] > 0.0, "{stats:?}");
+    let npix = (film.width * film.height) as u64;
+    assert_eq!(
+        film.pixels.iter().map(|p| p.count as u64).sum::<u64>(),
+        spp as u64 * npix,
+        "every sample is in the image, unguided iteration 0's (merged into the path film) too"
+    );
     assert_agrees_with(&film, &reference, "fallback");
     let (film1, _, _) = run(GuidingVerdict::FallBack, 1);
     assert_eq!(film_bits(&film), film_bits(&film1), "thread count");

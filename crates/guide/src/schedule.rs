@@ -229,18 +229,35 @@ pub const GUIDING_FALLBACK_RATIO: f64 = 1.25;
 /// cornell-box-like second check (about 4 % of a 7.5 CPU-s budget), hence the margin sits
 /// more on door-ajar's side.
 pub const GUIDING_FALLBACK_FIRST_RATIO: f64 = 2.4;
+/// Path tracing also takes over at the first check when a guided sample is this much noisier
+/// than a path sample (per-sample relative variance, guided over path) and guided sampling is
+/// less efficient by at least [`GUIDING_FALLBACK_RATIO`]. Unlike the efficiency cost, the
+/// variance ratio does not depend on the machine's speed (for a given seed it is the same
+/// everywhere), and it separates the scenes far better: a scene that guiding will win already
+/// has less noise per sample with the 1-spp tree. Measured first-check variance ratios (pathfarm
+/// preset, 2 threads, 7.5 CPU-s, seeds 1-10, 2026-11-23): cornell-box 1.74-1.94 (guided 2.04-3.03
+/// in cost, 3 of 4 Zen 1 runs fell back only at the second check); door-ajar 0.37-0.77 (it
+/// goes to 0.31-0.43 at the second check, where guiding is kept); veach-ajar 0.03-0.06;
+/// materials 1.37-1.74; caustic 1.36 or below 0.05 (one firefly in the 1-spp path probe or none).
+pub const GUIDING_FALLBACK_FIRST_VARIANCE_RATIO: f64 = 1.2;
 /// After this many checked iterations the verdict is final either way.
 pub const GUIDING_LAST_DECISION: usize = 4;
 
 /// The path fallback's rule. `guided_costs`: efficiency costs (per-sample variance x cost per
 /// sample, in any unit shared with `path_cost`) of the checked guided iterations, oldest
-/// first; `path_cost`: the same for unguided path tracing (its latest estimate). Keep guiding
-/// once it is clearly more efficient ([`GUIDING_KEEP_RATIO`]); fall back once it has been
-/// clearly less efficient at the last two checks ([`GUIDING_FALLBACK_RATIO`], the earlier one
-/// against the path cost of now), or far less efficient at the first check
-/// ([`GUIDING_FALLBACK_FIRST_RATIO`]); at the [`GUIDING_LAST_DECISION`]-th check keep guiding
-/// unless it is clearly less efficient.
-pub fn guiding_verdict(guided_costs: &[f64], path_cost: f64) -> GuidingVerdict {
+/// first; `path_cost`: the same for unguided path tracing (its latest estimate);
+/// `variance_ratio`: the latest guided iteration's per-sample relative variance over path
+/// tracing's. Keep guiding once it is clearly more efficient ([`GUIDING_KEEP_RATIO`]); fall
+/// back once it has been clearly less efficient at the last two checks
+/// ([`GUIDING_FALLBACK_RATIO`], the earlier one against the path cost of now), or at the first
+/// check when it is far less efficient ([`GUIDING_FALLBACK_FIRST_RATIO`]) or clearly less
+/// efficient with noisier samples ([`GUIDING_FALLBACK_FIRST_VARIANCE_RATIO`]); at the
+/// [`GUIDING_LAST_DECISION`]-th check keep guiding unless it is clearly less efficient.
+pub fn guiding_verdict(
+    guided_costs: &[f64],
+    path_cost: f64,
+    variance_ratio: f64,
+) -> GuidingVerdict {
     let n = guided_costs.len();
     if n == 0 {
         return GuidingVerdict::Undecided;
@@ -257,7 +274,10 @@ pub fn guiding_verdict(guided_costs: &[f64], path_cost: f64) -> GuidingVerdict {
     let last = ratio(guided_costs[n - 1]);
     if last <= GUIDING_KEEP_RATIO {
         GuidingVerdict::Keep
-    } else if (n == 1 && last >= GUIDING_FALLBACK_FIRST_RATIO)
+    } else if (n == 1
+        && (last >= GUIDING_FALLBACK_FIRST_RATIO
+            || (last >= GUIDING_FALLBACK_RATIO
+                && variance_ratio >= GUIDING_FALLBACK_FIRST_VARIANCE_RATIO)))
         || (n >= 2
             && last >= GUIDING_FALLBACK_RATIO
             && ratio(guided_costs[n - 2]) >= GUIDING_FALLBACK_RATIO)

@@ -1665,8 +1665,9 @@ fn leaf_slot_finds_the_same_cell_as_leaf_cell() {
 
 #[test]
 fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses_or_one_far_loss() {
-    // Deterministic rule (no significance level).
-    use crate::schedule::{guiding_verdict as v, GuidingVerdict::*};
+    // Deterministic rule (no significance level). `v(costs, path)`: per-sample variance ratio 1.
+    use crate::schedule::{guiding_verdict, GuidingVerdict::*};
+    let v = |costs: &[f64], path: f64| guiding_verdict(costs, path, 1.0);
     assert_eq!(v(&[], 1.0), Undecided);
     assert_eq!(v(&[0.5], 1.0), Keep, "clearly better at the first check");
     assert_eq!(v(&[2.3], 1.0), Undecided, "one clear loss is not enough");
@@ -1698,6 +1699,31 @@ fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses_or_one
     assert_eq!(v(&[3.0, 3.0], 0.0), Undecided);
     assert_eq!(v(&[3.0, 3.0, 3.0, 3.0], f64::NAN), Keep);
     assert_eq!(v(&[f64::NAN, 3.0], 1.0), Undecided);
+}
+
+#[test]
+fn guiding_verdict_falls_back_at_the_first_check_when_guided_samples_are_noisier_and_dearer() {
+    // Deterministic rule (no significance level).
+    use crate::schedule::{guiding_verdict as v, GuidingVerdict::*};
+    // cornell-box-like: noisier per sample and clearly less efficient
+    assert_eq!(v(&[2.0], 1.0, 1.8), FallBack);
+    assert_eq!(
+        v(&[1.25], 1.0, 1.2),
+        FallBack,
+        "both thresholds are inclusive"
+    );
+    // door-ajar-like: dearer in cost but less noisy per sample: the tree gets its chance
+    assert_eq!(v(&[2.0], 1.0, 0.77), Undecided);
+    assert_eq!(v(&[2.0], 1.0, 1.19), Undecided);
+    // noisier but not clearly less efficient (cheap guided samples): not yet
+    assert_eq!(v(&[1.2], 1.0, 1.8), Undecided);
+    // only the first check uses it; later ones need two clear losses in a row
+    assert_eq!(v(&[1.1, 2.0], 1.0, 1.8), Undecided);
+    assert_eq!(v(&[2.0, 2.0], 1.0, 0.5), FallBack);
+    // a clear win keeps guiding whatever the variance ratio says
+    assert_eq!(v(&[0.5], 1.0, 1.8), Keep);
+    // a NaN variance ratio is no evidence
+    assert_eq!(v(&[2.0], 1.0, f64::NAN), Undecided);
 }
 
 // ------------------------------------------------------------------ 13. hemisphere restriction

@@ -86,6 +86,22 @@ impl Film {
     pub fn variance_rgb(&self) -> Vec<[f32; 3]> {
         self.pixels.iter().map(|p| p.variance_of_mean()).collect()
     }
+
+    /// Adds `other`'s samples to this film's (same size), as if they had been rendered
+    /// into it: the pixel sums add.
+    pub fn merge(&mut self, other: &Film) {
+        assert_eq!((self.width, self.height), (other.width, other.height));
+        for (p, q) in self.pixels.iter_mut().zip(&other.pixels) {
+            p.sum_w += q.sum_w;
+            p.sum_w2 += q.sum_w2;
+            for c in 0..3 {
+                p.sum_wl[c] += q.sum_wl[c];
+                p.sum_w2l[c] += q.sum_w2l[c];
+                p.sum_w2l2[c] += q.sum_w2l2[c];
+            }
+            p.count += q.count;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -109,5 +125,24 @@ mod tests {
         p.add(0.25, Vec3::splat(4.0));
         p.add(0.75, Vec3::splat(0.0));
         assert_eq!(p.mean(), [1.0; 3]);
+    }
+
+    #[test]
+    fn merging_films_equals_adding_their_samples_to_one() {
+        // dyadic values: every sum is exact, so the comparison can be bit for bit
+        let samples = [(0.5f32, 1.0f32), (1.0, 2.0), (0.25, 8.0), (0.75, 0.5)];
+        let mut one = Film::new(2, 1);
+        let (mut a, mut b) = (Film::new(2, 1), Film::new(2, 1));
+        for (i, &(w, x)) in samples.iter().enumerate() {
+            let px = i % 2;
+            one.pixels[px].add(w, Vec3::new(x, 2.0 * x, 0.0));
+            one.pixels[px].count += 1;
+            let f = if i < 2 { &mut a } else { &mut b };
+            f.pixels[px].add(w, Vec3::new(x, 2.0 * x, 0.0));
+            f.pixels[px].count += 1;
+        }
+        a.merge(&b);
+        assert_eq!(a, one);
+        assert_eq!(a.pixels[0].count, 2);
     }
 }

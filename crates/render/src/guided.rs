@@ -279,7 +279,8 @@ pub fn render_guided_with(
 
 /// [`render_guided_with`] with the path fallback's rule as a parameter (by default
 /// [`schedule::guiding_verdict`]), so that tests and experiments can force either outcome. It
-/// gets the efficiency costs of the checked guided iterations and path tracing's.
+/// gets the efficiency costs of the checked guided iterations, path tracing's and the per-sample
+/// variance ratio of the latest check (see [`schedule::guiding_verdict`]).
 pub fn render_guided_with_policy(
     scene: &Scene,
     params: &GuidedParams,
@@ -287,7 +288,7 @@ pub fn render_guided_with_policy(
     settings: &RenderSettings,
     progress: &(dyn Fn(Progress) + Sync),
     on_iteration: &dyn Fn(&GuidedIteration),
-    policy: &dyn Fn(&[f64], f64) -> GuidingVerdict,
+    policy: &dyn Fn(&[f64], f64, f64) -> GuidingVerdict,
 ) -> (Film, GuidedStats, SdTree) {
     let cfg = guide_config(params, scene);
     let (lo, hi) = scene.accel.bounds();
@@ -312,6 +313,9 @@ pub fn render_guided_with_policy(
     let mut prev_secs: Option<f64> = None;
     let mut training_spp = 0u64;
     let mut kept: Option<usize> = None;
+    // Films of iterations rendered before the tree was built: unguided, so on a fallback
+    // their samples join the path tracer's film.
+    let mut unguided: Vec<usize> = Vec::new();
     // Pixel estimates for guided Russian roulette: spp-weighted mean of the finished
     // iterations' films (sum and spp so far), then blurred; empty until an iteration ended.
     let roulette = params.russian_roulette == GuidedRoulette::Guided;
@@ -516,6 +520,10 @@ pub fn render_guided_with_policy(
             est_spp += spp;
             estimate = pixel_estimate(&est_sum, est_spp, scene.width, scene.height);
         }
+        if !tree.is_built() {
+            // sampled without a guide (iteration 0): plain path tracing
+            unguided.push(films.len());
+        }
         let checked = training && fallback.checks(&tree);
         films.push(film);
         if !training {
@@ -558,11 +566,15 @@ pub fn render_guided_with_policy(
                 Budget::Seconds(_) => path_variance * fallback.path_seconds,
                 Budget::Spp(_) => path_variance * fallback.path_rays as f64 / npix.max(1) as f64,
             };
+            // per-sample relative variances: film variances of the mean times their spp
+            let variance_ratio =
+                guided_variance * it.spp as f64 / (path_variance * fallback.path_spp as f64);
             fallback.guided_costs.push(guided_cost);
-            let verdict = policy(&fallback.guided_costs, path_cost);
+            let verdict = policy(&fallback.guided_costs, path_cost, variance_ratio);
             tracing::info!(
                 "guiding check after iteration {k}: guided cost {guided_cost:.4e}, path cost \
-                 {path_cost:.4e} (ratio {:.3}): {verdict:?}",
+                 {path_cost:.4e} (ratio {:.3}, per-sample variance ratio {variance_ratio:.3}): \
+                 {verdict:?}",
                 guided_cost / path_cost
             );
             match verdict {
@@ -618,6 +630,13 @@ pub fn render_guided_with_policy(
         }
         let path_spp = fallback.path_spp;
         spp_done += path_spp;
+        // The unguided iterations' samples are path tracing's too (the same estimator up to
+        // its random streams): they join the film instead of being weighed apart (a 1-spp
+        // iteration has no variance estimate, so inverse-variance weighting drops it).
+        for &i in &unguided {
+            fallback.path_film.merge(&films[i]);
+            films[i] = Film::new(scene.width, scene.height);
+        }
         iterations.push(GuidedIteration {
             index: after + 1,
             spp: path_spp as u32,
@@ -648,7 +667,15 @@ pub fn render_guided_with_policy(
         GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(
             &iterations
                 .iter()
-                .map(|i| if i.spp < 2 { f64::INFINITY } else { i.variance })
+                .enumerate()
+                .map(|(k, i)| {
+                    let merged = fallback.fell_back_after.is_some() && unguided.contains(&k);
+                    if i.spp < 2 || merged {
+                        f64::INFINITY
+                    } else {
+                        i.variance
+                    }
+                })
                 .collect::<Vec<_>>(),
         ),
         _ => {
