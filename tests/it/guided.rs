@@ -324,8 +324,9 @@ fn assert_agrees_with(a: &Film, b: &Film, what: &str) {
 #[test]
 fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
     // The pathfarm preset with the fallback rule forced to "fall back" at the first check
-    // (after iteration 1): the rest of the 256-spp budget is plain path tracing, combined
-    // with the guided iterations by inverse variance. Same statistics as the guided/unguided
+    // (after iteration 1): the rest of the 256-spp budget is plain path tracing, which the
+    // unguided iteration 0's samples join, combined with the guided iteration by inverse
+    // variance. Same statistics as the guided/unguided
     // agreement test (0.001 level per pixel, <= 1 % failing, means within 4 se). Forced
     // "keep" never falls back. Both are deterministic across thread counts.
     let (path_scene, scene) = cornell_box_pair("-fb");
