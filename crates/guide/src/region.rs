@@ -194,7 +194,8 @@ pub(crate) fn cosine_weights_scalar(n: Vec3) -> CellWeights {
 }
 
 /// Mean of `w` over each cell (index `iu + 4 iv`) as `(x, y, z)` coefficients: the mean of
-/// `n . w` over the cell is `n . d` with `d = (x[cell], y[cell], z[cell])` (exact: the integral is linear in `n`).
+/// `n . w` over the cell is `n . d` with `d = (x[cell], y[cell], z[cell])` (exact: the
+/// integral is linear in `n`).
 /// Over a cell `[z0, z1] x [p0, p1]` (area `(z1 - z0)(p1 - p0)` = pi / 4), the integral of
 /// `w_x` is `(F(z1) - F(z0)) (sin p1 - sin p0)` with `F(z) = (z sqrt(1 - z^2) + asin z) / 2`,
 /// of `w_y` `(F(z1) - F(z0)) (cos p0 - cos p1)`, of `w_z` `(z1^2 - z0^2) / 2 (p1 - p0)`.
