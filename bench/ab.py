@@ -6,8 +6,9 @@ Usage:
                       [--same-image]
 
 Scenes: the two renderer benchmark scenes with `path`, and veach-ajar with `guided_path`
-(`veach-guided-2019`: the 2019 preset; `veach-guided`: the default preset), at a fixed sample
-budget so that both binaries train the same schedule.
+(`veach-guided-2019`: the 2019 preset; `veach-guided`: the default preset;
+`veach-guided-box`: the default preset with `spatial_filter=box`), at a fixed sample budget so
+that both binaries train the same schedule.
 
 On a shared, noisy machine, runs of one binary after the other differ by 10-20 % from
 minute to minute. So A and B run *at the same time*, one pinned to each of two cores
@@ -32,8 +33,13 @@ SCENES = {
                           "integrator=guided_path", "-D", "preset=2019", "--spp", "24"],
     "veach-guided": ["-D", "resx=320", "-D", "resy=180", "-D", "max_depth=13", "-D",
                      "integrator=guided_path", "--spp", "24"],
+    # the pathfarm preset with the spatial box filter (recording-heavy: every record splats
+    # into all the leaves its box overlaps)
+    "veach-guided-box": ["-D", "resx=320", "-D", "resy=180", "-D", "max_depth=13", "-D",
+                         "integrator=guided_path", "-D", "spatial_filter=box", "--spp", "16"],
 }
-SCENE_FILE = {"veach-guided-2019": "veach-ajar", "veach-guided": "veach-ajar"}
+SCENE_FILE = {"veach-guided-2019": "veach-ajar", "veach-guided": "veach-ajar",
+              "veach-guided-box": "veach-ajar"}
 
 
 def start(binary, cpu, scene, seed, tag, tmp):

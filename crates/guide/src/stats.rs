@@ -165,29 +165,45 @@ pub fn split_exact(q: u128, weights: &[f64], out: &mut Vec<u128>) {
         out[0] = q;
         return;
     }
-    let mut wi: Vec<u128> = Vec::with_capacity(weights.len());
-    let mut t: u128 = 0;
-    let mut imax = 0usize;
-    for (i, &w) in weights.iter().enumerate() {
-        let x = if w > 0.0 {
-            ((w / max) * 4294967295.0).round() as u128
+    // The quantised weights (< 2^32 each) are recomputed in the second loop rather than kept:
+    // no allocation per call, and the same values.
+    let quantise = |w: f64| -> u64 {
+        if w > 0.0 {
+            ((w / max) * 4294967295.0).round() as u64
         } else {
             0
-        };
-        if x > wi.get(imax).copied().unwrap_or(0) {
-            imax = i;
         }
-        wi.push(x);
-        t += x;
+    };
+    let mut t: u128 = 0;
+    let mut imax = 0usize;
+    let mut wmax = 0u64;
+    for (i, &w) in weights.iter().enumerate() {
+        let x = quantise(w);
+        if x > wmax {
+            (imax, wmax) = (i, x);
+        }
+        t += x as u128;
     }
-    let (qd, qr) = (q / t, q % t);
+    let (qd, qr) = div_rem(q, t);
     let mut acc: u128 = 0;
-    for i in 0..weights.len() {
-        let p = qd * wi[i] + (qr * wi[i]) / t;
-        out[i] = p;
+    for (o, &w) in out.iter_mut().zip(weights) {
+        let x = quantise(w) as u128;
+        // qr < t, so (qr * x) / t < x < 2^32
+        let p = qd * x + div_rem(qr * x, t).0;
+        *o = p;
         acc += p;
     }
     out[imax] += q - acc;
+}
+
+/// `(a / b, a % b)`, in 64-bit arithmetic when both fit (the common case: a 128-bit division is
+/// a library call).
+#[inline]
+fn div_rem(a: u128, b: u128) -> (u128, u128) {
+    match (u64::try_from(a), u64::try_from(b)) {
+        (Ok(a), Ok(b)) => ((a / b) as u128, (a % b) as u128),
+        _ => (a / b, a % b),
+    }
 }
 
 #[cfg(test)]

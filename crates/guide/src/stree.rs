@@ -292,34 +292,94 @@ impl STree {
     /// extended to infinity) overlaps the normalised box `[lo, hi]`, calling `f(leaf, overlap
     /// volume)` for overlaps > 0.
     pub fn for_each_overlap(&self, lo: [f32; 3], hi: [f32; 3], mut f: impl FnMut(u32, f64)) {
-        let mut stack = vec![(0u32, [0.0f64; 3], [1.0f64; 3])];
-        while let Some((n, o, e)) = stack.pop() {
-            let mut vol = 1.0f64;
-            for a in 0..3 {
-                let l = if o[a] <= 0.0 { f64::NEG_INFINITY } else { o[a] };
-                let h = if o[a] + e[a] >= 1.0 {
-                    f64::INFINITY
-                } else {
-                    o[a] + e[a]
-                };
-                let ov = ((hi[a] as f64).min(h) - (lo[a] as f64).max(l)).max(0.0);
-                vol *= ov;
+        let (lo, hi) = (lo.map(f64::from), hi.map(f64::from));
+        let mut ov = [0.0f64; 3];
+        for (a, ov) in ov.iter_mut().enumerate() {
+            *ov = axis_overlap(lo[a], hi[a], 0.0, 1.0);
+        }
+        if !ov.iter().all(|&x| x > 0.0) {
+            return;
+        }
+        // While the box lies within one child, that child is the only one it overlaps, along
+        // the split axis by exactly as much as along the parent's (`hi - lo`, the faces
+        // outside the box): descend without computing overlaps. First the jump table's
+        // levels when the box lies within one of its cells, then level by level.
+        let (mut n, mut o, mut e) = (0u32, [0.0f64; 3], [1.0f64; 3]);
+        let cells = (1u32 << JUMP_LEVELS) as f64;
+        if !self.jump.is_empty() {
+            let k = lo.map(|x| (x * cells).floor().clamp(0.0, cells - 1.0));
+            if (0..3).all(|a| k[a] == cells - 1.0 || hi[a] <= (k[a] + 1.0) / cells) {
+                let cell = k[0] as usize
+                    | (k[1] as usize) << JUMP_LEVELS
+                    | (k[2] as usize) << (2 * JUMP_LEVELS);
+                n = self.jump[cell];
+                // an inner node there is at depth 3 * JUMP_LEVELS: the cell itself (a leaf
+                // above that depth contains the box and ends the descent at once)
+                o = k.map(|x| x / cells);
+                e = [1.0 / cells; 3];
             }
-            if !(vol > 0.0) {
-                continue;
-            }
+        }
+        loop {
             let sn = &self.nodes[n as usize];
             if sn.is_leaf() {
-                f(sn.leaf, vol);
+                break;
+            }
+            let a = sn.axis as usize;
+            let mid = o[a] + e[a] * 0.5;
+            if hi[a] <= mid {
+                n = sn.children[0];
+            } else if lo[a] >= mid {
+                n = sn.children[1];
+                o[a] = mid;
             } else {
-                let a = sn.axis as usize;
-                let mut e2 = e;
-                e2[a] *= 0.5;
-                let mut o2 = o;
-                o2[a] += e2[a];
-                stack.push((sn.children[1], o2, e2));
-                stack.push((sn.children[0], o, e2));
+                break;
+            }
+            e[a] *= 0.5;
+        }
+        self.overlap_below(n, o, e, ov, lo, hi, &mut f);
+    }
+
+    /// [`STree::for_each_overlap`] below node `n` (box origin `o`, extent `e`), whose overlap
+    /// with the query box along each axis is `ov` (all > 0). A child differs from its parent
+    /// along the split axis only, so only that overlap is recomputed; the volume is the product
+    /// of the three in axis order. Recursion depth is bounded by [`crate::sdtree::MAX_SPATIAL_DEPTH`];
+    /// children are visited 0 before 1.
+    #[allow(clippy::too_many_arguments)]
+    fn overlap_below(
+        &self,
+        n: u32,
+        o: [f64; 3],
+        e: [f64; 3],
+        ov: [f64; 3],
+        lo: [f64; 3],
+        hi: [f64; 3],
+        f: &mut impl FnMut(u32, f64),
+    ) {
+        let sn = &self.nodes[n as usize];
+        if sn.is_leaf() {
+            f(sn.leaf, 1.0 * ov[0] * ov[1] * ov[2]);
+            return;
+        }
+        let a = sn.axis as usize;
+        let mut e2 = e;
+        e2[a] *= 0.5;
+        let mut o1 = o;
+        o1[a] += e2[a];
+        for (c, oc) in [(sn.children[0], o), (sn.children[1], o1)] {
+            let mut ovc = ov;
+            ovc[a] = axis_overlap(lo[a], hi[a], oc[a], e2[a]);
+            if ovc[a] > 0.0 {
+                self.overlap_below(c, oc, e2, ovc, lo, hi, f);
             }
         }
     }
+}
+
+/// Overlap of `[lo, hi]` with a node's interval `[o, o + e]` along one axis, the node's faces
+/// on the domain border (0 or 1) extended to infinity.
+#[inline]
+fn axis_overlap(lo: f64, hi: f64, o: f64, e: f64) -> f64 {
+    let l = if o <= 0.0 { f64::NEG_INFINITY } else { o };
+    let h = if o + e >= 1.0 { f64::INFINITY } else { o + e };
+    (hi.min(h) - lo.max(l)).max(0.0)
 }

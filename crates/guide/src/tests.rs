@@ -2046,3 +2046,127 @@ fn restricted_pdf_integrates_to_one_and_vanishes_outside_the_mask() {
     assert_eq!(e.pdf_restricted(r, Vec2::new(0.3, 0.1)), 2.0);
     assert_eq!(e.pdf_restricted(r, Vec2::new(0.3, 0.5)), 0.0);
 }
+
+/// The overlap walk as first written (from the root, a heap stack, all three overlaps at every
+/// node): the reference [`crate::stree::STree::for_each_overlap`] must match bit for bit.
+fn overlaps_reference(st: &crate::STree, lo: [f32; 3], hi: [f32; 3]) -> Vec<(u32, f64)> {
+    let mut out = Vec::new();
+    let mut stack = vec![(0u32, [0.0f64; 3], [1.0f64; 3])];
+    while let Some((n, o, e)) = stack.pop() {
+        let mut vol = 1.0f64;
+        for a in 0..3 {
+            let l = if o[a] <= 0.0 { f64::NEG_INFINITY } else { o[a] };
+            let h = if o[a] + e[a] >= 1.0 {
+                f64::INFINITY
+            } else {
+                o[a] + e[a]
+            };
+            vol *= ((hi[a] as f64).min(h) - (lo[a] as f64).max(l)).max(0.0);
+        }
+        if !(vol > 0.0) {
+            continue;
+        }
+        let sn = &st.nodes()[n as usize];
+        if sn.is_leaf() {
+            out.push((sn.leaf, vol));
+        } else {
+            let a = sn.axis as usize;
+            let mut e2 = e;
+            e2[a] *= 0.5;
+            let mut o2 = o;
+            o2[a] += e2[a];
+            stack.push((sn.children[1], o2, e2));
+            stack.push((sn.children[0], o, e2));
+        }
+    }
+    out
+}
+
+#[test]
+fn box_overlap_walk_equals_the_walk_from_the_root_bit_for_bit() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 50.0,
+        ..GuideConfig::default()
+    };
+    let t = warmed_tree(cfg, 11, 8000, 3);
+    assert!(t.stats().leaves > 100, "{}", t.stats().leaves);
+    let st = t.stree();
+    let mut rng = Pcg::new(4);
+    let (mut multi, mut got) = (0, Vec::new());
+    for i in 0..20_000 {
+        // Boxes of a leaf's size around points in it (as the spatial box filter makes them),
+        // also across the domain's faces, plus boxes of random sizes up to the whole domain.
+        let p = Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2);
+        let c = st.normalise(p);
+        let e = if i % 4 == 0 {
+            Vec3::splat(rng.f32() * rng.f32())
+        } else {
+            st.lookup(p).extent / st.domain_size() * 0.5
+        };
+        let (lo, hi) = ((c - e).to_array(), (c + e).to_array());
+        got.clear();
+        st.for_each_overlap(lo, hi, |l, v| got.push((l, v)));
+        let want = overlaps_reference(st, lo, hi);
+        assert_eq!(got, want, "box {lo:?} {hi:?}");
+        multi += (want.len() > 1) as usize;
+    }
+    assert!(multi > 2000, "too few boxes over several leaves: {multi}");
+}
+
+/// `split_exact` as first written (quantised weights in a Vec, 128-bit divisions).
+fn split_exact_reference(q: u128, weights: &[f64]) -> Vec<u128> {
+    let max = weights.iter().cloned().fold(0.0f64, f64::max);
+    let mut out = vec![0u128; weights.len()];
+    if !(max > 0.0) || !max.is_finite() {
+        out[0] = q;
+        return out;
+    }
+    let wi: Vec<u128> = weights
+        .iter()
+        .map(|&w| {
+            if w > 0.0 {
+                ((w / max) * 4294967295.0).round() as u128
+            } else {
+                0
+            }
+        })
+        .collect();
+    let t: u128 = wi.iter().sum();
+    let imax = (0..wi.len()).fold(0, |m, i| if wi[i] > wi[m] { i } else { m });
+    let mut acc = 0u128;
+    for i in 0..wi.len() {
+        out[i] = (q / t) * wi[i] + ((q % t) * wi[i]) / t;
+        acc += out[i];
+    }
+    out[imax] += q - acc;
+    out
+}
+
+#[test]
+fn split_exact_equals_the_128_bit_reference_bit_for_bit() {
+    let mut rng = Pcg::new(8);
+    let mut out = Vec::new();
+    for n in 1..24 {
+        for _ in 0..300 {
+            let w: Vec<f64> = (0..n)
+                .map(|_| match rng.next_u32() % 4 {
+                    0 => 0.0,
+                    1 => rng.f32() as f64 * 1e-9,
+                    _ => rng.f32() as f64,
+                })
+                .collect();
+            let big = ((rng.next_u32() as u128) << 96) | ((rng.next_u32() as u128) << 40);
+            for q in [
+                0u128,
+                1,
+                3,
+                (rng.next_u32() as u128) << 20,
+                u64::MAX as u128,
+                big,
+            ] {
+                crate::stats::split_exact(q, &w, &mut out);
+                assert_eq!(out, split_exact_reference(q, &w), "q {q} weights {w:?}");
+            }
+        }
+    }
+}
