@@ -341,9 +341,9 @@ impl STree {
 
     /// [`STree::for_each_overlap`] below node `n` (box origin `o`, extent `e`), whose overlap
     /// with the query box along each axis is `ov` (all > 0). A child differs from its parent
-    /// along the split axis only, so only that overlap is recomputed; the volume is the product
-    /// of the three in axis order. Recursion depth is bounded by [`crate::sdtree::MAX_SPATIAL_DEPTH`];
-    /// children are visited 0 before 1.
+    /// along the split axis only, so only that overlap is recomputed; the volume is the
+    /// product of the three in axis order. The recursion is as deep as the tree (at most
+    /// [`crate::sdtree::MAX_SPATIAL_DEPTH`]); children are visited 0 before 1.
     #[allow(clippy::too_many_arguments)]
     fn overlap_below(
         &self,
