@@ -165,33 +165,29 @@ pub fn split_exact(q: u128, weights: &[f64], out: &mut Vec<u128>) {
         out[0] = q;
         return;
     }
-    // The quantised weights (< 2^32 each) are recomputed in the second loop rather than kept:
-    // no allocation per call, and the same values.
-    let quantise = |w: f64| -> u64 {
-        if w > 0.0 {
-            ((w / max) * 4294967295.0).round() as u64
-        } else {
-            0
-        }
-    };
+    // `out` holds the quantised weights (< 2^32 each) until each is replaced by its part: no
+    // allocation per call.
     let mut t: u128 = 0;
     let mut imax = 0usize;
-    let mut wmax = 0u64;
     for (i, &w) in weights.iter().enumerate() {
-        let x = quantise(w);
-        if x > wmax {
-            (imax, wmax) = (i, x);
+        let x = if w > 0.0 {
+            ((w / max) * 4294967295.0).round() as u128
+        } else {
+            0
+        };
+        if x > out[imax] {
+            imax = i;
         }
-        t += x as u128;
+        out[i] = x;
+        t += x;
     }
     let (qd, qr) = div_rem(q, t);
     let mut acc: u128 = 0;
-    for (o, &w) in out.iter_mut().zip(weights) {
-        let x = quantise(w) as u128;
+    for o in out.iter_mut() {
         // qr < t, so (qr * x) / t < x < 2^32
-        let p = qd * x + div_rem(qr * x, t).0;
-        *o = p;
-        acc += p;
+        let x = *o;
+        *o = qd * x + div_rem(qr * x, t).0;
+        acc += *o;
     }
     out[imax] += q - acc;
 }
