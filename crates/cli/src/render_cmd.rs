@@ -179,13 +179,14 @@ pub fn render(args: RenderArgs) -> Result<()> {
             bar.suspend(|| {
                 tracing::info!(
                     "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?} \
-                     path_fallback={} split_paths={}",
+                     path_fallback={} split_paths={} extra_light_samples={}",
                     gs.training_fraction,
                     gs.tree_memory_bytes as f64 / 1048576.0,
                     gs.weights,
                     gs.path_fallback_after
                         .map_or("no".to_string(), |k| format!("after_iteration_{k}")),
-                    gs.split_paths
+                    gs.split_paths,
+                    gs.extra_light_samples
                 )
             });
             (

@@ -38,6 +38,7 @@ pub mod config;
 pub mod dtree;
 pub mod filter;
 pub mod fraction;
+pub mod light;
 pub mod mapping;
 pub mod record;
 pub mod region;
@@ -52,6 +53,7 @@ pub use config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
 };
 pub use dtree::{Cell, DTree};
+pub use light::LightStats;
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;
 pub use region::{CellMask, CellWeights, Restriction};

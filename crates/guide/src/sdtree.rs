@@ -5,6 +5,7 @@ use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter}
 use crate::dtree::DTree;
 use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
+use crate::light::LightStats;
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
 use crate::region::{CellWeights, Restriction};
@@ -46,6 +47,9 @@ pub struct Leaf {
     /// `sigmoid(fraction.theta)` in f32, cached: it is read at every guided path vertex and
     /// changes only when theta does ([`Leaf::set_theta_cache`]).
     pub(crate) alpha: f32,
+    /// Light-sample statistics: this iteration's sums and the mean and deviation frozen at
+    /// the last refinement (split children inherit both).
+    pub light: LightStats,
 }
 
 /// The learned fraction's alpha as vertices read it: f32 sigmoid of the logit.
@@ -70,6 +74,7 @@ impl Leaf {
             grad: GradAccum::default(),
             flux: 0.0,
             alpha: alpha_of(0.0),
+            light: LightStats::default(),
         }
     }
 }
@@ -294,6 +299,24 @@ impl SdTree {
         self.leaves[h.0 as usize].flux * pdf
     }
 
+    /// Records one light (next-event) sample taken at a vertex in leaf `h`: its value per unit
+    /// path throughput, `f cos Le w / p_light` averaged over colour channels, 0 when occluded
+    /// (thread safe, exact; see [`crate::light`]).
+    #[inline]
+    pub fn record_light_sample(&self, h: LeafHandle, value: f32) {
+        self.leaves[h.0 as usize]
+            .light
+            .record(value, &self.overflow);
+    }
+
+    /// Mean and standard deviation of a light sample's value in leaf `h`, as frozen by the last
+    /// [`SdTree::refine`] (zeros before any light sample was recorded there).
+    #[inline]
+    pub fn light_sample_stats_leaf(&self, h: LeafHandle) -> (f32, f32) {
+        let l = &self.leaves[h.0 as usize].light;
+        (l.mean, l.std_dev)
+    }
+
     /// Probability alpha of sampling the BSDF rather than the guide at `p`.
     pub fn bsdf_sampling_fraction(&self, p: Vec3) -> f32 {
         self.bsdf_sampling_fraction_leaf(self.leaf_index(p))
@@ -439,7 +462,7 @@ impl SdTree {
 
     /// End of iteration `k` (0-based, the iteration whose records were just taken):
     /// 1. build every building quadtree bottom-up and make it the sampling tree
-    ///    (`sampling := building`);
+    ///    (`sampling := building`), and freeze each leaf's light-sample mean and deviation;
     /// 2. refine the S-tree: a leaf splits while its building W exceeds the threshold of the
     ///    iteration about to start, `c * sqrt(2^(k+1) * spp_per_pass / 4)` (as \[G\] refines at the
     ///    start of iteration k+1); both children copy the whole payload with W halved, and are
@@ -447,7 +470,7 @@ impl SdTree {
     ///    against the sampling trees being replaced); `max_nodes` stops splitting, and so does
     ///    depth [`MAX_SPATIAL_DEPTH`]; the threshold is never taken below 1;
     /// 3. reset every building quadtree from its built sums (rho = `d_tree_threshold`), which
-    ///    zeroes the statistics.
+    ///    zeroes the statistics, and zero the light-sample sums.
     pub fn refine(&mut self, k: u32) {
         for l in &mut self.leaves {
             l.grad.clear();
@@ -460,6 +483,7 @@ impl SdTree {
             };
             l.sampling = l.building.clone();
             l.sampling.freeze();
+            l.light.freeze();
         }
         self.built = true;
         // Floor of one record's weight: with a zero or negative threshold every leaf with any
@@ -505,6 +529,7 @@ impl SdTree {
         let md = self.config.max_d_tree_depth;
         for l in &mut self.leaves {
             l.building.reset(rho, md);
+            l.light.clear();
         }
     }
 
@@ -560,7 +585,8 @@ impl SdTree {
         h.finish()
     }
 
-    /// Moves this iteration's building statistics (quadtree sums, W, pending fraction gradients)
+    /// Moves this iteration's building statistics (quadtree sums, W, pending fraction gradients,
+    /// light-sample sums)
     /// out of the tree, leaving zeros: a worker calls this and ships the result (see
     /// [`IterationStats::encode`]). Only touched leaves and nodes are included. The overflow
     /// counter moves into the statistics too. Call it before [`SdTree::refine`] (the building
@@ -578,6 +604,7 @@ impl SdTree {
                 grad_pos: std::array::from_fn(|k| l.grad.pos[k].take()),
                 grad_neg: std::array::from_fn(|k| l.grad.neg[k].take()),
                 grad_weight: l.grad.weight.take(),
+                light: l.light.take(),
                 nodes: Vec::new(),
             };
             l.grad.stepped.set(0);
@@ -596,6 +623,7 @@ impl SdTree {
                 || ls.grad_pos.iter().any(|&x| x != 0)
                 || ls.grad_neg.iter().any(|&x| x != 0)
                 || ls.grad_weight != 0
+                || ls.light.iter().any(|&x| x != 0)
                 || !ls.nodes.is_empty()
             {
                 out.leaves.push(ls);
@@ -631,6 +659,10 @@ impl SdTree {
                 .set(add_counted(l.building.weight.get(), ls.weight, &mut of));
             l.grad
                 .add_from(&ls.grad_pos, &ls.grad_neg, ls.grad_weight, &mut of);
+            let cur = l.light.sums();
+            l.light.set_sums(std::array::from_fn(|k| {
+                add_counted(cur[k], ls.light[k], &mut of)
+            }));
             for &(n, sums) in &ls.nodes {
                 let node = &l.building.nodes[n as usize];
                 for q in 0..4 {

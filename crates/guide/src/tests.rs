@@ -1420,10 +1420,67 @@ fn det_records(n: usize, seed: u64) -> Vec<(Record, u64)> {
         .collect()
 }
 
+/// Records every record, and beside each a light sample at its position (one in three
+/// occluded, value 0) whose value derives from the record's seed.
 fn record_all(t: &SdTree, recs: &[(Record, u64)]) {
     for (r, s) in recs {
         t.record(r, &mut Pcg::new(*s).rng());
+        let light = if s % 3 == 0 {
+            0.0
+        } else {
+            (s % 997) as f32 * 0.37
+        };
+        t.record_light_sample(t.leaf_index(r.position), light);
     }
+}
+
+#[test]
+fn light_sample_statistics_freeze_their_mean_and_deviation_at_refinement() {
+    // Deterministic (no significance level): exact sums of dyadic values.
+    let cfg = GuideConfig {
+        s_tree_threshold: 10.0,
+        ..GuideConfig::default()
+    };
+    let mut t = SdTree::new(Vec3::ZERO, Vec3::ONE, cfg);
+    let h = t.leaf_index(Vec3::splat(0.5));
+    for v in [0.0, 1.0, 2.0, 3.0, -1.0, f32::NAN, f32::INFINITY] {
+        t.record_light_sample(h, v); // the last three are ignored
+    }
+    assert_eq!(
+        t.light_sample_stats_leaf(h),
+        (0.0, 0.0),
+        "frozen only at refine"
+    );
+    assert_eq!(t.leaves()[0].light.sums()[2], 4 * crate::stats::FIXED_ONE);
+    // enough records for the leaf to split
+    for i in 0..400 {
+        let p = Vec3::new(0.3 + 0.001 * i as f32, 0.5, 0.5);
+        t.record(
+            &Record::radiance_only(p, Vec3::Z, 1.0, 0.5, 1.0),
+            &mut || 0.5,
+        );
+    }
+    t.refine(0);
+    assert!(t.leaves().len() > 1, "the leaf split");
+    let expect = (1.5f32, 1.25f64.sqrt() as f32); // mean of 0..3, sqrt(3.5 - 1.5^2)
+    for (i, l) in t.leaves().iter().enumerate() {
+        assert_eq!((l.light.mean, l.light.std_dev), expect, "leaf {i} inherits");
+        assert_eq!(l.light.sums(), [0; 3], "sums zeroed for the next iteration");
+    }
+    // An iteration without light samples keeps what was learned.
+    t.refine(1);
+    assert_eq!(
+        t.light_sample_stats_leaf(t.leaf_index(Vec3::splat(0.5))),
+        expect
+    );
+    // A certain light sample has no deviation.
+    let h = t.leaf_index(Vec3::splat(0.5));
+    for _ in 0..5 {
+        t.record_light_sample(h, 0.75);
+    }
+    t.refine(2);
+    let h = t.leaf_index(Vec3::splat(0.5));
+    assert_eq!(t.light_sample_stats_leaf(h), (0.75, 0.0));
 }
 
 #[test]
@@ -1485,6 +1542,10 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
         shipped.push(back);
     }
     let merged = IterationStats::merge_all(shipped.iter().rev()).unwrap();
+    assert!(merged
+        .leaves
+        .iter()
+        .any(|l| l.light[2] != 0 && l.light[0] != 0));
     let mut applied = base.clone();
     applied.apply_stats(&merged).unwrap();
     assert_eq!(applied.encode(), one.encode());
@@ -1494,6 +1555,7 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
     one.refine(2);
     applied.refine(2);
     assert_eq!(applied.encode(), one.encode());
+    assert!(one.leaves().iter().any(|l| l.light.std_dev > 0.0));
     // statistics of another structure are refused
     assert!(matches!(
         one.apply_stats(&merged),

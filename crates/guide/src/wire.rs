@@ -13,6 +13,7 @@ use crate::config::{
 };
 use crate::dtree::{DNode, DTree, MAX_DEPTH};
 use crate::fraction::{FractionState, GradAccum, GRID_LEN};
+use crate::light::LightStats;
 use crate::sdtree::{Leaf, SdTree};
 use crate::stats::{add_counted, Acc128};
 use crate::stree::{SNode, STree};
@@ -20,7 +21,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 3;
+pub const VERSION: u16 = 4;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -479,6 +480,11 @@ impl SdTree {
             w.u128(l.grad.weight.get());
             w.u128(l.grad.stepped.get());
             w.f32(l.flux);
+            for x in l.light.sums() {
+                w.u128(x);
+            }
+            w.f32(l.light.mean);
+            w.f32(l.light.std_dev);
             put_dtree(&mut w, &l.building);
             put_dtree(&mut w, &l.sampling);
         }
@@ -508,7 +514,7 @@ impl SdTree {
                 depth: r.u32()?,
             });
         }
-        let nl = r.count(340)?;
+        let nl = r.count(396)?;
         // validate the S-tree
         if nn == 0 || !(size > 0.0) || !min.is_finite() {
             return Err(WireError::Malformed("spatial domain"));
@@ -567,6 +573,18 @@ impl SdTree {
             if !(flux >= 0.0 && flux.is_finite()) {
                 return Err(WireError::Malformed("leaf flux"));
             }
+            let light = LightStats {
+                sum: Acc128::from_u128(r.u128()?),
+                sum_sq: Acc128::from_u128(r.u128()?),
+                count: Acc128::from_u128(r.u128()?),
+                mean: r.f32()?,
+                std_dev: r.f32()?,
+            };
+            if !(light.mean >= 0.0 && light.mean.is_finite())
+                || !(light.std_dev >= 0.0 && light.std_dev.is_finite())
+            {
+                return Err(WireError::Malformed("leaf light statistics"));
+            }
             let building = get_dtree(&mut r)?;
             let mut sampling = get_dtree(&mut r)?;
             sampling.freeze();
@@ -577,6 +595,7 @@ impl SdTree {
                 grad,
                 flux,
                 alpha: crate::sdtree::alpha_of(fraction.theta),
+                light,
             });
         }
         if r.p != payload.len() {
@@ -607,6 +626,8 @@ pub struct LeafStats {
     pub grad_neg: [u128; GRID_LEN],
     /// Fraction-gradient weight sum.
     pub grad_weight: u128,
+    /// Light-sample sums `[sum, sum of squares, count]` ([`crate::light::LightStats`]).
+    pub light: [u128; 3],
     /// Touched building quadtree nodes `(node index, 4 quadrant sums)`, ascending by index.
     pub nodes: Vec<(u32, [u128; 4])>,
 }
@@ -657,6 +678,7 @@ impl IterationStats {
                         add_counted(x.grad_neg[k], y.grad_neg[k], &mut of)
                     }),
                     grad_weight: add_counted(x.grad_weight, y.grad_weight, &mut of),
+                    light: std::array::from_fn(|k| add_counted(x.light[k], y.light[k], &mut of)),
                     nodes: merge_nodes(&x.nodes, &y.nodes, &mut of),
                 });
                 i += 1;
@@ -696,6 +718,9 @@ impl IterationStats {
                 w.u128(*x);
             }
             w.u128(l.grad_weight);
+            for x in l.light {
+                w.u128(x);
+            }
             w.u32(l.nodes.len() as u32);
             for (n, s) in &l.nodes {
                 w.u32(*n);
@@ -711,7 +736,7 @@ impl IterationStats {
         let mut r = R { b: payload, p: 0 };
         let structure_hash = r.u64()?;
         let overflow_events = r.u64()?;
-        let nl = r.count(296)?;
+        let nl = r.count(344)?;
         let mut leaves: Vec<LeafStats> = Vec::with_capacity(nl);
         for _ in 0..nl {
             let leaf = r.u32()?;
@@ -724,6 +749,7 @@ impl IterationStats {
                 grad_pos: r.u128s()?,
                 grad_neg: r.u128s()?,
                 grad_weight: r.u128()?,
+                light: [r.u128()?, r.u128()?, r.u128()?],
                 nodes: Vec::new(),
             };
             let nn = r.count(5)?;

@@ -132,6 +132,8 @@ pub struct GuidedStats {
     pub path_fallback_after: Option<u32>,
     /// Extra paths made by splitting (`splitting`), over all passes.
     pub split_paths: u64,
+    /// Extra light samples taken by `light_splitting`, over all passes.
+    pub extra_light_samples: u64,
 }
 
 /// The guide configuration of `params`.
@@ -348,6 +350,7 @@ pub fn render_guided_with_policy(
     let rays_counter = ShardedCounter::new();
     let rays = &rays_counter;
     let splits_counter = ShardedCounter::new();
+    let light_splits_counter = ShardedCounter::new();
     let render_pass = |tree: &SdTree,
                        estimate: &[f32],
                        guide: bool,
@@ -374,7 +377,9 @@ pub fn render_guided_with_policy(
             hemisphere: params.guide_hemisphere,
             cosine: params.guide_cosine,
             split: params.splitting && split,
+            light_split: params.light_splitting && split,
             splits: Some(&splits_counter),
+            light_splits: Some(&light_splits_counter),
             rays: Some(rays),
             pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
                 Some(estimate)
@@ -708,6 +713,7 @@ pub fn render_guided_with_policy(
         invalid_samples: invalid,
         path_fallback_after: fallback.fell_back_after,
         split_paths: splits_counter.total(),
+        extra_light_samples: light_splits_counter.total(),
     };
     (film, stats, tree)
 }

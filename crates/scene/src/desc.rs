@@ -216,6 +216,15 @@ pub struct GuidedParams {
     /// well above the pixel's estimated value (the weight window's upper edge), in the passes
     /// that record nothing. true in the pathfarm preset, false in 2017 and 2019.
     pub splitting: bool,
+    /// `light_splitting`: in the same passes as `splitting`, take several light (next-event)
+    /// samples at a guided vertex whose light sample is noisy compared with the pixel's
+    /// estimated value: `throughput x` the standard deviation of a light sample's value learned
+    /// in the vertex's spatial leaf, over 0.5 x the pixel's value, stochastically rounded, at
+    /// most 8 samples (the weight window of `splitting`, applied to the light sample; MIS
+    /// weighs the n samples as one technique with pdf `n p_light`). The light samples of the
+    /// quadtrees' "indirect only" learning are otherwise invisible to the guide. true in the
+    /// pathfarm preset, false in 2017 and 2019.
+    pub light_splitting: bool,
     /// `path_fallback`: while training, compare the efficiency (variance x cost per sample) of
     /// guided sampling with an unguided probe and render the rest of the budget as plain path
     /// tracing when guiding does not pay. false in the 2017 and 2019 presets, true in pathfarm's.
@@ -255,6 +264,7 @@ impl GuidedParams {
             russian_roulette: GuidedRoulette::Ppg,
             guided_rr_depth: 3,
             splitting: false,
+            light_splitting: false,
             path_fallback: false,
             guide_hemisphere: false,
             guide_cosine: false,
@@ -295,6 +305,7 @@ impl GuidedParams {
             s_tree_threshold: 2000.0,
             russian_roulette: GuidedRoulette::Guided,
             splitting: true,
+            light_splitting: true,
             path_fallback: true,
             guide_hemisphere: true,
             guide_cosine: true,

@@ -168,6 +168,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
             u32::MAX as i64,
         )? as u32,
         splitting: p.bool("splitting", d.splitting)?,
+        light_splitting: p.bool("light_splitting", d.light_splitting)?,
         path_fallback: p.bool("path_fallback", d.path_fallback)?,
         guide_hemisphere: p.bool("guide_hemisphere", d.guide_hemisphere)?,
         guide_cosine: p.bool("guide_cosine", d.guide_cosine)?,

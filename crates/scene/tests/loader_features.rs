@@ -493,6 +493,7 @@ fn command_line_names_the_file_does_not_use_become_integrator_parameters() {
             ("spp_per_pass", "2"),
             ("d_tree_threshold", "0.02"),
             ("splitting", "true"),
+            ("light_splitting", "true"),
             // the command line beats a literal value in the file
             ("rr_depth", "9"),
         ]),
@@ -508,6 +509,8 @@ fn command_line_names_the_file_does_not_use_become_integrator_parameters() {
         (g.spp_per_pass, g.d_tree_threshold, g.splitting),
         (2, 0.02f32 as f64, true)
     );
+    assert!(g.light_splitting && !expect.light_splitting);
+    assert!(GuidedParams::preset_pathfarm().light_splitting);
 }
 
 #[test]
