@@ -219,8 +219,8 @@ pub struct GuidedParams {
     /// `light_splitting`: in the same passes as `splitting`, take several light (next-event)
     /// samples at a guided vertex whose light sample is noisy compared with the pixel's
     /// estimated value: `throughput x` the standard deviation of a light sample's value learned
-    /// in the vertex's spatial leaf, over 0.5 x the pixel's value, stochastically rounded, at
-    /// most 8 samples (the weight window of `splitting`, applied to the light sample; MIS
+    /// in the vertex's spatial leaf, over the pixel's value, stochastically rounded, at most
+    /// 4 samples (the weight window of `splitting`, applied to the light sample; MIS
     /// weighs the n samples as one technique with pdf `n p_light`). The light samples of the
     /// quadtrees' "indirect only" learning are otherwise invisible to the guide. true in the
     /// pathfarm preset, false in 2017 and 2019.
