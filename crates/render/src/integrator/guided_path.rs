@@ -19,6 +19,11 @@
 //!   `guided_rr_depth` on, survival by the path's expected contribution against
 //!   the pixel's value ([`guided_survival`]), and Mitsuba's elsewhere. All are
 //!   unbiased.
+//! * Light splitting (`light_splitting`, the pathfarm preset): in the passes that split
+//!   paths, a vertex whose light sample is noisy against the pixel's value (by the leaf's
+//!   learned light-sample deviation) takes several, weighed by MIS as one technique of pdf
+//!   `n p_light` ([`LIGHT_SPLIT_WINDOW`]). Training passes record every light sample's value
+//!   into the leaf's statistics.
 //! * Recording (training iterations only) uses the forward-loop suffix-radiance
 //!   bookkeeping of [`PathRecorder`]: every contribution added to the pixel is
 //!   added to the accumulator of every open vertex; at path end
@@ -1080,12 +1085,17 @@ mod tests {
         assert_eq!(split_count(1.0, 0.0, 0.0), 1, "no pixel estimate: no split");
         assert_eq!(split_count(f32::INFINITY, i, 0.0), 1);
         // Mean copies = the ratio (unbiased rounding), over a uniform grid of u.
-        let n = 1000;
-        let mean = (0..n)
-            .map(|k| split_count(2.3 * edge, i, (k as f32 + 0.5) / n as f32) as f64)
-            .sum::<f64>()
-            / n as f64;
+        let mean = mean_over_u(|u| split_count(2.3 * edge, i, u));
         assert!((mean - 2.3).abs() < 1e-3, "{mean}");
+    }
+
+    /// Mean of `count(u)` over a uniform grid of 1000 values of u in (0, 1).
+    fn mean_over_u(count: impl Fn(f32) -> u32) -> f64 {
+        let n = 1000;
+        (0..n)
+            .map(|k| count((k as f32 + 0.5) / n as f32) as f64)
+            .sum::<f64>()
+            / n as f64
     }
 
     #[test]
@@ -1118,11 +1128,7 @@ mod tests {
         assert_eq!(light_sample_count(f32::NAN, i, 0.0), 1);
         assert_eq!(light_sample_count(1.0, 0.0, 0.0), 1, "no pixel estimate");
         // Mean count = the ratio (unbiased rounding), over a uniform grid of u.
-        let n = 1000;
-        let mean = (0..n)
-            .map(|k| light_sample_count(2.7 * edge, i, (k as f32 + 0.5) / n as f32) as f64)
-            .sum::<f64>()
-            / n as f64;
+        let mean = mean_over_u(|u| light_sample_count(2.7 * edge, i, u));
         assert!((mean - 2.7).abs() < 1e-3, "{mean}");
     }
 
