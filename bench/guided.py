@@ -69,7 +69,7 @@ SCENES = {
 }
 CONFIGS = ["pf-path", "pf-2017", "pf-2019", "pf-pathfarm", "mi-path"]
 LABEL = {"pf-path": "pathfarm path", "pf-2017": "pathfarm guided 2017", "pf-2019": "pathfarm guided 2019",
-         "pf-pathfarm": "pathfarm guided (preset pathfarm = 2019 + guided RR from depth 3 + splitting + path fallback + cosine-weighted hemisphere)",
+         "pf-pathfarm": "pathfarm guided (preset pathfarm = 2019 + guided RR from depth 3 + splitting + path fallback + cosine-weighted hemisphere + light splitting)",
          "mi-path": "Mitsuba 3 path (llvm_ad_rgb)"}
 # Default plan: which configs per scene and budget (cornell-box only at the smallest budget).
 PLAN = {"veach-ajar": CONFIGS, "cornell-box": ["pf-path", "pf-2019", "pf-pathfarm", "mi-path"], "door-ajar": CONFIGS}
