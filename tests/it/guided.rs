@@ -256,7 +256,11 @@ fn guided_and_unguided_door_ajar_agree_within_confidence_intervals_with_splittin
     let (path_scene, guided_scene) = door_ajar_pair("agree");
     let p = guided_scene.guided.as_ref().unwrap();
     assert!(
-        p.splitting && p.light_splitting && p.guide_hemisphere && p.guide_cosine,
+        p.splitting
+            && p.light_splitting
+            && p.guide_hemisphere
+            && p.guide_cosine
+            && p.carry_over > 0.0,
         "the pathfarm preset"
     );
     assert!(p.guided_rr_depth < p.path.rr_depth, "early guided roulette");

@@ -123,6 +123,10 @@ pub struct GuideConfig {
     pub adam: AdamConfig,
     /// Memory cap: spatial refinement stops once the S-tree has this many nodes (default none).
     pub max_nodes: Option<usize>,
+    /// Fraction of each iteration's statistics the next building tree starts with, in [0, 1],
+    /// applied in 1/256ths (default 0: every iteration learns from its own records alone, as
+    /// in the paper; see [`crate::carry`]).
+    pub carry_over: f64,
 }
 
 impl Default for GuideConfig {
@@ -138,6 +142,7 @@ impl Default for GuideConfig {
             fraction_clamp: (0.05, 0.95),
             adam: AdamConfig::default(),
             max_nodes: None,
+            carry_over: 0.0,
         }
     }
 }

@@ -34,6 +34,7 @@
 // `!(x > 0.0)` is used on purpose: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
 
+pub mod carry;
 pub mod config;
 pub mod dtree;
 pub mod filter;

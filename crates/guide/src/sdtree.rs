@@ -50,6 +50,10 @@ pub struct Leaf {
     /// Light-sample statistics: this iteration's sums and the mean and deviation frozen at
     /// the last refinement (split children inherit both).
     pub light: LightStats,
+    /// Statistics carried over from earlier iterations (`GuideConfig::carry_over`; see
+    /// [`crate::carry`]): a quadtree of `building`'s structure whose leaf-cell sums and
+    /// weight are added into `building` at the next refinement. Empty without carry-over.
+    pub prior: DTree,
 }
 
 /// The learned fraction's alpha as vertices read it: f32 sigmoid of the logit.
@@ -75,6 +79,7 @@ impl Leaf {
             flux: 0.0,
             alpha: alpha_of(0.0),
             light: LightStats::default(),
+            prior: DTree::new(),
         }
     }
 }
@@ -471,9 +476,18 @@ impl SdTree {
     ///    depth [`MAX_SPATIAL_DEPTH`]; the threshold is never taken below 1;
     /// 3. reset every building quadtree from its built sums (rho = `d_tree_threshold`), which
     ///    zeroes the statistics, and zero the light-sample sums.
+    ///
+    /// With `carry_over` > 0 (see [`crate::carry`]), step 1 first adds each leaf's carried
+    /// statistics into its building tree, step 2 counts this iteration's weight only (and a
+    /// splitting leaf's two halves share the building sums and the carried weight), and step 3
+    /// carries that fraction of the built statistics into the new structure.
     pub fn refine(&mut self, k: u32) {
+        let carry_q = crate::carry::quantise(self.config.carry_over);
         for l in &mut self.leaves {
             l.grad.clear();
+            if carry_q > 0 {
+                crate::carry::add_prior(&l.building, &l.prior, &self.overflow);
+            }
             l.building.build();
             let w = l.building.weight();
             l.flux = if w > 0.0 {
@@ -505,7 +519,8 @@ impl SdTree {
             }
             let li = self.stree.nodes[node as usize].leaf;
             let w = self.leaves[li as usize].building.weight_fixed();
-            if w <= threshold_fixed {
+            let carried = self.leaves[li as usize].prior.weight_fixed();
+            if w.saturating_sub(carried) <= threshold_fixed {
                 continue;
             }
             let (w0, w1) = (w / 2, w - w / 2);
@@ -517,6 +532,13 @@ impl SdTree {
                 l.sampling.set_weight_fixed(l.sampling.weight_fixed() / 2);
             }
             child.building.set_weight_fixed(w1);
+            if carry_q > 0 {
+                // The halves share the statistics the next prior is carried from.
+                let parent = &mut self.leaves[li as usize];
+                crate::carry::halve_sums_into(&parent.building, &child.building);
+                parent.prior.set_weight_fixed(carried / 2);
+                child.prior.set_weight_fixed(carried - carried / 2);
+            }
             let sw = child.sampling.weight_fixed();
             child.sampling.set_weight_fixed(sw - sw / 2);
             self.leaves.push(child);
@@ -528,7 +550,13 @@ impl SdTree {
         let rho = self.config.d_tree_threshold;
         let md = self.config.max_d_tree_depth;
         for l in &mut self.leaves {
-            l.building.reset(rho, md);
+            if carry_q > 0 {
+                let old = l.building.clone();
+                l.building.reset(rho, md);
+                l.prior = crate::carry::carry(&old, &l.building, carry_q);
+            } else {
+                l.building.reset(rho, md);
+            }
             l.light.clear();
         }
     }
@@ -561,8 +589,9 @@ impl SdTree {
             s.sampling_dtree_nodes += l.sampling.node_count();
             s.building_dtree_nodes += l.building.node_count();
             s.max_dtree_depth = s.max_dtree_depth.max(l.sampling.depth());
-            s.memory_bytes += l.sampling.memory_bytes() + l.building.memory_bytes()
-                - 2 * std::mem::size_of::<DTree>();
+            s.memory_bytes +=
+                l.sampling.memory_bytes() + l.building.memory_bytes() + l.prior.memory_bytes()
+                    - 3 * std::mem::size_of::<DTree>();
         }
         s
     }

@@ -1483,10 +1483,116 @@ fn light_sample_statistics_freeze_their_mean_and_deviation_at_refinement() {
     assert_eq!(t.light_sample_stats_leaf(h), (0.75, 0.0));
 }
 
+/// Sum of a quadtree's leaf-cell sums (what a refinement builds on).
+fn leaf_cell_total(t: &crate::DTree) -> u128 {
+    t.nodes
+        .iter()
+        .flat_map(|n| {
+            (0..4)
+                .filter(|&q| n.children[q] == 0)
+                .map(|q| n.sums[q].get())
+        })
+        .sum()
+}
+
+#[test]
+fn carry_over_moves_the_built_statistics_into_the_refined_structure_exactly() {
+    // Deterministic integer arithmetic (no significance level).
+    for (beta, q) in [(1.0, 256u128), (0.5, 128)] {
+        let cfg = GuideConfig {
+            s_tree_threshold: 1e9, // one spatial leaf
+            carry_over: beta,
+            ..GuideConfig::default()
+        };
+        let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+        let mut rng = Pcg::new(81);
+        for r in clustered_records(&mut rng, 5000) {
+            t.record(&r, &mut rng.rng());
+        }
+        let (total, weight) = {
+            let b = &t.leaves()[0].building;
+            (leaf_cell_total(b), b.weight_fixed())
+        };
+        assert!(t.leaves()[0].prior.weight_fixed() == 0, "no prior before");
+        t.refine(0);
+        let l = &t.leaves()[0];
+        let (b, p) = (&l.building, &l.prior);
+        assert_eq!(leaf_cell_total(b), 0, "the building tree starts empty");
+        assert_eq!(b.weight_fixed(), 0);
+        assert!(b.node_count() > 1, "the structure was refined");
+        assert_eq!(
+            p.node_count(),
+            b.node_count(),
+            "the prior has its structure"
+        );
+        for (x, y) in p.nodes.iter().zip(&b.nodes) {
+            assert_eq!(x.children, y.children);
+        }
+        // Every old leaf cell's scaled sum lands somewhere; a split cell's sum is shared
+        // exactly, so the only loss is each old cell's rounding of the scaling.
+        let cells = t.leaves()[0].sampling.leaf_cells().len() as u128;
+        let carried = leaf_cell_total(p);
+        let exact = total / 256 * q + (total % 256) * q / 256;
+        assert!(
+            carried <= exact && carried + cells >= exact,
+            "{carried} vs {exact}"
+        );
+        if q == 256 {
+            assert_eq!(carried, total);
+        }
+        assert_eq!(
+            p.weight_fixed(),
+            weight / 256 * q + (weight % 256) * q / 256
+        );
+        // With everything carried and nothing new, the next tree learns the same radiance.
+        let flux = t.leaves()[0].flux;
+        t.refine(1);
+        if q == 256 {
+            assert_eq!(t.leaves()[0].flux, flux);
+            assert_eq!(leaf_cell_total(&t.leaves()[0].prior), total);
+        }
+    }
+}
+
+#[test]
+fn carried_weight_does_not_count_towards_spatial_splits() {
+    // threshold after iteration k: c sqrt(2^(k+1)) with spp_per_pass 4; c = 1000.
+    let cfg = GuideConfig {
+        s_tree_threshold: 1000.0,
+        carry_over: 1.0,
+        ..GuideConfig::default()
+    };
+    let mut t = SdTree::new(Vec3::ZERO, Vec3::ONE, cfg.clone());
+    let rec = |i: usize| {
+        let p = Vec3::new(0.2 + 0.0006 * (i % 1000) as f32, 0.5, 0.5);
+        Record::radiance_only(p, Vec3::Z, 1.0, 0.5, 1.0)
+    };
+    for i in 0..1000 {
+        t.record(&rec(i), &mut || 0.5);
+    }
+    t.refine(0); // W 1000 <= 1414: no split
+    for i in 0..1200 {
+        t.record(&rec(i), &mut || 0.5);
+    }
+    // W this iteration 1200 <= 2000, but 2200 with the carried 1000.
+    t.refine(1);
+    assert_eq!(t.leaves().len(), 1, "carried weight split the leaf");
+    // Recorded weight alone above the threshold still splits, and the halves share the
+    // carried weight.
+    for i in 0..3000 {
+        t.record(&rec(i), &mut || 0.5);
+    }
+    t.refine(2); // 3000 > 2828
+    assert!(t.leaves().len() > 1);
+    let w: u128 = t.leaves().iter().map(|l| l.prior.weight_fixed()).sum();
+    assert_eq!(w, (1000 + 1200 + 3000) * crate::stats::FIXED_ONE);
+}
+
 #[test]
 fn recording_from_one_or_two_threads_gives_bit_identical_trees() {
     let cfg = GuideConfig {
         s_tree_threshold: 300.0,
+        carry_over: 0.5,
         ..GuideConfig::improvements_2019()
     };
     let base = warmed_tree(cfg, 51, 4000, 2);
@@ -1520,9 +1626,14 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
         bsdf_sampling_fraction: FractionMode::Learned {
             loss: FractionLoss::Var,
         },
+        carry_over: 0.5,
         ..GuideConfig::default()
     };
     let base = warmed_tree(cfg, 61, 4000, 2);
+    assert!(
+        base.leaves().iter().any(|l| l.prior.weight_fixed() > 0),
+        "the base tree carries statistics"
+    );
     let recs = det_records(20_000, 62);
     let mut rng = Pcg::new(63);
     let mut parts: [Vec<(Record, u64)>; 3] = Default::default();
@@ -1565,7 +1676,12 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
 
 #[test]
 fn wire_round_trips_and_detects_corruption() {
-    let t = warmed_tree(GuideConfig::improvements_2019(), 71, 3000, 2);
+    let cfg = GuideConfig {
+        carry_over: 0.5,
+        ..GuideConfig::improvements_2019()
+    };
+    let t = warmed_tree(cfg, 71, 3000, 2);
+    assert!(t.leaves().iter().any(|l| l.prior.weight_fixed() > 0));
     let mut t2 = t.clone();
     record_all(&t2, &det_records(2000, 72));
     let bytes = t2.encode();

@@ -21,7 +21,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 4;
+pub const VERSION: u16 = 5;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -296,6 +296,7 @@ fn put_config(w: &mut W, c: &GuideConfig) {
         w.f64(v);
     }
     w.u64(c.max_nodes.map(|n| n as u64).unwrap_or(u64::MAX));
+    w.f64(c.carry_over);
 }
 
 fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
@@ -336,8 +337,12 @@ fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
         gradient_clamp: r.f64()?,
     };
     let mn = r.u64()?;
+    let carry_over = r.f64()?;
     if max_d_tree_depth == 0 || max_d_tree_depth > MAX_DEPTH {
         return Err(WireError::Malformed("quadtree depth"));
+    }
+    if !(0.0..=1.0).contains(&carry_over) {
+        return Err(WireError::Malformed("carry-over fraction"));
     }
     Ok(GuideConfig {
         s_tree_threshold,
@@ -354,6 +359,7 @@ fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
         } else {
             Some(mn as usize)
         },
+        carry_over,
     })
 }
 
@@ -487,6 +493,7 @@ impl SdTree {
             w.f32(l.light.std_dev);
             put_dtree(&mut w, &l.building);
             put_dtree(&mut w, &l.sampling);
+            put_dtree(&mut w, &l.prior);
         }
         frame(MAGIC_TREE, w)
     }
@@ -514,7 +521,7 @@ impl SdTree {
                 depth: r.u32()?,
             });
         }
-        let nl = r.count(396)?;
+        let nl = r.count(433)?;
         // validate the S-tree
         if nn == 0 || !(size > 0.0) || !min.is_finite() {
             return Err(WireError::Malformed("spatial domain"));
@@ -588,6 +595,20 @@ impl SdTree {
             let building = get_dtree(&mut r)?;
             let mut sampling = get_dtree(&mut r)?;
             sampling.freeze();
+            let prior = get_dtree(&mut r)?;
+            // Carried statistics fit the building tree's structure, or there are none.
+            let empty =
+                prior.nodes.len() == 1 && prior.weight_fixed() == 0 && prior.total_fixed() == 0;
+            if !empty
+                && (prior.nodes.len() != building.nodes.len()
+                    || prior
+                        .nodes
+                        .iter()
+                        .zip(&building.nodes)
+                        .any(|(a, b)| a.children != b.children))
+            {
+                return Err(WireError::Malformed("carried statistics' structure"));
+            }
             leaves.push(Leaf {
                 building,
                 sampling,
@@ -596,6 +617,7 @@ impl SdTree {
                 flux,
                 alpha: crate::sdtree::alpha_of(fraction.theta),
                 light,
+                prior,
             });
         }
         if r.p != payload.len() {

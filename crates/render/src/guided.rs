@@ -161,6 +161,7 @@ pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
             },
         },
         max_nodes: params.max_nodes.map(|n| n as usize),
+        carry_over: params.carry_over,
         ..GuideConfig::default()
     };
     if let Some(mb) = params.max_memory_mb {

@@ -151,6 +151,7 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
         spp_per_pass: p.int_in("spp_per_pass", d.spp_per_pass as i64, 1, 1 << 20)? as u32,
         s_tree_threshold: float_in(p, "s_tree_threshold", d.s_tree_threshold, 1e-6, f64::MAX)?,
         d_tree_threshold: float_in(p, "d_tree_threshold", d.d_tree_threshold, 0.0, 1.0)?,
+        carry_over: float_in(p, "carry_over", d.carry_over, 0.0, 1.0)?,
         russian_roulette: choice(
             p,
             "russian_roulette",

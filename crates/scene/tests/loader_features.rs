@@ -494,6 +494,7 @@ fn command_line_names_the_file_does_not_use_become_integrator_parameters() {
             ("d_tree_threshold", "0.02"),
             ("splitting", "true"),
             ("light_splitting", "true"),
+            ("carry_over", "0.25"),
             // the command line beats a literal value in the file
             ("rr_depth", "9"),
         ]),
@@ -511,6 +512,8 @@ fn command_line_names_the_file_does_not_use_become_integrator_parameters() {
     );
     assert!(g.light_splitting && !expect.light_splitting);
     assert!(GuidedParams::preset_pathfarm().light_splitting);
+    assert_eq!((g.carry_over, expect.carry_over), (0.25, 0.0));
+    assert_eq!(GuidedParams::preset_pathfarm().carry_over, 0.5);
 }
 
 #[test]
