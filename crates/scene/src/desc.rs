@@ -190,7 +190,8 @@ pub struct GuidedParams {
     /// single-threaded runs side by side): at 63 spp (4 seeds) relMSE 0.961 on veach-ajar and
     /// 0.954 on door-ajar (3 of 4 better each) for the same time; at 30 CPU-s (8 seeds)
     /// 0.933 on veach-ajar (7 of 8 better) and 0.966 on door-ajar (6 of 8). 0.25 and 1.0
-    /// gave 0.973 and 0.976 at 63 spp on veach-ajar.
+    /// gave 0.973 and 0.976 at 63 spp on veach-ajar. At 120 CPU-s on veach-ajar it was
+    /// neutral (benchmark seeds, 2 runs: 1.01). It adds about 30 % to the tree's memory.
     pub carry_over: f64,
     /// `nee`: "never" | "always" (default) | "kickstart".
     pub nee: GuidedNee,
