@@ -52,43 +52,43 @@ pub(crate) fn carry(old: &DTree, new: &DTree, q: u32) -> DTree {
     let mut prior = new.clone();
     prior.clear_stats();
     let overflow = AtomicU64::new(0);
-    // Old leaf cells with their quadrant paths from the root, depth first.
-    let mut stack: Vec<(u32, Vec<u8>)> = vec![(0, Vec::new())];
-    while let Some((n, path)) = stack.pop() {
-        let node = &old.nodes[n as usize];
-        for q4 in 0..4u8 {
-            let mut p = path.clone();
-            p.push(q4);
-            match node.children[q4 as usize] {
-                0 => {
-                    let amount = scale(node.sums[q4 as usize].get(), q);
-                    if amount != 0 {
-                        deposit_path(&prior, &p, amount, &overflow);
-                    }
-                }
-                c => stack.push((c, p)),
-            }
-        }
-    }
+    carry_node(old, 0, &prior, Target::Node(0), q, &overflow);
     prior.weight.set(scale(old.weight.get(), q));
     prior
 }
 
-/// Adds `amount` to the cell of `t` at quadrant path `path`: into the leaf cell that contains
-/// it (the path's cell or a coarser one), or shared equally among the leaf cells below it.
-fn deposit_path(t: &DTree, path: &[u8], amount: u128, overflow: &AtomicU64) {
-    let mut n = 0usize;
-    for (i, &q) in path.iter().enumerate() {
-        match t.nodes[n].children[q as usize] {
+/// Where an old node's region lies in the new structure.
+#[derive(Clone, Copy)]
+enum Target {
+    /// At a node of the new tree (the same region).
+    Node(usize),
+    /// Inside a leaf cell `(node, quadrant)` of the new tree (the region was merged).
+    Cell(usize, usize),
+}
+
+/// Deposits the scaled leaf cells below old node `on` into `prior`, walking both trees
+/// together: an old leaf cell goes into the new leaf cell holding it, or is shared among the
+/// new cells below it.
+fn carry_node(old: &DTree, on: usize, prior: &DTree, at: Target, q: u32, ov: &AtomicU64) {
+    for q4 in 0..4 {
+        let target = match at {
+            Target::Node(nn) => match prior.nodes[nn].children[q4] {
+                0 => Target::Cell(nn, q4),
+                c => Target::Node(c as usize),
+            },
+            cell => cell,
+        };
+        match old.nodes[on].children[q4] {
             0 => {
-                t.nodes[n].sums[q as usize].add(amount, overflow);
-                return;
+                let amount = scale(old.nodes[on].sums[q4].get(), q);
+                if amount != 0 {
+                    match target {
+                        Target::Cell(n, c) => prior.nodes[n].sums[c].add(amount, ov),
+                        Target::Node(n) => spread(prior, n, amount, ov),
+                    }
+                }
             }
-            c if i + 1 == path.len() => {
-                spread(t, c as usize, amount, overflow);
-                return;
-            }
-            c => n = c as usize,
+            c => carry_node(old, c as usize, prior, target, q, ov),
         }
     }
 }
@@ -110,20 +110,27 @@ fn spread(t: &DTree, n: usize, amount: u128, overflow: &AtomicU64) {
     }
 }
 
+/// Whether `prior` holds nothing (a one-node quadtree without sums or weight).
+pub(crate) fn is_empty(prior: &DTree) -> bool {
+    prior.nodes.len() == 1 && prior.weight.get() == 0 && prior.total_fixed() == 0
+}
+
+/// Whether `prior` can be added into `building`: it is empty or has `building`'s structure
+/// (a prior is made for the structure it was carried into; see [`carry`]).
+pub(crate) fn fits(prior: &DTree, building: &DTree) -> bool {
+    is_empty(prior)
+        || (prior.nodes.len() == building.nodes.len()
+            && prior
+                .nodes
+                .iter()
+                .zip(&building.nodes)
+                .all(|(a, b)| a.children == b.children))
+}
+
 /// Adds `prior`'s leaf-cell sums and weight into `building` (before it is built). Does
-/// nothing when `prior` is empty or its structure is not `building`'s (a prior is made for
-/// the structure it was carried into; see [`carry`]).
+/// nothing when `prior` is empty or does not [`fits`] `building`.
 pub(crate) fn add_prior(building: &DTree, prior: &DTree, overflow: &AtomicU64) {
-    if prior.weight.get() == 0 && prior.total_fixed() == 0 {
-        return;
-    }
-    if prior.nodes.len() != building.nodes.len()
-        || prior
-            .nodes
-            .iter()
-            .zip(&building.nodes)
-            .any(|(a, b)| a.children != b.children)
-    {
+    if is_empty(prior) || !fits(prior, building) {
         return;
     }
     for (p, b) in prior.nodes.iter().zip(&building.nodes) {

@@ -597,16 +597,7 @@ impl SdTree {
             sampling.freeze();
             let prior = get_dtree(&mut r)?;
             // Carried statistics fit the building tree's structure, or there are none.
-            let empty =
-                prior.nodes.len() == 1 && prior.weight_fixed() == 0 && prior.total_fixed() == 0;
-            if !empty
-                && (prior.nodes.len() != building.nodes.len()
-                    || prior
-                        .nodes
-                        .iter()
-                        .zip(&building.nodes)
-                        .any(|(a, b)| a.children != b.children))
-            {
+            if !crate::carry::fits(&prior, &building) {
                 return Err(WireError::Malformed("carried statistics' structure"));
             }
             leaves.push(Leaf {
