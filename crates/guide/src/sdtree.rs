@@ -2,7 +2,7 @@
 //! quadtrees and the learned BSDF-sampling fraction.
 
 use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter};
-use crate::dtree::DTree;
+use crate::dtree::{prefetch, prefetch_block, DTree};
 use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
 use crate::light::LightStats;
@@ -273,10 +273,8 @@ impl SdTree {
     #[inline]
     pub fn prefetch_sampling(&self, h: LeafHandle) {
         if let Some(leaf) = self.leaves.get(h.0 as usize) {
-            let nodes = leaf.sampling.frozen.as_ptr().cast::<u8>();
             if !leaf.sampling.frozen.is_empty() {
-                prefetch(nodes);
-                prefetch(nodes.wrapping_add(64));
+                prefetch_block(&leaf.sampling.frozen, 0);
             }
         }
     }
@@ -702,18 +700,4 @@ impl SdTree {
         self.overflow.fetch_add(of + s.overflow_events, Relaxed);
         Ok(())
     }
-}
-
-/// A cache-line prefetch hint (no-op where the target has none). Never faults, even for an
-/// address outside any allocation.
-#[inline(always)]
-fn prefetch(p: *const u8) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: prefetch is a hint; it does not access memory architecturally and cannot fault.
-    #[allow(unused_unsafe)]
-    unsafe {
-        std::arch::x86_64::_mm_prefetch(p.cast::<i8>(), std::arch::x86_64::_MM_HINT_T0);
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = p;
 }

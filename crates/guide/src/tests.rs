@@ -1757,6 +1757,26 @@ fn frozen_sampling_cache_gives_bit_identical_samples_and_pdfs() {
             assert_eq!(a.1.to_bits(), b.1.to_bits());
             assert_eq!(t.pdf(a.0).to_bits(), f.pdf(a.0).to_bits());
         }
+        // Block layout: every block's first node (the root, and each grandchild of a block's
+        // first node) has its inner children right after it, in quadrant order, and every
+        // node of the tree is in the cache once.
+        let kids = |i: usize| f.frozen_children(i).into_iter().filter(|&c| c != 0);
+        let (mut roots, mut seen) = (vec![0usize], vec![false; t.node_count()]);
+        seen[0] = true;
+        let mut blocks = 0;
+        while let Some(r) = roots.pop() {
+            blocks += 1;
+            for (j, c) in kids(r).enumerate() {
+                assert_eq!(c as usize, r + 1 + j, "child {j} of block root {r}");
+                assert!(!std::mem::replace(&mut seen[c as usize], true));
+                for g in kids(c as usize) {
+                    assert!(!std::mem::replace(&mut seen[g as usize], true));
+                    roots.push(g as usize);
+                }
+            }
+        }
+        assert!(seen.iter().all(|&s| s), "the cache holds every node");
+        assert!(blocks >= 3, "the tree spans several blocks ({blocks})");
     }
 }
 
