@@ -548,13 +548,11 @@ impl SdTree {
         let rho = self.config.d_tree_threshold;
         let md = self.config.max_d_tree_depth;
         for l in &mut self.leaves {
+            let refined = l.building.refined(rho, md);
             if carry_q > 0 {
-                let old = l.building.clone();
-                l.building.reset(rho, md);
-                l.prior = crate::carry::carry(&old, &l.building, carry_q);
-            } else {
-                l.building.reset(rho, md);
+                l.prior = crate::carry::carry(&l.building, &refined, carry_q);
             }
+            l.building = refined;
             l.light.clear();
         }
     }
