@@ -123,6 +123,13 @@ pub struct GuideConfig {
     pub adam: AdamConfig,
     /// Memory cap: spatial refinement stops once the S-tree has this many nodes (default none).
     pub max_nodes: Option<usize>,
+    /// Memory cap on the directional quadtrees: the building quadtrees of all leaves together
+    /// may have at most this many nodes after a refinement (default none). When the refinement
+    /// threshold `d_tree_threshold` would make more, the refinement uses the smallest larger
+    /// threshold that fits (a coarser guide, never an allocation past the cap); see
+    /// [`crate::SdTree::raised_d_tree_threshold`]. A resource limit, not part of the tree's
+    /// wire form.
+    pub max_dtree_nodes: Option<usize>,
     /// Fraction of each iteration's statistics the next building tree starts with, in [0, 1],
     /// applied in 1/256ths (default 0: every iteration learns from its own records alone, as
     /// in the paper; see [`crate::carry`]).
@@ -142,6 +149,7 @@ impl Default for GuideConfig {
             fraction_clamp: (0.05, 0.95),
             adam: AdamConfig::default(),
             max_nodes: None,
+            max_dtree_nodes: None,
             carry_over: 0.0,
         }
     }

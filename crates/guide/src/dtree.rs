@@ -926,6 +926,46 @@ impl DTree {
         }
     }
 
+    /// How many nodes [`DTree::refined`] would make with `rho` and `max_depth`, counted
+    /// without building them; counting stops past `limit` (the result is then `limit + 1`), so
+    /// a tiny `rho` costs no more than `limit` steps.
+    pub fn refined_node_count(&self, rho: f64, max_depth: u32, limit: usize) -> usize {
+        let max_depth = max_depth.clamp(1, MAX_DEPTH);
+        let total = self.total();
+        if !(total > 0.0) {
+            return Self::uniform(4.min(max_depth)).nodes.len();
+        }
+        let mut count = 1usize;
+        // (old index or u32::MAX when seeded, seeded sums, depth), as in `refined`.
+        let mut stack: Vec<(u32, [f64; 4], u32)> = vec![(0, [0.0; 4], 1)];
+        while let Some((oi, seeded, depth)) = stack.pop() {
+            let sums = if oi != u32::MAX {
+                self.nodes[oi as usize].sums_f64()
+            } else {
+                seeded
+            };
+            for q in 0..4 {
+                if depth < max_depth && sums[q] / total > rho {
+                    count += 1;
+                    if count > limit {
+                        return limit + 1;
+                    }
+                    let oc = if oi != u32::MAX {
+                        self.nodes[oi as usize].children[q]
+                    } else {
+                        0
+                    };
+                    if oc != 0 {
+                        stack.push((oc, [0.0; 4], depth + 1));
+                    } else {
+                        stack.push((u32::MAX, [sums[q] * 0.25; 4], depth + 1));
+                    }
+                }
+            }
+        }
+        count
+    }
+
     /// Zeroes every sum and W, keeping the structure.
     pub fn clear_stats(&mut self) {
         self.unfreeze();

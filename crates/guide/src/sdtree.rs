@@ -118,6 +118,8 @@ pub struct SdTree {
     pub(crate) leaves: Vec<Leaf>,
     pub(crate) built: bool,
     pub(crate) overflow: AtomicU64,
+    /// Set by `refine` when `max_dtree_nodes` raised the quadtree threshold.
+    pub(crate) raised_rho: Option<f64>,
 }
 
 impl Clone for SdTree {
@@ -128,6 +130,7 @@ impl Clone for SdTree {
             leaves: self.leaves.clone(),
             built: self.built,
             overflow: AtomicU64::new(self.overflow.load(Relaxed)),
+            raised_rho: self.raised_rho,
         }
     }
 }
@@ -153,6 +156,7 @@ impl SdTree {
             leaves: vec![Leaf::initial()],
             built: false,
             overflow: AtomicU64::new(0),
+            raised_rho: None,
         }
     }
 
@@ -545,8 +549,8 @@ impl SdTree {
             work.push(c0);
         }
         self.stree.index();
-        let rho = self.config.d_tree_threshold;
         let md = self.config.max_d_tree_depth;
+        let rho = self.capped_d_tree_threshold(md);
         for l in &mut self.leaves {
             let refined = l.building.refined(rho, md);
             if carry_q > 0 {
@@ -555,6 +559,52 @@ impl SdTree {
             l.building = refined;
             l.light.clear();
         }
+    }
+
+    /// The quadtree refinement threshold of the last refinement, if `max_dtree_nodes` made it
+    /// larger than `d_tree_threshold`.
+    pub fn raised_d_tree_threshold(&self) -> Option<f64> {
+        self.raised_rho
+    }
+
+    /// `d_tree_threshold`, or, when refining every building quadtree with it would make more
+    /// than `max_dtree_nodes` nodes, the smallest threshold found (by bisection in log space,
+    /// a deterministic function of the tree) that stays within the cap. Records it in
+    /// `raised_rho`.
+    fn capped_d_tree_threshold(&mut self, max_depth: u32) -> f64 {
+        let rho = self.config.d_tree_threshold;
+        self.raised_rho = None;
+        let Some(cap) = self.config.max_dtree_nodes else {
+            return rho;
+        };
+        let fits = |r: f64| {
+            let mut left = cap;
+            for l in &self.leaves {
+                let n = l.building.refined_node_count(r, max_depth, left);
+                if n > left {
+                    return false;
+                }
+                left -= n;
+            }
+            true
+        };
+        if fits(rho) {
+            return rho;
+        }
+        // fits(hi) should hold at rho = 1 (one node per non-empty leaf); if even that does not
+        // fit, 1 is the best there is.
+        let (mut lo, mut hi) = (rho.max(1e-12).ln(), 0.0f64);
+        for _ in 0..40 {
+            let mid = 0.5 * (lo + hi);
+            if fits(mid.exp()) {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        let raised = hi.exp();
+        self.raised_rho = Some(raised);
+        raised
     }
 
     /// Size statistics.

@@ -573,6 +573,72 @@ fn reset_refines_exactly_where_energy_fraction_exceeds_rho() {
 }
 
 #[test]
+fn refined_node_count_equals_the_refined_trees_node_count_and_stops_at_its_limit() {
+    let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
+    for i in 0..9u64 {
+        let t = random_dtree(400 + i, kinds[i as usize % 3]);
+        for rho in [0.2, 0.01, 1e-3, 1e-5] {
+            let n = t.refined(rho, MAX_DEPTH).node_count();
+            assert_eq!(
+                t.refined_node_count(rho, MAX_DEPTH, usize::MAX),
+                n,
+                "rho {rho}"
+            );
+            assert_eq!(t.refined_node_count(rho, MAX_DEPTH, n), n);
+            assert_eq!(t.refined_node_count(rho, MAX_DEPTH, n - 1), n);
+            assert_eq!(t.refined_node_count(rho, MAX_DEPTH, n - 2), n - 1);
+        }
+        // rho = 0 would refine every seeded cell to depth 20 (4^19 nodes): the count stops.
+        assert_eq!(t.refined_node_count(0.0, MAX_DEPTH, 100_000), 100_001);
+    }
+}
+
+#[test]
+fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
+    let base = GuideConfig {
+        s_tree_threshold: 50.0,
+        d_tree_threshold: 1e-5,
+        ..GuideConfig::default()
+    };
+    let free = warmed_tree(base.clone(), 7, 4000, 3);
+    assert_eq!(free.raised_d_tree_threshold(), None);
+    let used = free.stats().building_dtree_nodes;
+    // A cap above what refinement makes changes no bit.
+    let roomy = warmed_tree(
+        GuideConfig {
+            max_dtree_nodes: Some(used),
+            ..base.clone()
+        },
+        7,
+        4000,
+        3,
+    );
+    assert_eq!(roomy.raised_d_tree_threshold(), None);
+    assert_eq!(roomy.encode(), free.encode());
+    // A cap below it is kept, with a raised threshold.
+    let cap = used / 4;
+    let tight = warmed_tree(
+        GuideConfig {
+            max_dtree_nodes: Some(cap),
+            ..base
+        },
+        7,
+        4000,
+        3,
+    );
+    let raised = tight
+        .raised_d_tree_threshold()
+        .expect("the cap was reached");
+    assert!(raised > 1e-5, "{raised}");
+    let n = tight.stats().building_dtree_nodes;
+    assert!(n <= cap, "{n} nodes over the cap of {cap}");
+    assert!(
+        n > cap / 2,
+        "{n} nodes: the bisection should come close to the cap of {cap}"
+    );
+}
+
+#[test]
 fn build_makes_every_parent_sum_equal_the_sum_of_its_children() {
     for i in 0..6u64 {
         let t = random_dtree(400 + i, [TreeKind::Blobs, TreeKind::Peak][i as usize % 2]);

@@ -359,6 +359,7 @@ fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
         } else {
             Some(mn as usize)
         },
+        max_dtree_nodes: None,
         carry_over,
     })
 }
@@ -620,6 +621,7 @@ impl SdTree {
             leaves,
             built,
             overflow: AtomicU64::new(overflow),
+            raised_rho: None,
         })
     }
 }

@@ -164,15 +164,42 @@ pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
         carry_over: params.carry_over,
         ..GuideConfig::default()
     };
-    if let Some(mb) = params.max_memory_mb {
+    // The tree's memory cap: the scene's `max_memory_mb`, never more than the limits allow.
+    let limit = scene.limits.max_guide_memory_bytes as f64;
+    let bytes = params
+        .max_memory_mb
+        .map_or(limit, |mb| (mb * 1048576.0).min(limit));
+    let (lo, hi) = scene.accel.bounds();
+    let fresh = SdTree::new(lo, hi, cfg.clone()).stats();
+    if params.max_memory_mb.is_some() {
         // Approximate: a spatial leaf costs about twice a fresh tree's single leaf (its
-        // quadtrees grow past the uniform depth-4 start), and nodes ~ 2 leaves.
-        let (lo, hi) = scene.accel.bounds();
-        let per_leaf = (2 * SdTree::new(lo, hi, cfg.clone()).stats().memory_bytes).max(1) as f64;
-        let nodes = ((2.0 * mb * 1048576.0 / per_leaf) as usize).max(1);
+        // quadtrees grow past the uniform depth-4 start), and nodes ~ 2 leaves. (Without
+        // `max_memory_mb` the spatial tree is bounded by the records: a split needs the
+        // threshold's weight; `max_nodes` is part of a saved tree, so it stays unset.)
+        let per_leaf = (2 * fresh.memory_bytes).max(1) as f64;
+        let nodes = ((2.0 * bytes / per_leaf) as usize).max(1);
         cfg.max_nodes = Some(cfg.max_nodes.map_or(nodes, |n| n.min(nodes)));
     }
+    // Exact: the quadtrees' nodes (building, sampling and carried prior: three per building
+    // node) may take half of it.
+    let quad_nodes = (fresh.sampling_dtree_nodes + fresh.building_dtree_nodes).max(1);
+    let per_node = (fresh.memory_bytes as f64 / quad_nodes as f64) * 1.5;
+    cfg.max_dtree_nodes = Some(((0.5 * bytes / per_node) as usize).max(1));
     cfg
+}
+
+/// Checks a guided render's budget before anything is rendered: a pass renders
+/// `spp_per_pass` samples per pixel, so an spp budget smaller than one pass would be
+/// silently exceeded.
+pub fn check_budget(params: &GuidedParams, budget: Budget) -> Result<(), String> {
+    match budget {
+        Budget::Spp(spp) if params.spp_per_pass > spp => Err(format!(
+            "spp_per_pass={} is more than the budget of {spp} spp (a pass renders \
+             spp_per_pass samples per pixel): lower spp_per_pass or raise the budget",
+            params.spp_per_pass
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The budget of `params` (`budget` in `budget_type` units; by default the scene's
@@ -593,6 +620,14 @@ pub fn render_guided_with_policy(
             }
         }
         tree.refine(k);
+        if let Some(rho) = tree.raised_d_tree_threshold() {
+            tracing::warn!(
+                "iteration {k}: the quadtrees would exceed the guide's memory cap \
+                 (max_memory_mb, or Limits::max_guide_memory_bytes): refined with \
+                 d_tree_threshold {rho:.3e} instead of {:.3e}",
+                params.d_tree_threshold
+            );
+        }
         k += 1;
     }
 

@@ -38,6 +38,9 @@ pub use scene::Scene;
 pub enum RenderError {
     #[error("unsupported: {0}")]
     Unsupported(String),
+    /// The render would exceed a resource limit (the message names it).
+    #[error("{0}")]
+    TooLarge(String),
     #[error("{path}: cannot write image: {message}")]
     Output {
         path: std::path::PathBuf,

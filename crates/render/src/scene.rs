@@ -13,6 +13,7 @@ use crate::geometry::{Accel, Analytic, ShapeGeom, SurfaceInteraction};
 use crate::light::{AreaLight, EnvMap, Light, Lights};
 use crate::material::Material;
 use crate::RenderError;
+use pathfarm_scene::limits::{format_bytes, Limits};
 
 pub struct Scene {
     pub accel: Accel,
@@ -36,6 +37,9 @@ pub struct Scene {
     pub sample_count: u32,
     pub seed: u64,
     pub triangle_count: usize,
+    /// The resource limits the scene was loaded with (the renderer checks its own
+    /// allocations against them).
+    pub limits: Limits,
 }
 
 impl Scene {
@@ -71,7 +75,15 @@ impl Scene {
                 }
             })
             .sum();
-        let accel = Accel::build(geoms);
+        check_memory(desc, triangle_count)?;
+        // The BVH builder is third-party code: a failure there is an error, not a crash
+        // (the loader bounds coordinates, so this is a second line of defence).
+        let accel = std::panic::catch_unwind(move || Accel::build(geoms)).map_err(|_| {
+            RenderError::Unsupported(format!(
+                "{}: building the BVH failed on this geometry",
+                desc.source.display()
+            ))
+        })?;
 
         let mut lights = Vec::new();
         let mut shape_light = vec![None; desc.shapes.len()];
@@ -157,6 +169,7 @@ impl Scene {
             sample_count: desc.sensor.sample_count,
             seed: desc.sensor.seed,
             triangle_count,
+            limits: desc.limits.clone(),
         })
     }
 
@@ -167,4 +180,45 @@ impl Scene {
         let m = &self.materials[self.shape_material[si.shape as usize] as usize];
         m.bsdf(&self.textures, si, ray_d)
     }
+}
+
+/// Bytes of acceleration structure per triangle (CWBVH nodes, SoA triangle blocks, the build's
+/// temporaries), an upper estimate.
+const BVH_BYTES_PER_TRIANGLE: u64 = 256;
+/// Films a render keeps at once (the guided driver keeps an image per iteration it combines,
+/// the pixel estimate and the fallback's films; a path render one).
+const GUIDED_FILMS: u64 = 8;
+/// The renderer's pass buffer cap (`render::PASS_BUFFER_BYTES`) and other per-render scratch.
+const SCRATCH_BYTES: u64 = 512 << 20;
+
+/// Refuses, before the BVH or any film is allocated, a render whose estimated memory (the
+/// scene's meshes and textures, the BVH, the films) exceeds `Limits::max_memory_bytes`.
+fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {
+    let film = &desc.sensor.film;
+    let pixels = film.width as u64 * film.height as u64;
+    let films = match desc.integrator {
+        IntegratorDesc::Path(_) => 1,
+        IntegratorDesc::GuidedPath(_) => GUIDED_FILMS,
+    };
+    let film_bytes = pixels * std::mem::size_of::<crate::film::PixelStats>() as u64 * films;
+    let bvh_bytes = triangles as u64 * BVH_BYTES_PER_TRIANGLE;
+    let data_bytes = desc.data_bytes();
+    let total = film_bytes + bvh_bytes + data_bytes + SCRATCH_BYTES;
+    let limit = desc.limits.max_memory_bytes;
+    if total > limit {
+        return Err(RenderError::TooLarge(format!(
+            "{}: the render needs about {} (films of {}x{}: {}; BVH of {triangles} triangles: \
+             {}; meshes and textures: {}), more than the memory limit of {} \
+             (Limits::max_memory_bytes)",
+            desc.source.display(),
+            format_bytes(total),
+            film.width,
+            film.height,
+            format_bytes(film_bytes),
+            format_bytes(bvh_bytes),
+            format_bytes(data_bytes),
+            format_bytes(limit)
+        )));
+    }
+    Ok(())
 }

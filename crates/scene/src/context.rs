@@ -8,6 +8,7 @@ use std::rc::Rc;
 
 use crate::desc::{BsdfDesc, Location, TextureDesc};
 use crate::error::SceneError;
+use crate::limits::{format_bytes, Limits};
 use crate::props::Props;
 use crate::xml::{invalid, Node};
 
@@ -23,10 +24,15 @@ pub(crate) struct Ctx {
     in_progress: HashSet<*const Node>,
     pub warnings: Vec<String>,
     default_bsdf: Option<usize>,
+    /// Resource limits of this load.
+    pub limits: Limits,
+    /// Bytes of mesh and texture data loaded so far (checked against
+    /// `limits.max_memory_bytes` before each allocation, see [`Ctx::reserve_memory`]).
+    pub memory_bytes: u64,
 }
 
 impl Ctx {
-    pub(crate) fn new(ids: HashMap<String, Rc<Node>>, base_dir: PathBuf) -> Self {
+    pub(crate) fn new(ids: HashMap<String, Rc<Node>>, base_dir: PathBuf, limits: Limits) -> Self {
         Self {
             ids,
             base_dir,
@@ -37,6 +43,8 @@ impl Ctx {
             in_progress: HashSet::new(),
             warnings: Vec::new(),
             default_bsdf: None,
+            limits,
+            memory_bytes: 0,
         }
     }
 
@@ -72,6 +80,32 @@ impl Ctx {
 
     pub(crate) fn leave(&mut self, node: &Rc<Node>) {
         self.in_progress.remove(&Rc::as_ptr(node));
+    }
+
+    /// Account for `bytes` more of scene data (`what`, e.g. "mesh file 'x.ply' (12 M
+    /// triangles)") before allocating it: an error at `loc` if the scene's data would exceed
+    /// `limits.max_memory_bytes`.
+    pub(crate) fn reserve_memory(
+        &mut self,
+        bytes: u64,
+        what: &str,
+        loc: &Location,
+    ) -> Result<(), SceneError> {
+        let total = self.memory_bytes.saturating_add(bytes);
+        if total > self.limits.max_memory_bytes {
+            return Err(invalid(
+                loc,
+                format!(
+                    "{what} needs {}, which with the {} already loaded exceeds the memory limit \
+                     of {} (Limits::max_memory_bytes)",
+                    format_bytes(bytes),
+                    format_bytes(self.memory_bytes),
+                    format_bytes(self.limits.max_memory_bytes)
+                ),
+            ));
+        }
+        self.memory_bytes = total;
+        Ok(())
     }
 
     /// Index of Mitsuba's default BSDF (diffuse, reflectance 0.5), added on

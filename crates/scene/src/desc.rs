@@ -46,6 +46,43 @@ pub struct SceneDesc {
     /// independent), each prefixed with `file:line`. The loader does not log;
     /// the caller decides how to show these.
     pub warnings: Vec<String>,
+    /// The limits it was loaded with; the renderer checks its own allocations against them.
+    pub limits: crate::Limits,
+}
+
+impl SceneDesc {
+    /// Bytes of mesh and texture data the description holds.
+    pub fn data_bytes(&self) -> u64 {
+        let meshes: u64 = self
+            .shapes
+            .iter()
+            .map(|s| match &s.geometry {
+                Geometry::Mesh(m) => m.data_bytes(),
+                _ => 0,
+            })
+            .sum();
+        let texels = |t: &Texels| match t {
+            Texels::Bytes { rgb, .. } => rgb.len() as u64 * 4,
+            Texels::Float(v) => v.len() as u64 * 12,
+        };
+        let textures: u64 = self
+            .textures
+            .iter()
+            .map(|t| match t {
+                TextureDesc::Bitmap(b) => texels(&b.texels),
+                _ => 0,
+            })
+            .sum();
+        let envmaps: u64 = self
+            .emitters
+            .iter()
+            .map(|e| match e {
+                EmitterDesc::EnvMap { texels, .. } => texels.len() as u64 * 12,
+                _ => 0,
+            })
+            .sum();
+        meshes + textures + envmaps
+    }
 }
 
 /// The effects a scene calls for. The renderer selects code paths from this
@@ -635,6 +672,16 @@ pub struct TriangleMesh {
     pub indices: Vec<[u32; 3]>,
     /// Geometric (and shading) normals are negated (`flip_normals`).
     pub flip_normals: bool,
+}
+
+impl TriangleMesh {
+    /// Bytes of its vertex and index arrays.
+    pub fn data_bytes(&self) -> u64 {
+        let v = self.positions.len() as u64;
+        let normals = self.normals.as_ref().map_or(0, |n| n.len() as u64 * 12);
+        let uvs = self.uvs.as_ref().map_or(0, |u| u.len() as u64 * 8);
+        v * 12 + normals + uvs + self.indices.len() as u64 * 12
+    }
 }
 
 /// Mitsuba `area` emitter: emits `radiance` from the front side (the side

@@ -8,7 +8,7 @@ use glam::{DVec3, Vec3};
 use crate::context::Ctx;
 use crate::desc::{AreaEmitterDesc, EmitterDesc};
 use crate::error::SceneError;
-use crate::imageio::load_image;
+use crate::imageio::load_checked;
 use crate::props::Resolved;
 use crate::textures::const_color;
 use crate::xml::{invalid, Category};
@@ -46,7 +46,7 @@ pub(crate) fn area_emitter(ctx: &Ctx, r: &Resolved) -> Result<AreaEmitterDesc, S
 }
 
 /// A scene-level emitter.
-pub(crate) fn emitter(ctx: &Ctx, r: &Resolved) -> Result<EmitterDesc, SceneError> {
+pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneError> {
     expect_emitter(r)?;
     let p = ctx.props(&r.node)?;
     let desc = match p.plugin() {
@@ -95,8 +95,7 @@ pub(crate) fn emitter(ctx: &Ctx, r: &Resolved) -> Result<EmitterDesc, SceneError
             let scale = p.float("scale", 1.0)?;
             let to_world = p.transform("to_world")?.as_mat4();
             let path = ctx.resolve_path(&name);
-            let img = load_image(&path, false)
-                .map_err(|e| invalid(&loc, format!("envmap file '{}': {e}", path.display())))?;
+            let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
             EmitterDesc::EnvMap { width: img.width, height: img.height, texels: Arc::new(img.texels.iter().collect()), scale, to_world }
         }
         other => {

@@ -4,11 +4,12 @@ use std::path::PathBuf;
 /// (and, where there is one, the line) at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    #[error("{file}: cannot read: {source}")]
+    /// The OS error is part of the message, not a `source`: error chains (anyhow's `{:#}`)
+    /// would print it twice.
+    #[error("{file}: cannot read: {error}")]
     Io {
         file: PathBuf,
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("{file}:{line}: {message}")]
     Invalid {

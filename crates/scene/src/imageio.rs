@@ -6,7 +6,10 @@ use std::sync::Arc;
 
 use glam::Vec3;
 
-use crate::desc::Texels;
+use crate::context::Ctx;
+use crate::desc::{Location, Texels};
+use crate::error::SceneError;
+use crate::xml::invalid;
 
 /// A decoded image: linear (or raw) RGB, row-major, row 0 = top.
 pub(crate) struct LoadedImage {
@@ -24,21 +27,70 @@ pub fn srgb_to_linear(c: f32) -> f32 {
     }
 }
 
+/// Load the image `path` for `what` (e.g. "texture file"), after checking its size, read from
+/// the file's header, against `Limits::max_texture_pixels` and reserving its memory: a header
+/// cannot make the decoder allocate more than the limits allow. Errors are located at `loc`.
+pub(crate) fn load_checked(
+    ctx: &mut Ctx,
+    path: &Path,
+    raw: bool,
+    what: &str,
+    loc: &Location,
+) -> Result<LoadedImage, SceneError> {
+    let name = format!("{what} '{}'", path.display());
+    let fail = |e: String| invalid(loc, format!("{name}: {e}"));
+    if path.is_dir() {
+        return Err(fail("is a directory, not an image".into()));
+    }
+    let (w, h) = image_size(path).map_err(fail)?;
+    let pixels = w as u64 * h as u64;
+    let max = ctx.limits.max_texture_pixels;
+    if pixels > max {
+        return Err(fail(format!(
+            "the image is {w}x{h} ({pixels} pixels), more than the limit of {max} pixels \
+             (Limits::max_texture_pixels)"
+        )));
+    }
+    // Decoded bytes plus our texels (up to 16 bytes a pixel for float images).
+    ctx.reserve_memory(pixels * 24, &format!("{name} ({w}x{h})"), loc)?;
+    load_image(path, raw, pixels * 24).map_err(fail)
+}
+
+/// Width and height from the file's header, without decoding it.
+fn image_size(path: &Path) -> Result<(u32, u32), String> {
+    if is_exr(path) {
+        let meta = exr::meta::MetaData::read_from_file(path, false)
+            .map_err(|e| format!("cannot read OpenEXR file: {e}"))?;
+        let header = meta.headers.first().ok_or("OpenEXR file has no layer")?;
+        let size = header.layer_size;
+        return Ok((size.width() as u32, size.height() as u32));
+    }
+    image::ImageReader::open(path)
+        .map_err(|e| format!("cannot read: {e}"))?
+        .with_guessed_format()
+        .map_err(|e| format!("cannot read: {e}"))?
+        .into_dimensions()
+        .map_err(|e| format!("cannot decode image: {e}"))
+}
+
+fn is_exr(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+}
+
 /// Load `path`. EXR files are linear already. PNG/JPEG files (8 or 16 bit)
 /// are sRGB-encoded and are linearised with the exact sRGB curve unless
 /// `raw` (Mitsuba's `raw=true`: use values as stored). Grayscale expands to
 /// RGB; alpha is dropped. Errors are messages for the caller to locate.
-pub(crate) fn load_image(path: &Path, raw: bool) -> Result<LoadedImage, String> {
-    let is_exr = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+/// `max_alloc` bounds the decoder's allocations.
+fn load_image(path: &Path, raw: bool, max_alloc: u64) -> Result<LoadedImage, String> {
     // Third-party decoders must not take the process down on a bad file.
     let img = std::panic::catch_unwind(|| {
-        if is_exr {
+        if is_exr(path) {
             load_exr(path)
         } else {
-            load_ldr(path, raw)
+            load_ldr(path, raw, max_alloc)
         }
     })
     .unwrap_or_else(|_| Err("the image decoder failed (panicked) on this file".into()))?;
@@ -56,11 +108,16 @@ pub(crate) fn load_image(path: &Path, raw: bool) -> Result<LoadedImage, String> 
     Ok(img)
 }
 
-fn load_ldr(path: &Path, raw: bool) -> Result<LoadedImage, String> {
+fn load_ldr(path: &Path, raw: bool, max_alloc: u64) -> Result<LoadedImage, String> {
     let reader = image::ImageReader::open(path).map_err(|e| format!("cannot read: {e}"))?;
-    let reader = reader
+    let mut reader = reader
         .with_guessed_format()
         .map_err(|e| format!("cannot read: {e}"))?;
+    // The size was checked against our limits; the decoder's own default (512 MiB) would
+    // refuse a valid 16k x 16k texture.
+    let mut limits = image::Limits::no_limits();
+    limits.max_alloc = Some(max_alloc);
+    reader.limits(limits);
     let dynimg = reader
         .decode()
         .map_err(|e| format!("cannot decode image: {e}"))?;

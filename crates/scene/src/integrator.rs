@@ -8,6 +8,7 @@ use crate::desc::{
     GuidedParams, GuidedRoulette, GuidedSpatialFilter, IntegratorDesc, PathParams,
 };
 use crate::error::SceneError;
+use crate::limits::Limits;
 use crate::props::{Props, Resolved};
 use crate::xml::invalid;
 
@@ -16,7 +17,7 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
     let p = ctx.props(&r.node)?;
     let desc = match p.plugin() {
         "path" => IntegratorDesc::Path(path_params(&p)?),
-        "guided_path" => IntegratorDesc::GuidedPath(guided_params(&p)?),
+        "guided_path" => IntegratorDesc::GuidedPath(guided_params(&p, &ctx.limits)?),
         other => {
             return Err(invalid(
                 p.loc(),
@@ -67,23 +68,40 @@ fn choice<T: Clone>(
         })
 }
 
-/// A float parameter that must be finite and within `[min, max]`.
+/// A float parameter that must be finite and within `[min, max]` (checked before rounding).
 fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f64, SceneError> {
-    match p.float_opt(name)? {
+    match p.f64_opt(name)? {
         None => Ok(default),
-        Some(v) if (v as f64) < min || (v as f64) > max => Err(invalid(
-            p.loc(),
+        Some((v, loc)) if v < min || v > max => Err(invalid(
+            &loc,
             format!(
-                "parameter '{name}' of {} must be in [{min}, {max}] (got {v})",
-                p.what()
+                "parameter '{name}' of {} must be in [{}, {}] (got {})",
+                p.what(),
+                short(min),
+                short(max),
+                short(v)
             ),
         )),
-        Some(v) => Ok(v as f64),
+        // Read as a 32-bit float, as every float parameter is (the images depend on it).
+        Some((v, _)) => Ok(v as f32 as f64),
+    }
+}
+
+/// The smallest `d_tree_threshold` (the papers use 0.01): about 2 million nodes per quadtree.
+const MIN_D_TREE_THRESHOLD: f64 = 1e-5;
+
+/// A number for a message: plain when short, else in scientific notation (1e-5, not 0.00001).
+fn short(x: f64) -> String {
+    let plain = format!("{x}");
+    if plain.len() <= 6 {
+        plain
+    } else {
+        format!("{x:e}")
     }
 }
 
 /// `guided_path`: the `path` parameters plus the SD-tree guide's (see [`GuidedParams`]).
-fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
+fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError> {
     let d = choice(
         p,
         "preset",
@@ -104,18 +122,39 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
             ("seconds", GuidedBudgetType::Seconds),
         ],
     )?;
-    let budget = match p.float_opt("budget")? {
+    let (max_budget, unit, limit) = match budget_type {
+        GuidedBudgetType::Spp => (limits.max_spp as f64, "spp", "Limits::max_spp"),
+        GuidedBudgetType::Seconds => (
+            limits.max_time_seconds,
+            "seconds",
+            "Limits::max_time_seconds",
+        ),
+    };
+    let budget = match p.f64_opt("budget")? {
         None => None,
-        Some(b) if !(b > 0.0) => {
+        Some((b, loc)) if !(b > 0.0) => {
             return Err(invalid(
-                p.loc(),
+                &loc,
                 format!(
-                    "parameter 'budget' of {} must be positive (got {b})",
-                    p.what()
+                    "parameter 'budget' of {} must be positive (got {})",
+                    p.what(),
+                    short(b)
                 ),
             ))
         }
-        Some(b) => Some(b as f64),
+        Some((b, loc)) if b > max_budget => {
+            return Err(invalid(
+                &loc,
+                format!(
+                    "parameter 'budget' of {} is {} {unit}, more than the limit of {} \
+                     ({limit})",
+                    p.what(),
+                    short(b),
+                    short(max_budget)
+                ),
+            ))
+        }
+        Some((b, _)) => Some(b as f32 as f64),
     };
     let max_memory_mb = match p.float_opt("max_memory_mb")? {
         None => None,
@@ -149,8 +188,16 @@ fn guided_params(p: &Props) -> Result<GuidedParams, SceneError> {
         budget,
         budget_type,
         spp_per_pass: p.int_in("spp_per_pass", d.spp_per_pass as i64, 1, 1 << 20)? as u32,
-        s_tree_threshold: float_in(p, "s_tree_threshold", d.s_tree_threshold, 1e-6, f64::MAX)?,
-        d_tree_threshold: float_in(p, "d_tree_threshold", d.d_tree_threshold, 0.0, 1.0)?,
+        s_tree_threshold: float_in(p, "s_tree_threshold", d.s_tree_threshold, 1e-6, 1e12)?,
+        // Below rho a quadrant is not refined: a quadtree has at most about 20 / rho nodes,
+        // so rho = 0 would refine every cell to depth 20 (4^20 nodes per leaf).
+        d_tree_threshold: float_in(
+            p,
+            "d_tree_threshold",
+            d.d_tree_threshold,
+            MIN_D_TREE_THRESHOLD,
+            1.0,
+        )?,
         carry_over: float_in(p, "carry_over", d.carry_over, 0.0, 1.0)?,
         russian_roulette: choice(
             p,

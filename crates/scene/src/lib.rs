@@ -24,6 +24,7 @@ mod error;
 mod imageio;
 mod integrator;
 mod ior;
+pub mod limits;
 mod props;
 mod sensor;
 mod shapes;
@@ -34,6 +35,7 @@ mod xml;
 pub use desc::*;
 pub use error::SceneError;
 pub use imageio::srgb_to_linear;
+pub use limits::Limits;
 
 use std::path::Path;
 use std::rc::Rc;
@@ -49,8 +51,18 @@ use xml::{invalid, Category};
 /// block only says `max_depth`); if the integrator has no such parameter, or
 /// the file has no `<integrator>`, loading fails with an error naming it.
 pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDesc, SceneError> {
-    let parsed = xml::parse_file(path, overrides)?;
-    let mut ctx = Ctx::new(parsed.ids, parsed.base_dir);
+    load_scene_with_limits(path, overrides, &Limits::default())
+}
+
+/// [`load_scene`] with the given resource limits: every size the file (or an override) turns
+/// into memory or work is checked against `limits` before it is allocated.
+pub fn load_scene_with_limits(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+) -> Result<SceneDesc, SceneError> {
+    let parsed = xml::parse_file(path, overrides, limits)?;
+    let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone());
     let mut integrator_desc = None;
     let mut sensor_desc = None;
     let mut shape_descs = Vec::new();
@@ -94,7 +106,7 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
             Category::Texture => {
                 textures::texture(&mut ctx, &r)?;
             }
-            Category::Emitter => emitter_descs.push(emitters::emitter(&ctx, &r)?),
+            Category::Emitter => emitter_descs.push(emitters::emitter(&mut ctx, &r)?),
             Category::Film | Category::RFilter | Category::Sampler => {
                 return Err(invalid(
                     &r.loc,
@@ -129,6 +141,7 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
         emitters: emitter_descs,
         features,
         warnings: ctx.warnings,
+        limits: ctx.limits,
     })
 }
 

@@ -122,6 +122,21 @@ impl Props {
     }
 
     pub(crate) fn float_opt(&self, name: &str) -> Result<Option<f32>, SceneError> {
+        let Some((v, loc)) = self.f64_opt(name)? else {
+            return Ok(None);
+        };
+        let f = v as f32;
+        if !f.is_finite() {
+            return Err(invalid(
+                &loc,
+                format!("parameter '{name}' is {v:e}, beyond the range of a 32-bit float"),
+            ));
+        }
+        Ok(Some(f))
+    }
+
+    /// A finite number in double precision, with its location.
+    pub(crate) fn f64_opt(&self, name: &str) -> Result<Option<(f64, Location)>, SceneError> {
         let Some(p) = self.get(name) else {
             return Ok(None);
         };
@@ -134,14 +149,13 @@ impl Props {
                 .map_err(|_| self.command_line_error(p, s, "a number"))?,
             _ => return Err(self.type_error(p, "<float>")),
         };
-        let f = v as f32;
-        if !f.is_finite() {
+        if !v.is_finite() {
             return Err(invalid(
                 &p.loc,
-                format!("parameter '{name}' must be finite (got {v})"),
+                format!("parameter '{name}' must be a finite number (got {v})"),
             ));
         }
-        Ok(Some(f))
+        Ok(Some((v, p.loc.clone())))
     }
 
     pub(crate) fn float(&self, name: &str, default: f32) -> Result<f32, SceneError> {
@@ -176,6 +190,35 @@ impl Props {
                 &loc,
                 format!(
                     "parameter '{name}' of {} must be in [{min}, {max}] (got {v})",
+                    self.what()
+                ),
+            )),
+            Some((v, _)) => Ok(v),
+        }
+    }
+
+    /// An integer in `[min, max]` where `max` is the resource limit `limit` (named in the error).
+    pub(crate) fn int_limited(
+        &self,
+        name: &str,
+        default: i64,
+        min: i64,
+        max: i64,
+        limit: &str,
+    ) -> Result<i64, SceneError> {
+        match self.int_opt(name)? {
+            None => Ok(default),
+            Some((v, loc)) if v > max => Err(invalid(
+                &loc,
+                format!(
+                    "parameter '{name}' of {} is {v}, more than the limit of {max} ({limit})",
+                    self.what()
+                ),
+            )),
+            Some((v, loc)) if v < min => Err(invalid(
+                &loc,
+                format!(
+                    "parameter '{name}' of {} must be at least {min} (got {v})",
                     self.what()
                 ),
             )),
@@ -250,6 +293,19 @@ impl Props {
             return Err(invalid(
                 &p.loc,
                 format!("parameter '{name}' must be finite"),
+            ));
+        }
+        // Radiance, reflectance and the like: a negative value makes negative pixels.
+        if c.min_element() < 0.0 {
+            return Err(invalid(
+                &p.loc,
+                format!(
+                    "parameter '{name}' of {} is negative ({}, {}, {}): colours must be >= 0",
+                    self.what(),
+                    c.x,
+                    c.y,
+                    c.z
+                ),
             ));
         }
         Ok(Some(c))

@@ -20,7 +20,18 @@ pub(crate) fn sensor(ctx: &mut Ctx, r: &Resolved) -> Result<SensorDesc, SceneErr
         ));
     }
     let (fov, fov_axis) = fov(&p)?;
-    let to_world = p.transform("to_world")?.as_mat4();
+    let to_world_d = p.transform("to_world")?;
+    let to_world = to_world_d.as_mat4();
+    let det = glam::DMat3::from_mat4(to_world_d).determinant();
+    if !(det.abs() > 1e-30) || !to_world.is_finite() {
+        return Err(invalid(
+            p.loc(),
+            format!(
+                "perspective sensor: to_world must be invertible (its 3x3 part has determinant \
+                 {det:e})"
+            ),
+        ));
+    }
     let near_clip = p.float("near_clip", 1e-2)?;
     let far_clip = p.float("far_clip", 1e4)?;
     if !(near_clip > 0.0 && near_clip < far_clip) {
@@ -140,8 +151,21 @@ fn film(ctx: &Ctx, r: &Resolved) -> Result<FilmDesc, SceneError> {
             ),
         ));
     }
-    let width = p.int_in("width", 768, 1, 1 << 20)? as u32;
-    let height = p.int_in("height", 576, 1, 1 << 20)? as u32;
+    let limits = &ctx.limits;
+    let side = limits.max_film_side as i64;
+    let width = p.int_limited("width", 768, 1, side, "Limits::max_film_side")? as u32;
+    let height = p.int_limited("height", 576, 1, side, "Limits::max_film_side")? as u32;
+    let pixels = width as u64 * height as u64;
+    if pixels > limits.max_film_pixels {
+        return Err(invalid(
+            p.loc(),
+            format!(
+                "film of {width}x{height} = {pixels} pixels exceeds the limit of {} pixels \
+                 (Limits::max_film_pixels)",
+                limits.max_film_pixels
+            ),
+        ));
+    }
     // Output-format options that do not change the image we compute.
     for name in ["file_format", "pixel_format", "component_format"] {
         let _ = p.string_opt(name)?;
@@ -164,23 +188,34 @@ fn film(ctx: &Ctx, r: &Resolved) -> Result<FilmDesc, SceneError> {
 
 fn rfilter(ctx: &Ctx, r: &Resolved) -> Result<RFilter, SceneError> {
     let p = ctx.props(&r.node)?;
-    let positive = |v: f32, name: &str| {
-        if v > 0.0 {
-            Ok(v)
-        } else {
+    let max_radius = ctx.limits.max_filter_radius;
+    // `reach` is the filter's radius per unit of the parameter (a gaussian reaches 4 stddev).
+    let checked = |v: f32, name: &str, reach: f64| {
+        if !(v > 0.0) {
             Err(invalid(
                 p.loc(),
                 format!("rfilter '{name}' must be positive (got {v})"),
             ))
+        } else if v as f64 * reach > max_radius {
+            Err(invalid(
+                p.loc(),
+                format!(
+                    "rfilter '{name}' {v} reaches {} pixels, more than the limit of \
+                     {max_radius} pixels (Limits::max_filter_radius)",
+                    v as f64 * reach
+                ),
+            ))
+        } else {
+            Ok(v)
         }
     };
     let f = match p.plugin() {
         "box" => RFilter::Box { radius: 0.5 },
         "tent" => RFilter::Tent {
-            radius: positive(p.float("radius", 1.0)?, "radius")?,
+            radius: checked(p.float("radius", 1.0)?, "radius", 1.0)?,
         },
         "gaussian" => RFilter::Gaussian {
-            stddev: positive(p.float("stddev", 0.5)?, "stddev")?,
+            stddev: checked(p.float("stddev", 0.5)?, "stddev", 4.0)?,
         },
         other => {
             return Err(invalid(
@@ -219,7 +254,8 @@ fn sampler(ctx: &mut Ctx, r: &Resolved) -> Result<(u32, u64), SceneError> {
             ))
         }
     }
-    let sample_count = p.int_in("sample_count", 4, 1, u32::MAX as i64)? as u32;
+    let max_spp = ctx.limits.max_spp.min(u32::MAX as u64) as i64;
+    let sample_count = p.int_limited("sample_count", 4, 1, max_spp, "Limits::max_spp")? as u32;
     let seed = p.int_in("seed", 0, 0, i64::MAX)? as u64;
     p.finish()?;
     Ok((sample_count, seed))

@@ -6,7 +6,7 @@ use glam::{DMat4, Mat2, Vec2, Vec3};
 use crate::context::Ctx;
 use crate::desc::{BitmapDesc, TexFilter, TexRef, TextureDesc, UvTransform, WrapMode};
 use crate::error::SceneError;
-use crate::imageio::load_image;
+use crate::imageio::load_checked;
 use crate::props::{Props, Resolved};
 use crate::xml::{invalid, Category};
 
@@ -127,7 +127,7 @@ fn checkerboard(p: &Props) -> Result<TextureDesc, SceneError> {
     })
 }
 
-fn bitmap(ctx: &Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
+fn bitmap(ctx: &mut Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     let (name, loc) = p
         .string_opt("filename")?
         .ok_or_else(|| invalid(p.loc(), "bitmap texture requires a 'filename' parameter"))?;
@@ -163,8 +163,7 @@ fn bitmap(ctx: &Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     // `accel` only selects Mitsuba's hardware texture path: no effect here.
     let _ = p.bool("accel", true)?;
     let path = ctx.resolve_path(&name);
-    let img = load_image(&path, raw)
-        .map_err(|e| invalid(&loc, format!("texture file '{}': {e}", path.display())))?;
+    let img = load_checked(ctx, &path, raw, "texture file", &loc)?;
     Ok(TextureDesc::Bitmap(BitmapDesc {
         width: img.width,
         height: img.height,

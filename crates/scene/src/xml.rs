@@ -158,6 +158,9 @@ struct Parser<'a> {
     /// Names declared by `<default>` or referenced by `$name`.
     used: std::cell::RefCell<std::collections::HashSet<String>>,
     ids: HashMap<String, Rc<Node>>,
+    /// Bytes `$name` substitution has produced so far, against `max_substituted`.
+    substituted: std::cell::Cell<usize>,
+    max_substituted: usize,
 }
 
 /// Parse `path` with command-line `overrides` (which take precedence over
@@ -165,15 +168,22 @@ struct Parser<'a> {
 pub(crate) fn parse_file(
     path: &Path,
     overrides: &[(String, String)],
+    limits: &crate::Limits,
 ) -> Result<XmlScene, SceneError> {
-    let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
-        file: path.to_path_buf(),
-        source,
-    })?;
+    let text = read_scene_text(path, limits)?;
     let file_loc = |line: u32| Location {
         file: path.to_path_buf(),
         line,
     };
+    check_nesting(&text, limits.max_xml_depth).map_err(|line| {
+        invalid(
+            &file_loc(line),
+            format!(
+                "elements nest deeper than {} levels (Limits::max_xml_depth)",
+                limits.max_xml_depth
+            ),
+        )
+    })?;
     let doc = roxmltree::Document::parse(&text).map_err(|e| {
         let pos = e.pos();
         invalid(&file_loc(pos.row), format!("malformed XML: {e}"))
@@ -184,6 +194,8 @@ pub(crate) fn parse_file(
         params: overrides.iter().cloned().collect(),
         used: Default::default(),
         ids: HashMap::new(),
+        substituted: std::cell::Cell::new(0),
+        max_substituted: limits.max_substituted_bytes,
     };
     let root = doc.root_element();
     let root_loc = parser.loc(root);
@@ -205,11 +217,22 @@ pub(crate) fn parse_file(
             ));
         }
     }
-    if root.attribute("version").is_none() {
-        return Err(invalid(
-            &root_loc,
-            "<scene> is missing the 'version' attribute",
-        ));
+    match root.attribute("version") {
+        None => {
+            return Err(invalid(
+                &root_loc,
+                "<scene> is missing the 'version' attribute",
+            ))
+        }
+        Some(v) if !is_version(v) => {
+            return Err(invalid(
+                &root_loc,
+                format!(
+                "<scene version=\"{v}\">: the version must be MAJOR.MINOR.PATCH, e.g. \"3.0.0\""
+            ),
+            ))
+        }
+        Some(_) => {}
     }
     for child in root.children().filter(|n| n.is_element()) {
         let loc = parser.loc(child);
@@ -345,7 +368,21 @@ impl<'a> Parser<'a> {
                 self.used.borrow_mut().insert(name.to_string());
             }
             match self.params.get(name) {
-                Some(v) if !name.is_empty() => out.push_str(v),
+                Some(v) if !name.is_empty() => {
+                    let total = self.substituted.get().saturating_add(v.len());
+                    if total > self.max_substituted {
+                        return Err(invalid(
+                            &self.loc(node),
+                            format!(
+                                "substituting ${name} would make the scene's substituted text \
+                                 longer than {} bytes (Limits::max_substituted_bytes)",
+                                self.max_substituted
+                            ),
+                        ));
+                    }
+                    self.substituted.set(total);
+                    out.push_str(v)
+                }
                 _ => {
                     return Err(invalid(
                         &self.loc(node),
@@ -376,16 +413,22 @@ impl<'a> Parser<'a> {
         })
     }
 
+    /// A finite number (NaN, infinities and overflowing literals such as 1e400 are errors).
     fn parse_f64(&self, node: roxmltree::Node, what: &str, s: &str) -> Result<f64, SceneError> {
-        s.trim().parse::<f64>().map_err(|_| {
+        let tag = node.tag_name().name();
+        let v = s.trim().parse::<f64>().map_err(|_| {
             invalid(
                 &self.loc(node),
-                format!(
-                    "could not parse {what} value \"{s}\" in <{}>",
-                    node.tag_name().name()
-                ),
+                format!("could not parse {what} value \"{s}\" in <{tag}>"),
             )
-        })
+        })?;
+        if !v.is_finite() {
+            return Err(invalid(
+                &self.loc(node),
+                format!("{what} value \"{s}\" in <{tag}> is not a finite number"),
+            ));
+        }
+        Ok(v)
     }
 
     /// x/y/z attributes (each defaulting to `default`) or a `value` of 1 or 3 numbers.
@@ -525,7 +568,19 @@ impl<'a> Parser<'a> {
             }
             "transform" => {
                 self.check_attrs(node, &["name"], &["name"])?;
-                Value::Transform(self.parse_transform(node)?)
+                let name = self.req_attr(node, "name")?;
+                Value::Transform(self.parse_transform(node).map_err(|e| match e {
+                    SceneError::Invalid {
+                        file,
+                        line,
+                        message,
+                    } => SceneError::Invalid {
+                        file,
+                        line,
+                        message: format!("<transform name=\"{name}\">: {message}"),
+                    },
+                    other => other,
+                })?)
             }
             "default" => {
                 return Err(invalid(
@@ -645,7 +700,17 @@ impl<'a> Parser<'a> {
                     let origin = self.parse_vec_str(c, &self.req_attr(c, "origin")?, false)?;
                     let target = self.parse_vec_str(c, &self.req_attr(c, "target")?, false)?;
                     let up = match self.attr(c, "up")? {
-                        Some(s) => self.parse_vec_str(c, &s, false)?,
+                        Some(s) => {
+                            let up = self.parse_vec_str(c, &s, false)?;
+                            if up == DVec3::ZERO {
+                                return Err(invalid(
+                                    &loc,
+                                    "lookat: 'up' is the zero vector (omit it to let the \
+                                     camera choose one, or give a direction)",
+                                ));
+                            }
+                            up
+                        }
                         None => DVec3::ZERO,
                     };
                     transform::look_at(origin, target, up).ok_or_else(|| {
@@ -674,6 +739,16 @@ impl<'a> Parser<'a> {
                         for j in 0..n {
                             rows[i][j] = self.parse_f64(c, "matrix", toks[i * n + j])?;
                         }
+                    }
+                    if rows[3] != [0.0, 0.0, 0.0, 1.0] {
+                        return Err(invalid(
+                            &loc,
+                            format!(
+                                "projective matrix (last row {:?}): only affine transforms \
+                                 (last row 0 0 0 1) are supported",
+                                rows[3]
+                            ),
+                        ));
                     }
                     // `rows` holds the matrix row-major; glam stores columns.
                     DMat4::from_cols_array_2d(&rows).transpose()
@@ -707,5 +782,154 @@ pub(crate) fn root_loc(path: &Path) -> Location {
     Location {
         file: path.to_path_buf(),
         line,
+    }
+}
+
+/// The scene file's text: at most `limits.max_scene_file_bytes`, UTF-8 (UTF-16 and other
+/// encodings are refused by name).
+fn read_scene_text(path: &Path, limits: &crate::Limits) -> Result<String, SceneError> {
+    let here = |message: String| {
+        invalid(
+            &Location {
+                file: path.to_path_buf(),
+                line: 1,
+            },
+            message,
+        )
+    };
+    let meta = std::fs::metadata(path).map_err(|error| SceneError::Io {
+        file: path.to_path_buf(),
+        error,
+    })?;
+    if meta.is_dir() {
+        return Err(here("is a directory, not a scene file".into()));
+    }
+    if meta.len() > limits.max_scene_file_bytes {
+        return Err(here(format!(
+            "the scene file is {} bytes, more than the limit of {} (Limits::max_scene_file_bytes)",
+            meta.len(),
+            limits.max_scene_file_bytes
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|error| SceneError::Io {
+        file: path.to_path_buf(),
+        error,
+    })?;
+    if bytes.len() as u64 > limits.max_scene_file_bytes {
+        return Err(here(format!(
+            "the scene file grew past the limit of {} bytes while being read",
+            limits.max_scene_file_bytes
+        )));
+    }
+    if bytes.starts_with(&[0xFF, 0xFE]) || bytes.starts_with(&[0xFE, 0xFF]) {
+        return Err(here(
+            "the file is UTF-16 encoded; only UTF-8 scene files are supported".into(),
+        ));
+    }
+    let bytes = bytes.strip_prefix(&[0xEF, 0xBB, 0xBF]).unwrap_or(&bytes);
+    String::from_utf8(bytes.to_vec()).map_err(|e| {
+        let at = e.utf8_error().valid_up_to();
+        let line = bytes[..at].iter().filter(|&&b| b == b'\n').count() as u32 + 1;
+        invalid(
+            &Location {
+                file: path.to_path_buf(),
+                line,
+            },
+            format!("not valid UTF-8 (byte {at}); only UTF-8 scene files are supported"),
+        )
+    })
+}
+
+/// `MAJOR.MINOR.PATCH` in decimal digits.
+fn is_version(v: &str) -> bool {
+    let parts: Vec<&str> = v.split('.').collect();
+    parts.len() == 3
+        && parts
+            .iter()
+            .all(|p| !p.is_empty() && p.len() <= 9 && p.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// Checks, before the XML parser sees the text (its recursion, and ours over the plugin tree,
+/// would exhaust the stack), that elements nest at most `max_depth` deep. Returns the line of
+/// the first element past the limit. A conservative scan: it skips comments, CDATA,
+/// processing instructions, declarations and quoted attribute values; malformed markup is
+/// left for the parser to report.
+pub(crate) fn check_nesting(text: &str, max_depth: usize) -> Result<(), u32> {
+    let b = text.as_bytes();
+    let (mut i, mut depth, mut line) = (0usize, 0usize, 1u32);
+    let skip_to = |from: usize, pat: &[u8]| -> usize {
+        b[from..]
+            .windows(pat.len())
+            .position(|w| w == pat)
+            .map_or(b.len(), |p| from + p + pat.len())
+    };
+    while i < b.len() {
+        if b[i] == b'\n' {
+            line += 1;
+        }
+        if b[i] != b'<' {
+            i += 1;
+            continue;
+        }
+        let rest = &b[i..];
+        let end = if rest.starts_with(b"<!--") {
+            skip_to(i + 4, b"-->")
+        } else if rest.starts_with(b"<![CDATA[") {
+            skip_to(i + 9, b"]]>")
+        } else if rest.starts_with(b"<?") {
+            skip_to(i + 2, b"?>")
+        } else if rest.starts_with(b"<!") {
+            skip_to(i + 2, b">")
+        } else if rest.starts_with(b"</") {
+            depth = depth.saturating_sub(1);
+            skip_to(i + 2, b">")
+        } else {
+            let (end, self_closing) = scan_start_tag(b, i + 1);
+            if !self_closing {
+                depth += 1;
+                if depth > max_depth {
+                    return Err(line);
+                }
+            }
+            end
+        };
+        line += b[i + 1..end.min(b.len())]
+            .iter()
+            .filter(|&&c| c == b'\n')
+            .count() as u32;
+        i = end;
+    }
+    Ok(())
+}
+
+/// From just after a `<`: the index after the tag's `>`, and whether it ends in `/>`.
+fn scan_start_tag(b: &[u8], mut i: usize) -> (usize, bool) {
+    let mut quote = None;
+    while i < b.len() {
+        let c = b[i];
+        match quote {
+            Some(q) if c == q => quote = None,
+            Some(_) => {}
+            None if c == b'"' || c == b'\'' => quote = Some(c),
+            None if c == b'>' => return (i + 1, i > 0 && b[i - 1] == b'/'),
+            None => {}
+        }
+        i += 1;
+    }
+    (b.len(), false)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_nesting;
+
+    #[test]
+    fn nesting_check_counts_elements_and_skips_markup_that_does_not_nest() {
+        let ok = "<a>\n<!-- <b><b><b> -->\n<b x='<c>' y=\"/>\"/><![CDATA[<d><d>]]><?pi <e>?></a>";
+        assert_eq!(check_nesting(ok, 1), Ok(()));
+        assert_eq!(check_nesting("<a>\n<b>\n<c/></b></a>", 1), Err(2));
+        let deep = "<a>".repeat(101);
+        assert_eq!(check_nesting(&deep, 100), Err(1));
+        assert_eq!(check_nesting(&deep, 101), Ok(()));
     }
 }
