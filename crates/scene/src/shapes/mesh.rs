@@ -1,16 +1,223 @@
-//! Turning a loaded object-space triangle mesh into a validated world-space
-//! [`TriangleMesh`].
+//! What the mesh loaders share: the mesh file being read ([`MeshInput`]), opening it, the
+//! memory [`Budget`] of a load and its line reader, and turning a loaded object-space triangle
+//! mesh into a validated world-space [`TriangleMesh`] ([`finalize`]).
+
+use std::fmt::Display;
+use std::fs::File;
+use std::io::{BufRead, Read};
+use std::path::Path;
 
 use glam::{DMat3, DMat4, DVec3, Vec3};
 
+use crate::context::Ctx;
 use crate::desc::{Location, TriangleMesh};
 use crate::error::SceneError;
+use crate::limits::Limits;
 use crate::xml::invalid;
+
+/// The largest world-space |coordinate| a shape may reach. The renderer squares coordinates
+/// (and distances) in 32-bit floats, which overflow to infinity beyond about 1.8e19, and the
+/// geometry then silently vanishes; 1e18 leaves some room for sums of squares.
+pub(crate) const MAX_WORLD_COORDINATE: f64 = 1e18;
+
+/// Bytes per vertex of a finished mesh: position and shading normal (the file's, or computed
+/// ones), plus texture coordinates when it has them.
+pub(crate) fn vertex_bytes(has_uvs: bool) -> u64 {
+    12 + 12 + if has_uvs { 8 } else { 0 }
+}
+
+/// Bytes per triangle of a finished mesh (three 32-bit indices).
+pub(crate) const TRIANGLE_BYTES: u64 = 12;
+
+/// The mesh file a shape refers to.
+pub(crate) struct MeshInput<'a> {
+    pub path: &'a Path,
+    /// "mesh file '/abs/x.obj'", the start of every message about it.
+    pub source: String,
+    /// The scene file line of the `<string name="filename">`.
+    pub loc: Location,
+    /// Mitsuba's `flip_tex_coords`: v is replaced by 1 - v.
+    pub flip_tex_coords: bool,
+}
+
+impl MeshInput<'_> {
+    /// An error about the mesh file: "scene.xml:12: mesh file '…': {msg}".
+    pub(crate) fn err(&self, msg: impl Display) -> SceneError {
+        invalid(&self.loc, format!("{}: {msg}", self.source))
+    }
+
+    /// Open the file, refusing what is not a regular file (a directory, a FIFO, a device)
+    /// with a message that says so; returns the file and its size in bytes.
+    pub(crate) fn open(&self) -> Result<(File, u64), SceneError> {
+        let cannot_read = |e: std::io::Error| self.err(format!("cannot read: {e}"));
+        let meta = std::fs::metadata(self.path).map_err(cannot_read)?;
+        if meta.is_dir() {
+            return Err(self.err("is a directory, not a mesh file"));
+        }
+        if !meta.is_file() {
+            return Err(self.err("is not a regular file"));
+        }
+        let file = File::open(self.path).map_err(cannot_read)?;
+        Ok((file, meta.len()))
+    }
+}
+
+/// The memory a mesh load accounts for in [`Ctx::reserve_memory`]: reserved before the
+/// vectors are allocated (an estimate, grown in steps while loading when the estimate proves
+/// short), then settled to the finished mesh's actual size ([`Budget::settle`]).
+pub(crate) struct Budget<'c> {
+    ctx: &'c mut Ctx,
+    loc: Location,
+    held: u64,
+}
+
+impl<'c> Budget<'c> {
+    pub(crate) fn new(ctx: &'c mut Ctx, loc: &Location) -> Self {
+        Self {
+            ctx,
+            loc: loc.clone(),
+            held: 0,
+        }
+    }
+
+    pub(crate) fn limits(&self) -> &Limits {
+        &self.ctx.limits
+    }
+
+    /// Reserve `bytes` more for `what` ("mesh file '…' (12 triangles)"); an error at the
+    /// filename's line when the scene's data would exceed `Limits::max_memory_bytes`.
+    pub(crate) fn reserve(&mut self, bytes: u64, what: &str) -> Result<(), SceneError> {
+        self.ctx.reserve_memory(bytes, what, &self.loc)?;
+        self.held = self.held.saturating_add(bytes);
+        Ok(())
+    }
+
+    /// Replace what this load reserved by `actual`, the finished mesh's size (the temporary
+    /// arrays of the parse are freed by then).
+    pub(crate) fn settle(mut self, actual: u64, what: &str) -> Result<(), SceneError> {
+        if actual > self.held {
+            self.reserve(actual - self.held, what)
+        } else {
+            self.ctx.memory_bytes = self.ctx.memory_bytes.saturating_sub(self.held - actual);
+            Ok(())
+        }
+    }
+}
+
+/// Reads a text file line by line (lines end at '\n'), keeping only one line in memory, at
+/// most `cap` bytes long.
+pub(crate) struct LineReader<R> {
+    reader: R,
+    buf: Vec<u8>,
+    /// 1-based number of the line last returned.
+    pub line: u64,
+    /// Bytes read so far.
+    pub consumed: u64,
+    cap: usize,
+}
+
+impl<R: BufRead> LineReader<R> {
+    pub(crate) fn new(reader: R, cap: usize) -> Self {
+        Self {
+            reader,
+            buf: Vec::new(),
+            line: 0,
+            consumed: 0,
+            cap,
+        }
+    }
+
+    pub(crate) fn get_mut(&mut self) -> &mut R {
+        &mut self.reader
+    }
+
+    /// Read lines of up to `cap` bytes from now on.
+    pub(crate) fn set_cap(&mut self, cap: usize) {
+        self.cap = cap;
+    }
+
+    /// The next line's number (1-based) and bytes, without its "\n" or "\r\n" (`None` at
+    /// the end of the file).
+    pub(crate) fn next_bytes(&mut self) -> Result<Option<(u64, &[u8])>, String> {
+        self.buf.clear();
+        let limit = self.cap as u64 + 2;
+        let n = (&mut self.reader)
+            .take(limit)
+            .read_until(b'\n', &mut self.buf)
+            .map_err(|e| format!("line {}: read error: {e}", self.line + 1))?;
+        if n == 0 {
+            return Ok(None);
+        }
+        self.consumed += n as u64;
+        self.line += 1;
+        if self.buf.last() == Some(&b'\n') {
+            self.buf.pop();
+            if self.buf.last() == Some(&b'\r') {
+                self.buf.pop();
+            }
+        }
+        if self.buf.len() > self.cap {
+            return Err(format!(
+                "line {} is longer than {} bytes, the longest line this loader reads",
+                self.line, self.cap
+            ));
+        }
+        Ok(Some((self.line, &self.buf)))
+    }
+
+    /// The next line as text: a NUL byte or invalid UTF-8 is an error naming the line.
+    pub(crate) fn next_text(&mut self) -> Result<Option<(u64, &str)>, String> {
+        let Some((line, bytes)) = self.next_bytes()? else {
+            return Ok(None);
+        };
+        text_of(line, bytes).map(|t| Some((line, t)))
+    }
+}
+
+/// `bytes` (line `line` of a text file) as text: a NUL byte or invalid UTF-8 is an error.
+pub(crate) fn text_of(line: u64, bytes: &[u8]) -> Result<&str, String> {
+    if bytes.contains(&0) {
+        return Err(format!(
+            "line {line} contains a NUL byte: this is binary data (or UTF-16 text, which is \
+             unsupported), not a text file"
+        ));
+    }
+    std::str::from_utf8(bytes).map_err(|e| {
+        format!(
+            "line {line} is not valid UTF-8 text (invalid byte at column {}); mesh files must \
+             be ASCII or UTF-8",
+            e.valid_up_to() + 1
+        )
+    })
+}
+
+/// At most the first 40 characters of `token`, for messages.
+pub(crate) fn shown(token: &str) -> String {
+    match token.char_indices().nth(40) {
+        Some((i, _)) => format!("{}...", &token[..i]),
+        None => token.to_string(),
+    }
+}
+
+/// "1234 vertices, more than the limit of 1000 (Limits::max_mesh_vertices)" when
+/// `count > limit`.
+pub(crate) fn check_limit(count: u64, what: &str, limit: u64, field: &str) -> Result<(), String> {
+    if count > limit {
+        Err(format!(
+            "{count} {what}, more than the limit of {limit} (Limits::{field})"
+        ))
+    } else {
+        Ok(())
+    }
+}
 
 /// Validate `mesh` (object space, as read from `source`), compute vertex
 /// normals when the file has none (unless `face_normals`), and bake
 /// `to_world` in: positions by the matrix, normals by its inverse transpose
-/// (renormalised). Errors name `source` and the XML line `loc`.
+/// (renormalised). Errors name `source` and the XML line `loc` (for a mesh
+/// file, the line of its `filename`); world-space positions beyond
+/// [`MAX_WORLD_COORDINATE`] are an error at the shape's line `shape_loc`.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn finalize(
     mut mesh: TriangleMesh,
     to_world: DMat4,
@@ -18,6 +225,7 @@ pub(crate) fn finalize(
     flip_normals: bool,
     source: &str,
     loc: &Location,
+    shape_loc: &Location,
 ) -> Result<TriangleMesh, SceneError> {
     let err = |msg: String| invalid(loc, format!("{source}: {msg}"));
     let n = mesh.positions.len();
@@ -74,12 +282,24 @@ pub(crate) fn finalize(
     if !normal_matrix.is_finite() {
         return Err(invalid(loc, "to_world transform is singular"));
     }
-    for p in &mut mesh.positions {
-        let w = to_world.transform_point3(p.as_dvec3()).as_vec3();
+    for (i, p) in mesh.positions.iter_mut().enumerate() {
+        let w = to_world.transform_point3(p.as_dvec3());
         if !w.is_finite() {
             return Err(err("a transformed vertex position is not finite".into()));
         }
-        *p = w;
+        if !(w.abs().max_element() <= MAX_WORLD_COORDINATE) {
+            return Err(invalid(
+                shape_loc,
+                format!(
+                    "{source}: vertex {i} lies at ({:?}, {:?}, {:?}) in world space, {}",
+                    w.x,
+                    w.y,
+                    w.z,
+                    beyond_bound_message()
+                ),
+            ));
+        }
+        *p = w.as_vec3();
     }
 
     if face_normals {
@@ -98,6 +318,14 @@ pub(crate) fn finalize(
     }
     mesh.flip_normals = flip_normals;
     Ok(mesh)
+}
+
+/// Why a world-space coordinate beyond [`MAX_WORLD_COORDINATE`] is refused.
+pub(crate) fn beyond_bound_message() -> String {
+    format!(
+        "beyond the bound of {MAX_WORLD_COORDINATE:e} on |x|, |y| and |z| (the renderer squares \
+         coordinates in 32-bit floats, which overflow beyond about 1.8e19)"
+    )
 }
 
 /// Angle-weighted smooth vertex normals (world space). Vertices whose

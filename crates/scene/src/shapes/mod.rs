@@ -56,7 +56,7 @@ pub(crate) fn shape(ctx: &mut Ctx, r: &Resolved) -> Result<ShapeDesc, SceneError
     })
 }
 
-fn geometry(ctx: &Ctx, p: &Props) -> Result<Geometry, SceneError> {
+fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
     let to_world = p.transform("to_world")?;
     let flip_normals = p.bool("flip_normals", false)?;
     let loc = p.loc().clone();
@@ -70,29 +70,52 @@ fn geometry(ctx: &Ctx, p: &Props) -> Result<Geometry, SceneError> {
             // Mitsuba: OBJ flips v by default, PLY does not.
             let flip_tex_coords = p.bool("flip_tex_coords", is_obj)?;
             let path = ctx.resolve_path(&name);
-            let source = format!("mesh file '{}'", path.display());
-            // Third-party parsers must not take the process down on a bad file.
-            let local = std::panic::catch_unwind(|| {
+            let input = mesh::MeshInput {
+                path: &path,
+                source: format!("mesh file '{}'", path.display()),
+                loc: name_loc.clone(),
+                flip_tex_coords,
+            };
+            let mut budget = mesh::Budget::new(ctx, &name_loc);
+            // A parser (ply-rs's in particular) must not take the process down on a bad file.
+            let local = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 if is_obj {
-                    obj::load_obj(&path, flip_tex_coords)
+                    obj::load_obj(&input, &mut budget)
                 } else {
-                    ply::load_ply(&path, flip_tex_coords)
+                    ply::load_ply(&input, &mut budget)
                 }
-            })
-            .unwrap_or_else(|_| Err("the mesh parser failed (panicked) on this file".into()))
-            .map_err(|e| invalid(&name_loc, format!("{source}: {e}")))?;
-            let m = mesh::finalize(local, to_world, face_normals, flip_normals, &source, &name_loc)?;
+            }))
+            .unwrap_or_else(|_| Err(input.err("the mesh parser failed (panicked) on this file")))?;
+            let m = mesh::finalize(
+                local,
+                to_world,
+                face_normals,
+                flip_normals,
+                &input.source,
+                &name_loc,
+                &loc,
+            )?;
+            let what = format!("{} ({} triangles)", input.source, m.indices.len());
+            budget.settle(m.data_bytes(), &what)?;
             Ok(Geometry::Mesh(Arc::new(m)))
         }
         "rectangle" | "cube" => {
             let face_normals = p.bool("face_normals", false)?;
             let local = if p.plugin() == "rectangle" { primitives::rectangle() } else { primitives::cube() };
-            let m = mesh::finalize(local, to_world, face_normals, flip_normals, p.plugin(), &loc)?;
+            let m = mesh::finalize(local, to_world, face_normals, flip_normals, p.plugin(), &loc, &loc)?;
             Ok(Geometry::Mesh(Arc::new(m)))
         }
         "sphere" => {
             let center = p.point_opt("center")?.unwrap_or(Vec3::ZERO).as_dvec3();
-            let radius = p.float("radius", 1.0)? as f64;
+            let radius32 = p.float("radius", 1.0)?;
+            if !(radius32 > 0.0) {
+                let at = p.get("radius").map_or(&loc, |r| &r.loc);
+                return Err(invalid(
+                    at,
+                    format!("sphere: radius must be positive, got {radius32}"),
+                ));
+            }
+            let radius = radius32 as f64;
             // Mitsuba: to_world * translate(center) * scale(radius).
             let m = to_world
                 * glam::DMat4::from_translation(center)
@@ -109,7 +132,21 @@ fn geometry(ctx: &Ctx, p: &Props) -> Result<Geometry, SceneError> {
             if !(world_radius > 0.0) || !world_center.is_finite() || !world_radius.is_finite() {
                 return Err(invalid(&loc, "sphere: radius must be positive and finite"));
             }
-            // A mirroring transform (or negative radius) turns the sphere inside out.
+            let extent = world_center.abs() + DVec3::splat(world_radius);
+            if !(extent.max_element() <= mesh::MAX_WORLD_COORDINATE) {
+                return Err(invalid(
+                    &loc,
+                    format!(
+                        "sphere: center ({:?}, {:?}, {:?}) and radius {world_radius:?} in world \
+                         space reach {}",
+                        world_center.x,
+                        world_center.y,
+                        world_center.z,
+                        mesh::beyond_bound_message()
+                    ),
+                ));
+            }
+            // A mirroring transform turns the sphere inside out.
             let mirrored = glam::DMat3::from_mat4(m).determinant() < 0.0;
             Ok(Geometry::Sphere {
                 center: world_center.as_vec3(),
@@ -121,6 +158,16 @@ fn geometry(ctx: &Ctx, p: &Props) -> Result<Geometry, SceneError> {
             let m = to_world.as_mat4();
             if !m.is_finite() || glam::DMat3::from_mat4(to_world).determinant() == 0.0 {
                 return Err(invalid(&loc, "disk: to_world must be finite and invertible"));
+            }
+            // The unit disk's points are t + a x + b y with a^2 + b^2 <= 1.
+            let extent = to_world.w_axis.truncate().abs()
+                + to_world.x_axis.truncate().abs()
+                + to_world.y_axis.truncate().abs();
+            if !(extent.max_element() <= mesh::MAX_WORLD_COORDINATE) {
+                return Err(invalid(
+                    &loc,
+                    format!("disk: in world space it reaches {}", mesh::beyond_bound_message()),
+                ));
             }
             Ok(Geometry::Disk { to_world: m, flip_normals })
         }

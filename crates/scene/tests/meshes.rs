@@ -1,0 +1,480 @@
+//! Mesh files as untrusted input: big polygons in linear time, errors that name the mesh
+//! file's line, counts checked against the limits before anything is allocated, and
+//! world-space bounds.
+
+mod common;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use common::*;
+use pathfarm_scene::{load_scene, load_scene_with_limits, Geometry, Limits, SceneDesc, SceneError};
+
+/// A scene in a fresh directory `name` with one `type` shape loading `file` (written with
+/// `contents`); returns the scene path, its text and the mesh path.
+fn mesh_scene(name: &str, kind: &str, file: &str, contents: &[u8]) -> (PathBuf, String, PathBuf) {
+    let xml = scene(&format!(
+        "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{file}\"/>\n</shape>"
+    ));
+    let p = write_scene(name, &xml);
+    let mesh = p.parent().unwrap().join(file);
+    std::fs::write(&mesh, contents).unwrap();
+    (p, xml, mesh)
+}
+
+fn cleanup(scene: &Path) {
+    let _ = std::fs::remove_dir_all(scene.parent().unwrap());
+}
+
+fn triangles(s: &SceneDesc) -> usize {
+    match &s.shapes[0].geometry {
+        Geometry::Mesh(m) => m.indices.len(),
+        g => panic!("not a mesh: {g:?}"),
+    }
+}
+
+/// An OBJ file of `n` vertices on a circle and one face through all of them.
+fn polygon_obj(n: usize, negative: bool) -> String {
+    let mut s = String::with_capacity(n * 40);
+    for i in 0..n {
+        let a = i as f64 / n as f64 * std::f64::consts::TAU;
+        writeln!(s, "v {} {} 0", a.cos(), a.sin()).unwrap();
+    }
+    s.push('f');
+    for i in 0..n {
+        if negative {
+            write!(s, " -{}", n - i).unwrap();
+        } else {
+            write!(s, " {}", i + 1).unwrap();
+        }
+    }
+    s.push('\n');
+    s
+}
+
+#[test]
+fn obj_polygon_of_30000_vertices_loads_as_29998_triangles() {
+    let (p, _, _) = mesh_scene(
+        "poly30k",
+        "obj",
+        "poly.obj",
+        polygon_obj(30_000, false).as_bytes(),
+    );
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(triangles(&s), 29_998);
+    cleanup(&p);
+}
+
+#[test]
+fn obj_polygon_of_600000_indices_loads() {
+    // Relative indices, for good measure.
+    let (p, _, _) = mesh_scene(
+        "poly600k",
+        "obj",
+        "poly.obj",
+        polygon_obj(600_000, true).as_bytes(),
+    );
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(triangles(&s), 599_998);
+    match &s.shapes[0].geometry {
+        Geometry::Mesh(m) => {
+            assert_eq!(m.positions.len(), 600_000);
+            assert_eq!(m.indices[0], [0, 1, 2]);
+            assert_eq!(m.indices[599_997], [0, 599_998, 599_999]);
+        }
+        _ => unreachable!(),
+    }
+    cleanup(&p);
+}
+
+/// The error loading `contents` as an OBJ: at the filename's scene line, naming the file and
+/// containing `needle`.
+fn obj_error(name: &str, contents: &[u8], needle: &str) -> String {
+    let (p, xml, mesh) = mesh_scene(name, "obj", "x.obj", contents);
+    let err = load_scene(&p, &[]).unwrap_err();
+    let prefix = format!("mesh file '{}': ", mesh.display());
+    assert_invalid_at(&err, &p, line_of(&xml, "x.obj"), &[&prefix, needle]);
+    cleanup(&p);
+    err.to_string()
+}
+
+#[test]
+fn obj_errors_name_the_obj_line() {
+    let ten = "v 0 0 0\n".repeat(10);
+    obj_error(
+        "obj-range",
+        format!("{ten}# a comment\nf 1 2 40\n").as_bytes(),
+        "line 12: face index 40 out of range (10 vertices)",
+    );
+    obj_error(
+        "obj-float",
+        b"v 0 0 0\nv 1 0 0\nv 1.0e 1 0\nf 1 2 3\n",
+        "line 3: could not parse vertex coordinate \"1.0e\"",
+    );
+    obj_error(
+        "obj-negative",
+        format!("{ten}f -1 -2 -11\n").as_bytes(),
+        "line 11: face index -11 out of range (10 vertices)",
+    );
+    obj_error(
+        "obj-zero",
+        format!("{ten}f 0 1 2\n").as_bytes(),
+        "line 11: face index 0 out of range (10 vertices; OBJ indices start at 1)",
+    );
+    obj_error(
+        "obj-forward",
+        b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n",
+        "line 3: face index 3 out of range (2 vertices)",
+    );
+    obj_error(
+        "obj-uv-range",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\n\nf 1/1 2/1 3/2\n",
+        "line 6: texture coordinate index 2 out of range (1 texture coordinates)",
+    );
+    obj_error(
+        "obj-normal-range",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//9\n",
+        "line 5: normal index 9 out of range (1 normals)",
+    );
+    obj_error(
+        "obj-corner",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3/x\n",
+        "line 4: could not parse face corner \"3/x\"",
+    );
+    obj_error(
+        "obj-corner4",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3/1/1/1\n",
+        "line 4: face corner \"3/1/1/1\" has more than three indices",
+    );
+    obj_error(
+        "obj-w",
+        b"v 0 0 0\nv 1 0 0 0\nv 0 1 0\nf 1 2 3\n",
+        "line 2: vertex w coordinate is 0",
+    );
+    obj_error(
+        "obj-short-v",
+        b"v 0 0 0\nv 1 0\n",
+        "line 2: vertex has 2 coordinates, expected 3 (x y z)",
+    );
+    obj_error(
+        "obj-vt",
+        b"v 0 0 0\nvt 0.5 zero\n",
+        "line 2: could not parse texture coordinate \"zero\"",
+    );
+    obj_error(
+        "obj-mixed-normals",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\nf 3 2 1\n",
+        "line 6: face corner \"3\" has no normal index, but other faces have normals",
+    );
+}
+
+#[test]
+fn obj_files_that_are_not_text_are_refused() {
+    obj_error(
+        "obj-latin1",
+        b"v 0 0 0\n# caf\xe9\nv 1 0 0\n",
+        "line 2 is not valid UTF-8 text",
+    );
+    obj_error(
+        "obj-nul",
+        b"v 0 0 0\nv 1 0 0\nv 0\x001 0\nf 1 2 3\n",
+        "line 3 contains a NUL byte",
+    );
+    let utf16: Vec<u8> = std::iter::once(0xFEFFu16)
+        .chain("v 0 0 0\n".encode_utf16())
+        .flat_map(u16::to_le_bytes)
+        .collect();
+    let e = obj_error("obj-utf16", &utf16, "UTF-16");
+    assert!(e.contains("unsupported"), "{e}");
+    // A UTF-8 byte-order mark is skipped: the first vertex is not lost.
+    let (p, _, _) = mesh_scene(
+        "obj-utf8-bom",
+        "obj",
+        "x.obj",
+        b"\xEF\xBB\xBFv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    );
+    assert_eq!(triangles(&load_scene(&p, &[]).unwrap()), 1);
+    cleanup(&p);
+}
+
+/// A binary little-endian PLY header announcing `vertices` vertices (x y z floats) and
+/// `faces` faces, followed by `payload`.
+fn ply_bytes(format: &str, vertices: u64, faces: u64, payload: &[u8]) -> Vec<u8> {
+    let mut b = format!(
+        "ply\nformat {format} 1.0\nelement vertex {vertices}\nproperty float x\n\
+         property float y\nproperty float z\nelement face {faces}\n\
+         property list uchar int vertex_indices\nend_header\n"
+    )
+    .into_bytes();
+    b.extend_from_slice(payload);
+    b
+}
+
+/// One binary little-endian triangle: three vertices and a face.
+fn binary_triangle() -> Vec<u8> {
+    let mut b = Vec::new();
+    for v in [[0f32, 0., 0.], [1., 0., 0.], [0., 1., 0.]] {
+        for c in v {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    b.push(3);
+    for i in [0i32, 1, 2] {
+        b.extend_from_slice(&i.to_le_bytes());
+    }
+    b
+}
+
+#[test]
+fn ply_header_announcing_2_pow_31_vertices_in_a_tiny_file_is_refused() {
+    let n = 1u64 << 31;
+    let bytes = ply_bytes("binary_little_endian", n, 1, &binary_triangle());
+    let (p, xml, _) = mesh_scene("ply-huge-bin", "ply", "x.ply", &bytes);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "x.ply"),
+        &[
+            "x.ply",
+            "PLY header line 3: element 'vertex' announces 2147483648 elements of at least \
+             12 bytes each",
+            &format!("the file is only {} bytes long", bytes.len()),
+        ],
+    );
+    cleanup(&p);
+
+    let bytes = ply_bytes("ascii", n, 1, b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
+    let (p, xml, _) = mesh_scene("ply-huge-ascii", "ply", "x.ply", &bytes);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "x.ply"),
+        &["element 'vertex' announces 2147483648 elements of at least 2 bytes each"],
+    );
+    cleanup(&p);
+}
+
+fn limited(limits: Limits, name: &str, kind: &str, contents: &[u8], needles: &[&str]) {
+    let file = format!("x.{kind}");
+    let (p, xml, _) = mesh_scene(name, kind, &file, contents);
+    assert!(
+        load_scene(&p, &[]).is_ok(),
+        "{name} must load under the default limits"
+    );
+    let err = load_scene_with_limits(&p, &[], &limits).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, &file), needles);
+    cleanup(&p);
+}
+
+#[test]
+fn mesh_counts_above_the_limits_are_refused() {
+    let small = |f: fn(&mut Limits)| {
+        let mut l = Limits::default();
+        f(&mut l);
+        l
+    };
+    let quads = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\nf 1 2 3 4\nf 4 3 2 1\n";
+    limited(
+        small(|l| l.max_mesh_triangles = 5),
+        "lim-obj-tris",
+        "obj",
+        quads.as_bytes(),
+        &["6 triangles, more than the limit of 5 (Limits::max_mesh_triangles)"],
+    );
+    limited(
+        small(|l| l.max_mesh_vertices = 3),
+        "lim-obj-verts",
+        "obj",
+        quads.as_bytes(),
+        &["4 vertex positions ('v' lines), more than the limit of 3 (Limits::max_mesh_vertices)"],
+    );
+    limited(
+        small(|l| l.max_mesh_vertices = 5),
+        "lim-obj-split-verts",
+        "obj",
+        b"v 0 0 0\nv 1 0 0\nv 1 1 0\nvt 0 0\nvt 1 1\nf 1/1 2/1 3/1\nf 1/2 2/2 3/2\n",
+        &[
+            "line 7: the mesh has more than 5 vertices",
+            "(Limits::max_mesh_vertices)",
+        ],
+    );
+    limited(
+        small(|l| l.max_polygon_vertices = 3),
+        "lim-obj-poly",
+        "obj",
+        quads.as_bytes(),
+        &["line 5: face has 4 vertices, more than the limit of 3 (Limits::max_polygon_vertices)"],
+    );
+    limited(
+        small(|l| l.max_memory_bytes = 100),
+        "lim-obj-memory",
+        "obj",
+        quads.as_bytes(),
+        &["(6 triangles) needs", "(Limits::max_memory_bytes)"],
+    );
+
+    let tri = ply_bytes("binary_little_endian", 3, 1, &binary_triangle());
+    limited(
+        small(|l| l.max_mesh_vertices = 2),
+        "lim-ply-verts",
+        "ply",
+        &tri,
+        &[
+            "element 'vertex' announces 3 vertices, more than the limit of 2 \
+           (Limits::max_mesh_vertices)",
+        ],
+    );
+    limited(
+        small(|l| l.max_mesh_triangles = 0),
+        "lim-ply-faces",
+        "ply",
+        &tri,
+        &[
+            "element 'face' announces 1 faces (each at least one triangle), more than the limit \
+           of 0 (Limits::max_mesh_triangles)",
+        ],
+    );
+    let quad = ply_bytes(
+        "ascii",
+        4,
+        2,
+        b"0 0 0\n1 0 0\n1 1 0\n0 1 0\n4 0 1 2 3\n4 3 2 1 0\n",
+    );
+    limited(
+        small(|l| l.max_polygon_vertices = 3),
+        "lim-ply-poly",
+        "ply",
+        &quad,
+        &["face 0 has 4 vertices, more than the limit of 3 (Limits::max_polygon_vertices)"],
+    );
+    limited(
+        small(|l| l.max_mesh_triangles = 3),
+        "lim-ply-tris",
+        "ply",
+        &quad,
+        &[
+            "face 1: the faces so far make 4 triangles, more than the limit of 3 \
+           (Limits::max_mesh_triangles)",
+        ],
+    );
+    limited(
+        small(|l| l.max_memory_bytes = 50),
+        "lim-ply-memory",
+        "ply",
+        &quad,
+        &["(4 vertices, 2 faces) needs", "(Limits::max_memory_bytes)"],
+    );
+}
+
+#[test]
+fn a_directory_given_as_a_mesh_is_reported_as_a_directory() {
+    for kind in ["obj", "ply"] {
+        let xml = scene(&format!(
+            "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"meshes\"/>\n</shape>"
+        ));
+        let p = write_scene(&format!("dir-mesh-{kind}"), &xml);
+        std::fs::create_dir(p.parent().unwrap().join("meshes")).unwrap();
+        let err = load_scene(&p, &[]).unwrap_err();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "meshes"),
+            &["meshes': is a directory, not a mesh file"],
+        );
+        assert!(!err.to_string().contains("read error"), "{err}");
+        cleanup(&p);
+    }
+}
+
+/// `err` as anyhow's `{:#}` prints it: each error of the source chain, joined by ": ".
+fn chain(err: &SceneError) -> String {
+    let mut s = err.to_string();
+    let mut source = std::error::Error::source(err);
+    while let Some(e) = source {
+        s += &format!(": {e}");
+        source = e.source();
+    }
+    s
+}
+
+#[test]
+fn a_missing_mesh_file_prints_its_os_error_once() {
+    for kind in ["obj", "ply"] {
+        let xml = scene(&format!(
+            "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"gone.{kind}\"/>\n</shape>"
+        ));
+        let p = write_scene(&format!("gone-{kind}"), &xml);
+        let err = load_scene(&p, &[]).unwrap_err();
+        assert_invalid_at(&err, &p, line_of(&xml, "gone."), &["cannot read: "]);
+        let shown = chain(&err);
+        assert_eq!(shown.matches("os error 2").count(), 1, "{shown}");
+        cleanup(&p);
+    }
+}
+
+#[test]
+fn world_coordinates_beyond_1e18_are_refused_at_the_shape() {
+    let d = temp_dir("far");
+    std::fs::write(d.join("tri.obj"), "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+    let shape = |kind: &str, inner: &str, scale: &str| {
+        format!(
+            "<shape type=\"{kind}\">\n{inner}\n<transform name=\"to_world\">\n\
+             <scale value=\"{scale}\"/>\n</transform>\n</shape>"
+        )
+    };
+    let obj = "<string name=\"filename\" value=\"tri.obj\"/>";
+    for (kind, inner) in [
+        ("obj", obj),
+        ("rectangle", ""),
+        ("cube", ""),
+        ("sphere", ""),
+        ("disk", ""),
+    ] {
+        // 1e17 is fine.
+        let ok = scene(&shape(kind, inner, "1e17"));
+        std::fs::write(d.join("scene.xml"), &ok).unwrap();
+        load_scene(&d.join("scene.xml"), &[]).unwrap_or_else(|e| panic!("{kind}: {e}"));
+
+        let xml = scene(&shape(kind, inner, "1e20"));
+        let p = d.join("scene.xml");
+        std::fs::write(&p, &xml).unwrap();
+        let err = load_scene(&p, &[]).unwrap_err();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "<shape"),
+            &[kind, "beyond the bound of 1e18", "32-bit floats"],
+        );
+    }
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn sphere_radius_must_be_positive() {
+    for (r, shown) in [("0", "got 0"), ("-1", "got -1"), ("-0.5", "got -0.5")] {
+        let xml = scene(&format!(
+            "<shape type=\"sphere\">\n<float name=\"radius\" value=\"{r}\"/>\n</shape>"
+        ));
+        let p = write_scene(&format!("radius{r}"), &xml);
+        let err = load_scene(&p, &[]).unwrap_err();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "radius"),
+            &[&format!("sphere: radius must be positive, {shown}")],
+        );
+        assert!(!err.to_string().contains("similarity"), "{err}");
+        cleanup(&p);
+    }
+    // A real shear still says why it is refused.
+    let xml = scene(
+        "<shape type=\"sphere\">\n<transform name=\"to_world\">\n\
+         <matrix value=\"1 0.5 0 0  0 1 0 0  0 0 1 0  0 0 0 1\"/>\n</transform>\n</shape>",
+    );
+    let p = write_scene("sheared-sphere", &xml);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "<shape"), &["similarity"]);
+    cleanup(&p);
+}
