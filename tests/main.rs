@@ -10,5 +10,7 @@ mod it {
     pub mod determinism;
     pub mod guide_cli;
     pub mod guided;
+    pub mod hostile;
+    pub mod outputs;
     pub mod shared_scenes;
 }

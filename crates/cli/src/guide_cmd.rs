@@ -13,8 +13,9 @@ use pathfarm_render::guided::{self, Budget};
 use pathfarm_render::integrator::guided_path::{guide_region, sample_mixture, VertexGuide};
 use pathfarm_render::rng::Rng;
 use pathfarm_render::{RenderSettings, Scene};
-use pathfarm_scene::{load_scene, GuidedParams, IntegratorDesc};
+use pathfarm_scene::{load_scene, GuidedParams, IntegratorDesc, Limits};
 
+use crate::outfile::OutputFile;
 use crate::render_cmd::parse_defines;
 
 #[derive(Subcommand)]
@@ -145,10 +146,9 @@ fn train_tree(scene: &Scene, params: &GuidedParams, spp: u32, seed: u64) -> SdTr
     .2
 }
 
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+/// Writes `bytes` to the output opened (and checked) before the work.
+fn write_atomic(out: OutputFile, bytes: &[u8]) -> Result<()> {
+    out.commit(bytes)
 }
 
 fn read_tree(path: &Path) -> Result<SdTree> {
@@ -158,6 +158,7 @@ fn read_tree(path: &Path) -> Result<SdTree> {
 }
 
 fn train(a: TrainArgs) -> Result<()> {
+    let out = OutputFile::create(&a.output)?;
     let (scene, mut params) = load(&a.scene, &a.defines)?;
     let preset = match a.preset.as_str() {
         "2017" => GuidedParams::preset_2017(),
@@ -174,8 +175,10 @@ fn train(a: TrainArgs) -> Result<()> {
             ..preset
         };
     }
+    crate::render_cmd::check_budget_flags(Some(a.spp), None, &Limits::default())?;
+    guided::check_budget(&params, Budget::Spp(a.spp)).map_err(anyhow::Error::msg)?;
     let tree = train_tree(&scene, &params, a.spp, a.seed);
-    write_atomic(&a.output, &tree.encode())?;
+    write_atomic(out, &tree.encode())?;
     print_stats(&tree);
     Ok(())
 }
@@ -203,35 +206,43 @@ fn stats(a: StatsArgs) -> Result<()> {
     Ok(())
 }
 
-/// Writes an RGB image of display values in [0, 1] as an 8-bit PNG.
-fn write_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
+/// Writes an RGB image of display values in [0, 1] as an 8-bit PNG to the output
+/// opened (and checked) before the work.
+fn write_png(out: OutputFile, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
     let bytes: Vec<u8> = rgb
         .iter()
         .map(|&c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
         .collect();
-    let tmp = path.with_extension("tmp.png");
-    image::save_buffer_with_format(
-        &tmp,
-        &bytes,
-        width as u32,
-        height as u32,
-        image::ExtendedColorType::Rgb8,
-        image::ImageFormat::Png,
-    )
-    .with_context(|| format!("writing {}", path.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    let png = pathfarm_render::output::encode_png_rgb8(width as u32, height as u32, &bytes)
+        .with_context(|| format!("writing {}", out.path().display()))?;
+    out.commit(&png)
 }
 
 fn quadtree_image(tree: &DTree, width: usize) -> Vec<f32> {
     viz::rasterize_pdf(tree, width, width / 2, true)
 }
 
+/// A picture of `width` x `height` pixels (from the flag `flag`) within the limits.
+fn check_picture(width: usize, height: usize, flag: &str) -> Result<()> {
+    let max = Limits::default().max_picture_pixels;
+    let pixels = width as u64 * height as u64;
+    if pixels > max {
+        bail!(
+            "{flag}: the picture would be {width}x{height} = {pixels} pixels, more than the \
+             limit of {max} (Limits::max_picture_pixels)"
+        );
+    }
+    Ok(())
+}
+
 fn show(a: ShowArgs) -> Result<()> {
+    let w = a.width.max(16);
+    check_picture(w, w / 2, &format!("--width {}", a.width))?;
+    let out = OutputFile::create(&a.output)?;
     let tree = read_tree(&a.tree)?;
     let p = Vec3::from(parse_floats::<3>(&a.point, "--point")?);
     let leaf = tree.leaf(tree.leaf_index(p));
-    let w = a.width.max(16);
-    write_png(&a.output, w, w / 2, &quadtree_image(&leaf.sampling, w))?;
+    write_png(out, w, w / 2, &quadtree_image(&leaf.sampling, w))?;
     println!("quadtree at {p}: {} nodes; u (across) = (cos theta + 1) / 2 of the world z axis, v (down) = phi / 2pi", leaf.sampling.node_count());
     Ok(())
 }
@@ -254,6 +265,16 @@ fn histogram_image(dirs: &[Vec3], width: usize) -> Vec<f32> {
 }
 
 fn scatter(a: ScatterArgs) -> Result<()> {
+    let w = a.width.max(16);
+    check_picture(3 * w + 8, w / 2, &format!("--width {}", a.width))?;
+    let max_samples = Limits::default().max_scatter_samples;
+    if a.samples as u64 > max_samples {
+        bail!(
+            "--samples {}: more than the limit of {max_samples} (Limits::max_scatter_samples)",
+            a.samples
+        );
+    }
+    let out = OutputFile::create(&a.output)?;
     let (scene, params) = load(&a.scene, &a.defines)?;
     let [px, py] = parse_floats::<2>(&a.pixel, "--pixel")?;
     if px < 0.0 || py < 0.0 || px >= scene.width as f32 || py >= scene.height as f32 {
@@ -301,7 +322,6 @@ fn scatter(a: ScatterArgs) -> Result<()> {
             from_mixture.push(s.wo_world);
         }
     }
-    let w = a.width.max(16);
     let h = w / 2;
     let panels = [
         histogram_image(&from_bsdf, w),
@@ -318,7 +338,7 @@ fn scatter(a: ScatterArgs) -> Result<()> {
             img[dst..dst + w * 3].copy_from_slice(&panel[y * w * 3..(y + 1) * w * 3]);
         }
     }
-    write_png(&a.output, total_w, h, &img)?;
+    write_png(out, total_w, h, &img)?;
     println!(
         "first hit at {} (shape {}), bsdf-sampling fraction {:.3}; panels: BSDF sampling ({} dirs) | guided mixture ({} dirs) | learned quadtree; u across = (cos theta + 1) / 2 of world z, v down = phi / 2pi",
         si.p,

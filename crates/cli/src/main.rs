@@ -2,6 +2,7 @@
 
 mod cpu_time;
 mod guide_cmd;
+mod outfile;
 mod render_cmd;
 
 use anyhow::Result;

@@ -8,15 +8,16 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pathfarm_render::guided::{self, Budget};
 use pathfarm_render::{output, RenderSettings, Scene};
-use pathfarm_scene::load_scene;
+use pathfarm_scene::{load_scene, load_scene_with_limits, Limits};
 
 use crate::cpu_time::process_cpu_time;
+use crate::outfile::{self, OutputFile};
 
 #[derive(Args)]
 pub struct RenderArgs {
     /// The Mitsuba 3 XML scene.
     pub scene: PathBuf,
-    /// Output EXR path (a PNG preview is written beside it).
+    /// Output EXR path (a PNG preview is written beside it; see --preview).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Samples per pixel (default: the scene's sample_count; unbounded with --time).
@@ -40,6 +41,10 @@ pub struct RenderArgs {
     /// Do not write the PNG preview.
     #[arg(long)]
     pub no_png: bool,
+    /// Where to write the PNG preview (default: the output path with .png). Without
+    /// this flag, an existing file there is replaced only if pathfarm wrote it.
+    #[arg(long, value_name = "PATH", conflicts_with = "no_png")]
+    pub preview: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -56,6 +61,45 @@ pub fn parse_defines(defs: &[String]) -> Result<Vec<(String, String)>> {
             _ => bail!("-D {d}: expected NAME=VALUE"),
         })
         .collect()
+}
+
+/// `--spp` and `--time` within the limits (`Duration::from_secs_f64` panics past about 1.8e19
+/// seconds, so this runs before any conversion).
+pub fn check_budget_flags(spp: Option<u32>, time: Option<f64>, limits: &Limits) -> Result<()> {
+    if let Some(t) = time {
+        if !(t.is_finite() && t > 0.0) {
+            bail!("--time must be a positive number of seconds, got {t}");
+        }
+        if t > limits.max_time_seconds {
+            bail!(
+                "--time {}: more than the limit of {} seconds (Limits::max_time_seconds)",
+                short_number(t),
+                limits.max_time_seconds
+            );
+        }
+    }
+    if let Some(n) = spp {
+        if n == 0 {
+            bail!("--spp must be at least 1");
+        }
+        if n as u64 > limits.max_spp {
+            bail!(
+                "--spp {n}: more than the limit of {} samples per pixel (Limits::max_spp)",
+                limits.max_spp
+            );
+        }
+    }
+    Ok(())
+}
+
+/// A number for a message: plain when short, else in scientific notation.
+pub fn short_number(x: f64) -> String {
+    let plain = format!("{x}");
+    if plain.len() <= 12 {
+        plain
+    } else {
+        format!("{x:e}")
+    }
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {
@@ -79,6 +123,35 @@ pub fn info(args: InfoArgs) -> Result<()> {
     Ok(())
 }
 
+/// Opens the PNG preview: `--preview PATH`, which may be replaced whatever it holds, or
+/// the output path with .png, which may be replaced only if it is a preview pathfarm wrote
+/// (it could be one of the scene's own textures).
+fn open_preview(args: &RenderArgs) -> Result<OutputFile> {
+    let path = match &args.preview {
+        Some(p) => p.clone(),
+        None => args.output.with_extension("png"),
+    };
+    if outfile::same_destination(&path, &args.output) {
+        bail!(
+            "--preview {}: the same file as the output (-o); give another path",
+            path.display()
+        );
+    }
+    if args.preview.is_some() {
+        return OutputFile::create(&path);
+    }
+    OutputFile::create_checked(&path, |p| {
+        if output::is_pathfarm_preview(p) {
+            return Ok(());
+        }
+        bail!(
+            "{}: exists and is not a preview written by pathfarm, so it is left alone; \
+             name another preview file with --preview PATH, or write none with --no-png",
+            p.display()
+        )
+    })
+}
+
 pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(n) = args.threads {
         if n == 0 {
@@ -89,14 +162,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
             .build_global()
             .context("configuring the thread pool")?;
     }
-    if let Some(t) = args.time {
-        if !(t.is_finite() && t > 0.0) {
-            bail!("--time must be a positive number of seconds, got {t}");
-        }
-    }
-    if args.spp == Some(0) {
-        bail!("--spp must be at least 1");
-    }
+    let limits = Limits::default();
+    check_budget_flags(args.spp, args.time, &limits)?;
     let ext_ok = args
         .output
         .extension()
@@ -105,8 +172,15 @@ pub fn render(args: RenderArgs) -> Result<()> {
     if !ext_ok {
         bail!("{}: the output must be an .exr file", args.output.display());
     }
+    // The outputs are checked and opened before the work, and written together at the end.
+    let exr_out = OutputFile::create(&args.output)?;
+    let png_out = if args.no_png {
+        None
+    } else {
+        Some(open_preview(&args)?)
+    };
     let t_load = Instant::now();
-    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?)
+    let desc = load_scene_with_limits(&args.scene, &parse_defines(&args.defines)?, &limits)
         .with_context(|| format!("loading {}", args.scene.display()))?;
     for w in &desc.warnings {
         tracing::warn!("{w}");
@@ -154,6 +228,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
                 (None, Some(t)) => Budget::Seconds(t),
                 (None, None) => guided::params_budget(params, &scene),
             };
+            guided::check_budget(params, budget).map_err(anyhow::Error::msg)?;
             let on_iteration = |it: &guided::GuidedIteration| {
                 bar.suspend(|| {
                     tracing::info!(
@@ -201,19 +276,33 @@ pub fn render(args: RenderArgs) -> Result<()> {
     };
     let cpu = (process_cpu_time() - cpu0).as_secs_f64();
     bar.finish_and_clear();
+    if stats.spp == 0 {
+        bail!(
+            "--time {}: the budget ended before one sample per pixel was rendered; nothing \
+             was written (give more time)",
+            args.time.unwrap_or(0.0)
+        );
+    }
     if stats.invalid_samples > 0 {
         tracing::warn!(
             "{} samples were NaN or infinite and counted as zero",
             stats.invalid_samples
         );
     }
-    if let Some(dir) = args.output.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let exr = output::encode_exr(&film, args.aovs)
+        .with_context(|| format!("writing {}", exr_out.path().display()))?;
+    let png = match &png_out {
+        Some(out) => Some(
+            output::encode_png(&film)
+                .with_context(|| format!("writing {}", out.path().display()))?,
+        ),
+        None => None,
+    };
+    let mut outputs = vec![(exr_out, exr.as_slice())];
+    if let (Some(out), Some(bytes)) = (png_out, &png) {
+        outputs.push((out, bytes.as_slice()));
     }
-    output::write_exr(&args.output, &film, args.aovs)?;
-    if !args.no_png {
-        output::write_png(&args.output.with_extension("png"), &film)?;
-    }
+    outfile::commit_all(outputs)?;
     let samples = film.width as f64 * film.height as f64 * stats.spp as f64;
     println!(
         "summary: resolution={}x{} spp={} wall_s={:.3} cpu_s={:.3} samples_per_cpu_s={:.0}",

@@ -150,7 +150,7 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
                      ({limit})",
                     p.what(),
                     short(b),
-                    short(max_budget)
+                    max_budget
                 ),
             ))
         }

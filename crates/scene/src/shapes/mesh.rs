@@ -324,7 +324,7 @@ pub(crate) fn finalize(
 pub(crate) fn beyond_bound_message() -> String {
     format!(
         "beyond the bound of {MAX_WORLD_COORDINATE:e} on |x|, |y| and |z| (the renderer squares \
-         coordinates in 32-bit floats, which overflow beyond about 1.8e19)"
+         coordinates in 32-bit floats, which become infinite beyond about 1.8e19)"
     )
 }
 
@@ -359,4 +359,72 @@ fn vertex_normals(positions: &[Vec3], indices: &[[u32; 3]]) -> Vec<Vec3> {
             }
         })
         .collect()
+}
+
+/// Polygons with at most this many corners are fan-triangulated, as Mitsuba and tobj do
+/// (corners 0, k, k + 1), so ordinary meshes keep their exact triangles.
+pub(crate) const MAX_FAN_CORNERS: usize = 32;
+
+/// Triangulates the polygon `corners` (n >= 3) into `out`, keeping its winding. Larger
+/// polygons are split recursively at the middle corner of each range (triangle
+/// (first, middle, last), then both halves): a fan's triangles all share corner 0, so their
+/// boxes all overlap there and the BVH build took seconds for one face of 30,000 corners;
+/// the split's triangles are mostly small and local, like the polygon's own edges.
+pub(crate) fn triangulate(corners: &[u32], out: &mut Vec<[u32; 3]>) {
+    let n = corners.len();
+    if n <= MAX_FAN_CORNERS {
+        out.extend((1..n.saturating_sub(1)).map(|k| [corners[0], corners[k], corners[k + 1]]));
+        return;
+    }
+    // Ranges [a, b] of corners still to triangulate, on an explicit stack (depth log2 n).
+    let mut stack = vec![(0usize, n - 1)];
+    while let Some((a, b)) = stack.pop() {
+        if b - a < 2 {
+            continue;
+        }
+        let m = a + (b - a) / 2;
+        // Corners in polygon order: the polygon's winding.
+        out.push([corners[a], corners[m], corners[b]]);
+        stack.push((m, b));
+        stack.push((a, m));
+    }
+}
+
+#[cfg(test)]
+mod triangulate_tests {
+    use super::*;
+
+    #[test]
+    fn small_polygons_are_fans_and_large_ones_strips_covering_every_edge_once() {
+        let mut out = Vec::new();
+        triangulate(&[0, 1, 2, 3], &mut out);
+        assert_eq!(out, vec![[0, 1, 2], [0, 2, 3]]);
+        for n in [MAX_FAN_CORNERS + 1, 100, 1001] {
+            let corners: Vec<u32> = (0..n as u32).collect();
+            out.clear();
+            triangulate(&corners, &mut out);
+            assert_eq!(out.len(), n - 2);
+            // Every polygon edge appears once in the same direction (the winding is kept),
+            // every inner edge twice in opposite directions (a watertight triangulation).
+            let mut edges = std::collections::HashMap::new();
+            for t in &out {
+                assert!(t[0] < t[1] && t[1] < t[2], "{t:?} changes the winding");
+                for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+                    *edges.entry((a, b)).or_insert(0) += 1;
+                }
+            }
+            for k in 0..n as u32 {
+                let (a, b) = (k, (k + 1) % n as u32);
+                assert_eq!(edges.get(&(a, b)), Some(&1), "polygon edge {a}-{b}");
+                assert_eq!(edges.get(&(b, a)), None);
+            }
+            for (&(a, b), &c) in &edges {
+                let boundary = (a + 1) % n as u32 == b;
+                assert!(
+                    boundary || (c == 1 && edges.get(&(b, a)) == Some(&1)),
+                    "edge {a}-{b}"
+                );
+            }
+        }
+    }
 }

@@ -11,7 +11,7 @@
 //! - `o` and `g` start a new object; within an object, each distinct (position, texture
 //!   coordinate, normal) index triple of a face corner is one vertex, numbered in order of
 //!   first use; the objects' vertices are concatenated;
-//! - faces are fan-triangulated (corners 0, k, k + 1); faces of one or two corners are ignored,
+//! - faces are triangulated by `mesh::triangulate` (fans up to 32 corners, strips beyond); faces of one or two corners are ignored,
 //!   as are `l`, `p`, `s`, `usemtl`, `mtllib`, comments and unknown statements;
 //! - the mesh has texture coordinates (normals) if every object has a corner with one, and
 //!   then every corner must have one; otherwise it has none;
@@ -448,9 +448,7 @@ impl<'a> Parser<'a> {
             };
             face.push(id);
         }
-        for k in 1..n - 1 {
-            self.indices.push([face[0], face[k], face[k + 1]]);
-        }
+        super::mesh::triangulate(&face, &mut self.indices);
         self.face = face;
         self.keys = keys;
         Ok(())

@@ -458,10 +458,8 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
                     reserved_triangles += more;
                     mesh.indices.reserve_exact(more as usize);
                 }
-                for k in 1..idx.len() - 1 {
-                    mesh.indices
-                        .push([idx[0] as u32, idx[k] as u32, idx[k + 1] as u32]);
-                }
+                let corners: Vec<u32> = idx.iter().map(|&i| i as u32).collect();
+                super::mesh::triangulate(&corners, &mut mesh.indices);
             }
             faces_read = true;
         } else {
