@@ -111,8 +111,7 @@ fn parse_floats<const N: usize>(s: &str, what: &str) -> Result<[f32; N]> {
 }
 
 fn load(scene: &Path, defines: &[String]) -> Result<(Scene, GuidedParams)> {
-    let desc = load_scene(scene, &parse_defines(defines)?)
-        .with_context(|| format!("loading {}", scene.display()))?;
+    let desc = load_scene(scene, &parse_defines(defines)?)?;
     let params = match &desc.integrator {
         IntegratorDesc::GuidedPath(g) => g.clone(),
         IntegratorDesc::Path(p) => GuidedParams {

@@ -103,8 +103,7 @@ pub fn short_number(x: f64) -> String {
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {
-    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?)
-        .with_context(|| format!("loading {}", args.scene.display()))?;
+    let desc = load_scene(&args.scene, &parse_defines(&args.defines)?)?;
     let scene = Scene::build(&desc)?;
     println!("scene: {}", args.scene.display());
     println!(
@@ -180,8 +179,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         Some(open_preview(&args)?)
     };
     let t_load = Instant::now();
-    let desc = load_scene_with_limits(&args.scene, &parse_defines(&args.defines)?, &limits)
-        .with_context(|| format!("loading {}", args.scene.display()))?;
+    let desc = load_scene_with_limits(&args.scene, &parse_defines(&args.defines)?, &limits)?;
     for w in &desc.warnings {
         tracing::warn!("{w}");
     }

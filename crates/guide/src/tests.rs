@@ -600,7 +600,7 @@ fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
         d_tree_threshold: 1e-5,
         ..GuideConfig::default()
     };
-    let free = warmed_tree(base.clone(), 7, 4000, 3);
+    let free = warmed_tree(base.clone(), 7, 1500, 3);
     assert_eq!(free.raised_d_tree_threshold(), None);
     let used = free.stats().building_dtree_nodes;
     // A cap above what refinement makes changes no bit.
@@ -610,7 +610,7 @@ fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
             ..base.clone()
         },
         7,
-        4000,
+        1500,
         3,
     );
     assert_eq!(roomy.raised_d_tree_threshold(), None);
@@ -623,7 +623,7 @@ fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
             ..base
         },
         7,
-        4000,
+        1500,
         3,
     );
     let raised = tight
