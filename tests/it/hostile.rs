@@ -194,7 +194,7 @@ impl Case {
     /// temporary directory, or a fresh one for a shipped scene.
     fn render(name: &str, scene: &Path, flags: &[&str]) -> Self {
         let scene_dir = scene.parent().expect("scene dir").to_path_buf();
-        let dir = if scene_dir.starts_with(std::env::temp_dir()) {
+        let dir = if is_test_dir(&scene_dir) {
             scene_dir.clone()
         } else {
             temp_dir(name)
@@ -247,6 +247,15 @@ impl Case {
         self.checks.push(Box::new(f));
         self
     }
+}
+
+/// A directory `common::temp_dir` made for a test (never a shipped scene's directory, even
+/// when the repository itself lies under the temporary directory, as a CI clone may).
+fn is_test_dir(d: &Path) -> bool {
+    d.parent() == Some(std::env::temp_dir().as_path())
+        && d.file_name()
+            .and_then(|n| n.to_str())
+            .is_some_and(|n| n.starts_with("pathfarm-it-"))
 }
 
 fn path_str(p: &Path) -> &str {
@@ -422,7 +431,7 @@ fn run_all(cases: Vec<Case>) {
         );
         if problems.is_empty() {
             for d in &case.watch {
-                if d.starts_with(std::env::temp_dir()) {
+                if is_test_dir(d) {
                     let _ = std::fs::remove_dir_all(d);
                 }
             }
