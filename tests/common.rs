@@ -149,3 +149,11 @@ pub const FURNACE_BODY: &str = r#"
             <bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>
         <shape type="cube"><transform name="to_world"><scale value="0.3"/><translate x="0" y="-0.9" z="0"/></transform>
             <bsdf type="twosided"><bsdf type="diffuse"><rgb name="reflectance" value="1"/></bsdf></bsdf></shape>"#;
+
+/// The `pathfarm` binary under test: `PATHFARM_TEST_BIN` (e.g. an older build, to see a
+/// test fail on it), else the one cargo built.
+pub fn pathfarm_bin() -> PathBuf {
+    std::env::var_os("PATHFARM_TEST_BIN")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_pathfarm")))
+}

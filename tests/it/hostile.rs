@@ -34,13 +34,6 @@ const FORBIDDEN: [&str; 3] = ["panicked", "memory allocation", "overflow"];
 /// The longest run of digits a line of stderr may hold.
 const MAX_DIGIT_RUN: usize = 25;
 
-/// The binary under test: `PATHFARM_TEST_BIN`, else the one cargo built.
-fn binary() -> PathBuf {
-    std::env::var_os("PATHFARM_TEST_BIN")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_pathfarm")))
-}
-
 // ---------------------------------------------------------------------------------------------
 // Running the child under limits
 
@@ -99,7 +92,7 @@ fn set_limit(resource: i32, soft: u64, hard: u64) -> std::io::Result<()> {
 /// Runs the binary with `args` under `memory` bytes of address space, the CPU limit and
 /// `timeout` of wall-clock time.
 fn run_limited(args: &[String], memory: u64, timeout: Duration) -> Run {
-    let mut cmd = Command::new(binary());
+    let mut cmd = Command::new(pathfarm_bin());
     cmd.args(args)
         .env("RUST_LOG", "warn")
         .env("NO_COLOR", "1")
@@ -122,7 +115,7 @@ fn run_limited(args: &[String], memory: u64, timeout: Duration) -> Run {
     let start = Instant::now();
     let mut child = cmd
         .spawn()
-        .unwrap_or_else(|e| panic!("cannot run {}: {e}", binary().display()));
+        .unwrap_or_else(|e| panic!("cannot run {}: {e}", pathfarm_bin().display()));
     let out = drain(child.stdout.take().expect("stdout"));
     let err = drain(child.stderr.take().expect("stderr"));
     let mut guard = KillOnDrop(Some(child));
@@ -452,7 +445,7 @@ fn run_all(cases: Vec<Case>) {
         failures.is_empty(),
         "{} of {n} cases failed (binary {}):\n\n{}",
         failures.len(),
-        binary().display(),
+        pathfarm_bin().display(),
         failures.join("\n\n")
     );
 }

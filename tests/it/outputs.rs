@@ -16,13 +16,6 @@ use pathfarm_render::output::{is_pathfarm_preview, read_exr_rgb};
 
 use crate::common::*;
 
-/// The binary under test: `PATHFARM_TEST_BIN`, else the one cargo built.
-fn binary() -> PathBuf {
-    std::env::var_os("PATHFARM_TEST_BIN")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_BIN_EXE_pathfarm")))
-}
-
 /// A child `pathfarm`, killed and reaped when dropped unless it was reaped already
 /// (so a failing test leaves no process behind, and a pid is never signalled after
 /// it was reaped).
@@ -55,7 +48,7 @@ impl Running {
     fn start(args: &[&str], extra_env: &[(&str, &str)]) -> Self {
         let logs = temp_dir("outputs-logs");
         let (stdout, stderr) = (logs.join("stdout"), logs.join("stderr"));
-        let mut cmd = Command::new(binary());
+        let mut cmd = Command::new(pathfarm_bin());
         cmd.args(args)
             .env("RUST_LOG", "info")
             .env("NO_COLOR", "1")

@@ -73,7 +73,7 @@ pub fn check_budget_flags(spp: Option<u32>, time: Option<f64>, limits: &Limits) 
         if t > limits.max_time_seconds {
             bail!(
                 "--time {}: more than the limit of {} seconds (Limits::max_time_seconds)",
-                short_number(t),
+                pathfarm_scene::limits::format_number(t),
                 limits.max_time_seconds
             );
         }
@@ -90,16 +90,6 @@ pub fn check_budget_flags(spp: Option<u32>, time: Option<f64>, limits: &Limits) 
         }
     }
     Ok(())
-}
-
-/// A number for a message: plain when short, else in scientific notation.
-pub fn short_number(x: f64) -> String {
-    let plain = format!("{x}");
-    if plain.len() <= 12 {
-        plain
-    } else {
-        format!("{x:e}")
-    }
 }
 
 pub fn info(args: InfoArgs) -> Result<()> {

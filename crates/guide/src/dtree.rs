@@ -886,12 +886,52 @@ impl DTree {
     /// The tree [`DTree::reset`] makes of this one (zero statistics, refined structure),
     /// leaving this one as it is (carry-over reads it afterwards).
     pub fn refined(&self, rho: f64, max_depth: u32) -> Self {
-        let max_depth = max_depth.clamp(1, MAX_DEPTH);
-        let total = self.total();
-        if !(total > 0.0) {
-            return Self::uniform(4.min(max_depth));
+        if !(self.total() > 0.0) {
+            return Self::uniform(4.min(max_depth.clamp(1, MAX_DEPTH)));
         }
         let mut nodes = vec![DNode::default()];
+        self.walk_refined(rho, max_depth, |parent, q| {
+            let c = nodes.len() as u32;
+            nodes.push(DNode::default());
+            nodes[parent as usize].children[q] = c;
+            Some(c)
+        });
+        Self {
+            nodes,
+            ..Self::new()
+        }
+    }
+
+    /// How many nodes [`DTree::refined`] would make with `rho` and `max_depth`, counted
+    /// without building them; counting stops past `limit` (the result is then `limit + 1`), so
+    /// a tiny `rho` costs no more than `limit` steps.
+    pub fn refined_node_count(&self, rho: f64, max_depth: u32, limit: usize) -> usize {
+        if !(self.total() > 0.0) {
+            return Self::uniform(4.min(max_depth.clamp(1, MAX_DEPTH)))
+                .nodes
+                .len();
+        }
+        let mut count = 1usize;
+        self.walk_refined(rho, max_depth, |_, _| {
+            count += 1;
+            (count <= limit).then_some(0)
+        });
+        count.min(limit.saturating_add(1))
+    }
+
+    /// The walk of refinement (a non-empty tree): depth first from the root, for a quadrant
+    /// with `f = s_i / S_total > rho` below `max_depth` it calls `new_child(parent, q)`, which
+    /// returns the new child's index (or `None` to stop the walk). The child descends into the
+    /// old child if there was one, else into a node whose 4 quadrants are seeded with
+    /// `s_i / 4` (so one refinement can add several levels).
+    fn walk_refined(
+        &self,
+        rho: f64,
+        max_depth: u32,
+        mut new_child: impl FnMut(u32, usize) -> Option<u32>,
+    ) {
+        let max_depth = max_depth.clamp(1, MAX_DEPTH);
+        let total = self.total();
         // (new index, old index or u32::MAX when seeded, seeded sums, depth)
         let mut stack: Vec<(u32, u32, [f64; 4], u32)> = vec![(0, 0, [0.0; 4], 1)];
         while let Some((ni, oi, seeded, depth)) = stack.pop() {
@@ -903,9 +943,9 @@ impl DTree {
             for q in 0..4 {
                 let f = sums[q] / total;
                 if depth < max_depth && f > rho {
-                    let c = nodes.len() as u32;
-                    nodes.push(DNode::default());
-                    nodes[ni as usize].children[q] = c;
+                    let Some(c) = new_child(ni, q) else {
+                        return;
+                    };
                     let oc = if oi != u32::MAX {
                         self.nodes[oi as usize].children[q]
                     } else {
@@ -920,50 +960,6 @@ impl DTree {
                 }
             }
         }
-        Self {
-            nodes,
-            ..Self::new()
-        }
-    }
-
-    /// How many nodes [`DTree::refined`] would make with `rho` and `max_depth`, counted
-    /// without building them; counting stops past `limit` (the result is then `limit + 1`), so
-    /// a tiny `rho` costs no more than `limit` steps.
-    pub fn refined_node_count(&self, rho: f64, max_depth: u32, limit: usize) -> usize {
-        let max_depth = max_depth.clamp(1, MAX_DEPTH);
-        let total = self.total();
-        if !(total > 0.0) {
-            return Self::uniform(4.min(max_depth)).nodes.len();
-        }
-        let mut count = 1usize;
-        // (old index or u32::MAX when seeded, seeded sums, depth), as in `refined`.
-        let mut stack: Vec<(u32, [f64; 4], u32)> = vec![(0, [0.0; 4], 1)];
-        while let Some((oi, seeded, depth)) = stack.pop() {
-            let sums = if oi != u32::MAX {
-                self.nodes[oi as usize].sums_f64()
-            } else {
-                seeded
-            };
-            for q in 0..4 {
-                if depth < max_depth && sums[q] / total > rho {
-                    count += 1;
-                    if count > limit {
-                        return limit + 1;
-                    }
-                    let oc = if oi != u32::MAX {
-                        self.nodes[oi as usize].children[q]
-                    } else {
-                        0
-                    };
-                    if oc != 0 {
-                        stack.push((oc, [0.0; 4], depth + 1));
-                    } else {
-                        stack.push((u32::MAX, [sums[q] * 0.25; 4], depth + 1));
-                    }
-                }
-            }
-        }
-        count
     }
 
     /// Zeroes every sum and W, keeping the structure.

@@ -8,7 +8,7 @@ use crate::desc::{
     GuidedParams, GuidedRoulette, GuidedSpatialFilter, IntegratorDesc, PathParams,
 };
 use crate::error::SceneError;
-use crate::limits::Limits;
+use crate::limits::{format_number, Limits};
 use crate::props::{Props, Resolved};
 use crate::xml::invalid;
 
@@ -77,9 +77,9 @@ fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f
             format!(
                 "parameter '{name}' of {} must be in [{}, {}] (got {})",
                 p.what(),
-                short(min),
-                short(max),
-                short(v)
+                format_number(min),
+                format_number(max),
+                format_number(v)
             ),
         )),
         // Read as a 32-bit float, as every float parameter is (the images depend on it).
@@ -89,16 +89,6 @@ fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f
 
 /// The smallest `d_tree_threshold` (the papers use 0.01): about 2 million nodes per quadtree.
 const MIN_D_TREE_THRESHOLD: f64 = 1e-5;
-
-/// A number for a message: plain when short, else in scientific notation (1e-5, not 0.00001).
-fn short(x: f64) -> String {
-    let plain = format!("{x}");
-    if plain.len() <= 6 {
-        plain
-    } else {
-        format!("{x:e}")
-    }
-}
 
 /// `guided_path`: the `path` parameters plus the SD-tree guide's (see [`GuidedParams`]).
 fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError> {
@@ -138,7 +128,7 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
                 format!(
                     "parameter 'budget' of {} must be positive (got {})",
                     p.what(),
-                    short(b)
+                    format_number(b)
                 ),
             ))
         }
@@ -149,7 +139,7 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
                     "parameter 'budget' of {} is {} {unit}, more than the limit of {} \
                      ({limit})",
                     p.what(),
-                    short(b),
+                    format_number(b),
                     max_budget
                 ),
             ))

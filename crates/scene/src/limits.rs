@@ -98,3 +98,14 @@ pub fn format_bytes(bytes: u64) -> String {
     };
     format!("{v:.1} {unit} ({bytes} bytes)")
 }
+
+/// A number for a message: plain when short ("0.5", "604800"), else in scientific notation
+/// ("1e-5", "1e300"), never hundreds of digits.
+pub fn format_number(x: f64) -> String {
+    let plain = format!("{x}");
+    if plain.len() <= 6 {
+        plain
+    } else {
+        format!("{x:e}")
+    }
+}
