@@ -12,5 +12,6 @@ mod it {
     pub mod guided;
     pub mod hostile;
     pub mod outputs;
+    pub mod session;
     pub mod shared_scenes;
 }

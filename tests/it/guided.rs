@@ -2,7 +2,8 @@
 //! with the path tracer, determinism, parameters and the CLI.
 
 use pathfarm_render::guided::{
-    render_guided, render_guided_with_policy, Budget, GuidedStats, GuidingVerdict, SdTree,
+    render_guided, render_guided_with_policy, Budget, FallbackPolicy, GuidedStats, GuidingVerdict,
+    SdTree,
 };
 use pathfarm_render::{render, Film, RenderSettings, Scene};
 use pathfarm_scene::{
@@ -388,7 +389,7 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
                     &RenderSettings::new(Some(spp), None, 3),
                     &|_| {},
                     &|_| {},
-                    &|_, _, _| verdict,
+                    FallbackPolicy::Force(verdict),
                 )
             })
     };

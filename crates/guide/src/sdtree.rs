@@ -354,17 +354,11 @@ impl SdTree {
     /// be what [`SdTree::lookup`] returns for that position (renderers that sampled from the
     /// guide at the vertex have it and save a lookup).
     pub fn record_at(&self, rec: &Record, at: &SLookup, rng: &mut impl FnMut() -> f32) {
-        let w = rec.weight as f64;
-        let pm = rec.pdf_mix as f64;
-        let valid = w > 0.0
-            && w.is_finite()
-            && pm > 0.0
-            && pm.is_finite()
-            && rec.position.is_finite()
-            && rec.direction.is_finite();
-        if !valid {
+        if !record_is_valid(rec) {
             return;
         }
+        let w = rec.weight as f64;
+        let pm = rec.pdf_mix as f64;
         let uv = dir_to_uv(rec.direction);
         let value = w * rec.radiance as f64 / pm;
         let (qv, ov) = if value > 0.0 && value.is_finite() {
@@ -407,6 +401,38 @@ impl SdTree {
                 BOX_SCRATCH.with(|sc| *sc.borrow_mut() = (ov, vols, pv, pw));
             }
         }
+    }
+
+    /// Draws from `rng` exactly what [`SdTree::record`] would draw for `rec`, and records
+    /// nothing. A renderer that computes a sample twice (a tile's filter halo) records it
+    /// once: elsewhere it calls this, so the sample's later random numbers, and so its value,
+    /// are the same in both places.
+    pub fn skip_record(&self, rec: &Record, rng: &mut impl FnMut() -> f32) {
+        if record_is_valid(rec) && self.config.spatial_filter == SpatialFilter::Stochastic {
+            for _ in 0..3 {
+                rng();
+            }
+        }
+    }
+
+    /// The learned-fraction state of every spatial leaf, in leaf order (what
+    /// [`SdTree::step_fractions`] changes between the passes of an iteration).
+    pub fn fraction_states(&self) -> Vec<FractionState> {
+        self.leaves.iter().map(|l| l.fraction).collect()
+    }
+
+    /// Sets every leaf's learned-fraction state (from [`SdTree::fraction_states`] of a tree
+    /// with the same spatial structure): a worker holding the iteration's tree follows the
+    /// coordinator's fraction steps this way. Fails if the leaf count differs.
+    pub fn set_fraction_states(&mut self, states: &[FractionState]) -> Result<(), StatsError> {
+        if states.len() != self.leaves.len() {
+            return Err(StatsError::IndexOutOfRange);
+        }
+        for (l, s) in self.leaves.iter_mut().zip(states) {
+            l.fraction = *s;
+            l.set_theta_cache();
+        }
+        Ok(())
     }
 
     fn deposit_leaf(
@@ -748,4 +774,17 @@ impl SdTree {
         self.overflow.fetch_add(of + s.overflow_events, Relaxed);
         Ok(())
     }
+}
+
+/// Whether [`SdTree::record`] uses `rec` at all: positive finite weight and mixture pdf,
+/// finite position and direction.
+fn record_is_valid(rec: &Record) -> bool {
+    let w = rec.weight as f64;
+    let pm = rec.pdf_mix as f64;
+    w > 0.0
+        && w.is_finite()
+        && pm > 0.0
+        && pm.is_finite()
+        && rec.position.is_finite()
+        && rec.direction.is_finite()
 }

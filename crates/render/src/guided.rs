@@ -25,70 +25,20 @@ use std::time::{Duration, Instant};
 
 pub use pathfarm_guide::schedule::Budget;
 pub use pathfarm_guide::schedule::GuidingVerdict;
-use pathfarm_guide::schedule::{self, IterationLength, IterationOutcome};
 pub use pathfarm_guide::SdTree;
 use pathfarm_guide::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use pathfarm_scene::{
-    GuidedBudgetType, GuidedCombination, GuidedDirectionalFilter, GuidedFractionLoss, GuidedNee,
-    GuidedParams, GuidedRoulette, GuidedSpatialFilter,
+    GuidedBudgetType, GuidedDirectionalFilter, GuidedFractionLoss, GuidedParams,
+    GuidedSpatialFilter,
 };
 
-use crate::counter::ShardedCounter;
 use crate::film::Film;
-use crate::geometry::Ray;
-use crate::integrator::guided_path::{self, GuideCtx};
-use crate::render::{path_estimator, render_into, Progress, RenderSettings};
-use crate::rng::Rng;
+use crate::pass::{render_unit, UnitInputs};
+use crate::render::{Progress, Region, RenderSettings};
 use crate::scene::Scene;
 
-/// NEE "kickstart" does light sampling while fewer than this many spp have been rendered.
-pub const KICKSTART_SPP: u64 = 128;
-
-/// Random streams of the path fallback's unguided passes start at this sample index, apart
-/// from the guided passes' (which count up from 0).
-const PATH_STREAM: u64 = 1 << 40;
-
-/// Bookkeeping of the path fallback (`path_fallback`): while `enabled`, every training
-/// iteration that samples from a built tree is checked against an unguided probe.
-struct FallbackState {
-    enabled: bool,
-    /// Film of the unguided passes (probes, then the fallback's rendering).
-    path_film: Film,
-    path_seconds: f64,
-    /// Rays of the probe passes.
-    path_rays: u64,
-    /// Samples per pixel in `path_film`, and how many of them are probes.
-    path_spp: u64,
-    probe_spp: u64,
-    /// Seconds of the current iteration's unrecorded first pass.
-    guided_pass_seconds: f64,
-    /// Efficiency costs of the checked guided iterations, oldest first.
-    guided_costs: Vec<f64>,
-    /// The training iteration after which the rest of the budget went to path tracing.
-    fell_back_after: Option<u32>,
-}
-
-impl FallbackState {
-    fn new(enabled: bool, width: u32, height: u32) -> Self {
-        Self {
-            enabled,
-            path_film: Film::new(width, height),
-            path_seconds: 0.0,
-            path_rays: 0,
-            path_spp: 0,
-            probe_spp: 0,
-            guided_pass_seconds: 0.0,
-            guided_costs: Vec::new(),
-            fell_back_after: None,
-        }
-    }
-
-    /// Whether an iteration sampling from `tree` is checked (the render loop ends at a
-    /// fallback, so `enabled` covers the rest).
-    fn checks(&self, tree: &SdTree) -> bool {
-        self.enabled && tree.is_built()
-    }
-}
+pub use crate::pass::{KICKSTART_SPP, PATH_STREAM};
+pub use crate::session::{FallbackPolicy, Next, Session};
 
 /// One iteration of a guided render.
 #[derive(Clone, Debug)]
@@ -303,14 +253,15 @@ pub fn render_guided_with(
         settings,
         progress,
         on_iteration,
-        &schedule::guiding_verdict,
+        FallbackPolicy::Rule,
     )
 }
 
 /// [`render_guided_with`] with the path fallback's rule as a parameter (by default
-/// [`schedule::guiding_verdict`]), so that tests and experiments can force either outcome. It
-/// gets the efficiency costs of the checked guided iterations, path tracing's and the per-sample
-/// variance ratio of the latest check (see [`schedule::guiding_verdict`]).
+/// [`FallbackPolicy::Rule`]), so that tests and experiments can force either outcome.
+///
+/// The one-process driver of a [`Session`]: every unit is rendered over the whole image as
+/// one tile, recording straight into the session's tree.
 pub fn render_guided_with_policy(
     scene: &Scene,
     params: &GuidedParams,
@@ -318,48 +269,28 @@ pub fn render_guided_with_policy(
     settings: &RenderSettings,
     progress: &(dyn Fn(Progress) + Sync),
     on_iteration: &dyn Fn(&GuidedIteration),
-    policy: &dyn Fn(&[f64], f64, f64) -> GuidingVerdict,
+    policy: FallbackPolicy,
 ) -> (Film, GuidedStats, SdTree) {
-    let cfg = guide_config(params, scene);
-    let (lo, hi) = scene.accel.bounds();
-    let mut tree = SdTree::new(lo, hi, cfg);
-    let spp_per_pass = params.spp_per_pass.max(1);
-    let npix = scene.width as u64 * scene.height as u64;
+    // The budget's clock starts with the call (building the tree is part of the render).
     let start = Instant::now();
-    let pass_settings = RenderSettings {
-        spp: Some(spp_per_pass),
-        time_limit: None,
-        seed: settings.seed,
-        tile_size: settings.tile_size,
-        pass_spp: None,
-    };
-
-    let mut spp_done = 0u64;
-    let mut passes_done = 0u32;
-    let mut invalid = 0u64;
-    let mut iterations: Vec<GuidedIteration> = Vec::new();
-    let mut films: Vec<Film> = Vec::new();
-    let mut history: Vec<IterationOutcome> = Vec::new();
-    let mut prev_secs: Option<f64> = None;
-    let mut training_spp = 0u64;
-    let mut kept: Option<usize> = None;
-    // Films of iterations rendered before the tree was built: unguided, so on a fallback
-    // their samples join the path tracer's film.
-    let mut unguided: Vec<usize> = Vec::new();
-    // Pixel estimates for guided Russian roulette: spp-weighted mean of the finished
-    // iterations' films (sum and spp so far), then blurred; empty until an iteration ended.
-    let roulette = params.russian_roulette == GuidedRoulette::Guided;
-    let mut est_sum: Vec<f64> = Vec::new();
-    let mut est_spp = 0u64;
-    let mut estimate: Vec<f32> = Vec::new();
-    // Path fallback: the unguided probe's film, seconds and rays; the guided iterations'
-    // efficiency costs; the iteration after which the rest went to path tracing.
-    let mut fallback = FallbackState::new(params.path_fallback, scene.width, scene.height);
-
-    // Progress of a render call that starts after `spp_before` spp of the whole budget.
-    let overall_progress = |spp_before: u64| {
-        let base = spp_before * npix;
-        move |p: Progress| {
+    let (lo, hi) = scene.accel.bounds();
+    let tree = SdTree::new(lo, hi, guide_config(params, scene));
+    let (w, h) = (scene.width, scene.height);
+    let whole = Region::full(w, h);
+    let mut session = Session::new(params, budget, tree, w, h, vec![whole], policy);
+    let npix = whole.pixels() as u64;
+    let mut reported = 0;
+    while let Next::Render(spec) = session.next(start.elapsed().as_secs_f64()) {
+        let inputs = UnitInputs {
+            scene,
+            params,
+            tree: session.tree(),
+            estimate: session.estimate(),
+            seed: settings.seed,
+            tile_size: settings.tile_size,
+        };
+        let base = session.spp_done() * npix;
+        let unit_progress = |p: Progress| {
             let d = base + p.samples_done;
             let total = match budget {
                 Budget::Spp(s) => s as u64 * npix,
@@ -371,387 +302,21 @@ pub fn render_guided_with_policy(
                 samples_done: d,
                 samples_total: total.max(d),
             })
-        }
-    };
-
-    // One pass of spp_per_pass samples into `film`.
-    let rays_counter = ShardedCounter::new();
-    let rays = &rays_counter;
-    let splits_counter = ShardedCounter::new();
-    let light_splits_counter = ShardedCounter::new();
-    let render_pass = |tree: &SdTree,
-                       estimate: &[f32],
-                       guide: bool,
-                       record: bool,
-                       split: bool,
-                       film: &mut Film,
-                       spp_done: u64,
-                       stream: u64,
-                       invalid: &mut u64| {
-        let nee = match params.nee {
-            GuidedNee::Never => false,
-            GuidedNee::Always => true,
-            GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
         };
-        let ctx = GuideCtx {
-            tree,
-            guide,
-            nee,
-            indirect_only: params.nee == GuidedNee::Always,
-            kickstart: params.nee == GuidedNee::Kickstart && nee,
-            record,
-            ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
-            guided_rr_depth: params.guided_rr_depth,
-            hemisphere: params.guide_hemisphere,
-            cosine: params.guide_cosine,
-            split: params.splitting && split,
-            light_split: params.light_splitting && split,
-            splits: Some(&splits_counter),
-            light_splits: Some(&light_splits_counter),
-            rays: Some(rays),
-            pixel_estimate: if guide && roulette && tree.is_built() && !estimate.is_empty() {
-                Some(estimate)
-            } else {
-                None
-            },
-        };
-        let ctx = &ctx;
-        let est = |ray: Ray, rng: &mut Rng, pixel: usize| match (
-            scene.features.environment,
-            scene.features.analytic_shapes,
-        ) {
-            (false, false) => guided_path::li::<false, false>(scene, ctx, ray, rng, pixel),
-            (true, false) => guided_path::li::<true, false>(scene, ctx, ray, rng, pixel),
-            (false, true) => guided_path::li::<false, true>(scene, ctx, ray, rng, pixel),
-            (true, true) => guided_path::li::<true, true>(scene, ctx, ray, rng, pixel),
-        };
-        let st = render_into(
-            scene,
-            &pass_settings,
-            &overall_progress(spp_done),
-            stream,
-            film,
-            &est,
-        );
-        *invalid += st.invalid_samples;
-    };
-
-    let mut k = 0u32;
-    loop {
-        let elapsed = start.elapsed().as_secs_f64();
-        let Some(plan) =
-            schedule::plan_iteration(k, budget, spp_per_pass, passes_done, elapsed, prev_secs)
-        else {
-            break;
-        };
-        let remaining_before = match budget {
-            Budget::Spp(s) => (schedule::total_passes(s, spp_per_pass) - passes_done) as f64,
-            Budget::Seconds(s) => s - elapsed,
-        };
-        let record = !plan.is_last;
-        let stats_before = tree.stats();
-        let t0 = Instant::now();
-        let rays_before = rays_counter.total();
-        let spp_before = spp_done;
-        let mut film = Film::new(scene.width, scene.height);
-        let mut passes = 0u32;
-        let mut last_pass = 0.0f64;
-        let mut until = plan.length;
-        let mut stopped = false;
-        loop {
-            match until {
-                IterationLength::Passes(p) if passes >= p => {}
-                IterationLength::UntilSeconds(s)
-                    if passes > 0 && start.elapsed().as_secs_f64() + 0.5 * last_pass >= s => {}
-                _ => {
-                    let tp = Instant::now();
-                    // The first pass of a training iteration checked by the path fallback is
-                    // not recorded: it times what a final, guided pass costs.
-                    let probe = passes == 0 && record && fallback.checks(&tree);
-                    let rec = record && !stopped && !probe;
-                    // Splitting only in passes that sample as the final image does (not in
-                    // the fallback's timed check pass: there it judged immature trees by
-                    // split paths and made door-ajar fall back).
-                    render_pass(
-                        &tree,
-                        &estimate,
-                        true,
-                        rec,
-                        !rec && !probe,
-                        &mut film,
-                        spp_done,
-                        spp_done,
-                        &mut invalid,
-                    );
-                    if rec {
-                        tree.step_fractions();
-                    }
-                    last_pass = tp.elapsed().as_secs_f64();
-                    if probe {
-                        fallback.guided_pass_seconds = last_pass;
-                    }
-                    passes += 1;
-                    spp_done += spp_per_pass as u64;
-                    continue;
-                }
-            }
-            // The iteration's passes are done. Automatic combination may turn a training
-            // iteration into the final one: render the rest of the budget into its film.
-            if record && !stopped && params.sample_combination == GuidedCombination::Automatic {
-                let cost = match budget {
-                    Budget::Spp(_) => passes as f64,
-                    Budget::Seconds(_) => t0.elapsed().as_secs_f64(),
-                };
-                history.push(IterationOutcome {
-                    variance: film_variance(&film),
-                    cost,
-                    remaining_before,
-                    spp_before,
-                });
-                if schedule::automatic_should_stop(&history) {
-                    stopped = true;
-                    training_spp += spp_done - spp_before;
-                    until = match budget {
-                        Budget::Spp(s) => IterationLength::Passes(
-                            schedule::total_passes(s, spp_per_pass) - passes_done,
-                        ),
-                        Budget::Seconds(s) => IterationLength::UntilSeconds(s),
-                    };
-                    continue;
-                }
-            }
-            break;
+        let out = render_unit(&inputs, &spec, whole, &unit_progress);
+        let now = start.elapsed().as_secs_f64();
+        session
+            .add_tile(spec.unit, 0, &out, None, now)
+            .expect("the one tile of the unit in flight");
+        for it in &session.iterations()[reported..] {
+            on_iteration(it);
         }
-        passes_done += passes;
-        let secs = t0.elapsed().as_secs_f64();
-        prev_secs = Some(secs);
-        let variance = film_variance(&film);
-        let training = record && !stopped;
-        if training {
-            training_spp += spp_done - spp_before;
-        }
-        tracing::debug!("guided iteration {k}: {passes} passes, training {training}");
-        iterations.push(GuidedIteration {
-            index: k,
-            spp: (spp_done - spp_before) as u32,
-            nodes: stats_before.spatial_nodes,
-            leaves: stats_before.leaves,
-            variance,
-            seconds: secs,
-            rays_per_sample: (rays_counter.total() - rays_before) as f64
-                / ((spp_done - spp_before) as f64 * npix as f64).max(1.0),
-            training,
-        });
-        on_iteration(iterations.last().unwrap());
-        if roulette || fallback.enabled {
-            let spp = spp_done - spp_before;
-            let means = film.mean_rgb();
-            est_sum.resize(means.len(), 0.0);
-            for (s, m) in est_sum.iter_mut().zip(&means) {
-                *s += spp as f64 * (m[0] as f64 + m[1] as f64 + m[2] as f64) / 3.0;
-            }
-            est_spp += spp;
-            estimate = pixel_estimate(&est_sum, est_spp, scene.width, scene.height);
-        }
-        if !tree.is_built() {
-            // sampled without a guide (iteration 0): plain path tracing
-            unguided.push(films.len());
-        }
-        let checked = training && fallback.checks(&tree);
-        films.push(film);
-        if !training {
-            kept = Some(films.len() - 1);
-            break;
-        }
-        if checked {
-            // One unguided pass into the probe film, then compare per-sample efficiencies.
-            let r0 = rays_counter.total();
-            let tp = Instant::now();
-            render_pass(
-                &tree,
-                &estimate,
-                false,
-                false,
-                false,
-                &mut fallback.path_film,
-                spp_done + fallback.path_spp,
-                PATH_STREAM + fallback.path_spp,
-                &mut invalid,
-            );
-            fallback.path_seconds += tp.elapsed().as_secs_f64();
-            fallback.path_rays += rays_counter.total() - r0;
-            fallback.path_spp += spp_per_pass as u64;
-            fallback.probe_spp += spp_per_pass as u64;
-            passes_done += 1;
-            let it = iterations.last().unwrap();
-            let guided_variance = film_relative_variance(films.last().unwrap(), &estimate);
-            let guided_cost = match budget {
-                // per-sample variance x seconds per spp of an unrecorded pass
-                Budget::Seconds(_) => {
-                    guided_variance * it.spp as f64 * fallback.guided_pass_seconds
-                        / spp_per_pass as f64
-                }
-                // deterministic: per-sample variance x rays per spp
-                Budget::Spp(_) => guided_variance * it.rays_per_sample * it.spp as f64,
-            };
-            let path_variance = film_relative_variance(&fallback.path_film, &estimate);
-            let path_cost = match budget {
-                Budget::Seconds(_) => path_variance * fallback.path_seconds,
-                Budget::Spp(_) => path_variance * fallback.path_rays as f64 / npix.max(1) as f64,
-            };
-            // per-sample relative variances: film variances of the mean times their spp
-            let variance_ratio =
-                guided_variance * it.spp as f64 / (path_variance * fallback.path_spp as f64);
-            fallback.guided_costs.push(guided_cost);
-            let verdict = policy(&fallback.guided_costs, path_cost, variance_ratio);
-            tracing::info!(
-                "guiding check after iteration {k}: guided cost {guided_cost:.4e}, path cost \
-                 {path_cost:.4e} (ratio {:.3}, per-sample variance ratio {variance_ratio:.3}): \
-                 {verdict:?}",
-                guided_cost / path_cost
-            );
-            match verdict {
-                GuidingVerdict::Keep => fallback.enabled = false,
-                GuidingVerdict::FallBack => {
-                    fallback.fell_back_after = Some(k);
-                    break;
-                }
-                GuidingVerdict::Undecided => {}
-            }
-        }
-        tree.refine(k);
-        if let Some(rho) = tree.raised_d_tree_threshold() {
-            tracing::warn!(
-                "iteration {k}: the quadtrees would exceed the guide's memory cap \
-                 (max_memory_mb, or Limits::max_guide_memory_bytes): refined with \
-                 d_tree_threshold {rho:.3e} instead of {:.3e}",
-                params.d_tree_threshold
-            );
-        }
-        k += 1;
+        reported = session.iterations().len();
     }
-
-    // Path fallback: the rest of the budget is plain path tracing into the probe's film,
-    // which becomes the final iteration.
-    if let Some(after) = fallback.fell_back_after {
-        let t0 = Instant::now();
-        let path_est = path_estimator(scene);
-        // The path integrator itself (no guide bookkeeping), into the probes' film: both are
-        // unbiased path-tracing estimates (same NEE, MIS and roulette), on the next sample
-        // streams. One render call for the rest of the budget, so that the renderer sizes
-        // its passes (about a second each) instead of paying per-pass costs every spp.
-        let rest = match budget {
-            Budget::Spp(s) => {
-                let passes = schedule::total_passes(s, spp_per_pass).saturating_sub(passes_done);
-                RenderSettings {
-                    spp: Some(passes * spp_per_pass),
-                    time_limit: None,
-                    ..pass_settings.clone()
-                }
-            }
-            Budget::Seconds(s) => RenderSettings {
-                spp: None,
-                time_limit: Some(Duration::from_secs_f64(
-                    (s - start.elapsed().as_secs_f64()).max(0.0),
-                )),
-                ..pass_settings.clone()
-            },
-        };
-        if rest.spp != Some(0) && rest.time_limit != Some(Duration::ZERO) {
-            let st = render_into(
-                scene,
-                &rest,
-                &overall_progress(spp_done + fallback.path_spp),
-                PATH_STREAM + fallback.path_spp,
-                &mut fallback.path_film,
-                &path_est,
-            );
-            invalid += st.invalid_samples;
-            fallback.path_spp += st.spp as u64;
-        }
-        let path_spp = fallback.path_spp;
-        spp_done += path_spp;
-        // The unguided iterations' samples are path tracing's too (the same estimator up to
-        // its random streams): they join the film instead of being weighed apart (a 1-spp
-        // iteration has no variance estimate, so inverse-variance weighting drops it).
-        for &i in &unguided {
-            fallback.path_film.merge(&films[i]);
-            films[i] = Film::new(scene.width, scene.height);
-        }
-        iterations.push(GuidedIteration {
-            index: after + 1,
-            spp: path_spp as u32,
-            nodes: 0,
-            leaves: 0,
-            variance: film_variance(&fallback.path_film),
-            seconds: t0.elapsed().as_secs_f64(),
-            // measured on the probe passes (the path integrator does not count rays)
-            rays_per_sample: fallback.path_rays as f64
-                / (fallback.probe_spp as f64 * npix as f64).max(1.0),
-            training: false,
-        });
-        on_iteration(iterations.last().unwrap());
-        films.push(std::mem::replace(
-            &mut fallback.path_film,
-            Film::new(scene.width, scene.height),
-        ));
-        kept = Some(films.len() - 1);
-    } else {
-        // probe passes count toward the total spp
-        spp_done += fallback.path_spp;
+    for it in &session.iterations()[reported..] {
+        on_iteration(it);
     }
-
-    let n = films.len();
-    let weights = match params.sample_combination {
-        // An iteration of one sample per pixel has no usable variance estimate (with a box
-        // filter it is exactly 0, which would claim a perfect image): it gets weight 0.
-        GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(
-            &iterations
-                .iter()
-                .enumerate()
-                .map(|(k, i)| {
-                    let merged = fallback.fell_back_after.is_some() && unguided.contains(&k);
-                    if i.spp < 2 || merged {
-                        f64::INFINITY
-                    } else {
-                        i.variance
-                    }
-                })
-                .collect::<Vec<_>>(),
-        ),
-        _ => {
-            let mut w = vec![0.0; n];
-            if n > 0 {
-                w[kept.unwrap_or(n - 1)] = 1.0;
-            }
-            w
-        }
-    };
-    let film = if n == 0 {
-        Film::new(scene.width, scene.height)
-    } else if params.sample_combination == GuidedCombination::InverseVar {
-        let refs: Vec<&Film> = films.iter().collect();
-        combine_films(&refs, &weights)
-    } else {
-        films.swap_remove(kept.unwrap_or(n - 1))
-    };
-    let stats = GuidedStats {
-        iterations,
-        spp: spp_done as u32,
-        training_fraction: if spp_done > 0 {
-            training_spp as f64 / spp_done as f64
-        } else {
-            0.0
-        },
-        tree_memory_bytes: tree.stats().memory_bytes,
-        weights,
-        wall: start.elapsed(),
-        invalid_samples: invalid,
-        path_fallback_after: fallback.fell_back_after,
-        split_paths: splits_counter.total(),
-        extra_light_samples: light_splits_counter.total(),
-    };
-    (film, stats, tree)
+    session.finish()
 }
 
 /// The per-pixel value estimate used by guided Russian roulette: the spp-weighted mean of the

@@ -20,16 +20,18 @@ pub mod integrator;
 pub mod light;
 pub mod material;
 pub mod output;
+pub mod pass;
 mod render;
 pub mod rng;
 pub mod sampling;
 pub mod scene;
+pub mod session;
 pub mod texture;
 
 pub use film::Film;
 pub use render::{
-    path_estimator, render, render_into, CameraSample, Estimator, PathEstimator, Progress,
-    RenderSettings, RenderStats, DEFAULT_TILE,
+    path_estimator, render, render_into, render_region_into, CameraSample, Estimator,
+    PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
 };
 pub use scene::Scene;
 

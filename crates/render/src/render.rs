@@ -103,6 +103,9 @@ pub fn render(
 pub struct CameraSample {
     pub ray: Ray,
     pub pixel: usize,
+    /// The sample's pixel belongs to the region being rendered (not only to its filter
+    /// halo): only owned samples may have side effects such as guide records or counters.
+    pub owned: bool,
 }
 
 /// What [`render_into`] runs for every camera sample: radiance estimates for a batch of
@@ -189,127 +192,162 @@ pub fn render_into<E>(
 where
     E: Estimator + ?Sized,
 {
-    let (w, h) = (scene.width, scene.height);
+    let region = Region::full(scene.width, scene.height);
+    render_region_into(
+        scene,
+        settings,
+        progress,
+        first_sample,
+        region,
+        film,
+        estimator,
+    )
+}
+
+/// A rectangle of pixels `[x0, x1) x [y0, y1)` of the image: a tile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Region {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl Region {
+    /// The whole `width x height` image.
+    pub fn full(width: u32, height: u32) -> Self {
+        Self {
+            x0: 0,
+            y0: 0,
+            x1: width,
+            y1: height,
+        }
+    }
+
+    pub fn width(&self) -> u32 {
+        self.x1.saturating_sub(self.x0)
+    }
+
+    pub fn height(&self) -> u32 {
+        self.y1.saturating_sub(self.y0)
+    }
+
+    pub fn pixels(&self) -> usize {
+        self.width() as usize * self.height() as usize
+    }
+
+    /// Whether `(x, y)` is inside.
+    #[inline]
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        x >= self.x0 && x < self.x1 && y >= self.y0 && y < self.y1
+    }
+
+    /// Non-empty and inside a `width x height` image.
+    pub fn is_valid_in(&self, width: u32, height: u32) -> bool {
+        self.x0 < self.x1 && self.y0 < self.y1 && self.x1 <= width && self.y1 <= height
+    }
+
+    /// This region grown by `reach` pixels on every side, clipped to the image: the pixels
+    /// whose samples a filter of that reach splats into this region (its halo).
+    pub fn grown(&self, reach: u32, width: u32, height: u32) -> Self {
+        Self {
+            x0: self.x0.saturating_sub(reach),
+            y0: self.y0.saturating_sub(reach),
+            x1: (self.x1 + reach).min(width),
+            y1: (self.y1 + reach).min(height),
+        }
+    }
+
+    /// The tiles of a `width x height` image in row-major order, `tile` pixels square
+    /// (smaller at the right and bottom edges).
+    pub fn tiles(width: u32, height: u32, tile: u32) -> Vec<Region> {
+        let t = tile.max(1);
+        let mut out = Vec::new();
+        for y0 in (0..height).step_by(t as usize) {
+            for x0 in (0..width).step_by(t as usize) {
+                out.push(Region {
+                    x0,
+                    y0,
+                    x1: (x0 + t).min(width),
+                    y1: (y0 + t).min(height),
+                });
+            }
+        }
+        out
+    }
+}
+
+/// [`render_into`] for the pixels of `region` only, into `film` (`region`-sized: pixel
+/// `(x, y)` of the image is `film.pixels[(y - y0) * width + (x - x0)]`).
+///
+/// A pixel gathers the samples of every pixel within its filter's reach, so the samples of
+/// the region's halo ([`Region::grown`]) are rendered too, and splatted in the same order as
+/// for the whole image: every pixel of `region` gets exactly the bits a whole-image render
+/// gives it. The estimator is told which samples are the region's own
+/// ([`CameraSample::owned`]): only those may leave side effects (guide records, counters),
+/// so that tiles rendered apart add up to one whole-image render. Invalid samples are
+/// counted for owned pixels only.
+pub fn render_region_into<E>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+    first_sample: u64,
+    region: Region,
+    film: &mut Film,
+    estimator: &E,
+) -> RenderStats
+where
+    E: Estimator + ?Sized,
+{
+    assert!(region.is_valid_in(scene.width, scene.height), "{region:?}");
+    assert_eq!((film.width, film.height), (region.width(), region.height()));
     let start = Instant::now();
     let target_spp = match (settings.spp, settings.time_limit) {
         (Some(s), _) => s,
         (None, Some(_)) => u32::MAX,
         (None, None) => scene.sample_count,
     };
-    let npix = (w as usize) * (h as usize);
-    let max_pass =
-        ((PASS_BUFFER_BYTES / (npix.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1);
-    let tile = settings.tile_size.max(1) as usize;
-    let done = AtomicU64::new(0);
-    let invalid = AtomicU64::new(0);
+    let reach = scene.filter.reach();
+    let halo = region.grown(reach as u32, scene.width, scene.height);
+    let npix = region.pixels();
+    // Sample-range splits depend on the image size only, never on the region: a pixel's
+    // additions then come in the same order whichever tile it is rendered in.
+    let image_pixels = scene.width as usize * scene.height as usize;
+    let max_pass = ((PASS_BUFFER_BYTES / (image_pixels.max(1) * std::mem::size_of::<SampleRec>()))
+        as u32)
+        .max(1);
+    let mut ctx = PassCtx {
+        scene,
+        settings,
+        progress,
+        first_sample,
+        region,
+        halo,
+        done: AtomicU64::new(0),
+        invalid: AtomicU64::new(0),
+        buffer: Vec::new(),
+        weights: Vec::new(),
+    };
     let mut spp_done = 0u32;
     let mut pass = if settings.time_limit.is_some() {
         1
     } else {
         settings.pass_spp.unwrap_or(target_spp)
     };
-    let mut buffer: Vec<SampleRec> = Vec::new();
-    let mut weights: Vec<f32> = Vec::new();
     while spp_done < target_spp {
         let s0 = spp_done;
         let s1 = s0.saturating_add(pass.clamp(1, max_pass)).min(target_spp);
-        let n = (s1 - s0) as usize;
         let total = match (settings.time_limit, settings.spp) {
             (Some(limit), None) => {
-                let rate = (done.load(Ordering::Relaxed) as f64
+                let rate = (ctx.done.load(Ordering::Relaxed) as f64
                     / start.elapsed().as_secs_f64().max(1e-3))
                 .max(1.0);
                 (rate * limit.as_secs_f64()) as u64
             }
             _ => npix as u64 * target_spp as u64,
         };
-        // Phase 1: samples, in tiles of `tile` pixels along each row.
-        buffer.clear();
-        buffer.resize(npix * n, SampleRec::default());
-        buffer.par_chunks_mut(tile * n).enumerate().for_each_init(
-            ChunkScratch::default,
-            |scratch, (chunk, out)| {
-                let first = chunk * tile;
-                scratch.samples.clear();
-                scratch.rngs.clear();
-                for (i, recs) in out.chunks_mut(n).enumerate() {
-                    let pixel = first + i;
-                    let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
-                    for (k, rec) in recs.iter_mut().enumerate() {
-                        let index = first_sample + (s0 as usize + k) as u64;
-                        let mut rng = Rng::for_sample(settings.seed, pixel as u64, index);
-                        rec.offset = rng.next_2d();
-                        let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + rec.offset);
-                        scratch.samples.push(CameraSample { ray, pixel });
-                        scratch.rngs.push(rng);
-                    }
-                }
-                scratch.values.clear();
-                scratch.values.resize(out.len(), glam::Vec3::ZERO);
-                estimator.estimate(&scratch.samples, &mut scratch.rngs, &mut scratch.values);
-                let mut bad = 0u64;
-                for (rec, &value) in out.iter_mut().zip(&scratch.values) {
-                    rec.value = if value.is_finite() {
-                        value
-                    } else {
-                        bad += 1;
-                        glam::Vec3::ZERO
-                    };
-                }
-                invalid.fetch_add(bad, Ordering::Relaxed);
-                let m = (out.len()) as u64;
-                let d = done.fetch_add(m, Ordering::Relaxed) + m;
-                progress(Progress {
-                    samples_done: d,
-                    samples_total: total.max(d),
-                });
-            },
-        );
-        // Phase 2: splat by gathering. The filter is separable: each sample's weights along x
-        // and y towards the 2 reach + 1 pixel columns and rows it can reach are evaluated once
-        // (`axis_weights`), not once per target pixel (a gaussian's 5x5 footprint evaluated
-        // per pair cost 5x the exponentials; door-ajar path tracing spent about a quarter of
-        // its time here). Same operands as a per-pair evaluation, so the same bits.
-        let filter = scene.filter;
-        let reach = filter.reach();
-        let span = 2 * reach as usize + 1;
-        // (every entry is written below: resizing keeps old values instead of zeroing)
-        weights.resize(npix * n * 2 * span, 0.0);
-        weights
-            .par_chunks_mut(tile * n * 2 * span)
-            .zip(buffer.par_chunks(tile * n))
-            .for_each(|(out, recs)| {
-                for (wt, rec) in out.chunks_mut(2 * span).zip(recs) {
-                    axis_weights(&filter, reach, rec.offset, wt);
-                }
-            });
-        let (buf, wts) = (&buffer, &weights);
-        film.pixels
-            .par_chunks_mut(w as usize)
-            .enumerate()
-            .for_each(|(y, row)| {
-                let y = y as i32;
-                for (x, stats) in row.iter_mut().enumerate() {
-                    let x = x as i32;
-                    stats.count += n as u32;
-                    for qy in (y - reach).max(0)..=(y + reach).min(h as i32 - 1) {
-                        let ky = span + (y - qy + reach) as usize;
-                        for qx in (x - reach).max(0)..=(x + reach).min(w as i32 - 1) {
-                            let kx = (x - qx + reach) as usize;
-                            let q = qy as usize * w as usize + qx as usize;
-                            let recs = &buf[q * n..(q + 1) * n];
-                            let ws = wts[q * n * 2 * span..(q + 1) * n * 2 * span]
-                                .chunks_exact(2 * span);
-                            for (rec, wt) in recs.iter().zip(ws) {
-                                // Added even at weight zero (it adds exact zeros: the sums
-                                // are unchanged), which is cheaper than a branch that the
-                                // random sample positions make unpredictable.
-                                stats.add(wt[kx] * wt[ky], rec.value);
-                            }
-                        }
-                    }
-                }
-            });
+        ctx.sample(s0, s1, total, estimator);
+        ctx.splat(s1 - s0, film);
         spp_done = s1;
         if let Some(limit) = settings.time_limit {
             let elapsed = start.elapsed();
@@ -328,7 +366,135 @@ where
     RenderStats {
         spp: spp_done,
         wall: start.elapsed(),
-        invalid_samples: invalid.load(Ordering::Relaxed),
+        invalid_samples: ctx.invalid.load(Ordering::Relaxed),
+    }
+}
+
+/// State of one [`render_region_into`] call: the sample buffer of the halo's pixels and
+/// their precomputed filter weights.
+struct PassCtx<'a> {
+    scene: &'a Scene,
+    settings: &'a RenderSettings,
+    progress: &'a (dyn Fn(Progress) + Sync),
+    first_sample: u64,
+    region: Region,
+    halo: Region,
+    done: AtomicU64,
+    invalid: AtomicU64,
+    buffer: Vec<SampleRec>,
+    weights: Vec<f32>,
+}
+
+impl PassCtx<'_> {
+    /// Phase 1: samples `s0..s1` of every halo pixel, in chunks of `tile` pixels.
+    fn sample<E: Estimator + ?Sized>(&mut self, s0: u32, s1: u32, total: u64, estimator: &E) {
+        let n = (s1 - s0) as usize;
+        let tile = self.settings.tile_size.max(1) as usize;
+        let (scene, halo, region) = (self.scene, self.halo, self.region);
+        let hw = halo.width() as usize;
+        let w = scene.width as usize;
+        let (seed, first_sample) = (self.settings.seed, self.first_sample);
+        let (done, invalid, progress) = (&self.done, &self.invalid, self.progress);
+        self.buffer.clear();
+        self.buffer.resize(halo.pixels() * n, SampleRec::default());
+        self.buffer
+            .par_chunks_mut(tile * n)
+            .enumerate()
+            .for_each_init(ChunkScratch::default, |scratch, (chunk, out)| {
+                let first = chunk * tile;
+                scratch.samples.clear();
+                scratch.rngs.clear();
+                for (i, recs) in out.chunks_mut(n).enumerate() {
+                    let local = first + i;
+                    let x = halo.x0 + (local % hw) as u32;
+                    let y = halo.y0 + (local / hw) as u32;
+                    let pixel = y as usize * w + x as usize;
+                    let owned = region.contains(x, y);
+                    for (k, rec) in recs.iter_mut().enumerate() {
+                        let index = first_sample + (s0 as usize + k) as u64;
+                        let mut rng = Rng::for_sample(seed, pixel as u64, index);
+                        rec.offset = rng.next_2d();
+                        let ray = scene.camera.ray(Vec2::new(x as f32, y as f32) + rec.offset);
+                        scratch.samples.push(CameraSample { ray, pixel, owned });
+                        scratch.rngs.push(rng);
+                    }
+                }
+                scratch.values.clear();
+                scratch.values.resize(out.len(), glam::Vec3::ZERO);
+                estimator.estimate(&scratch.samples, &mut scratch.rngs, &mut scratch.values);
+                let mut bad = 0u64;
+                let mut owned = 0u64;
+                for ((rec, &value), s) in out.iter_mut().zip(&scratch.values).zip(&scratch.samples)
+                {
+                    owned += s.owned as u64;
+                    rec.value = if value.is_finite() {
+                        value
+                    } else {
+                        bad += s.owned as u64;
+                        glam::Vec3::ZERO
+                    };
+                }
+                invalid.fetch_add(bad, Ordering::Relaxed);
+                let d = done.fetch_add(owned, Ordering::Relaxed) + owned;
+                progress(Progress {
+                    samples_done: d,
+                    samples_total: total.max(d),
+                });
+            });
+    }
+
+    /// Phase 2: splat by gathering. The filter is separable: each sample's weights along x
+    /// and y towards the 2 reach + 1 pixel columns and rows it can reach are evaluated once
+    /// (`axis_weights`), not once per target pixel (a gaussian's 5x5 footprint evaluated
+    /// per pair cost 5x the exponentials; door-ajar path tracing spent about a quarter of
+    /// its time here). Same operands as a per-pair evaluation, so the same bits.
+    fn splat(&mut self, n: u32, film: &mut Film) {
+        let n = n as usize;
+        let tile = self.settings.tile_size.max(1) as usize;
+        let filter = self.scene.filter;
+        let reach = filter.reach();
+        let span = 2 * reach as usize + 1;
+        // (every entry is written below: resizing keeps old values instead of zeroing)
+        self.weights.resize(self.halo.pixels() * n * 2 * span, 0.0);
+        self.weights
+            .par_chunks_mut(tile * n * 2 * span)
+            .zip(self.buffer.par_chunks(tile * n))
+            .for_each(|(out, recs)| {
+                for (wt, rec) in out.chunks_mut(2 * span).zip(recs) {
+                    axis_weights(&filter, reach, rec.offset, wt);
+                }
+            });
+        let (buf, wts) = (&self.buffer, &self.weights);
+        let (region, halo) = (self.region, self.halo);
+        let (h, hw) = (self.scene.height as i32, halo.width() as usize);
+        let w = self.scene.width as i32;
+        film.pixels
+            .par_chunks_mut(region.width() as usize)
+            .enumerate()
+            .for_each(|(row, pixels)| {
+                let y = region.y0 as i32 + row as i32;
+                for (i, stats) in pixels.iter_mut().enumerate() {
+                    let x = region.x0 as i32 + i as i32;
+                    stats.count += n as u32;
+                    for qy in (y - reach).max(0)..=(y + reach).min(h - 1) {
+                        let ky = span + (y - qy + reach) as usize;
+                        let row_q = (qy - halo.y0 as i32) as usize * hw;
+                        for qx in (x - reach).max(0)..=(x + reach).min(w - 1) {
+                            let kx = (x - qx + reach) as usize;
+                            let q = row_q + (qx - halo.x0 as i32) as usize;
+                            let recs = &buf[q * n..(q + 1) * n];
+                            let ws = wts[q * n * 2 * span..(q + 1) * n * 2 * span]
+                                .chunks_exact(2 * span);
+                            for (rec, wt) in recs.iter().zip(ws) {
+                                // Added even at weight zero (it adds exact zeros: the sums
+                                // are unchanged), which is cheaper than a branch that the
+                                // random sample positions make unpredictable.
+                                stats.add(wt[kx] * wt[ky], rec.value);
+                            }
+                        }
+                    }
+                }
+            });
     }
 }
 

@@ -703,6 +703,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     mut ray: Ray,
     rng: &mut Rng,
     pixel: usize,
+    owned: bool,
 ) -> Vec3 {
     let params = &scene.path;
     if params.max_depth == 0 {
@@ -741,7 +742,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
 
     let mut rays = 1u64;
     let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
-        if let Some(c) = g.rays {
+        if let (Some(c), true) = (g.rays, owned) {
             c.add(rays);
         }
         return Vec3::ZERO;
@@ -876,10 +877,14 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                                 ls.pdf,
                                 0.5,
                             );
-                            tree.record(&r, &mut || rng.next_f32());
+                            if owned {
+                                tree.record(&r, &mut || rng.next_f32());
+                            } else {
+                                tree.skip_record(&r, &mut || rng.next_f32());
+                            }
                         }
                     }
-                    if g.record && g.guide {
+                    if g.record && g.guide && owned {
                         tree.record_light_sample(vg.leaf(), value);
                     }
                 }
@@ -1017,6 +1022,10 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
         ray = spawn_ray(si.p, si.ng, ms.wo_world);
         hit = accel.intersect::<ANALYTIC>(&ray);
         rays += 1;
+    }
+    // A halo sample (not `owned`) has no side effects: its owner's tile records and counts it.
+    if !owned {
+        return result;
     }
     if g.record {
         rec.commit(tree, learn_fraction, rng);

@@ -1,0 +1,255 @@
+//! One unit of a guided job's work, rendered over one region of the image: what a
+//! [`crate::session::Session`] asks for ([`PassSpec`]) and what rendering it gives back
+//! ([`TileOutput`]). The one-process render and the farm's workers both render units with
+//! [`render_unit`], so a tile rendered on any machine has the bits the same pixels get in a
+//! whole-image render.
+
+use pathfarm_guide::SdTree;
+use pathfarm_scene::{GuidedNee, GuidedParams, GuidedRoulette};
+
+use crate::counter::ShardedCounter;
+use crate::film::Film;
+use crate::integrator::guided_path::{self, GuideCtx};
+use crate::render::{
+    path_estimator, render_region_into, CameraSample, Estimator, Progress, Region, RenderSettings,
+};
+use crate::rng::Rng;
+use crate::scene::Scene;
+
+/// NEE "kickstart" does light sampling while fewer than this many spp have been rendered.
+pub const KICKSTART_SPP: u64 = 128;
+
+/// Random streams of the path fallback's unguided passes start at this sample index, apart
+/// from the guided passes' (which count up from 0).
+pub const PATH_STREAM: u64 = 1 << 40;
+
+/// What a unit renders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum PassKind {
+    /// A training pass: guided, recorded into the tree's building statistics.
+    Record,
+    /// Guided passes that record nothing (the final image, or the path fallback's timed
+    /// check pass).
+    Guided,
+    /// The path fallback's unguided probe pass (the guided integrator without the guide).
+    Probe,
+    /// The path fallback's rest of the budget: the plain `path` integrator.
+    Path,
+}
+
+/// One unit of work: `passes` passes of `spp` samples per pixel over the whole image, one
+/// after the other, each pass accumulating into the unit's film. A session hands units out
+/// one at a time; the farm splits each into tiles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PassSpec {
+    /// Sequence number of the unit within its job (0, 1, ...).
+    pub unit: u64,
+    /// The training iteration it belongs to.
+    pub iteration: u32,
+    pub kind: PassKind,
+    /// Random stream of the unit's first sample: sample `s` of pass `p` of every pixel uses
+    /// stream `first_sample + p * spp + s`.
+    pub first_sample: u64,
+    /// Samples per pixel of each pass.
+    pub spp: u32,
+    /// Passes in the unit.
+    pub passes: u32,
+    /// Guided spp rendered before the unit (NEE "kickstart" applies below [`KICKSTART_SPP`]).
+    pub spp_before: u64,
+    /// Guided splitting and light splitting (when the parameters enable them).
+    pub split: bool,
+    /// The tree version to sample from: the number of refinements it has had.
+    pub tree_version: u32,
+    /// The learned fractions' version within the iteration: fraction steps taken since the
+    /// last refinement.
+    pub fraction_version: u32,
+}
+
+impl PassSpec {
+    /// Whether the unit samples from the guide.
+    pub fn guide(&self) -> bool {
+        matches!(self.kind, PassKind::Record | PassKind::Guided)
+    }
+
+    /// Whether the unit records into the guide.
+    pub fn record(&self) -> bool {
+        self.kind == PassKind::Record
+    }
+
+    /// Samples per pixel of the whole unit.
+    pub fn unit_spp(&self) -> u64 {
+        self.spp as u64 * self.passes as u64
+    }
+}
+
+/// What rendering a unit over a region gives: the region's pixel sums and counters of its
+/// own samples. (The guide statistics of a [`PassKind::Record`] unit went into the tree it
+/// was rendered with; a worker takes them out with [`SdTree::take_stats`].)
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileOutput {
+    pub region: Region,
+    /// `region`-sized film.
+    pub film: Film,
+    /// Rays traced (camera, continuation and shadow rays) by guided-integrator samples.
+    pub rays: u64,
+    /// Camera samples with a non-finite value (counted as zero).
+    pub invalid_samples: u64,
+    /// Extra paths made by splitting.
+    pub split_paths: u64,
+    /// Extra light samples taken by light splitting.
+    pub extra_light_samples: u64,
+}
+
+/// Everything a unit is rendered with besides its [`PassSpec`].
+pub struct UnitInputs<'a> {
+    pub scene: &'a Scene,
+    pub params: &'a GuidedParams,
+    /// The tree of `spec.tree_version` with the fractions of `spec.fraction_version`;
+    /// records of a [`PassKind::Record`] unit go into its building statistics.
+    pub tree: &'a SdTree,
+    /// Per-pixel value estimate of the whole image for guided roulette (empty: none).
+    pub estimate: &'a [f32],
+    pub seed: u64,
+    /// Pixels per parallel work item (does not change the image).
+    pub tile_size: u32,
+}
+
+/// Renders `spec` over `region`. `progress` gets the samples done of this call.
+pub fn render_unit(
+    inputs: &UnitInputs,
+    spec: &PassSpec,
+    region: Region,
+    progress: &(dyn Fn(Progress) + Sync),
+) -> TileOutput {
+    let mut film = Film::new(region.width(), region.height());
+    let counters = Counters::default();
+    let mut invalid = 0u64;
+    if spec.kind == PassKind::Path {
+        let settings = settings(inputs, spec.spp * spec.passes);
+        let est = path_estimator(inputs.scene);
+        let st = render_region_into(
+            inputs.scene,
+            &settings,
+            progress,
+            spec.first_sample,
+            region,
+            &mut film,
+            &est,
+        );
+        invalid += st.invalid_samples;
+    } else {
+        let settings = settings(inputs, spec.spp);
+        let npix = region.pixels() as u64;
+        for p in 0..spec.passes {
+            let done = p as u64 * spec.spp as u64;
+            let ctx = guide_ctx(inputs, spec, spec.spp_before + done, &counters);
+            let est = GuidedEstimator {
+                scene: inputs.scene,
+                ctx,
+            };
+            let base = done * npix;
+            let pass_progress = |q: Progress| {
+                progress(Progress {
+                    samples_done: base + q.samples_done,
+                    samples_total: spec.unit_spp() * npix,
+                })
+            };
+            let st = render_region_into(
+                inputs.scene,
+                &settings,
+                &pass_progress,
+                spec.first_sample + done,
+                region,
+                &mut film,
+                &est,
+            );
+            invalid += st.invalid_samples;
+        }
+    }
+    TileOutput {
+        region,
+        film,
+        rays: counters.rays.total(),
+        invalid_samples: invalid,
+        split_paths: counters.splits.total(),
+        extra_light_samples: counters.light_splits.total(),
+    }
+}
+
+fn settings(inputs: &UnitInputs, spp: u32) -> RenderSettings {
+    RenderSettings {
+        spp: Some(spp),
+        time_limit: None,
+        seed: inputs.seed,
+        tile_size: inputs.tile_size,
+        pass_spp: None,
+    }
+}
+
+#[derive(Default)]
+struct Counters {
+    rays: ShardedCounter,
+    splits: ShardedCounter,
+    light_splits: ShardedCounter,
+}
+
+/// The guided integrator's context for one pass of `spec` after `spp_done` guided spp.
+fn guide_ctx<'a>(
+    inputs: &UnitInputs<'a>,
+    spec: &PassSpec,
+    spp_done: u64,
+    counters: &'a Counters,
+) -> GuideCtx<'a> {
+    let params = inputs.params;
+    let guide = spec.guide();
+    let nee = match params.nee {
+        GuidedNee::Never => false,
+        GuidedNee::Always => true,
+        GuidedNee::Kickstart => spp_done < KICKSTART_SPP,
+    };
+    let roulette = params.russian_roulette == GuidedRoulette::Guided;
+    let tree = inputs.tree;
+    GuideCtx {
+        tree,
+        guide,
+        nee,
+        indirect_only: params.nee == GuidedNee::Always,
+        kickstart: params.nee == GuidedNee::Kickstart && nee,
+        record: spec.record(),
+        ppg_roulette: guide && params.russian_roulette == GuidedRoulette::Ppg,
+        guided_rr_depth: params.guided_rr_depth,
+        hemisphere: params.guide_hemisphere,
+        cosine: params.guide_cosine,
+        split: params.splitting && spec.split,
+        light_split: params.light_splitting && spec.split,
+        splits: Some(&counters.splits),
+        light_splits: Some(&counters.light_splits),
+        rays: Some(&counters.rays),
+        pixel_estimate: if guide && roulette && tree.is_built() && !inputs.estimate.is_empty() {
+            Some(inputs.estimate)
+        } else {
+            None
+        },
+    }
+}
+
+/// The guided integrator as an [`Estimator`], specialised for the scene's effects.
+struct GuidedEstimator<'a> {
+    scene: &'a Scene,
+    ctx: GuideCtx<'a>,
+}
+
+impl Estimator for GuidedEstimator<'_> {
+    fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]) {
+        let (scene, ctx) = (self.scene, &self.ctx);
+        let li = match (scene.features.environment, scene.features.analytic_shapes) {
+            (false, false) => guided_path::li::<false, false>,
+            (true, false) => guided_path::li::<true, false>,
+            (false, true) => guided_path::li::<false, true>,
+            (true, true) => guided_path::li::<true, true>,
+        };
+        for ((s, rng), o) in samples.iter().zip(rngs.iter_mut()).zip(out.iter_mut()) {
+            *o = li(scene, ctx, s.ray, rng, s.pixel, s.owned);
+        }
+    }
+}

@@ -1,0 +1,831 @@
+//! The guided training schedule as a state machine (a job session), driven by the one-process
+//! render ([`crate::guided::render_guided`]) and by the farm's coordinator alike.
+//!
+//! The session says what to render next ([`Session::next`]: a [`PassSpec`] over the whole
+//! image), takes back what was rendered, tile by tile ([`Session::add_tile`]: pixel sums,
+//! guide statistics, counters), and decides iteration ends, refinement, the path fallback and
+//! the final combination (doc sections 3 and 5). It owns the master tree, the iteration films,
+//! the pixel estimate and the ledger; it renders nothing, does no I/O and reads no clock: the
+//! driver passes `now` (seconds since the job started) to every call.
+//!
+//! Invariant (determinism): with an spp budget, the units, their order and every pixel's
+//! additions depend only on the job (scene, parameters, seed), never on the tiling, the
+//! driver or when results arrive: a unit's tiles cover disjoint pixels, a unit's film is
+//! merged into its target film in unit order, guide statistics are exact integers, and the
+//! fractions step once per recorded unit. Time budgets depend on `now` by nature.
+
+use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, IterationOutcome};
+use pathfarm_guide::{IterationStats, SdTree, StatsError};
+use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
+
+use crate::film::Film;
+use crate::guided::{
+    combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
+    GuidedStats,
+};
+use crate::pass::{PassKind, PassSpec, TileOutput, PATH_STREAM};
+use crate::render::Region;
+
+/// How the path fallback decides.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum FallbackPolicy {
+    /// [`schedule::guiding_verdict`] on the efficiency costs of the checked guided
+    /// iterations, path tracing's, and the per-sample variance ratio of the latest check.
+    #[default]
+    Rule,
+    /// Always this verdict (tests and experiments force either outcome).
+    Force(GuidingVerdict),
+}
+
+impl FallbackPolicy {
+    fn verdict(self, guided_costs: &[f64], path_cost: f64, variance_ratio: f64) -> GuidingVerdict {
+        match self {
+            Self::Rule => schedule::guiding_verdict(guided_costs, path_cost, variance_ratio),
+            Self::Force(v) => v,
+        }
+    }
+}
+
+/// What the driver should do next.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Next {
+    /// Render this unit over every tile and hand the tiles to [`Session::add_tile`].
+    Render(PassSpec),
+    /// A unit is being rendered: its tiles are not all in yet.
+    Wait,
+    /// The job is done: take the result with [`Session::finish`].
+    Done,
+}
+
+/// Why a tile was not accepted.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum TileError {
+    #[error("unit {got} is not the unit being rendered ({expected:?})")]
+    WrongUnit { got: u64, expected: Option<u64> },
+    #[error("tile {0} does not exist")]
+    NoSuchTile(usize),
+    #[error("tile {0} was already accepted")]
+    Duplicate(usize),
+    #[error("tile {index}: region {got:?} is not the tile's {expected:?}")]
+    WrongRegion {
+        index: usize,
+        got: Region,
+        expected: Region,
+    },
+    #[error("tile {0}: guide statistics for a unit that records nothing")]
+    UnexpectedStats(usize),
+    #[error("tile {index}: guide statistics do not fit the tree: {source}")]
+    Stats { index: usize, source: StatsError },
+}
+
+/// Bookkeeping of the path fallback (`path_fallback`): while `enabled`, every training
+/// iteration that samples from a built tree is checked against an unguided probe.
+#[derive(Clone, Debug)]
+struct Fallback {
+    enabled: bool,
+    /// Film of the unguided passes (probes, then the fallback's rendering).
+    path_film: Film,
+    path_seconds: f64,
+    /// Rays of the probe passes.
+    path_rays: u64,
+    /// Samples per pixel in `path_film`, and how many of them are probes.
+    path_spp: u64,
+    probe_spp: u64,
+    /// Seconds of the current iteration's unrecorded first pass.
+    guided_pass_seconds: f64,
+    /// Efficiency costs of the checked guided iterations, oldest first.
+    guided_costs: Vec<f64>,
+    /// The training iteration after which the rest of the budget went to path tracing.
+    fell_back_after: Option<u32>,
+}
+
+/// The iteration being rendered.
+#[derive(Clone, Debug)]
+struct Iteration {
+    k: u32,
+    record: bool,
+    until: IterationLength,
+    /// Automatic combination stopped training: the rest of the budget goes into this film.
+    stopped: bool,
+    passes: u32,
+    last_pass: f64,
+    film: Film,
+    t0: f64,
+    rays_before: u64,
+    spp_before: u64,
+    remaining_before: f64,
+    nodes: usize,
+    leaves: usize,
+}
+
+#[derive(Clone, Debug)]
+enum Phase {
+    /// Plan iteration `k`.
+    Plan,
+    Iterate(Box<Iteration>),
+    /// The probe of the fallback check after the training iteration just ended.
+    Probe,
+    /// The fallback's rest of the budget, rendered with plain path tracing.
+    Rest {
+        after: u32,
+        t0: f64,
+    },
+    Done,
+}
+
+/// The unit being rendered and the tiles that are in.
+#[derive(Clone, Debug)]
+struct Pending {
+    spec: PassSpec,
+    film: Film,
+    done: Vec<bool>,
+    left: usize,
+    issued_at: f64,
+    /// Rays of the tiles that are in.
+    rays: u64,
+}
+
+/// A guided job's training session. See the module documentation.
+pub struct Session {
+    params: GuidedParams,
+    budget: Budget,
+    policy: FallbackPolicy,
+    width: u32,
+    height: u32,
+    spp_per_pass: u32,
+    tiles: Vec<Region>,
+    tree: SdTree,
+    tree_version: u32,
+    fraction_version: u32,
+    phase: Phase,
+    k: u32,
+    next_unit: u64,
+    pending: Option<Pending>,
+    spp_done: u64,
+    passes_done: u32,
+    training_spp: u64,
+    prev_secs: Option<f64>,
+    iterations: Vec<GuidedIteration>,
+    films: Vec<Film>,
+    history: Vec<IterationOutcome>,
+    kept: Option<usize>,
+    /// Films of iterations rendered before the tree was built: unguided, so on a fallback
+    /// their samples join the path tracer's film.
+    unguided: Vec<usize>,
+    est_sum: Vec<f64>,
+    est_spp: u64,
+    estimate: Vec<f32>,
+    estimate_version: u32,
+    fallback: Fallback,
+    rays: u64,
+    invalid: u64,
+    splits: u64,
+    light_splits: u64,
+    finished_at: f64,
+}
+
+impl Session {
+    /// A session of a `width x height` job training `tree` (fresh, from
+    /// [`crate::guided::guide_config`]) within `budget`, whose units the driver renders in
+    /// the tiles `tiles` (disjoint, covering the image; e.g. [`Region::tiles`]).
+    pub fn new(
+        params: &GuidedParams,
+        budget: Budget,
+        tree: SdTree,
+        width: u32,
+        height: u32,
+        tiles: Vec<Region>,
+        policy: FallbackPolicy,
+    ) -> Self {
+        Self {
+            params: params.clone(),
+            budget,
+            policy,
+            width,
+            height,
+            spp_per_pass: params.spp_per_pass.max(1),
+            tiles,
+            tree,
+            tree_version: 0,
+            fraction_version: 0,
+            phase: Phase::Plan,
+            k: 0,
+            next_unit: 0,
+            pending: None,
+            spp_done: 0,
+            passes_done: 0,
+            training_spp: 0,
+            prev_secs: None,
+            iterations: Vec::new(),
+            films: Vec::new(),
+            history: Vec::new(),
+            kept: None,
+            unguided: Vec::new(),
+            est_sum: Vec::new(),
+            est_spp: 0,
+            estimate: Vec::new(),
+            estimate_version: 0,
+            fallback: Fallback {
+                enabled: params.path_fallback,
+                path_film: Film::new(width, height),
+                path_seconds: 0.0,
+                path_rays: 0,
+                path_spp: 0,
+                probe_spp: 0,
+                guided_pass_seconds: 0.0,
+                guided_costs: Vec::new(),
+                fell_back_after: None,
+            },
+            rays: 0,
+            invalid: 0,
+            splits: 0,
+            light_splits: 0,
+            finished_at: 0.0,
+        }
+    }
+
+    /// The master tree: units sample from it (with the fractions of the current unit).
+    pub fn tree(&self) -> &SdTree {
+        &self.tree
+    }
+
+    /// Refinements so far (the tree version units name).
+    pub fn tree_version(&self) -> u32 {
+        self.tree_version
+    }
+
+    /// Fraction steps since the last refinement.
+    pub fn fraction_version(&self) -> u32 {
+        self.fraction_version
+    }
+
+    /// The pixel estimate guided roulette reads (whole image; empty until an iteration ended).
+    pub fn estimate(&self) -> &[f32] {
+        &self.estimate
+    }
+
+    /// Changes whenever [`Session::estimate`] does.
+    pub fn estimate_version(&self) -> u32 {
+        self.estimate_version
+    }
+
+    /// The tiles units are rendered in.
+    pub fn tiles(&self) -> &[Region] {
+        &self.tiles
+    }
+
+    /// Samples per pixel rendered so far (guided and unguided).
+    pub fn spp_done(&self) -> u64 {
+        self.spp_done + self.fallback.path_spp
+    }
+
+    /// The training iteration in progress (or the last one).
+    pub fn iteration(&self) -> u32 {
+        self.k
+    }
+
+    /// Tiles accepted / total of the unit in flight.
+    pub fn tiles_done(&self) -> (usize, usize) {
+        match &self.pending {
+            Some(p) => (p.done.len() - p.left, p.done.len()),
+            None => (0, self.tiles.len()),
+        }
+    }
+
+    /// The iterations finished so far.
+    pub fn iterations(&self) -> &[GuidedIteration] {
+        &self.iterations
+    }
+
+    /// Whether the unit in flight (if any) is the final image's: no training is left.
+    pub fn in_final_pass(&self) -> bool {
+        match &self.phase {
+            Phase::Iterate(it) => !it.record || it.stopped,
+            Phase::Rest { .. } | Phase::Done => true,
+            _ => false,
+        }
+    }
+
+    /// The next unit to render, or `Wait` while one is in flight, or `Done`.
+    pub fn next(&mut self, now: f64) -> Next {
+        if self.pending.is_some() {
+            return Next::Wait;
+        }
+        loop {
+            let phase = std::mem::replace(&mut self.phase, Phase::Done);
+            match phase {
+                Phase::Plan => self.plan(now),
+                Phase::Iterate(it) => {
+                    if let Some(spec) = self.iteration_unit(&it, now) {
+                        self.phase = Phase::Iterate(it);
+                        return self.issue(spec, now);
+                    }
+                    self.end_passes(it, now);
+                }
+                Phase::Probe => {
+                    self.phase = Phase::Probe;
+                    let spec = self.probe_unit();
+                    return self.issue(spec, now);
+                }
+                Phase::Rest { after, t0 } => {
+                    self.phase = Phase::Rest { after, t0 };
+                    match self.rest_unit(now) {
+                        Some(spec) => return self.issue(spec, now),
+                        None => self.end_rest(after, t0, now),
+                    }
+                }
+                Phase::Done => {
+                    if self.finished_at == 0.0 {
+                        self.finished_at = now;
+                    }
+                    return Next::Done;
+                }
+            }
+        }
+    }
+
+    /// Accepts the rendered tile `index` of `unit` (`stats`: its guide statistics, from
+    /// [`SdTree::take_stats`] on the worker's copy of the tree; `None` when they were
+    /// recorded into [`Session::tree`] directly, as the one-process render does). When the
+    /// last tile is in, the unit ends. Nothing changes on an error.
+    pub fn add_tile(
+        &mut self,
+        unit: u64,
+        index: usize,
+        out: &TileOutput,
+        stats: Option<&IterationStats>,
+        now: f64,
+    ) -> Result<(), TileError> {
+        let expected = self.pending.as_ref().map(|p| p.spec.unit);
+        let Some(p) = self.pending.as_mut().filter(|p| p.spec.unit == unit) else {
+            return Err(TileError::WrongUnit {
+                got: unit,
+                expected,
+            });
+        };
+        let Some(&tile) = self.tiles.get(index) else {
+            return Err(TileError::NoSuchTile(index));
+        };
+        if p.done[index] {
+            return Err(TileError::Duplicate(index));
+        }
+        if out.region != tile || out.film.pixels.len() != tile.pixels() {
+            return Err(TileError::WrongRegion {
+                index,
+                got: out.region,
+                expected: tile,
+            });
+        }
+        if let Some(s) = stats {
+            if !p.spec.record() {
+                return Err(TileError::UnexpectedStats(index));
+            }
+            self.tree
+                .apply_stats(s)
+                .map_err(|source| TileError::Stats { index, source })?;
+        }
+        copy_region(&mut p.film, &out.film, tile);
+        p.done[index] = true;
+        p.left -= 1;
+        self.rays += out.rays;
+        p.rays += out.rays;
+        self.invalid += out.invalid_samples;
+        self.splits += out.split_paths;
+        self.light_splits += out.extra_light_samples;
+        if p.left == 0 {
+            let p = self.pending.take().unwrap();
+            self.end_unit(p, now);
+        }
+        Ok(())
+    }
+
+    /// The final film, the statistics and the trained tree, once [`Session::next`] said
+    /// `Done`.
+    pub fn finish(mut self) -> (Film, GuidedStats, SdTree) {
+        let n = self.films.len();
+        let weights = self.weights();
+        let film = if n == 0 {
+            Film::new(self.width, self.height)
+        } else if self.params.sample_combination == GuidedCombination::InverseVar {
+            let refs: Vec<&Film> = self.films.iter().collect();
+            combine_films(&refs, &weights)
+        } else {
+            self.films.swap_remove(self.kept.unwrap_or(n - 1))
+        };
+        let spp = self.spp_done;
+        let stats = GuidedStats {
+            iterations: self.iterations,
+            spp: spp as u32,
+            training_fraction: if spp > 0 {
+                self.training_spp as f64 / spp as f64
+            } else {
+                0.0
+            },
+            tree_memory_bytes: self.tree.stats().memory_bytes,
+            weights,
+            wall: std::time::Duration::from_secs_f64(self.finished_at.max(0.0)),
+            invalid_samples: self.invalid,
+            path_fallback_after: self.fallback.fell_back_after,
+            split_paths: self.splits,
+            extra_light_samples: self.light_splits,
+        };
+        (film, stats, self.tree)
+    }
+
+    fn issue(&mut self, spec: PassSpec, now: f64) -> Next {
+        self.next_unit += 1;
+        self.pending = Some(Pending {
+            spec,
+            film: Film::new(self.width, self.height),
+            done: vec![false; self.tiles.len()],
+            left: self.tiles.len(),
+            issued_at: now,
+            rays: 0,
+        });
+        Next::Render(spec)
+    }
+
+    fn spec(&self, kind: PassKind, first_sample: u64, passes: u32, split: bool) -> PassSpec {
+        PassSpec {
+            unit: self.next_unit,
+            iteration: self.k,
+            kind,
+            first_sample,
+            spp: self.spp_per_pass,
+            passes,
+            spp_before: first_sample,
+            split,
+            tree_version: self.tree_version,
+            fraction_version: self.fraction_version,
+        }
+    }
+
+    /// Plans iteration `k`, or ends the job when the budget is used up.
+    fn plan(&mut self, now: f64) {
+        let (k, budget, spp) = (self.k, self.budget, self.spp_per_pass);
+        let Some(plan) =
+            schedule::plan_iteration(k, budget, spp, self.passes_done, now, self.prev_secs)
+        else {
+            self.phase = Phase::Done;
+            return self.end_job();
+        };
+        let stats = self.tree.stats();
+        self.phase = Phase::Iterate(Box::new(Iteration {
+            k,
+            record: !plan.is_last,
+            until: plan.length,
+            stopped: false,
+            passes: 0,
+            last_pass: 0.0,
+            film: Film::new(self.width, self.height),
+            t0: now,
+            rays_before: self.rays,
+            spp_before: self.spp_done,
+            remaining_before: match budget {
+                Budget::Spp(s) => (schedule::total_passes(s, spp) - self.passes_done) as f64,
+                Budget::Seconds(s) => s - now,
+            },
+            nodes: stats.spatial_nodes,
+            leaves: stats.leaves,
+        }));
+    }
+
+    /// The iteration's next unit, or `None` when its passes are done. Training passes are
+    /// one unit each (the fractions step between them); the passes of an iteration that
+    /// records nothing are one unit with an spp budget, one per pass with a time budget (so
+    /// the clock can end it).
+    fn iteration_unit(&self, it: &Iteration, now: f64) -> Option<PassSpec> {
+        let passes = match it.until {
+            IterationLength::Passes(p) if it.passes >= p => return None,
+            IterationLength::Passes(p) => p - it.passes,
+            IterationLength::UntilSeconds(s) if it.passes > 0 && now + 0.5 * it.last_pass >= s => {
+                return None
+            }
+            IterationLength::UntilSeconds(_) => 1,
+        };
+        // The first pass of a training iteration checked by the path fallback is not
+        // recorded: it times what a final, guided pass costs.
+        let probe = it.passes == 0 && it.record && self.checks();
+        let rec = it.record && !it.stopped && !probe;
+        // Splitting only in passes that sample as the final image does (not in the
+        // fallback's timed check pass: there it judged immature trees by split paths and
+        // made door-ajar fall back).
+        let split = !rec && !probe;
+        let kind = if rec {
+            PassKind::Record
+        } else {
+            PassKind::Guided
+        };
+        let n = if rec || probe { 1 } else { passes };
+        Some(self.spec(kind, self.spp_done, n, split))
+    }
+
+    /// Whether an iteration sampling from the tree is checked by the fallback.
+    fn checks(&self) -> bool {
+        self.fallback.enabled && self.tree.is_built()
+    }
+
+    fn end_unit(&mut self, p: Pending, now: f64) {
+        let spec = p.spec;
+        let seconds = now - p.issued_at;
+        match &mut self.phase {
+            Phase::Iterate(it) => {
+                it.film.merge(&p.film);
+                if spec.record() {
+                    self.tree.step_fractions();
+                    self.fraction_version += 1;
+                }
+                it.last_pass = seconds / spec.passes.max(1) as f64;
+                if it.passes == 0 && it.record && !spec.record() && !it.stopped {
+                    self.fallback.guided_pass_seconds = it.last_pass;
+                }
+                it.passes += spec.passes;
+                self.spp_done += spec.unit_spp();
+            }
+            Phase::Probe => {
+                let f = &mut self.fallback;
+                f.path_film.merge(&p.film);
+                f.path_seconds += seconds;
+                f.path_rays += p.rays;
+                f.path_spp += spec.unit_spp();
+                f.probe_spp += spec.unit_spp();
+                self.passes_done += spec.passes;
+                self.end_probe(now);
+            }
+            Phase::Rest { .. } => {
+                self.fallback.path_film.merge(&p.film);
+                self.fallback.path_spp += spec.unit_spp();
+                self.fallback.path_seconds += seconds;
+            }
+            Phase::Plan | Phase::Done => unreachable!("a unit completed outside an iteration"),
+        }
+    }
+
+    /// The iteration's passes are done. Automatic combination may turn a training
+    /// iteration into the final one (the rest of the budget goes into its film); otherwise
+    /// the iteration ends.
+    fn end_passes(&mut self, mut it: Box<Iteration>, now: f64) {
+        let automatic = self.params.sample_combination == GuidedCombination::Automatic;
+        if it.record && !it.stopped && automatic {
+            let cost = match self.budget {
+                Budget::Spp(_) => it.passes as f64,
+                Budget::Seconds(_) => now - it.t0,
+            };
+            self.history.push(IterationOutcome {
+                variance: film_variance(&it.film),
+                cost,
+                remaining_before: it.remaining_before,
+                spp_before: it.spp_before,
+            });
+            if schedule::automatic_should_stop(&self.history) {
+                it.stopped = true;
+                self.training_spp += self.spp_done - it.spp_before;
+                it.until = match self.budget {
+                    Budget::Spp(s) => IterationLength::Passes(
+                        schedule::total_passes(s, self.spp_per_pass) - self.passes_done,
+                    ),
+                    Budget::Seconds(s) => IterationLength::UntilSeconds(s),
+                };
+                self.phase = Phase::Iterate(it);
+                return;
+            }
+        }
+        self.end_iteration(it, now);
+    }
+
+    fn end_iteration(&mut self, it: Box<Iteration>, now: f64) {
+        let npix = self.width as u64 * self.height as u64;
+        let k = it.k;
+        self.passes_done += it.passes;
+        let secs = now - it.t0;
+        self.prev_secs = Some(secs);
+        let training = it.record && !it.stopped;
+        let spp = self.spp_done - it.spp_before;
+        if training {
+            self.training_spp += spp;
+        }
+        tracing::debug!(
+            "guided iteration {k}: {} passes, training {training}",
+            it.passes
+        );
+        self.iterations.push(GuidedIteration {
+            index: k,
+            spp: spp as u32,
+            nodes: it.nodes,
+            leaves: it.leaves,
+            variance: film_variance(&it.film),
+            seconds: secs,
+            rays_per_sample: (self.rays - it.rays_before) as f64
+                / (spp as f64 * npix as f64).max(1.0),
+            training,
+        });
+        if self.params.russian_roulette == GuidedRoulette::Guided || self.fallback.enabled {
+            self.update_estimate(&it.film, spp);
+        }
+        if !self.tree.is_built() {
+            // sampled without a guide (iteration 0): plain path tracing
+            self.unguided.push(self.films.len());
+        }
+        let checked = training && self.checks();
+        let Iteration { film, .. } = *it;
+        self.films.push(film);
+        if !training {
+            self.kept = Some(self.films.len() - 1);
+            self.phase = Phase::Done;
+            return self.end_job();
+        }
+        if checked {
+            // One unguided pass into the probe film, then compare per-sample efficiencies.
+            self.phase = Phase::Probe;
+            return;
+        }
+        self.refine(k);
+    }
+
+    fn update_estimate(&mut self, film: &Film, spp: u64) {
+        let means = film.mean_rgb();
+        self.est_sum.resize(means.len(), 0.0);
+        for (s, m) in self.est_sum.iter_mut().zip(&means) {
+            *s += spp as f64 * (m[0] as f64 + m[1] as f64 + m[2] as f64) / 3.0;
+        }
+        self.est_spp += spp;
+        self.estimate = pixel_estimate(&self.est_sum, self.est_spp, self.width, self.height);
+        self.estimate_version += 1;
+    }
+
+    fn probe_unit(&self) -> PassSpec {
+        let f = &self.fallback;
+        let mut spec = self.spec(PassKind::Probe, PATH_STREAM + f.path_spp, 1, false);
+        spec.spp_before = self.spp_done + f.path_spp;
+        spec
+    }
+
+    /// The probe is in: compare guided and unguided efficiency, then refine or fall back.
+    fn end_probe(&mut self, now: f64) {
+        let npix = self.width as u64 * self.height as u64;
+        let k = self.k;
+        let it = self.iterations.last().unwrap();
+        let f = &self.fallback;
+        let guided_variance = film_relative_variance(self.films.last().unwrap(), &self.estimate);
+        let spp_per_pass = self.spp_per_pass as f64;
+        let guided_cost = match self.budget {
+            // per-sample variance x seconds per spp of an unrecorded pass
+            Budget::Seconds(_) => {
+                guided_variance * it.spp as f64 * f.guided_pass_seconds / spp_per_pass
+            }
+            // deterministic: per-sample variance x rays per spp
+            Budget::Spp(_) => guided_variance * it.rays_per_sample * it.spp as f64,
+        };
+        let path_variance = film_relative_variance(&f.path_film, &self.estimate);
+        let path_cost = match self.budget {
+            Budget::Seconds(_) => path_variance * f.path_seconds,
+            Budget::Spp(_) => path_variance * f.path_rays as f64 / npix.max(1) as f64,
+        };
+        // per-sample relative variances: film variances of the mean times their spp
+        let variance_ratio = guided_variance * it.spp as f64 / (path_variance * f.path_spp as f64);
+        self.fallback.guided_costs.push(guided_cost);
+        let verdict = self
+            .policy
+            .verdict(&self.fallback.guided_costs, path_cost, variance_ratio);
+        tracing::info!(
+            "guiding check after iteration {k}: guided cost {guided_cost:.4e}, path cost \
+             {path_cost:.4e} (ratio {:.3}, per-sample variance ratio {variance_ratio:.3}): \
+             {verdict:?}",
+            guided_cost / path_cost
+        );
+        match verdict {
+            GuidingVerdict::Keep => self.fallback.enabled = false,
+            GuidingVerdict::FallBack => {
+                self.fallback.fell_back_after = Some(k);
+                self.phase = Phase::Rest { after: k, t0: now };
+                return;
+            }
+            GuidingVerdict::Undecided => {}
+        }
+        self.refine(k);
+    }
+
+    fn refine(&mut self, k: u32) {
+        self.tree.refine(k);
+        self.tree_version += 1;
+        self.fraction_version = 0;
+        if let Some(rho) = self.tree.raised_d_tree_threshold() {
+            tracing::warn!(
+                "iteration {k}: the quadtrees would exceed the guide's memory cap \
+                 (max_memory_mb, or Limits::max_guide_memory_bytes): refined with \
+                 d_tree_threshold {rho:.3e} instead of {:.3e}",
+                self.params.d_tree_threshold
+            );
+        }
+        self.k += 1;
+        self.phase = Phase::Plan;
+    }
+
+    /// The fallback's next unit of plain path tracing, or `None` when the budget is used.
+    /// With an spp budget, one unit for the whole rest (the renderer sizes its passes);
+    /// with a time budget, units of about a second.
+    fn rest_unit(&self, now: f64) -> Option<PassSpec> {
+        let f = &self.fallback;
+        let first = PATH_STREAM + f.path_spp;
+        let spp = match self.budget {
+            Budget::Spp(s) => {
+                if f.path_spp > f.probe_spp {
+                    return None;
+                }
+                let total = schedule::total_passes(s, self.spp_per_pass);
+                total.saturating_sub(self.passes_done) * self.spp_per_pass
+            }
+            Budget::Seconds(s) => {
+                let per_spp = f.path_seconds / f.path_spp.max(1) as f64;
+                let left = s - now;
+                if !(left > 0.0) || left < 0.5 * per_spp {
+                    return None;
+                }
+                (left.min(1.0) / per_spp.max(1e-9)).floor().clamp(1.0, 1e6) as u32
+            }
+        };
+        if spp == 0 {
+            return None;
+        }
+        let mut spec = self.spec(PassKind::Path, first, 1, false);
+        spec.spp = spp;
+        spec.spp_before = self.spp_done + f.path_spp;
+        Some(spec)
+    }
+
+    /// The fallback's rest is done: the probes' film becomes the final iteration.
+    fn end_rest(&mut self, after: u32, t0: f64, now: f64) {
+        let npix = self.width as u64 * self.height as u64;
+        let (w, h) = (self.width, self.height);
+        // The unguided iterations' samples are path tracing's too (the same estimator up to
+        // its random streams): they join the film instead of being weighed apart (a 1-spp
+        // iteration has no variance estimate, so inverse-variance weighting drops it).
+        for &i in &self.unguided {
+            self.fallback.path_film.merge(&self.films[i]);
+            self.films[i] = Film::new(w, h);
+        }
+        let f = &self.fallback;
+        self.iterations.push(GuidedIteration {
+            index: after + 1,
+            spp: f.path_spp as u32,
+            nodes: 0,
+            leaves: 0,
+            variance: film_variance(&f.path_film),
+            seconds: now - t0,
+            // measured on the probe passes (the path integrator does not count rays)
+            rays_per_sample: f.path_rays as f64 / (f.probe_spp as f64 * npix as f64).max(1.0),
+            training: false,
+        });
+        let film = std::mem::replace(&mut self.fallback.path_film, Film::new(w, h));
+        self.films.push(film);
+        self.kept = Some(self.films.len() - 1);
+        self.phase = Phase::Done;
+        self.end_job();
+    }
+
+    /// Counts the unguided samples into the total (their films were merged, or are probes).
+    fn end_job(&mut self) {
+        self.spp_done += self.fallback.path_spp;
+        self.fallback.path_spp = 0;
+    }
+
+    fn weights(&self) -> Vec<f64> {
+        let n = self.films.len();
+        match self.params.sample_combination {
+            // An iteration of one sample per pixel has no usable variance estimate (with a
+            // box filter it is exactly 0, which would claim a perfect image): weight 0.
+            GuidedCombination::InverseVar if n > 0 => schedule::inverse_variance_weights(
+                &self
+                    .iterations
+                    .iter()
+                    .enumerate()
+                    .map(|(k, i)| {
+                        let merged =
+                            self.fallback.fell_back_after.is_some() && self.unguided.contains(&k);
+                        if i.spp < 2 || merged {
+                            f64::INFINITY
+                        } else {
+                            i.variance
+                        }
+                    })
+                    .collect::<Vec<_>>(),
+            ),
+            _ => {
+                let mut w = vec![0.0; n];
+                if n > 0 {
+                    w[self.kept.unwrap_or(n - 1)] = 1.0;
+                }
+                w
+            }
+        }
+    }
+}
+
+/// Copies the `region`-sized `src` into `region` of the whole-image `dst`.
+fn copy_region(dst: &mut Film, src: &Film, region: Region) {
+    let (rw, w) = (region.width() as usize, dst.width as usize);
+    for (row, line) in src.pixels.chunks_exact(rw).enumerate() {
+        let start = (region.y0 as usize + row) * w + region.x0 as usize;
+        dst.pixels[start..start + rw].copy_from_slice(line);
+    }
+}

@@ -1,0 +1,240 @@
+//! The guided job session driven tile by tile, as the farm drives it: every tile rendered on
+//! its own copy of the tree (decoded from the wire form, fractions set from the master),
+//! statistics shipped with `take_stats`, tiles handed in out of order. The image and the
+//! trained tree must be bit-identical to the one-process render (deterministic checks, no
+//! significance level).
+
+use pathfarm_guide::SdTree;
+use pathfarm_render::guided::{
+    guide_config, render_guided_with_policy, Budget, FallbackPolicy, GuidingVerdict, Next, Session,
+};
+use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
+use pathfarm_render::{Film, Region, RenderSettings, Scene};
+use pathfarm_scene::{load_scene, GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
+
+use crate::common::*;
+
+fn door_ajar(res: (u32, u32)) -> Scene {
+    let defs: Vec<(String, String)> = [
+        ("integrator", "guided_path".to_string()),
+        ("resx", res.0.to_string()),
+        ("resy", res.1.to_string()),
+    ]
+    .into_iter()
+    .map(|(a, b)| (a.to_string(), b))
+    .collect();
+    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
+    Scene::build(&desc).expect("build")
+}
+
+/// A worker's view: the tree of a version, refreshed when the unit names another version.
+struct WorkerTree {
+    version: Option<(u32, u32)>,
+    tree: Option<SdTree>,
+}
+
+impl WorkerTree {
+    fn get(&mut self, master: &SdTree, version: (u32, u32)) -> &mut SdTree {
+        if self.version.map(|v| v.0) != Some(version.0) {
+            // a new tree version travels in its wire form
+            self.tree = Some(SdTree::decode(&master.encode()).expect("decode"));
+        }
+        let tree = self.tree.as_mut().unwrap();
+        if self.version != Some(version) {
+            tree.set_fraction_states(&master.fraction_states())
+                .expect("same leaves");
+        }
+        self.version = Some(version);
+        tree
+    }
+}
+
+/// The session driven over `tile`-pixel tiles, each unit's tiles handed in in a scrambled
+/// order (`order_seed`), each tile rendered on a worker copy of the tree.
+fn render_tiled(
+    scene: &Scene,
+    params: &GuidedParams,
+    spp: u32,
+    seed: u64,
+    tile: u32,
+    order_seed: u64,
+    policy: FallbackPolicy,
+) -> (Film, SdTree, Vec<PassKind>) {
+    let (lo, hi) = scene.accel.bounds();
+    let tree = SdTree::new(lo, hi, guide_config(params, scene));
+    let (w, h) = (scene.width, scene.height);
+    let tiles = Region::tiles(w, h, tile);
+    let mut session = Session::new(params, Budget::Spp(spp), tree, w, h, tiles.clone(), policy);
+    let mut worker = WorkerTree {
+        version: None,
+        tree: None,
+    };
+    let mut kinds = Vec::new();
+    let mut clock = 0.0;
+    while let Next::Render(spec) = session.next(clock) {
+        kinds.push(spec.kind);
+        let mut order: Vec<usize> = (0..tiles.len()).collect();
+        let mut x = order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        for i in (1..order.len()).rev() {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            order.swap(i, (x >> 33) as usize % (i + 1));
+        }
+        for index in order {
+            let version = (spec.tree_version, spec.fraction_version);
+            let estimate = session.estimate().to_vec();
+            let wt = worker.get(session.tree(), version);
+            let inputs = UnitInputs {
+                scene,
+                params,
+                tree: wt,
+                estimate: &estimate,
+                seed,
+                tile_size: 5,
+            };
+            let out = render_unit(&inputs, &spec, tiles[index], &|_| {});
+            let stats = spec.record().then(|| wt.take_stats());
+            clock += 0.001;
+            session
+                .add_tile(spec.unit, index, &out, stats.as_ref(), clock)
+                .expect("tile accepted");
+        }
+    }
+    let (film, _, tree) = session.finish();
+    (film, tree, kinds)
+}
+
+fn one_process(
+    scene: &Scene,
+    params: &GuidedParams,
+    spp: u32,
+    seed: u64,
+    policy: FallbackPolicy,
+) -> (Film, SdTree) {
+    let settings = RenderSettings::new(Some(spp), None, seed);
+    let (film, _, tree) = render_guided_with_policy(
+        scene,
+        params,
+        Budget::Spp(spp),
+        &settings,
+        &|_| {},
+        &|_| {},
+        policy,
+    );
+    (film, tree)
+}
+
+fn assert_same(a: &(Film, SdTree), b: &(Film, SdTree), what: &str) {
+    assert!(
+        film_bits(&a.0) == film_bits(&b.0),
+        "{what}: the tiled image differs from the one-process image"
+    );
+    assert!(
+        a.1.encode() == b.1.encode(),
+        "{what}: the tiled tree differs from the one-process tree"
+    );
+}
+
+#[test]
+fn tiled_session_with_worker_trees_equals_the_one_process_render() {
+    // door-ajar (gaussian filter: tiles need their halo) in the pathfarm preset: learned
+    // fractions, guided roulette, splitting, the fallback check, inverse-variance combination.
+    let scene = door_ajar((37, 23));
+    let params = scene.guided.clone().expect("guided");
+    let policy = FallbackPolicy::Rule;
+    let single = one_process(&scene, &params, 24, 7, policy);
+    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 7, 8, 1, policy);
+    assert!(kinds.contains(&PassKind::Record) && kinds.contains(&PassKind::Guided));
+    assert_same(&(film, tree), &single, "pathfarm preset, 8-pixel tiles");
+    // another tiling and another arrival order: the same bits
+    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 13, 99, policy);
+    assert_same(&(film, tree), &single, "13-pixel tiles");
+    // the tree learned something (the test would be vacuous on an empty tree)
+    assert!(single.1.stats().leaves > 1, "{:?}", single.1.stats());
+}
+
+#[test]
+fn tiled_session_equals_one_process_through_the_path_fallback() {
+    // Forced fallback: probe passes and the plain path-tracing rest are tiled too.
+    let scene = door_ajar((29, 17));
+    let params = scene.guided.clone().expect("guided");
+    let policy = FallbackPolicy::Force(GuidingVerdict::FallBack);
+    let single = one_process(&scene, &params, 24, 3, policy);
+    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 3, 6, 5, policy);
+    assert!(kinds.contains(&PassKind::Probe), "{kinds:?}");
+    assert!(kinds.contains(&PassKind::Path), "{kinds:?}");
+    assert_same(&(film, tree), &single, "forced fallback");
+}
+
+#[test]
+fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automatic() {
+    // The stochastic spatial filter draws random numbers while recording, and kick-start
+    // records light samples mid-path: halo samples must draw the same numbers without
+    // recording. Automatic combination turns a training iteration into the final one.
+    let scene = door_ajar((31, 19));
+    let mut params = scene.guided.clone().expect("guided");
+    params.spatial_filter = GuidedSpatialFilter::Stochastic;
+    params.nee = GuidedNee::Kickstart;
+    params.sample_combination = GuidedCombination::Automatic;
+    params.path_fallback = false;
+    let policy = FallbackPolicy::Rule;
+    let single = one_process(&scene, &params, 40, 11, policy);
+    let (film, tree, _) = render_tiled(&scene, &params, 40, 11, 7, 2, policy);
+    assert_same(
+        &(film, tree),
+        &single,
+        "stochastic filter, kickstart, automatic",
+    );
+}
+
+#[test]
+fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
+    let scene = door_ajar((16, 16));
+    let params = scene.guided.clone().expect("guided");
+    let (lo, hi) = scene.accel.bounds();
+    let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
+    let tiles = Region::tiles(16, 16, 8);
+    let mut s = Session::new(
+        &params,
+        Budget::Spp(8),
+        tree,
+        16,
+        16,
+        tiles.clone(),
+        FallbackPolicy::Rule,
+    );
+    let Next::Render(spec) = s.next(0.0) else {
+        panic!("a first unit")
+    };
+    assert_eq!(s.next(0.0), Next::Wait, "one unit at a time");
+    let inputs = UnitInputs {
+        scene: &scene,
+        params: &params,
+        tree: s.tree(),
+        estimate: &[],
+        seed: 1,
+        tile_size: 4,
+    };
+    let out0 = render_unit(&inputs, &spec, tiles[0], &|_| {});
+    let out1 = render_unit(&inputs, &spec, tiles[1], &|_| {});
+    assert!(matches!(
+        s.add_tile(spec.unit + 1, 0, &out0, None, 0.0),
+        Err(pathfarm_render::session::TileError::WrongUnit { .. })
+    ));
+    assert!(matches!(
+        s.add_tile(spec.unit, 1, &out0, None, 0.0),
+        Err(pathfarm_render::session::TileError::WrongRegion { .. })
+    ));
+    assert!(matches!(
+        s.add_tile(spec.unit, 9, &out0, None, 0.0),
+        Err(pathfarm_render::session::TileError::NoSuchTile(9))
+    ));
+    s.add_tile(spec.unit, 0, &out0, None, 0.0).expect("first");
+    assert_eq!(
+        s.add_tile(spec.unit, 0, &out0, None, 0.0),
+        Err(pathfarm_render::session::TileError::Duplicate(0))
+    );
+    s.add_tile(spec.unit, 1, &out1, None, 0.0).expect("second");
+    assert_eq!(s.tiles_done(), (2, 4));
+}
