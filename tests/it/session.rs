@@ -49,6 +49,14 @@ impl WorkerTree {
     }
 }
 
+/// Whether the tiled driver replaces its session by one restored from a checkpoint
+/// whenever one can be taken.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Restarts {
+    Never,
+    AtEveryCheckpoint,
+}
+
 /// The session driven over `tile`-pixel tiles, each unit's tiles handed in in a scrambled
 /// order (`order_seed`), each tile rendered on a worker copy of the tree.
 fn render_tiled(
@@ -59,12 +67,15 @@ fn render_tiled(
     tile: u32,
     order_seed: u64,
     policy: FallbackPolicy,
+    restarts: Restarts,
 ) -> (Film, SdTree, Vec<PassKind>) {
     let (lo, hi) = scene.accel.bounds();
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
     let tiles = Region::tiles(w, h, tile);
-    let mut session = Session::new(params, Budget::Spp(spp), tree, w, h, tiles.clone(), policy);
+    let budget = Budget::Spp(spp);
+    let mut session = Session::new(params, budget, tree, w, h, tiles.clone(), policy);
+    let mut restored = 0;
     let mut worker = WorkerTree {
         version: None,
         tree: None,
@@ -100,6 +111,22 @@ fn render_tiled(
                 .add_tile(spec.unit, index, &out, stats.as_ref(), clock)
                 .expect("tile accepted");
         }
+        // A coordinator restarted between iterations continues from the checkpoint alone.
+        if let (Restarts::AtEveryCheckpoint, Some(bytes)) = (restarts, session.checkpoint()) {
+            let tiles = tiles.clone();
+            session = Session::restore(params, budget, tiles, policy, &bytes).expect("restore");
+            worker = WorkerTree {
+                version: None,
+                tree: None,
+            };
+            restored += 1;
+        }
+    }
+    if restarts == Restarts::AtEveryCheckpoint {
+        assert!(
+            restored >= 1,
+            "the job restarted between iterations ({restored} times)"
+        );
     }
     let (film, _, tree) = session.finish();
     (film, tree, kinds)
@@ -144,12 +171,24 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 24, 7, policy);
-    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 7, 8, 1, policy);
+    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never);
     assert!(kinds.contains(&PassKind::Record) && kinds.contains(&PassKind::Guided));
     assert_same(&(film, tree), &single, "pathfarm preset, 8-pixel tiles");
     // another tiling and another arrival order: the same bits
-    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 13, 99, policy);
+    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 13, 99, policy, Restarts::Never);
     assert_same(&(film, tree), &single, "13-pixel tiles");
+    // restarted from a checkpoint after every iteration: the same bits
+    let (film, tree, _) = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        8,
+        3,
+        policy,
+        Restarts::AtEveryCheckpoint,
+    );
+    assert_same(&(film, tree), &single, "restarted at every checkpoint");
     // the tree learned something (the test would be vacuous on an empty tree)
     assert!(single.1.stats().leaves > 1, "{:?}", single.1.stats());
 }
@@ -161,7 +200,16 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Force(GuidingVerdict::FallBack);
     let single = one_process(&scene, &params, 24, 3, policy);
-    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 3, 6, 5, policy);
+    let (film, tree, kinds) = render_tiled(
+        &scene,
+        &params,
+        24,
+        3,
+        6,
+        5,
+        policy,
+        Restarts::AtEveryCheckpoint,
+    );
     assert!(kinds.contains(&PassKind::Probe), "{kinds:?}");
     assert!(kinds.contains(&PassKind::Path), "{kinds:?}");
     assert_same(&(film, tree), &single, "forced fallback");
@@ -180,12 +228,47 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
     params.path_fallback = false;
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 40, 11, policy);
-    let (film, tree, _) = render_tiled(&scene, &params, 40, 11, 7, 2, policy);
+    let (film, tree, _) = render_tiled(&scene, &params, 40, 11, 7, 2, policy, Restarts::Never);
     assert_same(
         &(film, tree),
         &single,
         "stochastic filter, kickstart, automatic",
     );
+}
+
+#[test]
+fn damaged_checkpoints_are_refused() {
+    let scene = door_ajar((8, 8));
+    let params = scene.guided.clone().expect("guided");
+    let (lo, hi) = scene.accel.bounds();
+    let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
+    let tiles = Region::tiles(8, 8, 8);
+    let s = Session::new(
+        &params,
+        Budget::Spp(8),
+        tree,
+        8,
+        8,
+        tiles.clone(),
+        FallbackPolicy::Rule,
+    );
+    let bytes = s.checkpoint().expect("a fresh session can be checkpointed");
+    let restore = |b: &[u8]| {
+        Session::restore(
+            &params,
+            Budget::Spp(8),
+            tiles.clone(),
+            FallbackPolicy::Rule,
+            b,
+        )
+    };
+    assert!(restore(&bytes).is_ok());
+    for cut in [0, 4, 5, 40, bytes.len() / 2, bytes.len() - 1] {
+        assert!(restore(&bytes[..cut]).is_err(), "truncated at {cut}");
+    }
+    let mut longer = bytes.clone();
+    longer.push(0);
+    assert!(restore(&longer).is_err(), "trailing bytes");
 }
 
 #[test]

@@ -11,6 +11,7 @@
 //! - This crate does no network I/O.
 
 pub mod camera;
+pub mod checkpoint;
 pub mod counter;
 pub mod film;
 pub mod filter;

@@ -18,6 +18,7 @@ use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, It
 use pathfarm_guide::{IterationStats, SdTree, StatsError};
 use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
 
+use crate::checkpoint::{self, CheckpointError, In, Out};
 use crate::film::Film;
 use crate::guided::{
     combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
@@ -395,6 +396,7 @@ impl Session {
         if p.left == 0 {
             let p = self.pending.take().unwrap();
             self.end_unit(p, now);
+            self.settle(now);
         }
         Ok(())
     }
@@ -430,6 +432,21 @@ impl Session {
             extra_light_samples: self.light_splits,
         };
         (film, stats, self.tree)
+    }
+
+    /// Ends the iteration right away when its last unit is in, so that a checkpoint can be
+    /// taken before the next [`Session::next`].
+    fn settle(&mut self, now: f64) {
+        let done = match &self.phase {
+            Phase::Iterate(it) => self.iteration_unit(it, now).is_none(),
+            _ => false,
+        };
+        if done {
+            let Phase::Iterate(it) = std::mem::replace(&mut self.phase, Phase::Done) else {
+                unreachable!()
+            };
+            self.end_passes(it, now);
+        }
     }
 
     fn issue(&mut self, spec: PassSpec, now: f64) -> Next {
@@ -827,5 +844,144 @@ fn copy_region(dst: &mut Film, src: &Film, region: Region) {
     for (row, line) in src.pixels.chunks_exact(rw).enumerate() {
         let start = (region.y0 as usize + row) * w + region.x0 as usize;
         dst.pixels[start..start + rw].copy_from_slice(line);
+    }
+}
+
+impl Session {
+    /// The session's state as bytes ([`crate::checkpoint`]), between iterations only (when
+    /// no unit is in flight and the next iteration is not planned yet): `None` otherwise.
+    pub fn checkpoint(&self) -> Option<Vec<u8>> {
+        if self.pending.is_some() || !matches!(self.phase, Phase::Plan) {
+            return None;
+        }
+        let mut o = Out::default();
+        checkpoint::header(&mut o);
+        for v in [
+            self.width,
+            self.height,
+            self.tree_version,
+            self.fraction_version,
+            self.k,
+        ] {
+            o.u32(v);
+        }
+        for v in [
+            self.next_unit,
+            self.spp_done,
+            self.passes_done as u64,
+            self.training_spp,
+        ] {
+            o.u64(v);
+        }
+        o.opt_f64(self.prev_secs);
+        o.u64(self.iterations.len() as u64);
+        self.iterations.iter().for_each(|i| o.iteration(i));
+        o.u64(self.films.len() as u64);
+        self.films.iter().for_each(|f| o.film(f));
+        o.u64(self.history.len() as u64);
+        self.history.iter().for_each(|h| o.outcome(h));
+        o.opt_u32(self.kept.map(|k| k as u32));
+        o.u64(self.unguided.len() as u64);
+        self.unguided.iter().for_each(|&u| o.u64(u as u64));
+        o.u64(self.est_sum.len() as u64);
+        self.est_sum.iter().for_each(|&x| o.f64(x));
+        o.u64(self.est_spp);
+        o.u64(self.estimate.len() as u64);
+        self.estimate.iter().for_each(|&x| o.u32(x.to_bits()));
+        o.u32(self.estimate_version);
+        self.checkpoint_fallback(&mut o);
+        for v in [self.rays, self.invalid, self.splits, self.light_splits] {
+            o.u64(v);
+        }
+        o.bytes(&self.tree.encode());
+        Some(o.0)
+    }
+
+    fn checkpoint_fallback(&self, o: &mut Out) {
+        let f = &self.fallback;
+        o.u8(f.enabled as u8);
+        o.film(&f.path_film);
+        o.f64(f.path_seconds);
+        for v in [f.path_rays, f.path_spp, f.probe_spp] {
+            o.u64(v);
+        }
+        o.f64(f.guided_pass_seconds);
+        o.u64(f.guided_costs.len() as u64);
+        f.guided_costs.iter().for_each(|&c| o.f64(c));
+        o.opt_u32(f.fell_back_after);
+    }
+
+    /// A session from [`Session::checkpoint`] bytes, for the same job (parameters, budget,
+    /// tiles, policy): it continues exactly as the checkpointed session would have.
+    pub fn restore(
+        params: &GuidedParams,
+        budget: Budget,
+        tiles: Vec<Region>,
+        policy: FallbackPolicy,
+        bytes: &[u8],
+    ) -> Result<Session, CheckpointError> {
+        let mut i = In(bytes);
+        checkpoint::check_header(&mut i)?;
+        let (width, height) = (i.u32()?, i.u32()?);
+        let (tree_version, fraction_version, k) = (i.u32()?, i.u32()?, i.u32()?);
+        let dummy = SdTree::new(glam::Vec3::ZERO, glam::Vec3::ONE, Default::default());
+        let mut s = Session::new(params, budget, dummy, width, height, tiles, policy);
+        s.tree_version = tree_version;
+        s.fraction_version = fraction_version;
+        s.k = k;
+        s.next_unit = i.u64()?;
+        s.spp_done = i.u64()?;
+        s.passes_done = i.u64()? as u32;
+        s.training_spp = i.u64()?;
+        s.prev_secs = i.opt_f64()?;
+        s.iterations = (0..i.len(45)?)
+            .map(|_| i.iteration())
+            .collect::<Result<_, _>>()?;
+        s.films = (0..i.len(8)?).map(|_| i.film()).collect::<Result<_, _>>()?;
+        s.history = (0..i.len(32)?)
+            .map(|_| i.outcome())
+            .collect::<Result<_, _>>()?;
+        s.kept = i.opt_u32()?.map(|k| k as usize);
+        s.unguided = (0..i.len(8)?)
+            .map(|_| Ok(i.u64()? as usize))
+            .collect::<Result<_, _>>()?;
+        s.est_sum = (0..i.len(8)?).map(|_| i.f64()).collect::<Result<_, _>>()?;
+        s.est_spp = i.u64()?;
+        let n = i.len(4)?;
+        s.estimate = (0..n)
+            .map(|_| Ok(f32::from_bits(i.u32()?)))
+            .collect::<Result<_, _>>()?;
+        s.estimate_version = i.u32()?;
+        s.restore_fallback(&mut i)?;
+        for v in [
+            &mut s.rays,
+            &mut s.invalid,
+            &mut s.splits,
+            &mut s.light_splits,
+        ] {
+            *v = i.u64()?;
+        }
+        s.tree = checkpoint::decode_tree(&i.bytes()?)?;
+        if !i.0.is_empty() {
+            return Err(CheckpointError(format!(
+                "{} bytes after the end",
+                i.0.len()
+            )));
+        }
+        Ok(s)
+    }
+
+    fn restore_fallback(&mut self, i: &mut In) -> Result<(), CheckpointError> {
+        let f = &mut self.fallback;
+        f.enabled = i.bool()?;
+        f.path_film = i.film()?;
+        f.path_seconds = i.f64()?;
+        f.path_rays = i.u64()?;
+        f.path_spp = i.u64()?;
+        f.probe_spp = i.u64()?;
+        f.guided_pass_seconds = i.f64()?;
+        f.guided_costs = (0..i.len(8)?).map(|_| i.f64()).collect::<Result<_, _>>()?;
+        f.fell_back_after = i.opt_u32()?;
+        Ok(())
     }
 }

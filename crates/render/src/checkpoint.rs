@@ -1,0 +1,189 @@
+//! A [`Session`]'s state between iterations as bytes, so that a coordinator restarted on its
+//! data directory resumes a job where its last finished iteration left it, with the bits an
+//! uninterrupted run gives (the units after the checkpoint depend only on this state).
+//!
+//! Format: magic `PFCK`, version byte, then the fields in declaration order, little-endian;
+//! the tree in its own wire form ([`SdTree::encode`]). Decoding checks every length (a
+//! checkpoint is read back from disk, which may be damaged).
+
+use pathfarm_guide::schedule::IterationOutcome;
+use pathfarm_guide::SdTree;
+
+use crate::film::{Film, PixelStats};
+use crate::guided::GuidedIteration;
+
+const MAGIC: &[u8; 4] = b"PFCK";
+const VERSION: u8 = 1;
+
+/// A checkpoint that does not decode.
+#[derive(Debug, thiserror::Error)]
+#[error("session checkpoint: {0}")]
+pub struct CheckpointError(pub String);
+
+/// Little-endian writer.
+#[derive(Default)]
+pub(crate) struct Out(pub Vec<u8>);
+
+impl Out {
+    pub fn u8(&mut self, v: u8) {
+        self.0.push(v);
+    }
+    pub fn u32(&mut self, v: u32) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn u64(&mut self, v: u64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn f64(&mut self, v: f64) {
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub fn bytes(&mut self, b: &[u8]) {
+        self.u64(b.len() as u64);
+        self.0.extend_from_slice(b);
+    }
+    pub fn opt_u32(&mut self, v: Option<u32>) {
+        self.u8(v.is_some() as u8);
+        self.u32(v.unwrap_or(0));
+    }
+    pub fn opt_f64(&mut self, v: Option<f64>) {
+        self.u8(v.is_some() as u8);
+        self.f64(v.unwrap_or(0.0));
+    }
+    pub fn film(&mut self, f: &Film) {
+        self.u32(f.width);
+        self.u32(f.height);
+        for p in &f.pixels {
+            let sums = [p.sum_w, p.sum_w2].into_iter().chain(p.sum_wl);
+            for x in sums.chain(p.sum_w2l).chain(p.sum_w2l2) {
+                self.f64(x);
+            }
+            self.u32(p.count);
+        }
+    }
+    pub fn iteration(&mut self, i: &GuidedIteration) {
+        self.u32(i.index);
+        self.u32(i.spp);
+        self.u64(i.nodes as u64);
+        self.u64(i.leaves as u64);
+        self.f64(i.variance);
+        self.f64(i.seconds);
+        self.f64(i.rays_per_sample);
+        self.u8(i.training as u8);
+    }
+    pub fn outcome(&mut self, o: &IterationOutcome) {
+        self.f64(o.variance);
+        self.f64(o.cost);
+        self.f64(o.remaining_before);
+        self.u64(o.spp_before);
+    }
+}
+
+/// Little-endian reader with length checks.
+pub(crate) struct In<'a>(pub &'a [u8]);
+
+impl In<'_> {
+    fn take(&mut self, n: usize) -> Result<&[u8], CheckpointError> {
+        if self.0.len() < n {
+            return Err(CheckpointError("truncated".into()));
+        }
+        let (a, b) = self.0.split_at(n);
+        self.0 = b;
+        Ok(a)
+    }
+    pub fn u8(&mut self) -> Result<u8, CheckpointError> {
+        Ok(self.take(1)?[0])
+    }
+    pub fn bool(&mut self) -> Result<bool, CheckpointError> {
+        Ok(self.u8()? != 0)
+    }
+    pub fn u32(&mut self) -> Result<u32, CheckpointError> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    pub fn u64(&mut self) -> Result<u64, CheckpointError> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().unwrap()))
+    }
+    pub fn f64(&mut self) -> Result<f64, CheckpointError> {
+        Ok(f64::from_le_bytes(self.take(8)?.try_into().unwrap()))
+    }
+    pub fn len(&mut self, item: usize) -> Result<usize, CheckpointError> {
+        let n = self.u64()? as usize;
+        if n.checked_mul(item.max(1)).is_none_or(|b| b > self.0.len()) {
+            return Err(CheckpointError(format!("length {n} beyond the data")));
+        }
+        Ok(n)
+    }
+    pub fn bytes(&mut self) -> Result<Vec<u8>, CheckpointError> {
+        let n = self.len(1)?;
+        Ok(self.take(n)?.to_vec())
+    }
+    pub fn opt_u32(&mut self) -> Result<Option<u32>, CheckpointError> {
+        let some = self.bool()?;
+        let v = self.u32()?;
+        Ok(some.then_some(v))
+    }
+    pub fn opt_f64(&mut self) -> Result<Option<f64>, CheckpointError> {
+        let some = self.bool()?;
+        let v = self.f64()?;
+        Ok(some.then_some(v))
+    }
+    pub fn film(&mut self) -> Result<Film, CheckpointError> {
+        let (w, h) = (self.u32()?, self.u32()?);
+        let n = w as usize * h as usize;
+        if n.checked_mul(92).is_none_or(|b| b > self.0.len()) {
+            return Err(CheckpointError(format!("film {w}x{h} beyond the data")));
+        }
+        let mut film = Film::new(w, h);
+        for p in &mut film.pixels {
+            let mut f = [0.0f64; 11];
+            for x in &mut f {
+                *x = self.f64()?;
+            }
+            *p = PixelStats {
+                sum_w: f[0],
+                sum_w2: f[1],
+                sum_wl: [f[2], f[3], f[4]],
+                sum_w2l: [f[5], f[6], f[7]],
+                sum_w2l2: [f[8], f[9], f[10]],
+                count: self.u32()?,
+            };
+        }
+        Ok(film)
+    }
+    pub fn iteration(&mut self) -> Result<GuidedIteration, CheckpointError> {
+        Ok(GuidedIteration {
+            index: self.u32()?,
+            spp: self.u32()?,
+            nodes: self.u64()? as usize,
+            leaves: self.u64()? as usize,
+            variance: self.f64()?,
+            seconds: self.f64()?,
+            rays_per_sample: self.f64()?,
+            training: self.bool()?,
+        })
+    }
+    pub fn outcome(&mut self) -> Result<IterationOutcome, CheckpointError> {
+        Ok(IterationOutcome {
+            variance: self.f64()?,
+            cost: self.f64()?,
+            remaining_before: self.f64()?,
+            spp_before: self.u64()?,
+        })
+    }
+}
+
+pub(crate) fn header(out: &mut Out) {
+    out.0.extend_from_slice(MAGIC);
+    out.u8(VERSION);
+}
+
+pub(crate) fn check_header(inp: &mut In) -> Result<(), CheckpointError> {
+    let m = inp.take(5)?;
+    if &m[..4] != MAGIC || m[4] != VERSION {
+        return Err(CheckpointError("not a version-1 session checkpoint".into()));
+    }
+    Ok(())
+}
+
+pub(crate) fn decode_tree(bytes: &[u8]) -> Result<SdTree, CheckpointError> {
+    SdTree::decode(bytes).map_err(|e| CheckpointError(format!("tree: {e}")))
+}
