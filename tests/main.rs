@@ -8,6 +8,7 @@ mod it {
     pub mod bad_input;
     pub mod crosscheck;
     pub mod determinism;
+    pub mod farm;
     pub mod guide_cli;
     pub mod guided;
     pub mod hostile;

@@ -7,120 +7,14 @@
 //! binary (e.g. an older one, to see them fail).
 
 use std::fs;
-use std::os::unix::process::{CommandExt, ExitStatusExt};
+use std::os::unix::process::ExitStatusExt;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus, Stdio};
+
 use std::time::{Duration, Instant};
 
 use pathfarm_render::output::{is_pathfarm_preview, read_exr_rgb};
 
 use crate::common::*;
-
-/// A child `pathfarm`, killed and reaped when dropped unless it was reaped already
-/// (so a failing test leaves no process behind, and a pid is never signalled after
-/// it was reaped).
-struct Running {
-    child: Option<Child>,
-    stdout: PathBuf,
-    stderr: PathBuf,
-}
-
-/// How a run ended.
-struct Ended {
-    status: ExitStatus,
-    stdout: String,
-    stderr: String,
-}
-
-impl Ended {
-    fn describe(&self) -> String {
-        format!(
-            "{:?}\nstdout: {}\nstderr: {}",
-            self.status, self.stdout, self.stderr
-        )
-    }
-}
-
-impl Running {
-    /// Starts `pathfarm ARGS` (log level info, so "loaded ..." shows that the scene was
-    /// read) with SIGINT and SIGTERM at their default disposition, `extra_env` set and
-    /// its output sent to files outside the directories the tests watch.
-    fn start(args: &[&str], extra_env: &[(&str, &str)]) -> Self {
-        let logs = temp_dir("outputs-logs");
-        let (stdout, stderr) = (logs.join("stdout"), logs.join("stderr"));
-        let mut cmd = Command::new(pathfarm_bin());
-        cmd.args(args)
-            .env("RUST_LOG", "info")
-            .env("NO_COLOR", "1")
-            .env_remove("PATHFARM_NO_O_TMPFILE")
-            .stdin(Stdio::null())
-            .stdout(fs::File::create(&stdout).expect("stdout file"))
-            .stderr(fs::File::create(&stderr).expect("stderr file"));
-        for (k, v) in extra_env {
-            cmd.env(k, v);
-        }
-        // SAFETY: signal() is async-signal-safe, as pre_exec requires.
-        unsafe {
-            cmd.pre_exec(|| {
-                libc::signal(libc::SIGINT, libc::SIG_DFL);
-                libc::signal(libc::SIGTERM, libc::SIG_DFL);
-                Ok(())
-            });
-        }
-        let child = cmd.spawn().expect("run pathfarm");
-        Running {
-            child: Some(child),
-            stdout,
-            stderr,
-        }
-    }
-
-    /// Sends `sig` to the child unless it has been reaped.
-    fn signal(&mut self, sig: libc::c_int) {
-        if let Some(c) = &self.child {
-            // SAFETY: the pid is our unreaped child's (at worst a zombie).
-            unsafe { libc::kill(c.id() as libc::pid_t, sig) };
-        }
-    }
-
-    /// Whether the child has ended (it is reaped then, and its status kept).
-    fn poll(&mut self) -> Option<ExitStatus> {
-        let c = self.child.as_mut()?;
-        c.try_wait().expect("try_wait")
-    }
-
-    /// Waits at most `timeout` for the child to end; panics (killing it) on timeout.
-    fn wait(mut self, timeout: Duration) -> Ended {
-        let t0 = Instant::now();
-        let status = loop {
-            if let Some(s) = self.poll() {
-                break s;
-            }
-            if t0.elapsed() > timeout {
-                panic!(
-                    "pathfarm did not end within {timeout:?}; stderr: {}",
-                    fs::read_to_string(&self.stderr).unwrap_or_default()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        };
-        self.child = None;
-        Ended {
-            status,
-            stdout: fs::read_to_string(&self.stdout).unwrap_or_default(),
-            stderr: fs::read_to_string(&self.stderr).unwrap_or_default(),
-        }
-    }
-}
-
-impl Drop for Running {
-    fn drop(&mut self) {
-        if let Some(mut c) = self.child.take() {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
-}
 
 fn run(args: &[&str], timeout: Duration) -> Ended {
     Running::start(args, &[]).wait(timeout)

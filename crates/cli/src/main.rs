@@ -1,6 +1,7 @@
 //! `pathfarm`: the command line.
 
 mod cpu_time;
+mod farm_cmd;
 mod guide_cmd;
 mod outfile;
 mod render_cmd;
@@ -28,6 +29,20 @@ enum Command {
     /// Path-guiding tools: train and save an SD-tree, its statistics, pictures.
     #[command(subcommand)]
     Guide(guide_cmd::GuideCommand),
+    /// Run the farm's coordinator: the gRPC API that schedules jobs over workers.
+    Coordinator(farm_cmd::CoordinatorArgs),
+    /// Run a farm worker: render the tiles a coordinator leases to it.
+    Worker(farm_cmd::WorkerArgs),
+    /// Submit a scene to a coordinator as a job (prints the job id).
+    Submit(farm_cmd::SubmitArgs),
+    /// Show the coordinator's jobs and workers, or one job.
+    Status(farm_cmd::StatusArgs),
+    /// Cancel a job.
+    Cancel(farm_cmd::CancelArgs),
+    /// Download a finished job's image (EXR, plus a PNG preview beside it).
+    Fetch(farm_cmd::FetchArgs),
+    /// Render one scene on a local farm: a coordinator and N worker processes.
+    Cluster(farm_cmd::ClusterArgs),
 }
 
 fn main() {
@@ -43,6 +58,13 @@ fn main() {
         Command::Render(a) => render_cmd::render(a),
         Command::Info(a) => render_cmd::info(a),
         Command::Guide(c) => guide_cmd::run(c),
+        Command::Coordinator(a) => farm_cmd::coordinator(a),
+        Command::Worker(a) => farm_cmd::worker(a),
+        Command::Submit(a) => farm_cmd::submit(a),
+        Command::Status(a) => farm_cmd::status(a),
+        Command::Cancel(a) => farm_cmd::cancel(a),
+        Command::Fetch(a) => farm_cmd::fetch(a),
+        Command::Cluster(a) => farm_cmd::cluster(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -3,7 +3,7 @@
 //! and cycle detection.
 
 use std::collections::{HashMap, HashSet};
-use std::path::PathBuf;
+use std::path::{Component, Path, PathBuf};
 use std::rc::Rc;
 
 use crate::desc::{BsdfDesc, Location, TextureDesc};
@@ -29,6 +29,12 @@ pub(crate) struct Ctx {
     /// Bytes of mesh and texture data loaded so far (checked against
     /// `limits.max_memory_bytes` before each allocation, see [`Ctx::reserve_memory`]).
     pub memory_bytes: u64,
+    /// Every file read so far, as resolved, each once, in first-read order (the root scene
+    /// file first): becomes [`crate::SceneDesc::files`].
+    pub files: Vec<PathBuf>,
+    files_seen: HashSet<PathBuf>,
+    /// `base_dir` canonicalized, computed on the first confined [`Ctx::resolve_path`].
+    canonical_base: Option<PathBuf>,
 }
 
 impl Ctx {
@@ -45,6 +51,9 @@ impl Ctx {
             default_bsdf: None,
             limits,
             memory_bytes: 0,
+            files: Vec::new(),
+            files_seen: HashSet::new(),
+            canonical_base: None,
         }
     }
 
@@ -53,14 +62,103 @@ impl Ctx {
         Props::new(node.clone(), &self.ids)
     }
 
-    /// Resolve a file name relative to the scene file's directory.
-    pub(crate) fn resolve_path(&self, name: &str) -> PathBuf {
-        let p = PathBuf::from(name);
-        if p.is_absolute() {
-            p
+    /// Record that `path` is read (once; later calls with the same path do nothing).
+    pub(crate) fn record_file(&mut self, path: &Path) {
+        if self.files_seen.insert(path.to_path_buf()) {
+            self.files.push(path.to_path_buf());
+        }
+    }
+
+    /// Resolve the file name `name` (written at `loc`) relative to the scene file's directory
+    /// and record it in [`Ctx::files`]: the caller reads the returned path.
+    ///
+    /// With `limits.confine_files`, `name` must be relative, without `..` (or root) components,
+    /// and resolve, symlinks followed, to a file inside the scene file's directory: anything
+    /// else is an error at `loc` naming `name`. Without it, absolute names are used as they
+    /// are and `..` is allowed.
+    pub(crate) fn resolve_path(
+        &mut self,
+        name: &str,
+        loc: &Location,
+    ) -> Result<PathBuf, SceneError> {
+        let p = Path::new(name);
+        let path = if p.is_absolute() {
+            p.to_path_buf()
         } else {
             self.base_dir.join(p)
+        };
+        if self.limits.confine_files {
+            self.check_confined(name, &path, loc)?;
         }
+        self.record_file(&path);
+        Ok(path)
+    }
+
+    /// The checks of `Limits::confine_files` on the file name `name`, resolved to `path`.
+    fn check_confined(
+        &mut self,
+        name: &str,
+        path: &Path,
+        loc: &Location,
+    ) -> Result<(), SceneError> {
+        let refuse = |why: &str| {
+            invalid(
+                loc,
+                format!(
+                    "file name '{name}' {why}: files are confined to the scene file's \
+                     directory (Limits::confine_files)"
+                ),
+            )
+        };
+        let p = Path::new(name);
+        if p.is_absolute() || p.has_root() {
+            return Err(refuse("is an absolute path"));
+        }
+        let mut normal = 0;
+        for c in p.components() {
+            match c {
+                Component::Normal(_) => normal += 1,
+                Component::CurDir => {}
+                Component::ParentDir => return Err(refuse("contains a '..' component")),
+                Component::RootDir | Component::Prefix(_) => {
+                    return Err(refuse("is an absolute path"))
+                }
+            }
+        }
+        if normal == 0 {
+            return Err(refuse("names no file"));
+        }
+        let base = match &self.canonical_base {
+            Some(b) => b.clone(),
+            None => {
+                let dir = if self.base_dir.as_os_str().is_empty() {
+                    Path::new(".")
+                } else {
+                    self.base_dir.as_path()
+                };
+                let b = std::fs::canonicalize(dir).map_err(|e| {
+                    invalid(
+                        loc,
+                        format!(
+                            "the scene file's directory '{}': cannot read: {e}",
+                            dir.display()
+                        ),
+                    )
+                })?;
+                self.canonical_base = Some(b.clone());
+                b
+            }
+        };
+        let real = std::fs::canonicalize(path)
+            .map_err(|e| invalid(loc, format!("file '{name}': cannot read: {e}")))?;
+        if !real.starts_with(&base) {
+            return Err(refuse(&format!(
+                "resolves (through a symbolic link) to '{}', outside '{}'",
+                real.display(),
+                base.display()
+            )));
+        }
+        Ok(())
     }
 
     /// Mark `node` as being built; errors on a reference cycle.

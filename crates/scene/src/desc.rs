@@ -48,6 +48,10 @@ pub struct SceneDesc {
     pub warnings: Vec<String>,
     /// The limits it was loaded with; the renderer checks its own allocations against them.
     pub limits: crate::Limits,
+    /// Every file the loader read: `source` first, then each file the scene references
+    /// (meshes, textures, environment maps) as resolved (a relative name joined to `source`'s
+    /// directory, an absolute one as written), each once, in the order first read.
+    pub files: Vec<PathBuf>,
 }
 
 impl SceneDesc {

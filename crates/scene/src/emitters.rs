@@ -94,7 +94,7 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
                 .ok_or_else(|| invalid(p.loc(), "envmap requires a 'filename' parameter"))?;
             let scale = p.float("scale", 1.0)?;
             let to_world = p.transform("to_world")?.as_mat4();
-            let path = ctx.resolve_path(&name);
+            let path = ctx.resolve_path(&name, &loc)?;
             let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
             EmitterDesc::EnvMap { width: img.width, height: img.height, texels: Arc::new(img.texels.iter().collect()), scale, to_world }
         }

@@ -55,7 +55,9 @@ pub fn load_scene(path: &Path, overrides: &[(String, String)]) -> Result<SceneDe
 }
 
 /// [`load_scene`] with the given resource limits: every size the file (or an override) turns
-/// into memory or work is checked against `limits` before it is allocated.
+/// into memory or work is checked against `limits` before it is allocated, and with
+/// `limits.confine_files` the scene may read only files inside its own directory
+/// ([`Limits::confine_files`]). [`SceneDesc::files`] lists the files it read.
 pub fn load_scene_with_limits(
     path: &Path,
     overrides: &[(String, String)],
@@ -63,6 +65,7 @@ pub fn load_scene_with_limits(
 ) -> Result<SceneDesc, SceneError> {
     let parsed = xml::parse_file(path, overrides, limits)?;
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone());
+    ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;
     let mut shape_descs = Vec::new();
@@ -142,6 +145,7 @@ pub fn load_scene_with_limits(
         features,
         warnings: ctx.warnings,
         limits: ctx.limits,
+        files: ctx.files,
     })
 }
 

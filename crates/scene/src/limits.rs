@@ -1,4 +1,5 @@
-//! The limits on what a scene file or a flag may make pathfarm allocate or compute.
+//! The limits on what a scene file or a flag may make pathfarm allocate or compute, and on
+//! which files a scene may read ([`Limits::confine_files`]).
 //!
 //! A scene is untrusted input (the farm takes it from the network), so every number that turns
 //! into memory or work is checked against these limits *before* anything is allocated, with an
@@ -50,6 +51,15 @@ pub struct Limits {
     /// less (default: a quarter of `max_memory_bytes`). Refinement coarsens the quadtrees
     /// rather than exceed it.
     pub max_guide_memory_bytes: u64,
+    /// Confine the files a scene reads to its own directory (default false: a local user's
+    /// scene may name absolute paths and `..`, and `pathfarm render` allows them). When true,
+    /// as for a scene bundle the farm takes from the network, every file name a scene gives
+    /// (meshes, textures, environment maps) must be relative, without `..` components, and
+    /// resolve, symbolic links followed, to a file inside the directory of the scene file;
+    /// anything else is an error naming the scene file, the line and the file name. (The
+    /// files are then read through the names as written, so the directory must not change
+    /// while the scene loads.)
+    pub confine_files: bool,
 }
 
 impl Default for Limits {
@@ -72,6 +82,7 @@ impl Default for Limits {
             max_scatter_samples: 1 << 26,
             max_memory_bytes: memory,
             max_guide_memory_bytes: memory / 4,
+            confine_files: false,
         }
     }
 }

@@ -162,7 +162,7 @@ fn bitmap(ctx: &mut Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     let to_uv = uv_transform(p.transform("to_uv")?);
     // `accel` only selects Mitsuba's hardware texture path: no effect here.
     let _ = p.bool("accel", true)?;
-    let path = ctx.resolve_path(&name);
+    let path = ctx.resolve_path(&name, &loc)?;
     let img = load_checked(ctx, &path, raw, "texture file", &loc)?;
     Ok(TextureDesc::Bitmap(BitmapDesc {
         width: img.width,

@@ -69,7 +69,7 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
             let face_normals = p.bool("face_normals", false)?;
             // Mitsuba: OBJ flips v by default, PLY does not.
             let flip_tex_coords = p.bool("flip_tex_coords", is_obj)?;
-            let path = ctx.resolve_path(&name);
+            let path = ctx.resolve_path(&name, &name_loc)?;
             let input = mesh::MeshInput {
                 path: &path,
                 source: format!("mesh file '{}'", path.display()),

@@ -1,0 +1,713 @@
+//! The farm's subcommands: `coordinator`, `worker`, `submit`, `status`, `cancel`, `fetch`
+//! and `cluster` (a coordinator and N workers on this machine, for one job).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use pathfarm_farm::client::{self, Budget, Client, SubmitOptions};
+use pathfarm_proto::v1;
+use pathfarm_render::output;
+use pathfarm_scene::Limits;
+use tokio::signal::unix::{signal, Signal, SignalKind};
+
+use crate::outfile::{self, OutputFile};
+use crate::render_cmd::{check_budget_flags, parse_defines};
+
+#[derive(Args)]
+pub struct CoordinatorArgs {
+    /// Address to serve the gRPC API on.
+    #[arg(long, default_value = "127.0.0.1:50051")]
+    pub listen: SocketAddr,
+    /// Directory for blobs, results and the job database.
+    #[arg(long = "data", value_name = "DIR")]
+    pub data: PathBuf,
+    /// Require `authorization: Bearer TOKEN` on every call.
+    #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Prometheus metrics address.
+    #[arg(long, value_name = "ADDR")]
+    pub metrics: Option<SocketAddr>,
+}
+
+#[derive(Args)]
+pub struct WorkerArgs {
+    /// The coordinator's URL, e.g. http://127.0.0.1:50051.
+    #[arg(long, env = "PATHFARM_COORDINATOR")]
+    pub coordinator: String,
+    /// Render threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Bearer token for the coordinator.
+    #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// A name for this worker, shown by `pathfarm status`.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Cache directory for blobs and scene bundles (default: $XDG_CACHE_HOME or
+    /// ~/.cache, /pathfarm-worker-PID).
+    #[arg(long = "cache", value_name = "DIR")]
+    pub cache: Option<PathBuf>,
+}
+
+/// Coordinator connection flags shared by the client subcommands.
+#[derive(Args, Clone)]
+pub struct ConnArgs {
+    /// The coordinator's URL, e.g. http://127.0.0.1:50051.
+    #[arg(long, env = "PATHFARM_COORDINATOR")]
+    pub coordinator: String,
+    /// Bearer token for the coordinator.
+    #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+}
+
+/// Render settings shared by `submit` and `cluster`.
+#[derive(Args, Clone)]
+pub struct JobArgs {
+    /// Samples per pixel (default: the scene's own budget).
+    #[arg(long, conflicts_with = "time")]
+    pub spp: Option<u32>,
+    /// Wall-clock budget in seconds.
+    #[arg(long)]
+    pub time: Option<f64>,
+    /// Seed of all random numbers (default: the scene sampler's seed).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override a scene parameter declared with <default>, e.g. -D spp=64.
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub defines: Vec<String>,
+}
+
+#[derive(Args)]
+pub struct SubmitArgs {
+    /// The Mitsuba 3 XML scene.
+    pub scene: PathBuf,
+    #[command(flatten)]
+    pub conn: ConnArgs,
+    /// Wait for the job to finish (with a progress bar).
+    #[arg(long)]
+    pub wait: bool,
+    /// With --wait: write the result here (EXR, plus a PNG preview beside it).
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    #[command(flatten)]
+    pub job: JobArgs,
+    /// Scheduling priority (higher first).
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
+    pub priority: i32,
+    /// Tile edge in pixels (default: the coordinator's).
+    #[arg(long = "tile")]
+    pub tile: Option<u32>,
+}
+
+#[derive(Args)]
+pub struct StatusArgs {
+    /// One job to describe (default: every job and every worker).
+    pub job: Option<String>,
+    #[command(flatten)]
+    pub conn: ConnArgs,
+}
+
+#[derive(Args)]
+pub struct CancelArgs {
+    pub job: String,
+    #[command(flatten)]
+    pub conn: ConnArgs,
+}
+
+#[derive(Args)]
+pub struct FetchArgs {
+    pub job: String,
+    /// Output EXR (a PNG preview is written beside it).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub conn: ConnArgs,
+}
+
+#[derive(Args)]
+pub struct ClusterArgs {
+    /// Worker processes to start.
+    #[arg(long)]
+    pub workers: usize,
+    /// Render threads of each worker (default: cores / workers, at least 1).
+    #[arg(long)]
+    pub threads_per_worker: Option<usize>,
+    /// The Mitsuba 3 XML scene.
+    pub scene: PathBuf,
+    /// Output EXR (a PNG preview is written beside it).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub job: JobArgs,
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// SIGINT and SIGTERM, registered now (before any output file, so that the output files'
+/// own signal handler stays out of the way and temporaries are dropped normally).
+struct Signals {
+    int: Signal,
+    term: Signal,
+}
+
+impl Signals {
+    fn new() -> Result<Self> {
+        Ok(Signals {
+            int: signal(SignalKind::interrupt()).context("installing the SIGINT handler")?,
+            term: signal(SignalKind::terminate()).context("installing the SIGTERM handler")?,
+        })
+    }
+
+    async fn recv(&mut self) {
+        tokio::select! {
+            _ = self.int.recv() => {}
+            _ = self.term.recv() => {}
+        }
+    }
+}
+
+pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
+    let rt = runtime()?;
+    rt.block_on(async move {
+        let mut signals = Signals::new()?;
+        let shutdown = async move { signals.recv().await };
+        serve_coordinator(args, shutdown).await
+    })
+}
+
+async fn serve_coordinator(
+    args: CoordinatorArgs,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> Result<()> {
+    use pathfarm_farm::coordinator::{self, CoordinatorConfig};
+    let cfg = CoordinatorConfig {
+        listen: args.listen,
+        data_dir: args.data,
+        token: args.token,
+        metrics: args.metrics,
+        limits: Limits::default(),
+        bundle_limits: Default::default(),
+        scheduler: Default::default(),
+        default_tile: 32,
+    };
+    coordinator::serve(cfg, shutdown).await?;
+    Ok(())
+}
+
+fn default_cache() -> PathBuf {
+    let name = format!("pathfarm-worker-{}", std::process::id());
+    if let Some(x) = std::env::var_os("XDG_CACHE_HOME").filter(|x| !x.is_empty()) {
+        return PathBuf::from(x).join(name);
+    }
+    if let Some(h) = std::env::var_os("HOME").filter(|x| !x.is_empty()) {
+        return PathBuf::from(h).join(".cache").join(name);
+    }
+    std::env::temp_dir().join(name)
+}
+
+fn default_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+pub fn worker(args: WorkerArgs) -> Result<()> {
+    let threads = args.threads.unwrap_or_else(default_threads);
+    if threads == 0 {
+        bail!("--threads must be at least 1");
+    }
+    let cfg = pathfarm_farm::worker::WorkerConfig {
+        coordinator: args.coordinator,
+        token: args.token,
+        threads,
+        name: args.name.unwrap_or_default(),
+        cache_dir: args.cache.unwrap_or_else(default_cache),
+    };
+    let rt = runtime()?;
+    rt.block_on(async move {
+        let mut signals = Signals::new()?;
+        pathfarm_farm::worker::run(cfg, async move { signals.recv().await }).await?;
+        Ok(())
+    })
+}
+
+fn job_options(
+    job: &JobArgs,
+    scene: &Path,
+    tile: Option<u32>,
+    priority: i32,
+) -> Result<SubmitOptions> {
+    check_budget_flags(job.spp, job.time, &Limits::default())?;
+    if tile == Some(0) {
+        bail!("--tile must be at least 1");
+    }
+    Ok(SubmitOptions {
+        defines: parse_defines(&job.defines)?,
+        budget: match (job.spp, job.time) {
+            (Some(n), _) => Some(Budget::Spp(n)),
+            (None, Some(t)) => Some(Budget::Seconds(t)),
+            _ => None,
+        },
+        seed: job.seed,
+        tile_size: tile,
+        priority,
+        name: scene
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    })
+}
+
+/// The EXR output and its PNG preview beside it, opened (checked) before any work.
+fn open_outputs(exr: &Path) -> Result<(OutputFile, OutputFile)> {
+    let ext_ok = exr
+        .extension()
+        .map(|e| e.eq_ignore_ascii_case("exr"))
+        .unwrap_or(false);
+    if !ext_ok {
+        bail!("{}: the output must be an .exr file", exr.display());
+    }
+    let exr_out = OutputFile::create(exr)?;
+    let png_out = OutputFile::create_checked(&exr.with_extension("png"), |p| {
+        if output::is_pathfarm_preview(p) {
+            return Ok(());
+        }
+        bail!(
+            "{}: exists and is not a preview written by pathfarm, so it is left alone",
+            p.display()
+        )
+    })?;
+    Ok((exr_out, png_out))
+}
+
+async fn write_results(
+    client: &mut Client,
+    job: &str,
+    outs: (OutputFile, OutputFile),
+) -> Result<()> {
+    let exr = client.download(job, v1::ResultKind::Exr).await?;
+    let png = client.download(job, v1::ResultKind::PngPreview).await?;
+    outfile::commit_all(vec![(outs.0, exr.as_slice()), (outs.1, png.as_slice())])
+}
+
+fn state_name(s: i32) -> &'static str {
+    match v1::JobState::try_from(s) {
+        Ok(v1::JobState::Queued) => "queued",
+        Ok(v1::JobState::Training) => "training",
+        Ok(v1::JobState::FinalPass) => "final-pass",
+        Ok(v1::JobState::Assembling) => "assembling",
+        Ok(v1::JobState::Done) => "done",
+        Ok(v1::JobState::Failed) => "failed",
+        Ok(v1::JobState::Cancelled) => "cancelled",
+        _ => "unknown",
+    }
+}
+
+/// Watches `job` with a progress bar until it ends; errors unless it ended DONE.
+async fn wait_for(client: &mut Client, job: &str) -> Result<()> {
+    let bar = ProgressBar::new(1);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {percent}% {msg} ({eta} left)",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let status = client
+        .watch(job, |s| {
+            if s.samples_total > 0 {
+                bar.set_length(s.samples_total);
+                bar.set_position(s.samples_done.min(s.samples_total));
+            }
+            bar.set_message(format!(
+                "{} iteration {} tiles {}/{} samples {}",
+                state_name(s.state),
+                s.iteration,
+                s.tiles_done,
+                s.tiles_total,
+                s.samples_done
+            ));
+        })
+        .await;
+    bar.finish_and_clear();
+    let status = status?;
+    match v1::JobState::try_from(status.state) {
+        Ok(v1::JobState::Done) => Ok(()),
+        Ok(v1::JobState::Failed) => bail!("job {job} failed: {}", status.failure_reason),
+        Ok(v1::JobState::Cancelled) => bail!("job {job} was cancelled"),
+        _ => bail!("job {job} ended in state {}", state_name(status.state)),
+    }
+}
+
+pub fn submit(args: SubmitArgs) -> Result<()> {
+    if args.output.is_some() && !args.wait {
+        bail!("-o/--output needs --wait (or use `pathfarm fetch JOB -o OUT.exr` later)");
+    }
+    let opts = job_options(&args.job, &args.scene, args.tile, args.priority)?;
+    let rt = runtime()?;
+    rt.block_on(async move {
+        let mut signals = Signals::new()?;
+        let outs = match &args.output {
+            Some(o) => Some(open_outputs(o)?),
+            None => None,
+        };
+        let work = async {
+            let mut client =
+                client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+            let job = client.submit(&args.scene, &opts).await?;
+            println!("{job}");
+            if args.wait {
+                wait_for(&mut client, &job).await?;
+                if let Some(outs) = outs {
+                    write_results(&mut client, &job, outs).await?;
+                }
+            }
+            anyhow::Ok(())
+        };
+        tokio::select! {
+            r = work => r,
+            _ = signals.recv() => bail!("interrupted"),
+        }
+    })
+}
+
+fn ms_ago(unix_ms: u64) -> String {
+    if unix_ms == 0 {
+        return "-".into();
+    }
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64);
+    format!("{:.1}s ago", now.saturating_sub(unix_ms) as f64 / 1000.0)
+}
+
+fn print_job_row(s: &v1::JobStatus) {
+    let pct = if s.samples_total > 0 {
+        format!(
+            "{:.1}%",
+            100.0 * s.samples_done as f64 / s.samples_total as f64
+        )
+    } else {
+        "-".into()
+    };
+    let eta = s.eta_seconds.map_or("-".into(), |e| format!("{e:.0}s"));
+    println!(
+        "{:<24} {:<20} {:<11} {:>4} {:>11} {:>7} {:>6} {:>4}  {}",
+        s.job_id,
+        s.name,
+        state_name(s.state),
+        s.iteration,
+        format!("{}/{}", s.tiles_done, s.tiles_total),
+        pct,
+        eta,
+        s.priority,
+        s.failure_reason
+    );
+}
+
+pub fn status(args: StatusArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let mut client =
+            client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+        if let Some(job) = &args.job {
+            let r = client.status(job).await?;
+            let s = r.status.unwrap_or_default();
+            println!("job:        {}", s.job_id);
+            println!("name:       {}", s.name);
+            println!("state:      {}", state_name(s.state));
+            println!("scene:      {}", r.root);
+            if let Some(img) = r.image {
+                println!("image:      {}x{}", img.width, img.height);
+            }
+            println!("iteration:  {}", s.iteration);
+            println!("unit:       {}", s.unit);
+            println!("tiles:      {}/{}", s.tiles_done, s.tiles_total);
+            println!("samples:    {}/{}", s.samples_done, s.samples_total);
+            println!("spp done:   {}", s.spp_done);
+            if let Some(e) = s.eta_seconds {
+                println!("eta:        {e:.0} s");
+            }
+            println!("priority:   {}", s.priority);
+            println!("submitted:  {}", ms_ago(s.submitted_unix_ms));
+            if !s.failure_reason.is_empty() {
+                println!("failure:    {}", s.failure_reason);
+            }
+            return Ok(());
+        }
+        let jobs = client.list_jobs().await?;
+        println!(
+            "{:<24} {:<20} {:<11} {:>4} {:>11} {:>7} {:>6} {:>4}  REASON",
+            "JOB", "NAME", "STATE", "ITER", "TILES", "SAMPLES", "ETA", "PRIO"
+        );
+        for s in &jobs {
+            print_job_row(s);
+        }
+        let workers = client.list_workers().await?;
+        println!();
+        println!(
+            "{:<6} {:<16} {:<20} {:>7} {:>7} {:<10} {:<12} LEASES",
+            "WORKER", "NAME", "HOST", "THREADS", "TILES", "STATE", "HEARTBEAT"
+        );
+        for w in &workers {
+            let state = if !w.connected {
+                "gone"
+            } else if w.draining {
+                "draining"
+            } else {
+                "connected"
+            };
+            println!(
+                "{:<6} {:<16} {:<20} {:>7} {:>7} {:<10} {:<12} {:?}",
+                w.worker_id,
+                w.worker_name,
+                w.host_name,
+                w.threads,
+                w.tiles_done,
+                state,
+                ms_ago(w.last_heartbeat_unix_ms),
+                w.lease_ids
+            );
+        }
+        Ok(())
+    })
+}
+
+pub fn cancel(args: CancelArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let mut client =
+            client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+        let r = client.cancel(&args.job).await?;
+        let state = r.status.map_or("unknown", |s| state_name(s.state));
+        if r.cancelled {
+            println!("{}: cancelled", args.job);
+        } else {
+            println!("{}: not cancelled (already {state})", args.job);
+        }
+        Ok(())
+    })
+}
+
+pub fn fetch(args: FetchArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let mut signals = Signals::new()?;
+        let outs = open_outputs(&args.output)?;
+        let work = async {
+            let mut client =
+                client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+            write_results(&mut client, &args.job, outs).await
+        };
+        tokio::select! {
+            r = work => r,
+            _ = signals.recv() => bail!("interrupted"),
+        }
+    })
+}
+
+// ----- cluster -----
+
+/// The child processes and temporary directory of a local cluster; dropping it stops the
+/// children (SIGTERM, then SIGKILL after 5 s) and removes the directory.
+struct Cluster {
+    children: Vec<(String, Child)>,
+    dir: PathBuf,
+}
+
+impl Cluster {
+    fn stop(&mut self) {
+        for (_, c) in &self.children {
+            // SAFETY: kill(2) on our own child's pid.
+            unsafe {
+                libc::kill(c.id() as libc::pid_t, libc::SIGTERM);
+            }
+        }
+        let deadline = Instant::now() + Duration::from_secs(5);
+        for (name, c) in &mut self.children {
+            loop {
+                match c.try_wait() {
+                    Ok(Some(_)) => break,
+                    Ok(None) if Instant::now() < deadline => {
+                        std::thread::sleep(Duration::from_millis(20))
+                    }
+                    _ => {
+                        tracing::warn!("{name} did not stop after SIGTERM: killing it");
+                        let _ = c.kill();
+                        let _ = c.wait();
+                        break;
+                    }
+                }
+            }
+        }
+        self.children.clear();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+
+    /// An error if a child has exited.
+    fn check_alive(&mut self) -> Result<()> {
+        for (name, c) in &mut self.children {
+            if let Some(st) = c.try_wait()? {
+                bail!("{name} exited early ({st})");
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Drop for Cluster {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+fn random_hex(bytes: usize) -> String {
+    let mut buf = vec![0u8; bytes];
+    let ok = std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut buf))
+        .is_ok();
+    if !ok {
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
+        let h = blake3_like(format!("{t}-{}", std::process::id()).as_bytes());
+        buf = h;
+    }
+    buf.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// A weak fallback mix (only when /dev/urandom is unreadable).
+fn blake3_like(data: &[u8]) -> Vec<u8> {
+    let mut x: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut out = Vec::with_capacity(16);
+    for round in 0..2u64 {
+        for &b in data {
+            x = (x ^ b as u64 ^ round).wrapping_mul(0x0100_0000_01b3);
+        }
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out
+}
+
+fn free_port() -> Result<u16> {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").context("finding a free port")?;
+    Ok(l.local_addr()?.port())
+}
+
+pub fn cluster(args: ClusterArgs) -> Result<()> {
+    if args.workers == 0 {
+        bail!("--workers must be at least 1");
+    }
+    let threads = args
+        .threads_per_worker
+        .unwrap_or_else(|| (default_threads() / args.workers).max(1));
+    if threads == 0 {
+        bail!("--threads-per-worker must be at least 1");
+    }
+    let opts = job_options(&args.job, &args.scene, None, 0)?;
+    let rt = runtime()?;
+    rt.block_on(async move {
+        let mut signals = Signals::new()?;
+        let outs = open_outputs(&args.output)?;
+        let exe = std::env::current_exe().context("finding the pathfarm executable")?;
+        let dir = std::env::temp_dir().join(format!(
+            "pathfarm-cluster-{}-{}",
+            std::process::id(),
+            random_hex(4)
+        ));
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let mut cluster = Cluster {
+            children: Vec::new(),
+            dir: dir.clone(),
+        };
+        let token = random_hex(16);
+        let port = free_port()?;
+        let url = format!("http://127.0.0.1:{port}");
+        let log = std::env::var("RUST_LOG").unwrap_or_else(|_| "warn".into());
+        let spawn = |what: &str, argv: Vec<String>| -> Result<Child> {
+            Command::new(&exe)
+                .args(&argv)
+                .env("PATHFARM_TOKEN", &token)
+                .env("RUST_LOG", &log)
+                .env_remove("PATHFARM_COORDINATOR")
+                .stdin(Stdio::null())
+                .stdout(Stdio::null())
+                .spawn()
+                .with_context(|| format!("starting {what}"))
+        };
+        let c = spawn(
+            "the coordinator",
+            vec![
+                "coordinator".into(),
+                "--listen".into(),
+                format!("127.0.0.1:{port}"),
+                "--data".into(),
+                dir.join("coordinator").to_string_lossy().into_owned(),
+            ],
+        )?;
+        cluster.children.push(("the coordinator".into(), c));
+        for i in 0..args.workers {
+            let c = spawn(
+                "a worker",
+                vec![
+                    "worker".into(),
+                    "--coordinator".into(),
+                    url.clone(),
+                    "--threads".into(),
+                    threads.to_string(),
+                    "--name".into(),
+                    format!("cluster-{i}"),
+                    "--cache".into(),
+                    dir.join(format!("worker-{i}"))
+                        .to_string_lossy()
+                        .into_owned(),
+                ],
+            )?;
+            cluster.children.push((format!("worker {i}"), c));
+        }
+        let work = async {
+            // Wait until the coordinator answers.
+            let start = Instant::now();
+            let mut client = loop {
+                cluster.check_alive()?;
+                if let Ok(mut c) = client::connect(&url, Some(&token)).await {
+                    if c.list_workers().await.is_ok() {
+                        break c;
+                    }
+                }
+                if start.elapsed() > Duration::from_secs(60) {
+                    bail!("the coordinator did not answer within 60 s");
+                }
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            };
+            let job = client.submit(&args.scene, &opts).await?;
+            tracing::info!(
+                "submitted job {job} to a cluster of {} workers",
+                args.workers
+            );
+            {
+                let watch = wait_for(&mut client, &job);
+                tokio::pin!(watch);
+                let mut tick = tokio::time::interval(Duration::from_millis(500));
+                loop {
+                    tokio::select! {
+                        r = &mut watch => { r?; break; }
+                        _ = tick.tick() => cluster.check_alive()?,
+                    }
+                }
+            }
+            write_results(&mut client, &job, outs).await?;
+            anyhow::Ok(())
+        };
+        let r = tokio::select! {
+            r = work => r,
+            _ = signals.recv() => Err(anyhow::anyhow!("interrupted")),
+        };
+        cluster.stop();
+        r
+    })
+}

@@ -1,0 +1,295 @@
+//! Binary forms of what travels between the coordinator and workers besides the guide's own
+//! wire forms (trees: [`pathfarm_guide::SdTree::encode`], statistics:
+//! [`pathfarm_guide::IterationStats::encode`]): the learned fractions of a pass, the pixel
+//! estimate, a tile's pixel sums, and the pass spec in its proto form. All little-endian,
+//! each with a 4-byte magic and a version byte, decoded with length checks (a payload comes
+//! from the network).
+
+use pathfarm_guide::fraction::FractionState;
+use pathfarm_proto::v1;
+use pathfarm_render::film::PixelStats;
+use pathfarm_render::pass::{PassKind, PassSpec};
+use pathfarm_render::{Film, Region};
+
+/// A payload that does not decode.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum CodecError {
+    #[error("{what}: bad magic or version")]
+    Header { what: &'static str },
+    #[error("{what}: {got} bytes, expected {expected}")]
+    Length {
+        what: &'static str,
+        got: usize,
+        expected: usize,
+    },
+    #[error("pass spec: unknown pass kind {0}")]
+    Kind(i32),
+    #[error("tile region {0:?} is empty or not inside the image")]
+    Region(Region),
+}
+
+const VERSION: u8 = 1;
+
+fn header(magic: &[u8; 4]) -> Vec<u8> {
+    let mut v = magic.to_vec();
+    v.push(VERSION);
+    v
+}
+
+/// The body after the header, whose length must be `count * item`.
+fn body<'a>(
+    bytes: &'a [u8],
+    magic: &[u8; 4],
+    what: &'static str,
+    item: usize,
+) -> Result<(&'a [u8], usize), CodecError> {
+    if bytes.len() < 9 || &bytes[..4] != magic || bytes[4] != VERSION {
+        return Err(CodecError::Header { what });
+    }
+    let count = u32::from_le_bytes(bytes[5..9].try_into().unwrap()) as usize;
+    let rest = &bytes[9..];
+    let expected = count.checked_mul(item).unwrap_or(usize::MAX);
+    if rest.len() != expected {
+        return Err(CodecError::Length {
+            what,
+            got: rest.len(),
+            expected,
+        });
+    }
+    Ok((rest, count))
+}
+
+fn f64_at(b: &[u8], i: usize) -> f64 {
+    f64::from_le_bytes(b[8 * i..8 * i + 8].try_into().unwrap())
+}
+
+/// The learned-fraction states of every leaf ([`pathfarm_guide::SdTree::fraction_states`]).
+pub fn encode_fractions(states: &[FractionState]) -> Vec<u8> {
+    let mut v = header(b"PFFR");
+    v.extend_from_slice(&(states.len() as u32).to_le_bytes());
+    for s in states {
+        for x in [s.theta, s.m, s.v] {
+            v.extend_from_slice(&x.to_le_bytes());
+        }
+        v.extend_from_slice(&s.t.to_le_bytes());
+    }
+    v
+}
+
+pub fn decode_fractions(bytes: &[u8]) -> Result<Vec<FractionState>, CodecError> {
+    let (b, n) = body(bytes, b"PFFR", "fractions", 32)?;
+    Ok((0..n)
+        .map(|i| {
+            let c = &b[32 * i..32 * i + 32];
+            FractionState {
+                theta: f64_at(c, 0),
+                m: f64_at(c, 1),
+                v: f64_at(c, 2),
+                t: u64::from_le_bytes(c[24..32].try_into().unwrap()),
+            }
+        })
+        .collect())
+}
+
+/// The per-pixel value estimate ([`pathfarm_render::session::Session::estimate`]).
+pub fn encode_estimate(estimate: &[f32]) -> Vec<u8> {
+    let mut v = header(b"PFES");
+    v.extend_from_slice(&(estimate.len() as u32).to_le_bytes());
+    for x in estimate {
+        v.extend_from_slice(&x.to_le_bytes());
+    }
+    v
+}
+
+pub fn decode_estimate(bytes: &[u8]) -> Result<Vec<f32>, CodecError> {
+    let (b, n) = body(bytes, b"PFES", "estimate", 4)?;
+    Ok((0..n)
+        .map(|i| f32::from_le_bytes(b[4 * i..4 * i + 4].try_into().unwrap()))
+        .collect())
+}
+
+/// Bytes of one pixel: 11 f64 sums and the u32 sample count.
+const PIXEL_BYTES: usize = 11 * 8 + 4;
+
+/// A tile's pixel sums, exactly (raw bits).
+pub fn encode_pixels(film: &Film) -> Vec<u8> {
+    let mut v = header(b"PFPX");
+    v.reserve(4 + film.pixels.len() * PIXEL_BYTES);
+    v.extend_from_slice(&(film.pixels.len() as u32).to_le_bytes());
+    for p in &film.pixels {
+        let sums = [p.sum_w, p.sum_w2]
+            .into_iter()
+            .chain(p.sum_wl)
+            .chain(p.sum_w2l);
+        for x in sums.chain(p.sum_w2l2) {
+            v.extend_from_slice(&x.to_le_bytes());
+        }
+        v.extend_from_slice(&p.count.to_le_bytes());
+    }
+    v
+}
+
+/// The film of `region` from [`encode_pixels`]; the pixel count must match the region.
+pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
+    let (b, n) = body(bytes, b"PFPX", "tile pixels", PIXEL_BYTES)?;
+    if n != region.pixels() {
+        return Err(CodecError::Length {
+            what: "tile pixels (pixel count)",
+            got: n,
+            expected: region.pixels(),
+        });
+    }
+    let mut film = Film::new(region.width(), region.height());
+    for (i, p) in film.pixels.iter_mut().enumerate() {
+        let c = &b[PIXEL_BYTES * i..PIXEL_BYTES * (i + 1)];
+        let f = |k: usize| f64_at(c, k);
+        *p = PixelStats {
+            sum_w: f(0),
+            sum_w2: f(1),
+            sum_wl: [f(2), f(3), f(4)],
+            sum_w2l: [f(5), f(6), f(7)],
+            sum_w2l2: [f(8), f(9), f(10)],
+            count: u32::from_le_bytes(c[88..92].try_into().unwrap()),
+        };
+    }
+    Ok(film)
+}
+
+fn kind_to_proto(k: PassKind) -> v1::PassKind {
+    match k {
+        PassKind::Record => v1::PassKind::Record,
+        PassKind::Guided => v1::PassKind::Guided,
+        PassKind::Probe => v1::PassKind::Probe,
+        PassKind::Path => v1::PassKind::Path,
+    }
+}
+
+/// The proto form of `spec`; the blob digests are the caller's (empty = none).
+pub fn spec_to_proto(spec: &PassSpec) -> v1::PassSpec {
+    v1::PassSpec {
+        unit: spec.unit,
+        iteration: spec.iteration,
+        kind: kind_to_proto(spec.kind) as i32,
+        first_sample: spec.first_sample,
+        spp: spec.spp,
+        passes: spec.passes,
+        guide: spec.guide(),
+        record: spec.record(),
+        split: spec.split,
+        spp_before: spec.spp_before,
+        tree_version: spec.tree_version,
+        fraction_version: spec.fraction_version,
+        ..Default::default()
+    }
+}
+
+/// The render crate's spec from its proto form.
+pub fn spec_from_proto(p: &v1::PassSpec) -> Result<PassSpec, CodecError> {
+    let kind = match v1::PassKind::try_from(p.kind) {
+        Ok(v1::PassKind::Record) => PassKind::Record,
+        Ok(v1::PassKind::Guided) => PassKind::Guided,
+        Ok(v1::PassKind::Probe) => PassKind::Probe,
+        Ok(v1::PassKind::Path) => PassKind::Path,
+        _ => return Err(CodecError::Kind(p.kind)),
+    };
+    Ok(PassSpec {
+        unit: p.unit,
+        iteration: p.iteration,
+        kind,
+        first_sample: p.first_sample,
+        spp: p.spp,
+        passes: p.passes,
+        spp_before: p.spp_before,
+        split: p.split,
+        tree_version: p.tree_version,
+        fraction_version: p.fraction_version,
+    })
+}
+
+/// A proto rectangle as a region inside a `width x height` image.
+pub fn region_from_proto(r: &v1::Rect, width: u32, height: u32) -> Result<Region, CodecError> {
+    let region = Region {
+        x0: r.x0,
+        y0: r.y0,
+        x1: r.x1,
+        y1: r.y1,
+    };
+    if region.is_valid_in(width, height) {
+        Ok(region)
+    } else {
+        Err(CodecError::Region(region))
+    }
+}
+
+pub fn region_to_proto(r: Region) -> v1::Rect {
+    v1::Rect {
+        x0: r.x0,
+        y0: r.y0,
+        x1: r.x1,
+        y1: r.y1,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn payloads_round_trip_bit_for_bit_and_truncation_is_refused() {
+        let fr = vec![
+            FractionState {
+                theta: -0.1,
+                m: 1e-300,
+                v: f64::MIN_POSITIVE,
+                t: 7,
+            };
+            3
+        ];
+        assert_eq!(decode_fractions(&encode_fractions(&fr)).unwrap(), fr);
+        let est = vec![0.5f32, 1e-6, 3.0];
+        assert_eq!(decode_estimate(&encode_estimate(&est)).unwrap(), est);
+        let region = Region {
+            x0: 1,
+            y0: 2,
+            x1: 3,
+            y1: 3,
+        };
+        let mut film = Film::new(2, 1);
+        film.pixels[1].add(0.3, glam::Vec3::new(1.0, 2.0, 1e-9));
+        film.pixels[1].count = 4;
+        let enc = encode_pixels(&film);
+        assert_eq!(decode_pixels(&enc, region).unwrap(), film);
+        assert!(decode_pixels(&enc[..enc.len() - 1], region).is_err());
+        let other = Region { x1: 4, ..region };
+        assert!(
+            decode_pixels(&enc, other).is_err(),
+            "pixel count must match"
+        );
+        let mut bad = enc.clone();
+        bad[0] = b'X';
+        assert!(matches!(
+            decode_pixels(&bad, region),
+            Err(CodecError::Header { .. })
+        ));
+    }
+
+    #[test]
+    fn pass_spec_round_trips_through_proto() {
+        let spec = PassSpec {
+            unit: 9,
+            iteration: 3,
+            kind: PassKind::Probe,
+            first_sample: (1 << 40) + 5,
+            spp: 4,
+            passes: 2,
+            spp_before: 17,
+            split: true,
+            tree_version: 3,
+            fraction_version: 11,
+        };
+        assert_eq!(spec_from_proto(&spec_to_proto(&spec)).unwrap(), spec);
+        let mut p = spec_to_proto(&spec);
+        p.kind = 99;
+        assert_eq!(spec_from_proto(&p), Err(CodecError::Kind(99)));
+    }
+}

@@ -1,0 +1,926 @@
+//! The coordinator: the farm's gRPC server. It serves the client API (`pathfarm.v1.Jobs`:
+//! blobs, jobs, results, workers) and the worker API (`pathfarm.v1.Workers`: the control
+//! stream, blob fetches, tile uploads), plus gRPC health and reflection.
+//!
+//! Each guided job is driven by a [`Session`]: its units are split into tiles, offered to
+//! the [`Scheduler`], leased to workers, and the uploaded tiles (pixel sums and guide
+//! statistics) are handed back to the session, which trains the guide exactly as the
+//! one-process render does (bit-identical results).
+//!
+//! # Persistence and restarts
+//!
+//! Blobs live in `DATA/blobs/<hex digest>`; job records in a redb database,
+//! `DATA/jobs.redb`. After a restart, jobs that were DONE, FAILED or CANCELLED are listed as
+//! they were (and a DONE job's results can still be downloaded). Jobs that were QUEUED or
+//! running **resume from their last checkpoint**: between training iterations the session's
+//! state ([`Session::checkpoint`]) is stored as a blob and named in the job record, and a
+//! restarted coordinator restores the session from it; the units after it are those an
+//! uninterrupted run renders, so the result has the same bits. (A job without a usable
+//! checkpoint starts over, which gives the same bits too, later.) The work since the last
+//! checkpoint, at most one iteration, is rendered again.
+//!
+//! Concurrency: one [`Mutex`] holds the scheduler, the jobs with their sessions and the
+//! workers' channels; it is never held across an `.await`.
+
+mod db;
+mod metrics;
+mod service;
+mod store;
+#[cfg(test)]
+mod tests;
+
+use std::collections::{BTreeMap, HashMap};
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use pathfarm_guide::SdTree;
+use pathfarm_proto::v1;
+use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session};
+use pathfarm_render::pass::{PassKind, PassSpec};
+use pathfarm_render::{Region, Scene};
+use pathfarm_scene::{GuidedParams, Limits};
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, watch};
+use tonic::Status;
+
+use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
+use crate::codec;
+use crate::scheduler::{
+    Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, TaskKey, WorkerId,
+};
+
+use db::{Db, JobRecord};
+use store::BlobStore;
+
+/// How the coordinator runs.
+#[derive(Clone, Debug)]
+pub struct CoordinatorConfig {
+    /// The gRPC address to listen on.
+    pub listen: SocketAddr,
+    /// Where blobs, temporary files and the job database live.
+    pub data_dir: PathBuf,
+    /// If set, every RPC of both services needs `authorization: Bearer <token>`.
+    pub token: Option<String>,
+    /// If set, Prometheus metrics (text format) are served at `GET /metrics` on this address.
+    pub metrics: Option<SocketAddr>,
+    /// Scene loading limits (files are always confined to the bundle).
+    pub limits: Limits,
+    /// What a bundle may hold.
+    pub bundle_limits: BundleLimits,
+    /// Lease timeouts and attempts.
+    pub scheduler: SchedulerConfig,
+    /// Tile edge when a job does not set one (32).
+    pub default_tile: u32,
+}
+
+/// Why the coordinator could not start or stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum CoordinatorError {
+    #[error("cannot listen on {addr}: {error}")]
+    Bind {
+        addr: SocketAddr,
+        error: std::io::Error,
+    },
+    #[error("data directory {}: {error}", dir.display())]
+    DataDir { dir: PathBuf, error: std::io::Error },
+    #[error("{0}")]
+    Database(String),
+    #[error("gRPC reflection: {0}")]
+    Reflection(String),
+    #[error("gRPC server: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+/// Binds `cfg.listen` and serves until `shutdown` completes.
+pub async fn serve(
+    cfg: CoordinatorConfig,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), CoordinatorError> {
+    let listener = TcpListener::bind(cfg.listen)
+        .await
+        .map_err(|error| CoordinatorError::Bind {
+            addr: cfg.listen,
+            error,
+        })?;
+    serve_with_listener(cfg, listener, shutdown).await
+}
+
+/// As [`serve`], on an already bound listener (`cfg.listen` is ignored).
+pub async fn serve_with_listener(
+    cfg: CoordinatorConfig,
+    listener: TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), CoordinatorError> {
+    let shared = Shared::open(cfg)?;
+    let addr = listener.local_addr().ok();
+    service::run(shared, listener, addr, shutdown).await
+}
+
+// ----- shared state -----
+
+pub(crate) struct Shared {
+    pub(crate) cfg: CoordinatorConfig,
+    pub(crate) blobs: BlobStore,
+    pub(crate) db: Db,
+    pub(crate) state: Mutex<State>,
+    pub(crate) epoch: Instant,
+    pub(crate) serving: AtomicBool,
+    pub(crate) metrics: Metrics,
+}
+
+/// Counters for `/metrics`.
+#[derive(Default)]
+pub(crate) struct Metrics {
+    pub(crate) blob_bytes_fetched: std::sync::atomic::AtomicU64,
+    pub(crate) tile_bytes_uploaded: std::sync::atomic::AtomicU64,
+    pub(crate) tiles_accepted: std::sync::atomic::AtomicU64,
+    pub(crate) tiles_rejected: std::sync::atomic::AtomicU64,
+    pub(crate) merge_nanos: std::sync::atomic::AtomicU64,
+}
+
+pub(crate) type Outbox = mpsc::UnboundedSender<Result<v1::CoordinatorMessage, Status>>;
+
+pub(crate) struct WorkerConn {
+    pub(crate) tx: Option<Outbox>,
+    pub(crate) credits: u32,
+    pub(crate) register: v1::Register,
+    pub(crate) registered_unix_ms: u64,
+    pub(crate) last_unix_ms: u64,
+    pub(crate) tiles_done: u64,
+    pub(crate) draining: bool,
+}
+
+#[derive(Clone, Copy)]
+pub(crate) struct LeaseInfo {
+    pub(crate) worker: WorkerId,
+    pub(crate) key: TaskKey,
+    /// Its tile was accepted.
+    pub(crate) done: bool,
+}
+
+/// A job being rendered.
+pub(crate) struct Active {
+    pub(crate) session: Session,
+    pub(crate) clock: Instant,
+    pub(crate) seed: u64,
+    pub(crate) spec: Option<PassSpec>,
+    pub(crate) tiles: Vec<Region>,
+    pub(crate) tree_digest: Option<(u32, Digest)>,
+    pub(crate) fractions_digest: Option<((u32, u32), Digest)>,
+    pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
+    pub(crate) samples_total: u64,
+}
+
+pub(crate) struct Job {
+    pub(crate) record: JobRecord,
+    pub(crate) active: Option<Active>,
+    pub(crate) watch: watch::Sender<v1::JobStatus>,
+}
+
+pub(crate) struct State {
+    pub(crate) sched: Scheduler,
+    pub(crate) jobs: BTreeMap<u64, Job>,
+    pub(crate) workers: BTreeMap<u64, WorkerConn>,
+    pub(crate) leases: HashMap<u64, LeaseInfo>,
+    pub(crate) next_job: u64,
+    pub(crate) next_worker: u64,
+}
+
+pub(crate) fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+pub(crate) fn job_name(n: u64) -> String {
+    format!("job-{n}")
+}
+
+pub(crate) fn parse_job(id: &str) -> Option<u64> {
+    id.strip_prefix("job-")?.parse().ok()
+}
+
+pub(crate) fn is_terminal(state: i32) -> bool {
+    state == v1::JobState::Done as i32
+        || state == v1::JobState::Failed as i32
+        || state == v1::JobState::Cancelled as i32
+}
+
+/// What SubmitJob (or a restart) derives from a job's request.
+pub(crate) struct Prepared {
+    params: GuidedParams,
+    budget: Budget,
+    seed: u64,
+    width: u32,
+    height: u32,
+    tree: SdTree,
+    tile: u32,
+}
+
+impl Shared {
+    fn open(cfg: CoordinatorConfig) -> Result<Arc<Shared>, CoordinatorError> {
+        let dir = cfg.data_dir.clone();
+        std::fs::create_dir_all(&dir).map_err(|error| CoordinatorError::DataDir {
+            dir: dir.clone(),
+            error,
+        })?;
+        let blobs = BlobStore::open(&dir).map_err(|error| CoordinatorError::DataDir {
+            dir: dir.clone(),
+            error,
+        })?;
+        let db = Db::open(&dir.join("jobs.redb")).map_err(CoordinatorError::Database)?;
+        let records = db.all().map_err(CoordinatorError::Database)?;
+        let state = State {
+            sched: Scheduler::new(cfg.scheduler.clone()),
+            jobs: BTreeMap::new(),
+            workers: BTreeMap::new(),
+            leases: HashMap::new(),
+            next_job: 1,
+            next_worker: 1,
+        };
+        let shared = Arc::new(Shared {
+            cfg,
+            blobs,
+            db,
+            state: Mutex::new(state),
+            epoch: Instant::now(),
+            serving: AtomicBool::new(false),
+            metrics: Metrics::default(),
+        });
+        {
+            let mut st = shared.lock();
+            for (n, mut record) in records {
+                st.next_job = st.next_job.max(n + 1);
+                let mut prepared = None;
+                if !is_terminal(record.state) {
+                    tracing::info!(job = %job_name(n), "restarting the job");
+                    let request = record.request.clone().unwrap_or_default();
+                    match shared.prepare(&request) {
+                        Ok(p) => prepared = Some(p),
+                        Err(status) => {
+                            record.state = v1::JobState::Failed as i32;
+                            record.failure_reason = format!(
+                                "cannot restart the job after a coordinator restart: {}",
+                                status.message()
+                            );
+                            record.finished_unix_ms = unix_ms();
+                            if let Err(e) = shared.db.put(n, &record) {
+                                tracing::error!(job = %job_name(n), "{e}");
+                            }
+                        }
+                    }
+                }
+                let status = status_of(n, &record, None);
+                let (watch, _) = watch::channel(status);
+                st.jobs.insert(
+                    n,
+                    Job {
+                        record,
+                        active: None,
+                        watch,
+                    },
+                );
+                if let Some(p) = prepared {
+                    shared.start_job(&mut st, n, p);
+                }
+            }
+        }
+        Ok(shared)
+    }
+
+    pub(crate) fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub(crate) fn now(&self) -> Millis {
+        Millis(self.epoch.elapsed().as_millis() as u64)
+    }
+
+    /// Validates a submission and loads its scene (from a temporary materialisation that is
+    /// removed again). Slow: call off the async executor.
+    pub(crate) fn prepare(&self, req: &v1::SubmitJobRequest) -> Result<Prepared, Status> {
+        let bundle = req.bundle.as_ref().ok_or_else(|| bad("bundle: missing"))?;
+        let manifest = manifest_from_proto(bundle)?;
+        manifest
+            .validate(&self.cfg.bundle_limits)
+            .map_err(|e| bad(format!("bundle: {e}")))?;
+        for e in &manifest.files {
+            if !self.blobs.has(&e.digest) {
+                return Err(Status::failed_precondition(format!(
+                    "bundle file {:?}: blob {} is not on the coordinator (upload it first)",
+                    e.path,
+                    e.digest.to_hex()
+                )));
+            }
+        }
+        if req.name.len() > 256 {
+            return Err(bad("name: more than 256 bytes"));
+        }
+        let settings = req.settings.clone().unwrap_or_default();
+        let scene_settings = settings.scene.clone().unwrap_or_default();
+        if let Some(r) = &scene_settings.resolution {
+            if r.width != 0 || r.height != 0 {
+                return Err(bad(
+                    "settings.scene.resolution: a resolution override is not supported yet; use -D",
+                ));
+            }
+        }
+        let overrides = overrides_of(&scene_settings)?;
+        let dir = self.blobs.temp_path("bundle");
+        let result = (|| {
+            bundle::materialize(&manifest, |d| self.blobs.path(d), &dir)
+                .map_err(|e| bad(format!("bundle: {e}")))?;
+            let limits = Limits {
+                confine_files: true,
+                ..self.cfg.limits.clone()
+            };
+            let desc = bundle::check(&manifest, &dir, &overrides, &limits)
+                .map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))?;
+            Scene::build(&desc).map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))
+        })();
+        let _ = std::fs::remove_dir_all(&dir);
+        let scene = result?;
+        let Some(params) = scene.guided.clone() else {
+            let integrator = scene_settings
+                .integrator
+                .clone()
+                .unwrap_or_else(|| "of the scene".to_string());
+            return Err(bad(format!(
+                "integrator {integrator}: the farm renders guided_path jobs only"
+            )));
+        };
+        let limits = &self.cfg.limits;
+        let budget = match settings.budget {
+            Some(v1::job_settings::Budget::Spp(n)) => {
+                if n == 0 || n as u64 > limits.max_spp {
+                    return Err(bad(format!(
+                        "settings.spp: {n} is not between 1 and {} (Limits::max_spp)",
+                        limits.max_spp
+                    )));
+                }
+                Budget::Spp(n)
+            }
+            Some(v1::job_settings::Budget::TimeSeconds(t)) => {
+                if !(t.is_finite() && t > 0.0 && t <= limits.max_time_seconds) {
+                    return Err(bad(format!(
+                        "settings.time_seconds: {t} is not positive and at most {} \
+                         (Limits::max_time_seconds)",
+                        limits.max_time_seconds
+                    )));
+                }
+                Budget::Seconds(t)
+            }
+            None => guided::params_budget(&params, &scene),
+        };
+        guided::check_budget(&params, budget).map_err(|e| bad(format!("settings: {e}")))?;
+        let seed = scene_settings.seed.unwrap_or(scene.seed);
+        let (lo, hi) = scene.accel.bounds();
+        let tree = SdTree::new(lo, hi, guided::guide_config(&params, &scene));
+        let tile = if settings.tile_size == 0 {
+            self.cfg.default_tile.max(1)
+        } else {
+            settings.tile_size
+        };
+        Ok(Prepared {
+            params,
+            budget,
+            seed,
+            width: scene.width,
+            height: scene.height,
+            tree,
+            tile,
+        })
+    }
+
+    /// The session of job `n` restored from its last checkpoint, if it has one that reads
+    /// back (a damaged one is logged and the job starts over: the same bits, later).
+    fn resume(
+        &self,
+        n: u64,
+        record: &JobRecord,
+        p: &Prepared,
+        tiles: &[Region],
+    ) -> Option<Session> {
+        let digest = Digest(record.checkpoint.as_slice().try_into().ok()?);
+        let restored = std::fs::read(self.blobs.path(&digest))
+            .map_err(|e| e.to_string())
+            .and_then(|bytes| {
+                Session::restore(
+                    &p.params,
+                    p.budget,
+                    tiles.to_vec(),
+                    FallbackPolicy::Rule,
+                    &bytes,
+                )
+                .map_err(|e| e.to_string())
+            });
+        match restored {
+            Ok(s) => {
+                tracing::info!(
+                    job = %job_name(n),
+                    "resumed from its checkpoint after iteration {} ({} spp done)",
+                    s.iteration(),
+                    s.spp_done()
+                );
+                Some(s)
+            }
+            Err(e) => {
+                tracing::warn!(job = %job_name(n), "checkpoint unusable, starting over: {e}");
+                None
+            }
+        }
+    }
+
+    /// Stores job `n`'s session checkpoint if one can be taken now (between iterations)
+    /// and records it, replacing (and deleting) the previous one.
+    pub(crate) fn save_checkpoint(&self, st: &mut State, n: u64) {
+        let Some(job) = st.jobs.get_mut(&n) else {
+            return;
+        };
+        let Some(bytes) = job.active.as_ref().and_then(|a| a.session.checkpoint()) else {
+            return;
+        };
+        let digest = match self.blobs.put(&bytes) {
+            Ok(d) => d,
+            Err(e) => return tracing::error!(job = %job_name(n), "checkpoint not stored: {e}"),
+        };
+        let old = std::mem::replace(&mut job.record.checkpoint, digest.0.to_vec());
+        if let Err(e) = self.db.put(n, &job.record) {
+            return tracing::error!(job = %job_name(n), "checkpoint not recorded: {e}");
+        }
+        if let Ok(d) = <[u8; 32]>::try_from(old.as_slice()) {
+            if d != digest.0 {
+                let _ = std::fs::remove_file(self.blobs.path(&Digest(d)));
+            }
+        }
+    }
+
+    /// Adds a prepared job to the scheduler and starts its session.
+    pub(crate) fn start_job(&self, st: &mut State, n: u64, p: Prepared) {
+        let priority = st.jobs[&n]
+            .record
+            .request
+            .as_ref()
+            .map_or(0, |r| r.priority);
+        let now = self.now();
+        if let Err(e) = st.sched.add_job(JobId(n), priority, now) {
+            tracing::error!(job = %job_name(n), "{e}");
+            return;
+        }
+        let tiles = Region::tiles(p.width, p.height, p.tile);
+        let samples_total = match p.budget {
+            Budget::Spp(s) => s as u64 * p.width as u64 * p.height as u64,
+            Budget::Seconds(_) => 0,
+        };
+        let job = st.jobs.get_mut(&n).expect("inserted by the caller");
+        let session = match self.resume(n, &job.record, &p, &tiles) {
+            Some(s) => s,
+            None => Session::new(
+                &p.params,
+                p.budget,
+                p.tree,
+                p.width,
+                p.height,
+                tiles.clone(),
+                FallbackPolicy::Rule,
+            ),
+        };
+        job.record.width = p.width;
+        job.record.height = p.height;
+        job.record.state = v1::JobState::Queued as i32;
+        job.record.spp_done = session.spp_done();
+        job.record.samples_done = session.spp_done() * p.width as u64 * p.height as u64;
+        job.record.started_unix_ms = 0;
+        job.active = Some(Active {
+            session,
+            clock: Instant::now(),
+            seed: p.seed,
+            spec: None,
+            tiles,
+            tree_digest: None,
+            fractions_digest: None,
+            estimate_digest: None,
+            samples_total,
+        });
+        self.drive(st, n);
+    }
+
+    /// Advances job `n`'s session: offers its next unit, or finishes the job.
+    pub(crate) fn drive(&self, st: &mut State, n: u64) {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+            return;
+        };
+        let now = a.clock.elapsed().as_secs_f64();
+        match a.session.next(now) {
+            Next::Wait => {}
+            Next::Render(spec) => {
+                if let Err(e) = self.publish(a, &spec) {
+                    self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
+                    return;
+                }
+                let tiles = a.tiles.len() as u32;
+                a.spec = Some(spec);
+                tracing::info!(
+                    job = %job_name(n),
+                    unit = spec.unit,
+                    iteration = spec.iteration,
+                    kind = ?spec.kind,
+                    tiles,
+                    "offering unit"
+                );
+                if let Err(e) = st.sched.offer_unit(JobId(n), spec.unit, tiles) {
+                    self.fail_job(st, n, format!("scheduler: {e}"));
+                    return;
+                }
+                self.publish_status(st, n);
+            }
+            Next::Done => {
+                let job = st.jobs.get_mut(&n).expect("checked");
+                let a = job.active.take().expect("checked");
+                job.record.state = v1::JobState::Assembling as i32;
+                job.record.spp_done = a.session.spp_done();
+                job.record.iteration = a.session.iteration();
+                let (film, stats, tree) = a.session.finish();
+                tracing::info!(
+                    job = %job_name(n),
+                    iterations = stats.iterations.len(),
+                    "assembling results"
+                );
+                let stored = (|| -> Result<(Digest, Digest, Digest), String> {
+                    let exr = pathfarm_render::output::encode_exr(&film, false)
+                        .map_err(|e| e.to_string())?;
+                    let png =
+                        pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
+                    let tree = tree.encode();
+                    let put = |b: &[u8]| self.blobs.put(b).map_err(|e| e.to_string());
+                    Ok((put(&exr)?, put(&png)?, put(&tree)?))
+                })();
+                let _ = st.sched.remove_job(JobId(n));
+                st.leases.retain(|_, l| l.key.job != JobId(n));
+                match stored {
+                    Err(e) => self.fail_job(st, n, format!("cannot store the results: {e}")),
+                    Ok((exr, png, tree)) => {
+                        let job = st.jobs.get_mut(&n).expect("checked");
+                        job.record.state = v1::JobState::Done as i32;
+                        job.record.exr = exr.0.to_vec();
+                        job.record.png = png.0.to_vec();
+                        job.record.tree = tree.0.to_vec();
+                        job.record.finished_unix_ms = unix_ms();
+                        let checkpoint = std::mem::take(&mut job.record.checkpoint);
+                        if let Ok(d) = <[u8; 32]>::try_from(checkpoint.as_slice()) {
+                            let _ = std::fs::remove_file(self.blobs.path(&Digest(d)));
+                        }
+                        tracing::info!(job = %job_name(n), exr = %exr.to_hex(), "job done");
+                        self.persist(st, n);
+                        self.publish_status(st, n);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Stores the blobs `spec` needs that are not stored yet.
+    fn publish(&self, a: &mut Active, spec: &PassSpec) -> std::io::Result<()> {
+        if a.tree_digest.map(|(v, _)| v) != Some(spec.tree_version) {
+            let d = self.blobs.put(&a.session.tree().encode())?;
+            a.tree_digest = Some((spec.tree_version, d));
+        }
+        let fv = (spec.tree_version, spec.fraction_version);
+        if a.fractions_digest.map(|(v, _)| v) != Some(fv) {
+            let bytes = codec::encode_fractions(&a.session.tree().fraction_states());
+            a.fractions_digest = Some((fv, self.blobs.put(&bytes)?));
+        }
+        let ev = a.session.estimate_version();
+        if a.estimate_digest.as_ref().map(|(v, _)| *v) != Some(ev) {
+            let estimate = a.session.estimate();
+            let digest = if estimate.is_empty() {
+                Vec::new()
+            } else {
+                self.blobs
+                    .put(&codec::encode_estimate(estimate))?
+                    .0
+                    .to_vec()
+            };
+            a.estimate_digest = Some((ev, digest));
+        }
+        Ok(())
+    }
+
+    /// Marks job `n` FAILED (if not already terminal), cancelling its leases.
+    pub(crate) fn fail_job(&self, st: &mut State, n: u64, reason: String) {
+        self.end_job(st, n, v1::JobState::Failed, reason);
+    }
+
+    /// Ends job `n` in `state` (FAILED or CANCELLED) unless it is already terminal. Returns
+    /// whether it did.
+    pub(crate) fn end_job(
+        &self,
+        st: &mut State,
+        n: u64,
+        state: v1::JobState,
+        reason: String,
+    ) -> bool {
+        let Some(job) = st.jobs.get_mut(&n) else {
+            return false;
+        };
+        if is_terminal(job.record.state) {
+            return false;
+        }
+        tracing::warn!(job = %job_name(n), state = ?state, "job ended: {reason}");
+        job.active = None;
+        job.record.state = state as i32;
+        if state == v1::JobState::Failed {
+            job.record.failure_reason = reason.clone();
+        }
+        job.record.finished_unix_ms = unix_ms();
+        let cancelled = st.sched.remove_job(JobId(n)).unwrap_or_default();
+        for (worker, lease) in cancelled {
+            send_cancel(st, worker, lease, &reason);
+        }
+        st.leases.retain(|_, l| l.key.job != JobId(n));
+        self.persist(st, n);
+        self.publish_status(st, n);
+        true
+    }
+
+    pub(crate) fn persist(&self, st: &State, n: u64) {
+        if let Some(job) = st.jobs.get(&n) {
+            if let Err(e) = self.db.put(n, &job.record) {
+                tracing::error!(job = %job_name(n), "{e}");
+            }
+        }
+    }
+
+    pub(crate) fn publish_status(&self, st: &State, n: u64) {
+        if let Some(job) = st.jobs.get(&n) {
+            job.watch
+                .send_replace(status_of(n, &job.record, job.active.as_ref()));
+        }
+    }
+
+    /// Offers leases to every worker with credits while the scheduler has tiles.
+    pub(crate) fn dispatch(&self, st: &mut State) {
+        let now = self.now();
+        let ids: Vec<u64> = st
+            .workers
+            .iter()
+            .filter(|(_, w)| w.credits > 0 && w.tx.is_some() && !w.draining)
+            .map(|(&id, _)| id)
+            .collect();
+        for id in ids {
+            while st.workers[&id].credits > 0 {
+                let Some(lease) = st.sched.next_lease(WorkerId(id), now) else {
+                    break;
+                };
+                let n = lease.key.job.0;
+                let offer = self.offer(st, &lease, now);
+                st.leases.insert(
+                    lease.id.0,
+                    LeaseInfo {
+                        worker: WorkerId(id),
+                        key: lease.key,
+                        done: false,
+                    },
+                );
+                let w = st.workers.get_mut(&id).expect("listed");
+                w.credits -= 1;
+                tracing::debug!(job = %job_name(n), lease = lease.id.0, worker = id, tile = lease.key.tile, unit = lease.key.unit, "lease offered");
+                if let (Some(tx), Some(offer)) = (&w.tx, offer) {
+                    let _ = tx.send(Ok(v1::CoordinatorMessage {
+                        msg: Some(v1::coordinator_message::Msg::LeaseOffer(offer)),
+                    }));
+                }
+                let job = st.jobs.get_mut(&n).expect("scheduled jobs exist");
+                if job.record.started_unix_ms == 0 {
+                    job.record.started_unix_ms = unix_ms();
+                    job.record.state = v1::JobState::Training as i32;
+                    self.publish_status(st, n);
+                }
+            }
+        }
+    }
+
+    fn offer(
+        &self,
+        st: &State,
+        lease: &crate::scheduler::Lease,
+        now: Millis,
+    ) -> Option<v1::LeaseOffer> {
+        let job = st.jobs.get(&lease.key.job.0)?;
+        let a = job.active.as_ref()?;
+        let spec = a.spec.as_ref()?;
+        let request = job.record.request.as_ref()?;
+        let region = *a.tiles.get(lease.key.tile as usize)?;
+        let mut pass = codec::spec_to_proto(spec);
+        if spec.guide() || spec.record() {
+            pass.tree_digest = a.tree_digest.map(|(_, d)| d.0.to_vec()).unwrap_or_default();
+            pass.fractions_digest = a
+                .fractions_digest
+                .map(|(_, d)| d.0.to_vec())
+                .unwrap_or_default();
+        }
+        if spec.kind != PassKind::Path {
+            pass.estimate_digest = a
+                .estimate_digest
+                .as_ref()
+                .map(|(_, d)| d.clone())
+                .unwrap_or_default();
+        }
+        let mut settings = request
+            .settings
+            .as_ref()
+            .and_then(|s| s.scene.clone())
+            .unwrap_or_default();
+        settings.seed = Some(a.seed);
+        let deadline = unix_ms() + lease.deadline.0.saturating_sub(now.0);
+        Some(v1::LeaseOffer {
+            lease: Some(v1::Lease {
+                lease_id: lease.id.0,
+                job_id: job_name(lease.key.job.0),
+                deadline_unix_ms: deadline,
+                attempt: lease.attempt,
+                tile: Some(codec::region_to_proto(region)),
+                scene: request.bundle.clone().map(v1::lease::Scene::Bundle),
+                settings: Some(settings),
+                image: Some(v1::Resolution {
+                    width: job.record.width,
+                    height: job.record.height,
+                }),
+                pass: Some(pass),
+            }),
+        })
+    }
+
+    /// Acts on scheduler events.
+    pub(crate) fn handle_events(&self, st: &mut State, events: Vec<Event>) {
+        for e in events {
+            match e {
+                Event::LeaseExpired { worker, lease, key } => {
+                    tracing::warn!(job = %job_name(key.job.0), lease = lease.0, worker = worker.0, "lease expired");
+                    send_cancel(st, worker, lease, "lease expired");
+                }
+                Event::WorkerLost { worker, returned } => {
+                    tracing::warn!(worker = worker.0, returned = returned.len(), "worker lost");
+                }
+                Event::JobFailed { job, reason } => {
+                    self.fail_job(st, job.0, reason.to_string());
+                }
+                Event::CancelLease { worker, lease, key } => {
+                    tracing::info!(job = %job_name(key.job.0), lease = lease.0, worker = worker.0, "cancelling lease");
+                    send_cancel(st, worker, lease, "lease cancelled");
+                }
+            }
+        }
+    }
+
+    /// The periodic tick: expiries, waiting sessions, dispatch.
+    pub(crate) fn tick(&self) {
+        let mut st = self.lock();
+        let now = self.now();
+        let events = st.sched.tick(now);
+        self.handle_events(&mut st, events);
+        let waiting: Vec<u64> = st
+            .jobs
+            .iter()
+            .filter_map(|(&n, j)| {
+                let a = j.active.as_ref()?;
+                let idle = match a.spec {
+                    None => true,
+                    Some(spec) => st.sched.unit_complete(JobId(n), spec.unit),
+                };
+                idle.then_some(n)
+            })
+            .collect();
+        for n in waiting {
+            self.drive(&mut st, n);
+        }
+        self.dispatch(&mut st);
+    }
+}
+
+pub(crate) fn send_cancel(st: &State, worker: WorkerId, lease: LeaseId, reason: &str) {
+    if let Some(tx) = st.workers.get(&worker.0).and_then(|w| w.tx.as_ref()) {
+        let _ = tx.send(Ok(v1::CoordinatorMessage {
+            msg: Some(v1::coordinator_message::Msg::CancelLease(v1::CancelLease {
+                lease_id: lease.0,
+                reason: reason.to_string(),
+            })),
+        }));
+    }
+}
+
+pub(crate) fn bad(message: impl Into<String>) -> Status {
+    Status::invalid_argument(message)
+}
+
+pub(crate) fn digest_from(bytes: &[u8], field: &str) -> Result<Digest, Status> {
+    let arr: [u8; 32] = bytes.try_into().map_err(|_| {
+        Status::invalid_argument(format!(
+            "{field}: a digest is 32 bytes, got {}",
+            bytes.len()
+        ))
+    })?;
+    Ok(Digest(arr))
+}
+
+fn manifest_from_proto(b: &v1::Bundle) -> Result<Manifest, Status> {
+    let mut files = Vec::with_capacity(b.files.len());
+    for (i, f) in b.files.iter().enumerate() {
+        files.push(ManifestEntry {
+            path: f.path.clone(),
+            digest: digest_from(
+                &f.digest,
+                &format!("bundle.files[{i}].digest ({:?})", f.path),
+            )?,
+            size: f.size,
+        });
+    }
+    Ok(Manifest {
+        root: b.root.clone(),
+        files,
+    })
+}
+
+fn overrides_of(s: &v1::SceneSettings) -> Result<Vec<(String, String)>, Status> {
+    let mut out = Vec::new();
+    for (i, d) in s.defines.iter().enumerate() {
+        if d.name.is_empty() {
+            return Err(Status::invalid_argument(format!(
+                "settings.scene.defines[{i}]: empty name"
+            )));
+        }
+        out.push((d.name.clone(), d.value.clone()));
+    }
+    if let Some(integrator) = &s.integrator {
+        out.push(("integrator".to_string(), integrator.clone()));
+    }
+    Ok(out)
+}
+
+pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobStatus {
+    let request = r.request.clone().unwrap_or_default();
+    let mut s = v1::JobStatus {
+        job_id: job_name(n),
+        name: request.name.clone(),
+        state: r.state,
+        iteration: r.iteration,
+        samples_done: r.samples_done,
+        preview_available: r.state == v1::JobState::Done as i32,
+        failure_reason: r.failure_reason.clone(),
+        submitted_unix_ms: r.submitted_unix_ms,
+        finished_unix_ms: r.finished_unix_ms,
+        spp_done: r.spp_done,
+        priority: request.priority,
+        started_unix_ms: r.started_unix_ms,
+        ..Default::default()
+    };
+    if let Some(a) = a {
+        let (done, total) = a.session.tiles_done();
+        s.iteration = a.session.iteration();
+        s.tiles_done = done as u32;
+        s.tiles_total = if a.spec.is_some() { total as u32 } else { 0 };
+        s.samples_total = a.samples_total;
+        s.spp_done = a.session.spp_done();
+        if let Some(spec) = &a.spec {
+            s.unit = spec.unit;
+            s.pass_kind = codec::spec_to_proto(spec).kind;
+        }
+        if r.started_unix_ms != 0 {
+            s.state = if a.session.in_final_pass() {
+                v1::JobState::FinalPass as i32
+            } else {
+                v1::JobState::Training as i32
+            };
+        }
+    }
+    s
+}
+
+/// Sets the health status of every service.
+pub(crate) async fn update_health(
+    shared: &Shared,
+    reporter: &tonic_health::server::HealthReporter,
+) {
+    let any = shared.lock().workers.values().any(|w| w.tx.is_some());
+    if shared.serving.swap(any, Ordering::SeqCst) == any {
+        return;
+    }
+    let status = if any {
+        tonic_health::ServingStatus::Serving
+    } else {
+        tonic_health::ServingStatus::NotServing
+    };
+    for name in [
+        "",
+        pathfarm_proto::JOBS_SERVICE,
+        pathfarm_proto::WORKERS_SERVICE,
+    ] {
+        reporter.set_service_status(name, status).await;
+    }
+}
+
+const TICK: Duration = Duration::from_millis(200);

@@ -1,0 +1,874 @@
+//! The gRPC services of the coordinator: `Jobs` and `Workers`, the auth interceptor, the
+//! server itself and its periodic tick.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::pin::Pin;
+use std::sync::Arc;
+
+use pathfarm_guide::IterationStats;
+use pathfarm_proto::v1::{self, jobs_server::Jobs, workers_server::Workers};
+use pathfarm_proto::MAX_CHUNK_BYTES;
+use pathfarm_render::pass::TileOutput;
+use tokio::net::TcpListener;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream, UnboundedReceiverStream};
+use tokio_stream::Stream;
+use tonic::{Request, Response, Status, Streaming};
+
+use super::*;
+use crate::bundle::digest_of;
+use crate::scheduler::Rejection;
+
+type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::DataChunk, Status>> + Send>>;
+
+#[derive(Clone)]
+struct Svc {
+    shared: Arc<Shared>,
+    health: tonic_health::server::HealthReporter,
+}
+
+pub(super) async fn run(
+    shared: Arc<Shared>,
+    listener: TcpListener,
+    addr: Option<SocketAddr>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), CoordinatorError> {
+    let (health, health_service) = tonic_health::server::health_reporter();
+    for name in [
+        "",
+        pathfarm_proto::JOBS_SERVICE,
+        pathfarm_proto::WORKERS_SERVICE,
+    ] {
+        health
+            .set_service_status(name, tonic_health::ServingStatus::NotServing)
+            .await;
+    }
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pathfarm_proto::FILE_DESCRIPTOR_SET)
+        .build_v1()
+        .map_err(|e| CoordinatorError::Reflection(e.to_string()))?;
+    let svc = Svc {
+        shared: shared.clone(),
+        health: health.clone(),
+    };
+    let auth = Auth {
+        expected: shared.cfg.token.as_ref().map(|t| format!("Bearer {t}")),
+    };
+    let ticker = {
+        let svc = svc.clone();
+        tokio::spawn(async move {
+            let mut interval = tokio::time::interval(TICK);
+            loop {
+                interval.tick().await;
+                svc.shared.tick();
+                update_health(&svc.shared, &svc.health).await;
+            }
+        })
+    };
+    if let Some(addr) = addr {
+        tracing::info!("coordinator listening on {addr}");
+    }
+    let metrics = match shared.cfg.metrics {
+        Some(maddr) => {
+            let l = TcpListener::bind(maddr)
+                .await
+                .map_err(|error| CoordinatorError::Bind { addr: maddr, error })?;
+            tracing::info!(
+                "metrics on http://{}/metrics",
+                l.local_addr().unwrap_or(maddr)
+            );
+            Some(tokio::spawn(super::metrics::serve(shared.clone(), l)))
+        }
+        None => None,
+    };
+    let closer = shared.clone();
+    let shutdown = async move {
+        shutdown.await;
+        tracing::info!("coordinator shutting down");
+        // End the workers' control streams so the server can stop.
+        let mut st = closer.lock();
+        for w in st.workers.values_mut() {
+            if let Some(tx) = w.tx.take() {
+                let _ = tx.send(Ok(v1::CoordinatorMessage {
+                    msg: Some(v1::coordinator_message::Msg::Drain(v1::Drain {
+                        reason: "the coordinator is shutting down".into(),
+                    })),
+                }));
+            }
+        }
+    };
+    let result = tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(v1::jobs_server::JobsServer::with_interceptor(
+            svc.clone(),
+            auth.clone(),
+        ))
+        .add_service(v1::workers_server::WorkersServer::with_interceptor(
+            svc, auth,
+        ))
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await;
+    ticker.abort();
+    if let Some(m) = metrics {
+        m.abort();
+    }
+    result.map_err(CoordinatorError::from)
+}
+
+#[derive(Clone)]
+struct Auth {
+    expected: Option<String>,
+}
+
+impl tonic::service::Interceptor for Auth {
+    fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.expected else {
+            return Ok(req);
+        };
+        match req.metadata().get("authorization") {
+            None => Err(Status::unauthenticated(
+                "missing token: send metadata \"authorization: Bearer <token>\"",
+            )),
+            Some(v) if v.as_bytes() == expected.as_bytes() => Ok(req),
+            Some(_) => Err(Status::unauthenticated("wrong token")),
+        }
+    }
+}
+
+fn chunk_stream(path: PathBuf, digest: Vec<u8>) -> Result<ChunkStream, Status> {
+    let mut file = std::fs::File::open(&path)
+        .map_err(|e| Status::internal(format!("cannot open blob: {e}")))?;
+    let size = file
+        .metadata()
+        .map_err(|e| Status::internal(format!("cannot open blob: {e}")))?
+        .len();
+    let (tx, rx) = mpsc::channel(4);
+    tokio::task::spawn_blocking(move || {
+        use std::io::Read;
+        let header = v1::DataChunk {
+            part: Some(v1::data_chunk::Part::Header(v1::DataHeader {
+                total_size: size,
+                digest,
+            })),
+        };
+        if tx.blocking_send(Ok(header)).is_err() {
+            return;
+        }
+        let mut buf = vec![0u8; MAX_CHUNK_BYTES];
+        loop {
+            match file.read(&mut buf) {
+                Ok(0) => return,
+                Ok(k) => {
+                    let part = v1::DataChunk {
+                        part: Some(v1::data_chunk::Part::Data(buf[..k].to_vec())),
+                    };
+                    if tx.blocking_send(Ok(part)).is_err() {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    let _ =
+                        tx.blocking_send(Err(Status::internal(format!("cannot read blob: {e}"))));
+                    return;
+                }
+            }
+        }
+    });
+    Ok(Box::pin(ReceiverStream::new(rx)))
+}
+
+impl Svc {
+    fn job_number(&self, id: &str) -> Result<u64, Status> {
+        let n = parse_job(id).ok_or_else(|| Status::not_found(format!("no job {id:?}")))?;
+        if self.shared.lock().jobs.contains_key(&n) {
+            Ok(n)
+        } else {
+            Err(Status::not_found(format!("no job {id:?}")))
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl Jobs for Svc {
+    async fn find_missing_blobs(
+        &self,
+        req: Request<v1::FindMissingBlobsRequest>,
+    ) -> Result<Response<v1::FindMissingBlobsResponse>, Status> {
+        let mut seen = std::collections::HashSet::new();
+        let mut missing = Vec::new();
+        for (i, d) in req.into_inner().digests.into_iter().enumerate() {
+            let digest = digest_from(&d, &format!("digests[{i}]"))?;
+            if seen.insert(digest) && !self.shared.blobs.has(&digest) {
+                missing.push(d);
+            }
+        }
+        Ok(Response::new(v1::FindMissingBlobsResponse { missing }))
+    }
+
+    async fn upload_blob(
+        &self,
+        req: Request<Streaming<v1::BlobChunk>>,
+    ) -> Result<Response<v1::UploadBlobResponse>, Status> {
+        let mut stream = req.into_inner();
+        let header = match stream.message().await? {
+            Some(v1::BlobChunk {
+                part: Some(v1::blob_chunk::Part::Header(h)),
+            }) => h,
+            _ => return Err(bad("the first message of UploadBlob must be a BlobHeader")),
+        };
+        let digest = digest_from(&header.digest, "header.digest")?;
+        let max = self.shared.cfg.bundle_limits.max_file_bytes;
+        if header.size > max {
+            return Err(bad(format!(
+                "header.size: {} bytes is more than the limit of {max} bytes \
+                 (BundleLimits::max_file_bytes)",
+                header.size
+            )));
+        }
+        let done = |already_present| {
+            Ok(Response::new(v1::UploadBlobResponse {
+                digest: header.digest.clone(),
+                size: header.size,
+                already_present,
+            }))
+        };
+        if self.shared.blobs.has(&digest) {
+            return done(true);
+        }
+        let mut upload = self
+            .shared
+            .blobs
+            .begin(digest, header.size)
+            .map_err(|e| Status::internal(format!("cannot store the blob: {e}")))?;
+        while let Some(chunk) = stream.message().await? {
+            match chunk.part {
+                Some(v1::blob_chunk::Part::Data(data)) => {
+                    if data.len() > MAX_CHUNK_BYTES {
+                        return Err(bad(format!(
+                            "data part of {} bytes is more than {MAX_CHUNK_BYTES} bytes",
+                            data.len()
+                        )));
+                    }
+                    upload.write(&data).map_err(super::bad)?;
+                }
+                _ => return Err(bad("a BlobChunk after the first must be a data part")),
+            }
+        }
+        upload.finish().map_err(super::bad)?;
+        tracing::debug!(blob = %digest.to_hex(), size = header.size, "blob stored");
+        done(false)
+    }
+
+    async fn submit_job(
+        &self,
+        req: Request<v1::SubmitJobRequest>,
+    ) -> Result<Response<v1::SubmitJobResponse>, Status> {
+        let req = req.into_inner();
+        let shared = self.shared.clone();
+        let (req, prepared) = tokio::task::spawn_blocking(move || {
+            let p = shared.prepare(&req);
+            (req, p)
+        })
+        .await
+        .map_err(|e| Status::internal(format!("job validation panicked: {e}")))?;
+        let prepared = prepared?;
+        let mut st = self.shared.lock();
+        let n = st.next_job;
+        st.next_job += 1;
+        let record = JobRecord {
+            request: Some(req),
+            state: v1::JobState::Queued as i32,
+            submitted_unix_ms: unix_ms(),
+            width: prepared.width,
+            height: prepared.height,
+            ..Default::default()
+        };
+        if let Err(e) = self.shared.db.put(n, &record) {
+            return Err(Status::internal(e));
+        }
+        let (watch, _) = watch::channel(status_of(n, &record, None));
+        st.jobs.insert(
+            n,
+            Job {
+                record,
+                active: None,
+                watch,
+            },
+        );
+        tracing::info!(job = %job_name(n), "job submitted");
+        self.shared.start_job(&mut st, n, prepared);
+        self.shared.dispatch(&mut st);
+        Ok(Response::new(v1::SubmitJobResponse {
+            job_id: job_name(n),
+        }))
+    }
+
+    type WatchJobStream = ReceiverStream<Result<v1::JobStatus, Status>>;
+
+    async fn watch_job(
+        &self,
+        req: Request<v1::WatchJobRequest>,
+    ) -> Result<Response<Self::WatchJobStream>, Status> {
+        let n = self.job_number(&req.get_ref().job_id)?;
+        let mut rx = self.shared.lock().jobs[&n].watch.subscribe();
+        let (tx, out) = mpsc::channel(4);
+        tokio::spawn(async move {
+            loop {
+                let status = rx.borrow_and_update().clone();
+                let terminal = is_terminal(status.state);
+                if tx.send(Ok(status)).await.is_err() || terminal {
+                    return;
+                }
+                if rx.changed().await.is_err() {
+                    return;
+                }
+                // coalesce bursts of changes
+                tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(out)))
+    }
+
+    async fn get_job(
+        &self,
+        req: Request<v1::GetJobRequest>,
+    ) -> Result<Response<v1::GetJobResponse>, Status> {
+        let n = self.job_number(&req.get_ref().job_id)?;
+        let st = self.shared.lock();
+        let job = &st.jobs[&n];
+        let request = job.record.request.clone().unwrap_or_default();
+        Ok(Response::new(v1::GetJobResponse {
+            status: Some(status_of(n, &job.record, job.active.as_ref())),
+            settings: request.settings,
+            root: request.bundle.map(|b| b.root).unwrap_or_default(),
+            image: (job.record.width > 0).then_some(v1::Resolution {
+                width: job.record.width,
+                height: job.record.height,
+            }),
+        }))
+    }
+
+    async fn list_jobs(
+        &self,
+        req: Request<v1::ListJobsRequest>,
+    ) -> Result<Response<v1::ListJobsResponse>, Status> {
+        let req = req.into_inner();
+        let st = self.shared.lock();
+        let mut jobs: Vec<v1::JobStatus> = st
+            .jobs
+            .iter()
+            .map(|(&n, j)| status_of(n, &j.record, j.active.as_ref()))
+            .filter(|s| req.states.is_empty() || req.states.contains(&s.state))
+            .collect();
+        if req.limit > 0 && jobs.len() > req.limit as usize {
+            jobs.drain(..jobs.len() - req.limit as usize);
+        }
+        Ok(Response::new(v1::ListJobsResponse { jobs }))
+    }
+
+    async fn cancel_job(
+        &self,
+        req: Request<v1::CancelJobRequest>,
+    ) -> Result<Response<v1::CancelJobResponse>, Status> {
+        let req = req.into_inner();
+        let n = self.job_number(&req.job_id)?;
+        let mut st = self.shared.lock();
+        let reason = if req.reason.is_empty() {
+            "cancelled".to_string()
+        } else {
+            format!("cancelled: {}", req.reason)
+        };
+        let cancelled = self
+            .shared
+            .end_job(&mut st, n, v1::JobState::Cancelled, reason);
+        let job = &st.jobs[&n];
+        Ok(Response::new(v1::CancelJobResponse {
+            cancelled,
+            status: Some(status_of(n, &job.record, job.active.as_ref())),
+        }))
+    }
+
+    type DownloadResultStream = ChunkStream;
+
+    async fn download_result(
+        &self,
+        req: Request<v1::DownloadResultRequest>,
+    ) -> Result<Response<Self::DownloadResultStream>, Status> {
+        let req = req.into_inner();
+        let n = self.job_number(&req.job_id)?;
+        let kind = v1::ResultKind::try_from(req.kind).unwrap_or(v1::ResultKind::Unspecified);
+        let digest = {
+            let st = self.shared.lock();
+            let r = &st.jobs[&n].record;
+            let d = match kind {
+                v1::ResultKind::Unspecified => {
+                    return Err(Status::invalid_argument("kind: unspecified"))
+                }
+                v1::ResultKind::Exr => r.exr.clone(),
+                v1::ResultKind::PngPreview => r.png.clone(),
+                v1::ResultKind::SdTree => r.tree.clone(),
+            };
+            if r.state != v1::JobState::Done as i32 || d.is_empty() {
+                return Err(Status::failed_precondition(format!(
+                    "{}: the result {kind:?} is available once the job is DONE",
+                    req.job_id
+                )));
+            }
+            d
+        };
+        let path = self.shared.blobs.path(&digest_from(&digest, "result")?);
+        self.count_fetch(&path);
+        Ok(Response::new(chunk_stream(path, digest)?))
+    }
+
+    async fn list_workers(
+        &self,
+        _req: Request<v1::ListWorkersRequest>,
+    ) -> Result<Response<v1::ListWorkersResponse>, Status> {
+        let st = self.shared.lock();
+        let workers = st
+            .workers
+            .iter()
+            .map(|(&id, w)| {
+                let mut lease_ids: Vec<u64> = st
+                    .leases
+                    .iter()
+                    .filter(|(_, l)| l.worker == WorkerId(id) && !l.done && w.tx.is_some())
+                    .map(|(&lease, _)| lease)
+                    .collect();
+                lease_ids.sort_unstable();
+                v1::WorkerInfo {
+                    worker_id: id,
+                    host_name: w.register.host_name.clone(),
+                    worker_name: w.register.worker_name.clone(),
+                    threads: w.register.threads,
+                    tiles_done: w.tiles_done,
+                    last_heartbeat_unix_ms: w.last_unix_ms,
+                    lease_ids,
+                    build_id: w.register.build_id.clone(),
+                    protocol_version: w.register.protocol_version,
+                    draining: w.draining,
+                    registered_unix_ms: w.registered_unix_ms,
+                    connected: w.tx.is_some(),
+                }
+            })
+            .collect();
+        Ok(Response::new(v1::ListWorkersResponse { workers }))
+    }
+}
+
+fn msg(m: v1::coordinator_message::Msg) -> Result<v1::CoordinatorMessage, Status> {
+    Ok(v1::CoordinatorMessage { msg: Some(m) })
+}
+
+fn ack(accepted: bool, reason: v1::TileRejectReason, detail: String) -> Response<v1::TileAck> {
+    Response::new(v1::TileAck {
+        accepted,
+        reject_reason: reason as i32,
+        detail,
+        duplicate: false,
+    })
+}
+
+fn corrupt(detail: impl Into<String>) -> Result<Response<v1::TileAck>, Status> {
+    Ok(ack(false, v1::TileRejectReason::Corrupt, detail.into()))
+}
+
+impl Svc {
+    /// Handles one control message of worker `id`.
+    fn on_worker_message(&self, id: u64, m: v1::worker_message::Msg) {
+        use v1::worker_message::Msg;
+        let shared = &self.shared;
+        let mut st = shared.lock();
+        let now = shared.now();
+        let worker = WorkerId(id);
+        if let Some(w) = st.workers.get_mut(&id) {
+            w.last_unix_ms = unix_ms();
+        }
+        match m {
+            Msg::Register(_) => {
+                tracing::warn!(worker = id, "second Register ignored");
+            }
+            Msg::Heartbeat(h) => {
+                let active: Vec<LeaseId> = h.active_lease_ids.iter().map(|&l| LeaseId(l)).collect();
+                if let Ok(stale) = st.sched.heartbeat(worker, &active, now) {
+                    for lease in stale {
+                        send_cancel(&st, worker, lease, "not this worker's lease any more");
+                    }
+                }
+            }
+            Msg::RequestWork(r) => {
+                if let Some(w) = st.workers.get_mut(&id) {
+                    w.credits = w.credits.saturating_add(r.slots);
+                }
+            }
+            Msg::LeaseFailed(f) => {
+                tracing::warn!(
+                    worker = id,
+                    lease = f.lease_id,
+                    fatal = f.fatal,
+                    "lease failed: {}",
+                    f.reason
+                );
+                let job = st.leases.get(&f.lease_id).map(|l| l.key.job.0);
+                match st
+                    .sched
+                    .fail_lease(worker, LeaseId(f.lease_id), &f.reason, now)
+                {
+                    Ok(events) => {
+                        shared.handle_events(&mut st, events);
+                        if let (true, Some(n)) = (f.fatal, job) {
+                            shared.fail_job(
+                                &mut st,
+                                n,
+                                format!("worker {id} failed lease {}: {}", f.lease_id, f.reason),
+                            );
+                        }
+                    }
+                    Err(r) => tracing::debug!(
+                        worker = id,
+                        lease = f.lease_id,
+                        "failure report ignored: {r}"
+                    ),
+                }
+            }
+            Msg::Draining(_) => {
+                if let Some(w) = st.workers.get_mut(&id) {
+                    w.draining = true;
+                    w.credits = 0;
+                }
+                let _ = st.sched.drain_worker(worker);
+            }
+            Msg::HandBack(h) => {
+                let leases: Vec<LeaseId> = h.lease_ids.iter().map(|&l| LeaseId(l)).collect();
+                let _ = st.sched.hand_back(worker, &leases, now);
+            }
+        }
+        shared.dispatch(&mut st);
+    }
+
+    fn worker_gone(&self, id: u64) {
+        let mut st = self.shared.lock();
+        if let Some(w) = st.workers.get_mut(&id) {
+            w.tx = None;
+            w.credits = 0;
+        }
+        tracing::info!(worker = id, "worker disconnected");
+        if let Ok(events) = st.sched.worker_lost(WorkerId(id)) {
+            self.shared.handle_events(&mut st, events);
+        }
+        self.shared.dispatch(&mut st);
+    }
+}
+
+#[tonic::async_trait]
+impl Workers for Svc {
+    type ControlStream = UnboundedReceiverStream<Result<v1::CoordinatorMessage, Status>>;
+
+    async fn control(
+        &self,
+        req: Request<Streaming<v1::WorkerMessage>>,
+    ) -> Result<Response<Self::ControlStream>, Status> {
+        use v1::coordinator_message::Msg;
+        let mut inbound = req.into_inner();
+        let register = match inbound.message().await? {
+            Some(v1::WorkerMessage {
+                msg: Some(v1::worker_message::Msg::Register(r)),
+            }) => r,
+            _ => {
+                return Err(Status::failed_precondition(
+                    "the first message on the control stream must be Register",
+                ))
+            }
+        };
+        let (tx, rx) = mpsc::unbounded_channel();
+        let ours = crate::build::build_id();
+        let refusal = if register.protocol_version != pathfarm_proto::PROTOCOL_VERSION {
+            Some(format!(
+                "protocol version mismatch: worker protocol {}, coordinator {}",
+                register.protocol_version,
+                pathfarm_proto::PROTOCOL_VERSION
+            ))
+        } else if register.build_id != ours {
+            Some(format!(
+                "build mismatch: worker build {}, coordinator build {ours} (different builds \
+                 may round differently, and tiles must be bit-exact)",
+                register.build_id
+            ))
+        } else {
+            None
+        };
+        if let Some(reason) = refusal {
+            tracing::warn!(host = %register.host_name, "worker refused: {reason}");
+            let _ = tx.send(msg(Msg::Refused(v1::Refused {
+                reason: reason.clone(),
+                supported_protocol_versions: vec![pathfarm_proto::PROTOCOL_VERSION],
+                required_build_id: ours.to_string(),
+            })));
+            let _ = tx.send(Err(Status::failed_precondition(reason)));
+            return Ok(Response::new(UnboundedReceiverStream::new(rx)));
+        }
+        let id = {
+            let mut st = self.shared.lock();
+            let id = st.next_worker;
+            st.next_worker += 1;
+            let now = self.shared.now();
+            if let Err(e) = st
+                .sched
+                .register_worker(WorkerId(id), register.threads.max(1), now)
+            {
+                return Err(Status::internal(e.to_string()));
+            }
+            let sc = &self.shared.cfg.scheduler;
+            let heartbeat = (sc.heartbeat_timeout.as_millis() / 3).clamp(100, 5000) as u32;
+            let _ = tx.send(msg(Msg::Registered(v1::Registered {
+                worker_id: id,
+                heartbeat_interval_ms: heartbeat,
+                lease_timeout_ms: sc.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
+                protocol_version: pathfarm_proto::PROTOCOL_VERSION,
+                build_id: ours.to_string(),
+            })));
+            tracing::info!(
+                worker = id,
+                host = %register.host_name,
+                name = %register.worker_name,
+                threads = register.threads,
+                "worker registered"
+            );
+            st.workers.insert(
+                id,
+                WorkerConn {
+                    tx: Some(tx),
+                    credits: 0,
+                    register,
+                    registered_unix_ms: unix_ms(),
+                    last_unix_ms: unix_ms(),
+                    tiles_done: 0,
+                    draining: false,
+                },
+            );
+            id
+        };
+        update_health(&self.shared, &self.health).await;
+        let svc = self.clone();
+        tokio::spawn(async move {
+            loop {
+                match inbound.message().await {
+                    Ok(Some(v1::WorkerMessage { msg: Some(m) })) => svc.on_worker_message(id, m),
+                    Ok(Some(_)) => {}
+                    Ok(None) => break,
+                    Err(e) => {
+                        tracing::info!(worker = id, "control stream error: {e}");
+                        break;
+                    }
+                }
+            }
+            svc.worker_gone(id);
+            update_health(&svc.shared, &svc.health).await;
+        });
+        Ok(Response::new(UnboundedReceiverStream::new(rx)))
+    }
+
+    type FetchBlobStream = ChunkStream;
+
+    async fn fetch_blob(
+        &self,
+        req: Request<v1::BlobRequest>,
+    ) -> Result<Response<Self::FetchBlobStream>, Status> {
+        let raw = req.into_inner().digest;
+        let digest = digest_from(&raw, "digest")?;
+        if !self.shared.blobs.has(&digest) {
+            return Err(Status::not_found(format!("no blob {}", digest.to_hex())));
+        }
+        let path = self.shared.blobs.path(&digest);
+        self.count_fetch(&path);
+        Ok(Response::new(chunk_stream(path, raw)?))
+    }
+
+    async fn upload_tile(
+        &self,
+        req: Request<Streaming<v1::TileUpload>>,
+    ) -> Result<Response<v1::TileAck>, Status> {
+        let mut stream = req.into_inner();
+        let header = match stream.message().await? {
+            Some(v1::TileUpload {
+                part: Some(v1::tile_upload::Part::Header(h)),
+            }) => h,
+            _ => return corrupt("the first message of UploadTile must be a TileHeader"),
+        };
+        let total = header.pixels_size.saturating_add(header.stats_size);
+        if header.pixels_size == 0 || total > 1 << 32 {
+            return corrupt(format!(
+                "payload sizes {} + {} are out of range",
+                header.pixels_size, header.stats_size
+            ));
+        }
+        let mut bytes = Vec::with_capacity(total as usize);
+        while let Some(part) = stream.message().await? {
+            match part.part {
+                Some(v1::tile_upload::Part::Data(d)) if d.len() <= MAX_CHUNK_BYTES => {
+                    if bytes.len() as u64 + d.len() as u64 > total {
+                        return corrupt("more data than the header's sizes");
+                    }
+                    bytes.extend_from_slice(&d);
+                }
+                Some(v1::tile_upload::Part::Data(_)) => return corrupt("data part over 1 MiB"),
+                _ => return corrupt("a second header"),
+            }
+        }
+        if bytes.len() as u64 != total {
+            return corrupt(format!(
+                "got {} payload bytes, the header says {total}",
+                bytes.len()
+            ));
+        }
+        self.shared
+            .metrics
+            .tile_bytes_uploaded
+            .fetch_add(total, std::sync::atomic::Ordering::Relaxed);
+        let ack = self.upload_tile_inner(header, bytes);
+        let counter = match &ack {
+            Ok(a) if a.get_ref().accepted => &self.shared.metrics.tiles_accepted,
+            _ => &self.shared.metrics.tiles_rejected,
+        };
+        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ack
+    }
+}
+
+impl Svc {
+    fn count_fetch(&self, path: &std::path::Path) {
+        if let Ok(meta) = std::fs::metadata(path) {
+            self.shared
+                .metrics
+                .blob_bytes_fetched
+                .fetch_add(meta.len(), std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+
+    fn upload_tile_inner(
+        &self,
+        header: v1::TileHeader,
+        bytes: Vec<u8>,
+    ) -> Result<Response<v1::TileAck>, Status> {
+        let (pixels, stats_bytes) = bytes.split_at(header.pixels_size as usize);
+        if digest_of(pixels).0.as_slice() != header.pixels_digest.as_slice() {
+            return corrupt("pixels_digest does not match the pixel payload");
+        }
+        if digest_of(stats_bytes).0.as_slice() != header.stats_digest.as_slice() {
+            return corrupt("stats_digest does not match the statistics payload");
+        }
+        let stats = if stats_bytes.is_empty() {
+            None
+        } else {
+            match IterationStats::decode(stats_bytes) {
+                Ok(s) => Some(s),
+                Err(e) => return corrupt(format!("statistics: {e}")),
+            }
+        };
+        let shared = &self.shared;
+        let mut st = shared.lock();
+        let lease_id = header.lease_id;
+        let Some(info) = st.leases.get(&lease_id).copied() else {
+            return Ok(ack(
+                false,
+                v1::TileRejectReason::UnknownLease,
+                format!("lease {lease_id} is not known"),
+            ));
+        };
+        let n = info.key.job.0;
+        let Some(region) = st
+            .jobs
+            .get(&n)
+            .and_then(|j| j.active.as_ref())
+            .and_then(|a| a.tiles.get(info.key.tile as usize).copied())
+        else {
+            return Ok(ack(
+                false,
+                v1::TileRejectReason::Superseded,
+                format!("{} is over", job_name(n)),
+            ));
+        };
+        if header.job_id != job_name(n)
+            || header.unit != info.key.unit
+            || header.tile != Some(codec::region_to_proto(region))
+        {
+            return corrupt(format!(
+                "header job/unit/tile do not match lease {lease_id} ({})",
+                info.key
+            ));
+        }
+        let film = match codec::decode_pixels(pixels, region) {
+            Ok(f) => f,
+            Err(e) => return corrupt(format!("pixels: {e}")),
+        };
+        let now = shared.now();
+        let completion = match st.sched.complete(info.worker, LeaseId(lease_id), now) {
+            Ok(c) => c,
+            Err(Rejection::Duplicate) => {
+                let mut a = ack(true, v1::TileRejectReason::Unspecified, String::new());
+                a.get_mut().duplicate = true;
+                return Ok(a);
+            }
+            Err(r) => {
+                let reason = match r {
+                    Rejection::UnknownLease => v1::TileRejectReason::UnknownLease,
+                    Rejection::Expired => v1::TileRejectReason::Expired,
+                    _ => v1::TileRejectReason::Superseded,
+                };
+                tracing::info!(job = %job_name(n), lease = lease_id, "tile rejected: {r}");
+                return Ok(ack(false, reason, r.to_string()));
+            }
+        };
+        let c = header.counters.unwrap_or_default();
+        let out = TileOutput {
+            region,
+            film,
+            rays: c.rays,
+            invalid_samples: c.invalid_samples,
+            split_paths: c.split_paths,
+            extra_light_samples: c.extra_light_samples,
+        };
+        let job = st.jobs.get_mut(&n).expect("checked");
+        let a = job.active.as_mut().expect("checked");
+        let secs = a.clock.elapsed().as_secs_f64();
+        let merge_start = std::time::Instant::now();
+        let unit_spp = a.spec.map_or(0, |s| s.unit_spp());
+        if let Err(e) = a.session.add_tile(
+            info.key.unit,
+            info.key.tile as usize,
+            &out,
+            stats.as_ref(),
+            secs,
+        ) {
+            shared.fail_job(
+                &mut st,
+                n,
+                format!("tile {} rejected by the session: {e}", info.key),
+            );
+            return Ok(ack(false, v1::TileRejectReason::Superseded, e.to_string()));
+        }
+        job.record.samples_done += region.pixels() as u64 * unit_spp;
+        if let Some(w) = st.workers.get_mut(&info.worker.0) {
+            w.tiles_done += 1;
+        }
+        tracing::debug!(job = %job_name(n), lease = lease_id, tile = info.key.tile, unit = info.key.unit, "tile accepted");
+        if let Some(l) = st.leases.get_mut(&lease_id) {
+            l.done = true;
+        }
+        if completion.unit_done {
+            shared.save_checkpoint(&mut st, n);
+            shared.drive(&mut st, n);
+        }
+        shared.metrics.merge_nanos.fetch_add(
+            merge_start.elapsed().as_nanos() as u64,
+            std::sync::atomic::Ordering::Relaxed,
+        );
+        shared.publish_status(&st, n);
+        shared.dispatch(&mut st);
+        Ok(ack(true, v1::TileRejectReason::Unspecified, String::new()))
+    }
+}

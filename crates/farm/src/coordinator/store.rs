@@ -1,0 +1,141 @@
+//! The coordinator's content-addressed blob store: `DATA/blobs/<hex digest>`. Every blob is
+//! written to a temporary file in `DATA/tmp` first and renamed into place only once its size
+//! and digest are verified, so a half-written blob is never visible.
+
+use std::fs;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use crate::bundle::{digest_of, Digest};
+
+/// The blob directory and its temporary directory.
+pub(crate) struct BlobStore {
+    blobs: PathBuf,
+    tmp: PathBuf,
+    counter: AtomicU64,
+}
+
+impl BlobStore {
+    /// Opens (creating) the store under `data`, emptying its temporary directory.
+    pub(crate) fn open(data: &Path) -> io::Result<BlobStore> {
+        let blobs = data.join("blobs");
+        let tmp = data.join("tmp");
+        fs::create_dir_all(&blobs)?;
+        if tmp.exists() {
+            fs::remove_dir_all(&tmp)?;
+        }
+        fs::create_dir_all(&tmp)?;
+        Ok(BlobStore {
+            blobs,
+            tmp,
+            counter: AtomicU64::new(0),
+        })
+    }
+
+    pub(crate) fn path(&self, digest: &Digest) -> PathBuf {
+        self.blobs.join(digest.to_hex())
+    }
+
+    pub(crate) fn has(&self, digest: &Digest) -> bool {
+        self.path(digest).is_file()
+    }
+
+    /// A fresh path in the temporary directory (not created).
+    pub(crate) fn temp_path(&self, what: &str) -> PathBuf {
+        let n = self.counter.fetch_add(1, Ordering::Relaxed);
+        self.tmp.join(format!("{what}-{}-{n}", std::process::id()))
+    }
+
+    /// Stores `bytes` (if not already held) and returns their digest.
+    pub(crate) fn put(&self, bytes: &[u8]) -> io::Result<Digest> {
+        let digest = digest_of(bytes);
+        if self.has(&digest) {
+            return Ok(digest);
+        }
+        let tmp = self.temp_path("blob");
+        let result = (|| {
+            let mut f = fs::File::create(&tmp)?;
+            f.write_all(bytes)?;
+            f.sync_all()?;
+            fs::rename(&tmp, self.path(&digest))
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result.map(|()| digest)
+    }
+
+    /// Starts an upload of a blob of `size` bytes with digest `digest`.
+    pub(crate) fn begin(&self, digest: Digest, size: u64) -> io::Result<Upload> {
+        let path = self.temp_path("upload");
+        let file = fs::File::create(&path)?;
+        Ok(Upload {
+            digest,
+            size,
+            got: 0,
+            hasher: blake3::Hasher::new(),
+            file: Some(file),
+            path,
+            dest: self.path(&digest),
+        })
+    }
+}
+
+/// A blob being uploaded: its temporary file is removed unless [`Upload::finish`] succeeds.
+pub(crate) struct Upload {
+    digest: Digest,
+    size: u64,
+    got: u64,
+    hasher: blake3::Hasher,
+    file: Option<fs::File>,
+    path: PathBuf,
+    dest: PathBuf,
+}
+
+impl Upload {
+    /// Appends a part. Fails (`Err(message)`) when the part would exceed the header's size.
+    pub(crate) fn write(&mut self, data: &[u8]) -> Result<(), String> {
+        self.got += data.len() as u64;
+        if self.got > self.size {
+            return Err(format!(
+                "the blob's data exceeds the header's size of {} bytes",
+                self.size
+            ));
+        }
+        self.hasher.update(data);
+        let file = self.file.as_mut().expect("open until finished");
+        file.write_all(data)
+            .map_err(|e| format!("cannot write the blob: {e}"))
+    }
+
+    /// Verifies size and digest and moves the blob into place.
+    pub(crate) fn finish(mut self) -> Result<(), String> {
+        if self.got != self.size {
+            return Err(format!(
+                "the blob's data is {} bytes, the header says {}",
+                self.got, self.size
+            ));
+        }
+        let got = Digest(*self.hasher.finalize().as_bytes());
+        if got != self.digest {
+            return Err(format!(
+                "the blob's data has digest {}, the header says {}",
+                got.to_hex(),
+                self.digest.to_hex()
+            ));
+        }
+        let file = self.file.take().expect("open until finished");
+        file.sync_all()
+            .map_err(|e| format!("cannot write the blob: {e}"))?;
+        drop(file);
+        fs::rename(&self.path, &self.dest).map_err(|e| format!("cannot store the blob: {e}"))
+    }
+}
+
+impl Drop for Upload {
+    fn drop(&mut self) {
+        self.file.take();
+        let _ = fs::remove_file(&self.path);
+    }
+}

@@ -1,0 +1,673 @@
+//! Coordinator tests over real gRPC on a loopback port.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use pathfarm_proto::v1::jobs_client::JobsClient;
+use pathfarm_proto::v1::workers_client::WorkersClient;
+use pathfarm_proto::v1::{self};
+use tokio::sync::oneshot;
+use tonic::transport::Channel;
+use tonic::{Code, Request};
+
+use super::*;
+use crate::bundle::digest_of;
+
+const SCENE: &str = r#"<scene version="3.0.0">
+	<integrator type="guided_path"/>
+	<sensor type="perspective">
+		<float name="fov" value="40"/>
+		<transform name="to_world"><lookat origin="0, 1, 3.75" target="0, 1, 0" up="0, 1, 0"/></transform>
+		<sampler type="independent"><integer name="sample_count" value="8"/></sampler>
+		<film type="hdrfilm">
+			<integer name="width" value="16"/>
+			<integer name="height" value="16"/>
+			<rfilter type="box"/>
+		</film>
+	</sensor>
+	<bsdf type="diffuse" id="white"><rgb name="reflectance" value="0.7, 0.7, 0.7"/></bsdf>
+	<shape type="rectangle">
+		<transform name="to_world"><rotate x="1" angle="-90"/></transform>
+		<ref id="white"/>
+	</shape>
+	<shape type="rectangle">
+		<transform name="to_world"><scale x="0.3" y="0.3"/><rotate x="1" angle="90"/><translate y="1.9"/></transform>
+		<ref id="white"/>
+		<emitter type="area"><rgb name="radiance" value="10, 10, 10"/></emitter>
+	</shape>
+</scene>
+"#;
+
+fn temp_dir(what: &str) -> PathBuf {
+    static N: AtomicU64 = AtomicU64::new(0);
+    let n = N.fetch_add(1, Ordering::Relaxed);
+    let dir =
+        std::env::temp_dir().join(format!("pathfarm-coord-{what}-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
+    CoordinatorConfig {
+        listen: "127.0.0.1:0".parse().unwrap(),
+        data_dir: data,
+        token: token.map(str::to_string),
+        metrics: None,
+        limits: Limits::default(),
+        bundle_limits: BundleLimits::default(),
+        scheduler: SchedulerConfig::default(),
+        default_tile: 8,
+    }
+}
+
+struct Running {
+    addr: SocketAddr,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<Result<(), CoordinatorError>>,
+}
+
+impl Running {
+    async fn start(cfg: CoordinatorConfig) -> Running {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let (tx, rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(serve_with_listener(cfg, listener, async move {
+            let _ = rx.await;
+        }));
+        Running {
+            addr,
+            stop: Some(tx),
+            task,
+        }
+    }
+
+    async fn channel(&self) -> Channel {
+        Channel::from_shared(format!("http://{}", self.addr))
+            .unwrap()
+            .connect()
+            .await
+            .unwrap()
+    }
+
+    async fn stop(mut self) {
+        let _ = self.stop.take().unwrap().send(());
+        self.task.await.unwrap().unwrap();
+    }
+}
+
+fn authed<T>(msg: T, token: Option<&str>) -> Request<T> {
+    let mut req = Request::new(msg);
+    if let Some(t) = token {
+        req.metadata_mut()
+            .insert("authorization", format!("Bearer {t}").parse().unwrap());
+    }
+    req
+}
+
+async fn upload(
+    jobs: &mut JobsClient<Channel>,
+    bytes: &[u8],
+    token: Option<&str>,
+) -> v1::BundleFile {
+    let digest = digest_of(bytes);
+    let mut parts = vec![v1::BlobChunk {
+        part: Some(v1::blob_chunk::Part::Header(v1::BlobHeader {
+            digest: digest.0.to_vec(),
+            size: bytes.len() as u64,
+        })),
+    }];
+    for c in bytes.chunks(100) {
+        parts.push(v1::BlobChunk {
+            part: Some(v1::blob_chunk::Part::Data(c.to_vec())),
+        });
+    }
+    let req = authed(tokio_stream::iter(parts), token);
+    jobs.upload_blob(req).await.unwrap();
+    v1::BundleFile {
+        path: "scene.xml".into(),
+        digest: digest.0.to_vec(),
+        size: bytes.len() as u64,
+    }
+}
+
+fn submit_request(file: v1::BundleFile) -> v1::SubmitJobRequest {
+    v1::SubmitJobRequest {
+        bundle: Some(v1::Bundle {
+            root: "scene.xml".into(),
+            files: vec![file],
+        }),
+        settings: Some(v1::JobSettings {
+            budget: Some(v1::job_settings::Budget::Spp(4)),
+            ..Default::default()
+        }),
+        priority: 0,
+        name: "test".into(),
+    }
+}
+
+#[tokio::test]
+async fn wrong_or_missing_token_is_unauthenticated() {
+    let data = temp_dir("auth");
+    let c = Running::start(config(data.clone(), Some("s3cret"))).await;
+    let ch = c.channel().await;
+    let mut jobs = JobsClient::new(ch.clone());
+    let list = || v1::ListJobsRequest::default();
+    let e = jobs.list_jobs(authed(list(), None)).await.unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated);
+    assert!(e.message().contains("missing"), "{}", e.message());
+    let e = jobs
+        .list_jobs(authed(list(), Some("nope")))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated);
+    assert!(e.message().contains("wrong") && !e.message().contains("nope"));
+    jobs.list_jobs(authed(list(), Some("s3cret")))
+        .await
+        .unwrap();
+    let mut workers = WorkersClient::new(ch);
+    let e = workers
+        .fetch_blob(authed(
+            v1::BlobRequest {
+                digest: vec![0; 32],
+            },
+            Some("bad"),
+        ))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::Unauthenticated);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+#[tokio::test]
+async fn malformed_scene_is_invalid_argument_and_stores_nothing() {
+    let data = temp_dir("bad");
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let file = upload(&mut jobs, b"<scene version=\"3.0.0\"><shape", None).await;
+    let e = jobs.submit_job(submit_request(file)).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{}", e.message());
+    assert!(e.message().contains("scene.xml"), "{}", e.message());
+    // a path job is refused too
+    let path_scene = SCENE.replace("guided_path", "path");
+    let file = upload(&mut jobs, path_scene.as_bytes(), None).await;
+    let e = jobs.submit_job(submit_request(file)).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(
+        e.message().contains("guided_path jobs only"),
+        "{}",
+        e.message()
+    );
+    let listed = jobs
+        .list_jobs(v1::ListJobsRequest::default())
+        .await
+        .unwrap();
+    assert!(listed.into_inner().jobs.is_empty());
+    let tmp: Vec<_> = std::fs::read_dir(data.join("tmp")).unwrap().collect();
+    assert!(tmp.is_empty(), "temporary files left: {tmp:?}");
+    c.stop().await;
+    // nothing persisted either
+    let db = db::Db::open(&data.join("jobs.redb")).unwrap();
+    assert!(db.all().unwrap().is_empty());
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+#[tokio::test]
+async fn corrupt_blob_upload_is_rejected_and_not_stored() {
+    let data = temp_dir("blob");
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let digest = digest_of(b"hello");
+    let parts = vec![
+        v1::BlobChunk {
+            part: Some(v1::blob_chunk::Part::Header(v1::BlobHeader {
+                digest: digest.0.to_vec(),
+                size: 5,
+            })),
+        },
+        v1::BlobChunk {
+            part: Some(v1::blob_chunk::Part::Data(b"hellx".to_vec())),
+        },
+    ];
+    let e = jobs
+        .upload_blob(tokio_stream::iter(parts))
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    let missing = jobs
+        .find_missing_blobs(v1::FindMissingBlobsRequest {
+            digests: vec![digest.0.to_vec()],
+        })
+        .await
+        .unwrap()
+        .into_inner()
+        .missing;
+    assert_eq!(missing.len(), 1);
+    assert_eq!(std::fs::read_dir(data.join("blobs")).unwrap().count(), 0);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+#[tokio::test]
+async fn worker_with_other_protocol_is_refused() {
+    let data = temp_dir("refuse");
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut workers = WorkersClient::new(c.channel().await);
+    let register = v1::WorkerMessage {
+        msg: Some(v1::worker_message::Msg::Register(v1::Register {
+            protocol_version: 2,
+            build_id: crate::build::build_id().to_string(),
+            threads: 1,
+            host_name: "test".into(),
+            worker_name: String::new(),
+        })),
+    };
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(register).await.unwrap();
+    let mut inbound = workers
+        .control(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let first = inbound.message().await.unwrap().unwrap();
+    let Some(v1::coordinator_message::Msg::Refused(r)) = first.msg else {
+        panic!("expected Refused, got {first:?}");
+    };
+    assert!(
+        r.reason.contains("worker protocol 2") && r.reason.contains("coordinator 1"),
+        "{}",
+        r.reason
+    );
+    let end = inbound.message().await.unwrap_err();
+    assert_eq!(end.code(), Code::FailedPrecondition);
+    drop(tx);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+#[tokio::test]
+async fn submitted_job_is_queued_persisted_and_restarted() {
+    let data = temp_dir("submit");
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
+    let id = jobs
+        .submit_job(submit_request(file))
+        .await
+        .unwrap()
+        .into_inner()
+        .job_id;
+    assert_eq!(id, "job-1");
+    let got = jobs
+        .get_job(v1::GetJobRequest { job_id: id.clone() })
+        .await
+        .unwrap()
+        .into_inner();
+    let status = got.status.unwrap();
+    assert_eq!(status.state, v1::JobState::Queued as i32);
+    assert_eq!(status.tiles_total, 4, "16x16 in 8-pixel tiles");
+    assert_eq!(
+        got.image,
+        Some(v1::Resolution {
+            width: 16,
+            height: 16
+        })
+    );
+    let e = jobs
+        .download_result(v1::DownloadResultRequest {
+            job_id: id.clone(),
+            kind: v1::ResultKind::Exr as i32,
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition);
+    let e = jobs
+        .get_job(v1::GetJobRequest {
+            job_id: "job-99".into(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Code::NotFound);
+    c.stop().await;
+
+    // After a restart the queued job is back (restarted from the beginning); a second job
+    // gets a fresh id.
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let listed = jobs
+        .list_jobs(v1::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner()
+        .jobs;
+    assert_eq!(listed.len(), 1);
+    assert_eq!(listed[0].job_id, "job-1");
+    assert_eq!(listed[0].state, v1::JobState::Queued as i32);
+    let cancelled = jobs
+        .cancel_job(v1::CancelJobRequest {
+            job_id: "job-1".into(),
+            reason: String::new(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(cancelled.cancelled);
+    assert_eq!(
+        cancelled.status.unwrap().state,
+        v1::JobState::Cancelled as i32
+    );
+    c.stop().await;
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let listed = jobs
+        .list_jobs(v1::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner()
+        .jobs;
+    assert_eq!(listed[0].state, v1::JobState::Cancelled as i32);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+async fn fetch(workers: &mut WorkersClient<Channel>, digest: &[u8]) -> Vec<u8> {
+    let mut s = workers
+        .fetch_blob(v1::BlobRequest {
+            digest: digest.to_vec(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut out = Vec::new();
+    let Some(v1::data_chunk::Part::Header(h)) = s.message().await.unwrap().unwrap().part else {
+        panic!("header first");
+    };
+    while let Some(c) = s.message().await.unwrap() {
+        let Some(v1::data_chunk::Part::Data(d)) = c.part else {
+            panic!("data after the header");
+        };
+        out.extend_from_slice(&d);
+    }
+    assert_eq!(out.len() as u64, h.total_size);
+    assert_eq!(digest_of(&out).0.as_slice(), digest);
+    out
+}
+
+/// A minimal in-test worker over the real gRPC API renders a whole job with the real
+/// `render_unit`; the downloaded EXR equals the one-process render's, bit for bit.
+#[tokio::test]
+async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
+    use pathfarm_render::pass::{render_unit, UnitInputs};
+    let data = temp_dir("e2e");
+    let c = Running::start(config(data.clone(), None)).await;
+    let ch = c.channel().await;
+    let mut jobs = JobsClient::new(ch.clone());
+    let mut workers = WorkersClient::new(ch);
+    let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
+    let id = jobs
+        .submit_job(submit_request(file))
+        .await
+        .unwrap()
+        .into_inner()
+        .job_id;
+    let mut watch = jobs
+        .watch_job(v1::WatchJobRequest { job_id: id.clone() })
+        .await
+        .unwrap()
+        .into_inner();
+    let first = watch.message().await.unwrap().unwrap();
+    assert_eq!(first.state, v1::JobState::Queued as i32);
+
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    let send = |m| v1::WorkerMessage { msg: Some(m) };
+    use v1::worker_message::Msg as W;
+    tx.send(send(W::Register(v1::Register {
+        protocol_version: pathfarm_proto::PROTOCOL_VERSION,
+        build_id: crate::build::build_id().to_string(),
+        threads: 1,
+        host_name: "test".into(),
+        worker_name: "fake".into(),
+    })))
+    .await
+    .unwrap();
+    tx.send(send(W::RequestWork(v1::RequestWork { slots: 2 })))
+        .await
+        .unwrap();
+    let mut inbound = workers
+        .control(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let m = inbound.message().await.unwrap().unwrap();
+    assert!(matches!(
+        m.msg,
+        Some(v1::coordinator_message::Msg::Registered(_))
+    ));
+    // a registered worker makes the services SERVING
+    let mut health = tonic_health::pb::health_client::HealthClient::new(c.channel().await);
+    let check = tonic_health::pb::HealthCheckRequest {
+        service: pathfarm_proto::JOBS_SERVICE.into(),
+    };
+    let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+    let mut ok = false;
+    for _ in 0..50 {
+        if health
+            .check(check.clone())
+            .await
+            .unwrap()
+            .into_inner()
+            .status
+            == serving
+        {
+            ok = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(ok, "health SERVING once a worker registered");
+    let dir = temp_dir("e2e-worker");
+    let mut scene: Option<Scene> = None;
+    let mut tiles = 0;
+    loop {
+        let m = inbound.message().await.unwrap().unwrap();
+        let Some(v1::coordinator_message::Msg::LeaseOffer(offer)) = m.msg else {
+            continue;
+        };
+        let lease = offer.lease.unwrap();
+        assert_eq!(lease.job_id, id);
+        if scene.is_none() {
+            let Some(v1::lease::Scene::Bundle(b)) = &lease.scene else {
+                panic!("inline bundle");
+            };
+            for f in &b.files {
+                std::fs::write(dir.join(&f.path), fetch(&mut workers, &f.digest).await).unwrap();
+            }
+            let settings = lease.settings.as_ref().unwrap();
+            let defs: Vec<(String, String)> = settings
+                .defines
+                .iter()
+                .map(|d| (d.name.clone(), d.value.clone()))
+                .collect();
+            let desc = pathfarm_scene::load_scene(&dir.join(&b.root), &defs).unwrap();
+            scene = Some(Scene::build(&desc).unwrap());
+        }
+        let scene = scene.as_ref().unwrap();
+        let params = scene.guided.clone().unwrap();
+        let pass = lease.pass.clone().unwrap();
+        let spec = codec::spec_from_proto(&pass).unwrap();
+        let mut tree = if pass.tree_digest.is_empty() {
+            let (lo, hi) = scene.accel.bounds();
+            SdTree::new(lo, hi, guided::guide_config(&params, scene))
+        } else {
+            SdTree::decode(&fetch(&mut workers, &pass.tree_digest).await).unwrap()
+        };
+        if !pass.fractions_digest.is_empty() {
+            let f = fetch(&mut workers, &pass.fractions_digest).await;
+            tree.set_fraction_states(&codec::decode_fractions(&f).unwrap())
+                .unwrap();
+        }
+        let estimate = if pass.estimate_digest.is_empty() {
+            Vec::new()
+        } else {
+            codec::decode_estimate(&fetch(&mut workers, &pass.estimate_digest).await).unwrap()
+        };
+        let region =
+            codec::region_from_proto(lease.tile.as_ref().unwrap(), scene.width, scene.height)
+                .unwrap();
+        let inputs = UnitInputs {
+            scene,
+            params: &params,
+            tree: &tree,
+            estimate: &estimate,
+            seed: lease.settings.as_ref().unwrap().seed.unwrap(),
+            tile_size: 4,
+        };
+        let out = render_unit(&inputs, &spec, region, &|_| {});
+        let stats = if spec.record() {
+            tree.take_stats().encode()
+        } else {
+            Vec::new()
+        };
+        let pixels = codec::encode_pixels(&out.film);
+        let header = v1::TileHeader {
+            lease_id: lease.lease_id,
+            job_id: lease.job_id.clone(),
+            unit: pass.unit,
+            tile: lease.tile,
+            counters: Some(v1::TileCounters {
+                rays: out.rays,
+                invalid_samples: out.invalid_samples,
+                split_paths: out.split_paths,
+                extra_light_samples: out.extra_light_samples,
+                render_seconds: 0.0,
+            }),
+            pixels_size: pixels.len() as u64,
+            stats_size: stats.len() as u64,
+            pixels_digest: digest_of(&pixels).0.to_vec(),
+            stats_digest: digest_of(&stats).0.to_vec(),
+        };
+        let mut parts = vec![v1::TileUpload {
+            part: Some(v1::tile_upload::Part::Header(header)),
+        }];
+        let payload = [pixels, stats].concat();
+        for c in payload.chunks(1000) {
+            parts.push(v1::TileUpload {
+                part: Some(v1::tile_upload::Part::Data(c.to_vec())),
+            });
+        }
+        let ack = workers
+            .upload_tile(tokio_stream::iter(parts))
+            .await
+            .unwrap()
+            .into_inner();
+        assert!(ack.accepted, "{ack:?}");
+        tiles += 1;
+        let status = jobs
+            .get_job(v1::GetJobRequest { job_id: id.clone() })
+            .await
+            .unwrap()
+            .into_inner()
+            .status
+            .unwrap();
+        assert_ne!(status.state, v1::JobState::Failed as i32, "{status:?}");
+        if status.state == v1::JobState::Done as i32 {
+            break;
+        }
+        tx.send(send(W::RequestWork(v1::RequestWork { slots: 1 })))
+            .await
+            .unwrap();
+    }
+    assert!(tiles >= 4);
+    // the watch stream ends with DONE
+    let mut last = first;
+    while let Some(s) = watch.message().await.unwrap() {
+        last = s;
+    }
+    assert_eq!(last.state, v1::JobState::Done as i32);
+
+    let mut s = jobs
+        .download_result(v1::DownloadResultRequest {
+            job_id: id.clone(),
+            kind: v1::ResultKind::Exr as i32,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut exr = Vec::new();
+    while let Some(c) = s.message().await.unwrap() {
+        if let Some(v1::data_chunk::Part::Data(d)) = c.part {
+            exr.extend_from_slice(&d);
+        }
+    }
+    let scene = scene.unwrap();
+    let params = scene.guided.clone().unwrap();
+    let settings = pathfarm_render::RenderSettings::new(Some(4), None, scene.seed);
+    let (film, _, _) = guided::render_guided_with_policy(
+        &scene,
+        &params,
+        Budget::Spp(4),
+        &settings,
+        &|_| {},
+        &|_| {},
+        FallbackPolicy::Rule,
+    );
+    let expected = pathfarm_render::output::encode_exr(&film, false).unwrap();
+    assert!(
+        exr == expected,
+        "the farm's EXR differs from the one-process render"
+    );
+    drop(tx);
+    c.stop().await;
+    // a finished job's results survive a restart
+    let c = Running::start(config(data.clone(), None)).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let mut s = jobs
+        .download_result(v1::DownloadResultRequest {
+            job_id: id.clone(),
+            kind: v1::ResultKind::Exr as i32,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut again = Vec::new();
+    while let Some(c) = s.message().await.unwrap() {
+        if let Some(v1::data_chunk::Part::Data(d)) = c.part {
+            again.extend_from_slice(&d);
+        }
+    }
+    assert!(again == expected);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test]
+async fn metrics_report_jobs_by_state() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let data = temp_dir("metrics");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let mut cfg = config(data.clone(), None);
+    cfg.metrics = Some(port);
+    let c = Running::start(cfg).await;
+    let mut jobs = JobsClient::new(c.channel().await);
+    let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
+    jobs.submit_job(submit_request(file)).await.unwrap();
+    let mut sock = tokio::net::TcpStream::connect(port).await.unwrap();
+    sock.write_all(b"GET /metrics HTTP/1.1\r\nhost: x\r\n\r\n")
+        .await
+        .unwrap();
+    let mut text = String::new();
+    sock.read_to_string(&mut text).await.unwrap();
+    assert!(text.starts_with("HTTP/1.1 200"), "{text}");
+    assert!(
+        text.contains("pathfarm_jobs{state=\"JOB_STATE_QUEUED\"} 1"),
+        "{text}"
+    );
+    assert!(text.contains("pathfarm_workers 0"), "{text}");
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}

@@ -1,0 +1,17 @@
+//! # pathfarm-farm
+//!
+//! The render farm: a coordinator that schedules the passes of guided jobs over worker
+//! processes, and the workers that render them.
+//!
+//! * [`scheduler`]: pure lease bookkeeping (jobs, tasks, workers, deadlines, attempts) with an
+//!   injected clock; no sockets, no I/O.
+//! * [`codec`]: binary forms of fractions, estimates, tile pixels; pass specs as proto.
+//! * [`bundle`]: scene bundles: a scene file and every file it references, content-addressed.
+
+pub mod build;
+pub mod bundle;
+pub mod client;
+pub mod codec;
+pub mod coordinator;
+pub mod scheduler;
+pub mod worker;

@@ -1,0 +1,887 @@
+//! A farm worker: registers with the coordinator on the control stream, takes leases,
+//! renders their tiles bit-exactly (one lease at a time, one more prefetched) and uploads the
+//! results. Reconnects with backoff when the coordinator goes away; drains on shutdown.
+
+use std::collections::{HashMap, VecDeque};
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use pathfarm_guide::SdTree;
+use pathfarm_proto::v1::{self, workers_client::WorkersClient};
+use pathfarm_proto::{MAX_CHUNK_BYTES, PROTOCOL_VERSION};
+use pathfarm_render::guided::guide_config;
+use pathfarm_render::pass::{render_unit, UnitInputs};
+use pathfarm_render::Scene;
+use pathfarm_scene::{GuidedParams, Limits};
+use prost::Message;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+
+use crate::bundle::{self, Digest, Manifest, ManifestEntry};
+use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff};
+use crate::codec;
+
+/// How a worker runs.
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    /// The coordinator's URL, `http://host:port`.
+    pub coordinator: String,
+    /// Bearer token sent on every call.
+    pub token: Option<String>,
+    /// Render threads (at least 1).
+    pub threads: usize,
+    /// Optional operator-chosen name (empty = none).
+    pub name: String,
+    /// Blob, bundle and scratch cache.
+    pub cache_dir: PathBuf,
+}
+
+/// Why a worker stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum WorkerError {
+    /// The coordinator refused the registration (not retried).
+    #[error("the coordinator refused this worker: {0}")]
+    Refused(String),
+    /// Bad configuration (URL, token, threads, cache directory).
+    #[error("{0}")]
+    Config(String),
+}
+
+type Api = WorkersClient<AuthChannel>;
+
+/// Runs the worker until `shutdown` resolves (then drains and returns `Ok`) or the
+/// coordinator refuses it.
+pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Result<(), WorkerError> {
+    if cfg.threads == 0 {
+        return Err(WorkerError::Config("threads must be at least 1".into()));
+    }
+    let auth = Auth::new(cfg.token.as_deref()).map_err(|e| WorkerError::Config(e.to_string()))?;
+    let ep = endpoint(&cfg.coordinator).map_err(|e| WorkerError::Config(e.to_string()))?;
+    for d in ["blobs", "bundles"] {
+        std::fs::create_dir_all(cfg.cache_dir.join(d)).map_err(|e| {
+            WorkerError::Config(format!("{}: {e}", cfg.cache_dir.join(d).display()))
+        })?;
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(cfg.threads)
+        .thread_name(|i| format!("pathfarm-render-{i}"))
+        .build()
+        .map_err(|e| WorkerError::Config(format!("thread pool: {e}")))?;
+    let shared = Arc::new(Shared {
+        cache_dir: cfg.cache_dir.clone(),
+        pool,
+        caches: Mutex::new(Caches::default()),
+        tmp_counter: AtomicU64::new(0),
+    });
+    tokio::pin!(shutdown);
+    let mut stop = false;
+    let mut backoff = Backoff::new();
+    loop {
+        if stop {
+            return Ok(());
+        }
+        let channel = tokio::select! {
+            r = ep.connect() => r,
+            _ = &mut shutdown => return Ok(()),
+        };
+        let channel = match channel {
+            Ok(c) => c,
+            Err(e) => {
+                let d = backoff.next_delay();
+                tracing::warn!(
+                    "cannot reach the coordinator at {}: {}; retrying in {:?}",
+                    cfg.coordinator,
+                    error_chain(&e),
+                    d
+                );
+                tokio::select! {
+                    _ = tokio::time::sleep(d) => continue,
+                    _ = &mut shutdown => return Ok(()),
+                }
+            }
+        };
+        let api = WorkersClient::with_interceptor(channel, auth.clone())
+            .max_decoding_message_size(16 << 20);
+        match session(&cfg, &shared, api, &mut shutdown, &mut stop, &mut backoff).await {
+            Ok(()) => {}
+            Err(SessionEnd::Refused(r)) => return Err(WorkerError::Refused(r)),
+            Err(SessionEnd::Lost(m)) => {
+                if stop {
+                    return Ok(());
+                }
+                let d = backoff.next_delay();
+                tracing::warn!("lost the coordinator: {m}; reconnecting in {d:?}");
+                tokio::select! {
+                    _ = tokio::time::sleep(d) => {}
+                    _ = &mut shutdown => return Ok(()),
+                }
+            }
+        }
+    }
+}
+
+enum SessionEnd {
+    Refused(String),
+    Lost(String),
+}
+
+/// What the worker keeps across leases and sessions.
+struct Shared {
+    cache_dir: PathBuf,
+    pool: rayon::ThreadPool,
+    caches: Mutex<Caches>,
+    tmp_counter: AtomicU64,
+}
+
+/// A job's built scene.
+struct JobScene {
+    scene: Scene,
+    params: GuidedParams,
+}
+
+/// A job's tree copy: the tree of `tree_digest` with the fractions of `fractions_digest`.
+struct JobTree {
+    tree_digest: Vec<u8>,
+    fractions_digest: Vec<u8>,
+    tree: SdTree,
+}
+
+#[derive(Default)]
+struct Caches {
+    /// Built scenes, most recently used last (at most 2).
+    scenes: Vec<(String, Arc<JobScene>)>,
+    /// One tree per job.
+    trees: HashMap<String, JobTree>,
+    /// One estimate per job: its digest and values.
+    estimates: HashMap<String, (Vec<u8>, Arc<Vec<f32>>)>,
+}
+
+const SCENE_CACHE: usize = 2;
+
+/// The outcome of one lease.
+enum LeaseEnd {
+    Uploaded(v1::TileAck),
+    Cancelled,
+    Failed { reason: String, fatal: bool },
+}
+
+struct Running {
+    lease_id: u64,
+    job_id: String,
+    cancelled: Arc<AtomicBool>,
+    handle: tokio::task::JoinHandle<LeaseEnd>,
+}
+
+fn send(tx: &mpsc::Sender<v1::WorkerMessage>, msg: v1::worker_message::Msg) -> bool {
+    tx.try_send(v1::WorkerMessage { msg: Some(msg) }).is_ok()
+}
+
+async fn session<S: Future<Output = ()>>(
+    cfg: &WorkerConfig,
+    shared: &Arc<Shared>,
+    mut api: Api,
+    shutdown: &mut std::pin::Pin<&mut S>,
+    stop: &mut bool,
+    backoff: &mut Backoff,
+) -> Result<(), SessionEnd> {
+    use v1::worker_message::Msg;
+    let (tx, rx) = mpsc::channel::<v1::WorkerMessage>(64);
+    send(
+        &tx,
+        Msg::Register(v1::Register {
+            protocol_version: PROTOCOL_VERSION,
+            build_id: crate::build::build_id().to_string(),
+            threads: cfg.threads as u32,
+            host_name: host_name(),
+            worker_name: cfg.name.clone(),
+        }),
+    );
+    let mut inbound = api
+        .control(ReceiverStream::new(rx))
+        .await
+        .map_err(|s| SessionEnd::Lost(format!("{} ({:?})", s.message(), s.code())))?
+        .into_inner();
+    let first = inbound
+        .message()
+        .await
+        .map_err(|s| SessionEnd::Lost(format!("{} ({:?})", s.message(), s.code())))?;
+    let registered = match first.and_then(|m| m.msg) {
+        Some(v1::coordinator_message::Msg::Registered(r)) => r,
+        Some(v1::coordinator_message::Msg::Refused(r)) => {
+            return Err(SessionEnd::Refused(r.reason))
+        }
+        _ => {
+            return Err(SessionEnd::Lost(
+                "the coordinator did not answer Register".into(),
+            ))
+        }
+    };
+    backoff.reset();
+    tracing::info!(
+        "registered with {} as worker {} (coordinator {})",
+        cfg.coordinator,
+        registered.worker_id,
+        registered.build_id
+    );
+    let mut draining = *stop;
+    if draining {
+        send(&tx, Msg::Draining(v1::Draining {}));
+    } else {
+        send(&tx, Msg::RequestWork(v1::RequestWork { slots: 2 }));
+    }
+    let hb = Duration::from_millis(registered.heartbeat_interval_ms.max(50) as u64);
+    let mut heartbeat = tokio::time::interval(hb);
+    heartbeat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut queue: VecDeque<v1::Lease> = VecDeque::new();
+    let mut running: Option<Running> = None;
+    let mut shutdown_seen = *stop;
+    let lost: Option<String> = loop {
+        if running.is_none() {
+            if let Some(lease) = queue.pop_front() {
+                running = Some(start_lease(shared, &api, lease));
+            } else if draining {
+                break None;
+            }
+        }
+        tokio::select! {
+            _ = shutdown.as_mut(), if !shutdown_seen => {
+                shutdown_seen = true;
+                *stop = true;
+                draining = true;
+                tracing::info!("shutting down: draining");
+                send(&tx, Msg::Draining(v1::Draining {}));
+                let ids: Vec<u64> = queue.drain(..).map(|l| l.lease_id).collect();
+                if !ids.is_empty() {
+                    tracing::info!("handing back leases {ids:?}");
+                    send(&tx, Msg::HandBack(v1::HandBack { lease_ids: ids }));
+                }
+            }
+            _ = heartbeat.tick() => {
+                let mut ids: Vec<u64> = running.iter().map(|r| r.lease_id).collect();
+                ids.extend(queue.iter().map(|l| l.lease_id));
+                send(&tx, Msg::Heartbeat(v1::Heartbeat { active_lease_ids: ids }));
+            }
+            end = async { (&mut running.as_mut().expect("guarded").handle).await }, if running.is_some() => {
+                let r = running.take().expect("guarded");
+                let end = end.unwrap_or_else(|e| LeaseEnd::Failed {
+                    reason: format!("render task panicked: {e}"),
+                    fatal: false,
+                });
+                match end {
+                    LeaseEnd::Uploaded(ack) if ack.accepted => {
+                        tracing::info!("lease {} (job {}): tile accepted{}", r.lease_id, r.job_id,
+                            if ack.duplicate { " (duplicate)" } else { "" });
+                    }
+                    LeaseEnd::Uploaded(ack) => {
+                        tracing::warn!("lease {} (job {}): tile rejected: {:?} {}", r.lease_id, r.job_id,
+                            v1::TileRejectReason::try_from(ack.reject_reason).unwrap_or(v1::TileRejectReason::Unspecified),
+                            ack.detail);
+                    }
+                    LeaseEnd::Cancelled => {
+                        tracing::info!("lease {} (job {}): cancelled, nothing uploaded", r.lease_id, r.job_id);
+                    }
+                    LeaseEnd::Failed { reason, fatal } => {
+                        tracing::error!("lease {} (job {}) failed: {reason}", r.lease_id, r.job_id);
+                        send(&tx, Msg::LeaseFailed(v1::LeaseFailed { lease_id: r.lease_id, reason, fatal }));
+                    }
+                }
+                if !draining {
+                    send(&tx, Msg::RequestWork(v1::RequestWork { slots: 1 }));
+                }
+            }
+            msg = inbound.message() => {
+                let msg = match msg {
+                    Ok(Some(m)) => m,
+                    Ok(None) => break Some("the control stream ended".to_string()),
+                    Err(s) => break Some(format!("{} ({:?})", s.message(), s.code())),
+                };
+                use v1::coordinator_message::Msg as C;
+                match msg.msg {
+                    Some(C::LeaseOffer(o)) => {
+                        let Some(lease) = o.lease else { continue };
+                        tracing::info!("lease {} (job {}): offered, unit {} tile {:?}", lease.lease_id, lease.job_id,
+                            lease.pass.as_ref().map_or(0, |p| p.unit),
+                            lease.tile.as_ref().map(|t| (t.x0, t.y0, t.x1, t.y1)));
+                        if draining {
+                            send(&tx, Msg::HandBack(v1::HandBack { lease_ids: vec![lease.lease_id] }));
+                        } else {
+                            queue.push_back(lease);
+                        }
+                    }
+                    Some(C::CancelLease(c)) => {
+                        if let Some(i) = queue.iter().position(|l| l.lease_id == c.lease_id) {
+                            let l = queue.remove(i).expect("position");
+                            tracing::info!("lease {} (job {}): cancelled before start: {}", l.lease_id, l.job_id, c.reason);
+                            if !draining {
+                                send(&tx, Msg::RequestWork(v1::RequestWork { slots: 1 }));
+                            }
+                        } else if let Some(r) = running.as_ref().filter(|r| r.lease_id == c.lease_id) {
+                            tracing::info!("lease {} (job {}): cancelled while rendering: {}", r.lease_id, r.job_id, c.reason);
+                            r.cancelled.store(true, Ordering::SeqCst);
+                        }
+                    }
+                    Some(C::Drain(d)) => {
+                        if !draining {
+                            tracing::info!("the coordinator asks to drain: {}", d.reason);
+                            draining = true;
+                            send(&tx, Msg::Draining(v1::Draining {}));
+                        }
+                    }
+                    Some(C::Registered(_)) | Some(C::Refused(_)) | None => {}
+                }
+            }
+        }
+    };
+    // The stream broke (or the worker drained): leases not started are abandoned (the
+    // coordinator re-queues them); the one rendering is finished and uploaded if it can be.
+    if let Some(r) = running.take() {
+        if lost.is_some() {
+            tracing::info!(
+                "lease {} (job {}): finishing after the stream broke",
+                r.lease_id,
+                r.job_id
+            );
+        }
+        let _ = r.handle.await;
+    }
+    drop(tx);
+    match lost {
+        Some(m) if !draining => Err(SessionEnd::Lost(m)),
+        Some(_) if !*stop => Err(SessionEnd::Lost("drained by the coordinator".into())),
+        _ => {
+            tracing::info!("drained");
+            Ok(())
+        }
+    }
+}
+
+fn host_name() -> String {
+    std::fs::read_to_string("/etc/hostname")
+        .ok()
+        .map(|s| s.trim().to_string())
+        .filter(|s| !s.is_empty())
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .unwrap_or_else(|| "unknown".into())
+}
+
+fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
+    let cancelled = Arc::new(AtomicBool::new(false));
+    let lease_id = lease.lease_id;
+    let job_id = lease.job_id.clone();
+    let shared = shared.clone();
+    let api = api.clone();
+    let flag = cancelled.clone();
+    tracing::info!("lease {lease_id} (job {job_id}): starting");
+    let handle = tokio::spawn(async move { do_lease(shared, api, lease, flag).await });
+    Running {
+        lease_id,
+        job_id,
+        cancelled,
+        handle,
+    }
+}
+
+struct Fail {
+    reason: String,
+    fatal: bool,
+}
+
+fn retryable(reason: impl std::fmt::Display) -> Fail {
+    Fail {
+        reason: reason.to_string(),
+        fatal: false,
+    }
+}
+
+fn fatal(reason: impl std::fmt::Display) -> Fail {
+    Fail {
+        reason: reason.to_string(),
+        fatal: true,
+    }
+}
+
+fn digest_of_field(bytes: &[u8], what: &str) -> Result<Digest, Fail> {
+    <[u8; 32]>::try_from(bytes)
+        .map(Digest)
+        .map_err(|_| fatal(format!("{what}: a digest of {} bytes", bytes.len())))
+}
+
+async fn do_lease(
+    shared: Arc<Shared>,
+    mut api: Api,
+    lease: v1::Lease,
+    cancelled: Arc<AtomicBool>,
+) -> LeaseEnd {
+    let prepared = match prepare(&shared, &mut api, &lease).await {
+        Ok(p) => p,
+        Err(f) => {
+            return LeaseEnd::Failed {
+                reason: f.reason,
+                fatal: f.fatal,
+            }
+        }
+    };
+    if cancelled.load(Ordering::SeqCst) {
+        return LeaseEnd::Cancelled;
+    }
+    let sh = shared.clone();
+    let rendered = tokio::task::spawn_blocking(move || render(&sh, prepared)).await;
+    let tile = match rendered {
+        Ok(Ok(t)) => t,
+        Ok(Err(f)) => {
+            return LeaseEnd::Failed {
+                reason: f.reason,
+                fatal: f.fatal,
+            }
+        }
+        Err(e) => {
+            return LeaseEnd::Failed {
+                reason: format!("render panicked: {e}"),
+                fatal: false,
+            }
+        }
+    };
+    if cancelled.load(Ordering::SeqCst) {
+        return LeaseEnd::Cancelled;
+    }
+    let msgs = upload_messages(tile.header, &tile.pixels, &tile.stats, MAX_CHUNK_BYTES);
+    match api.upload_tile(tokio_stream::iter(msgs)).await {
+        Ok(ack) => LeaseEnd::Uploaded(ack.into_inner()),
+        Err(s) => LeaseEnd::Failed {
+            reason: format!("upload failed: {} ({:?})", s.message(), s.code()),
+            fatal: false,
+        },
+    }
+}
+
+/// The upload of one tile: the header, then the pixels and then the statistics in data parts
+/// of at most `max` bytes (a part may hold the end of one payload and the start of the next).
+pub fn upload_messages(
+    header: v1::TileHeader,
+    pixels: &[u8],
+    stats: &[u8],
+    max: usize,
+) -> Vec<v1::TileUpload> {
+    use v1::tile_upload::Part;
+    let mut out = vec![v1::TileUpload {
+        part: Some(Part::Header(header)),
+    }];
+    let total = pixels.len() + stats.len();
+    let mut at = 0;
+    while at < total {
+        let end = (at + max.max(1)).min(total);
+        let mut part = Vec::with_capacity(end - at);
+        if at < pixels.len() {
+            part.extend_from_slice(&pixels[at..end.min(pixels.len())]);
+        }
+        if end > pixels.len() {
+            part.extend_from_slice(&stats[at.max(pixels.len()) - pixels.len()..end - pixels.len()]);
+        }
+        out.push(v1::TileUpload {
+            part: Some(Part::Data(part)),
+        });
+        at = end;
+    }
+    out
+}
+
+/// Everything a lease's render needs, fetched.
+struct Prepared {
+    lease: v1::Lease,
+    manifest: Manifest,
+    defines: Vec<(String, String)>,
+    tree_blob: Option<PathBuf>,
+    fractions_blob: Option<PathBuf>,
+    estimate_blob: Option<PathBuf>,
+}
+
+struct RenderedTile {
+    header: v1::TileHeader,
+    pixels: Vec<u8>,
+    stats: Vec<u8>,
+}
+
+fn blob_path(cache: &Path, d: &Digest) -> PathBuf {
+    cache.join("blobs").join(d.to_hex())
+}
+
+/// Fetches the blob `d` into the cache unless it is there; returns its path.
+async fn ensure_blob(shared: &Shared, api: &mut Api, d: &Digest) -> Result<PathBuf, Fail> {
+    let path = blob_path(&shared.cache_dir, d);
+    if path.is_file() {
+        return Ok(path);
+    }
+    let mut stream = api
+        .fetch_blob(v1::BlobRequest {
+            digest: d.0.to_vec(),
+        })
+        .await
+        .map_err(|s| retryable(format!("fetching blob {}: {}", d.to_hex(), s.message())))?
+        .into_inner();
+    let data = crate::client::read_data_stream(&mut stream)
+        .await
+        .map_err(|e| retryable(format!("fetching blob {}: {e}", d.to_hex())))?;
+    if blake3::hash(&data).as_bytes() != &d.0 {
+        return Err(retryable(format!("blob {}: digest mismatch", d.to_hex())));
+    }
+    let n = shared.tmp_counter.fetch_add(1, Ordering::Relaxed);
+    let tmp = shared.cache_dir.join("blobs").join(format!(
+        ".tmp-{}-{}-{n}",
+        d.to_hex(),
+        std::process::id()
+    ));
+    std::fs::write(&tmp, &data)
+        .and_then(|_| std::fs::rename(&tmp, &path))
+        .map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            retryable(format!("{}: {e}", path.display()))
+        })?;
+    Ok(path)
+}
+
+/// The blob of an optional digest field (empty = none), fetched.
+async fn opt_blob(
+    shared: &Shared,
+    api: &mut Api,
+    bytes: &[u8],
+    what: &str,
+) -> Result<Option<PathBuf>, Fail> {
+    if bytes.is_empty() {
+        return Ok(None);
+    }
+    let d = digest_of_field(bytes, what)?;
+    Ok(Some(ensure_blob(shared, api, &d).await?))
+}
+
+async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Prepared, Fail> {
+    let bundle = match &lease.scene {
+        Some(v1::lease::Scene::Bundle(b)) => b.clone(),
+        Some(v1::lease::Scene::BundleDigest(d)) => {
+            let d = digest_of_field(d, "bundle_digest")?;
+            let p = ensure_blob(shared, api, &d).await?;
+            let bytes =
+                std::fs::read(&p).map_err(|e| retryable(format!("{}: {e}", p.display())))?;
+            v1::Bundle::decode(bytes.as_slice())
+                .map_err(|e| fatal(format!("bundle blob {}: {e}", d.to_hex())))?
+        }
+        None => return Err(fatal("the lease names no scene bundle")),
+    };
+    let mut files = Vec::with_capacity(bundle.files.len());
+    for f in &bundle.files {
+        files.push(ManifestEntry {
+            path: f.path.clone(),
+            digest: digest_of_field(&f.digest, &f.path)?,
+            size: f.size,
+        });
+    }
+    let manifest = Manifest {
+        root: bundle.root.clone(),
+        files,
+    };
+    let have_scene = shared
+        .caches
+        .lock()
+        .expect("cache lock")
+        .scenes
+        .iter()
+        .any(|(j, _)| j == &lease.job_id);
+    if !have_scene {
+        for e in &manifest.files {
+            ensure_blob(shared, api, &e.digest).await?;
+        }
+    }
+    let pass = lease
+        .pass
+        .as_ref()
+        .ok_or_else(|| fatal("the lease has no pass"))?;
+    let tree_blob = opt_blob(shared, api, &pass.tree_digest, "tree_digest").await?;
+    let fractions_blob = opt_blob(shared, api, &pass.fractions_digest, "fractions_digest").await?;
+    let estimate_blob = opt_blob(shared, api, &pass.estimate_digest, "estimate_digest").await?;
+    let defines = lease
+        .settings
+        .as_ref()
+        .map(|s| {
+            s.defines
+                .iter()
+                .map(|d| (d.name.clone(), d.value.clone()))
+                .collect()
+        })
+        .unwrap_or_default();
+    Ok(Prepared {
+        lease: lease.clone(),
+        manifest,
+        defines,
+        tree_blob,
+        fractions_blob,
+        estimate_blob,
+    })
+}
+
+/// A job id as a directory name.
+fn job_dir_name(job: &str) -> String {
+    if !job.is_empty()
+        && job.len() <= 64
+        && job
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+    {
+        job.to_string()
+    } else {
+        blake3::hash(job.as_bytes()).to_hex()[..32].to_string()
+    }
+}
+
+fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> {
+    let job = &p.lease.job_id;
+    {
+        let mut c = shared.caches.lock().expect("cache lock");
+        if let Some(i) = c.scenes.iter().position(|(j, _)| j == job) {
+            let e = c.scenes.remove(i);
+            let s = e.1.clone();
+            c.scenes.push(e);
+            return Ok(s);
+        }
+    }
+    let dest = shared.cache_dir.join("bundles").join(job_dir_name(job));
+    if dest.exists() {
+        std::fs::remove_dir_all(&dest)
+            .map_err(|e| retryable(format!("{}: {e}", dest.display())))?;
+    }
+    let cache = shared.cache_dir.clone();
+    bundle::materialize(&p.manifest, |d| blob_path(&cache, d), &dest)
+        .map_err(|e| retryable(format!("materialising the bundle: {e}")))?;
+    let limits = Limits {
+        confine_files: true,
+        ..Default::default()
+    };
+    let desc = bundle::check(&p.manifest, &dest, &p.defines, &limits)
+        .map_err(|e| fatal(format!("loading the scene: {e}")))?;
+    let mut scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;
+    match p
+        .lease
+        .settings
+        .as_ref()
+        .and_then(|s| s.integrator.as_deref())
+    {
+        None => {}
+        Some("path") => scene.guided = None,
+        Some("guided_path") => {
+            if scene.guided.is_none() {
+                scene.guided = Some(GuidedParams::default());
+            }
+        }
+        Some(other) => return Err(fatal(format!("unknown integrator override {other:?}"))),
+    }
+    if let Some(img) = &p.lease.image {
+        if (img.width, img.height) != (scene.width, scene.height) {
+            return Err(fatal(format!(
+                "the scene built at {}x{}, the lease says {}x{}",
+                scene.width, scene.height, img.width, img.height
+            )));
+        }
+    }
+    let params = scene.guided.clone().unwrap_or_default();
+    let js = Arc::new(JobScene { scene, params });
+    let mut c = shared.caches.lock().expect("cache lock");
+    c.scenes.push((job.clone(), js.clone()));
+    while c.scenes.len() > SCENE_CACHE {
+        let (old, _) = c.scenes.remove(0);
+        c.trees.remove(&old);
+        c.estimates.remove(&old);
+        let _ = std::fs::remove_dir_all(shared.cache_dir.join("bundles").join(job_dir_name(&old)));
+    }
+    Ok(js)
+}
+
+fn read_blob(p: &Path) -> Result<Vec<u8>, Fail> {
+    std::fs::read(p).map_err(|e| retryable(format!("{}: {e}", p.display())))
+}
+
+fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
+    let js = load_job_scene(shared, &p)?;
+    let scene = &js.scene;
+    let pass = p.lease.pass.as_ref().expect("checked in prepare");
+    let spec = codec::spec_from_proto(pass).map_err(fatal)?;
+    let rect = p
+        .lease
+        .tile
+        .as_ref()
+        .ok_or_else(|| fatal("the lease has no tile"))?;
+    let region = codec::region_from_proto(rect, scene.width, scene.height).map_err(fatal)?;
+    let job = p.lease.job_id.clone();
+    // The job's tree copy, refreshed for the lease's tree and fractions.
+    let mut jt = shared.caches.lock().expect("cache lock").trees.remove(&job);
+    let want_tree = pass.tree_digest.clone();
+    let fresh = |bytes: Option<&[u8]>| -> Result<SdTree, Fail> {
+        match bytes {
+            Some(b) => SdTree::decode(b).map_err(|e| fatal(format!("tree blob: {e}"))),
+            None => {
+                let (lo, hi) = scene.accel.bounds();
+                Ok(SdTree::new(lo, hi, guide_config(&js.params, scene)))
+            }
+        }
+    };
+    let tree_bytes = match &p.tree_blob {
+        Some(path) => Some(read_blob(path)?),
+        None => None,
+    };
+    let stale = jt.as_ref().is_none_or(|t| t.tree_digest != want_tree)
+        || (pass.fractions_digest.is_empty()
+            && jt.as_ref().is_some_and(|t| !t.fractions_digest.is_empty()));
+    if stale {
+        jt = Some(JobTree {
+            tree_digest: want_tree.clone(),
+            fractions_digest: Vec::new(),
+            tree: fresh(tree_bytes.as_deref())?,
+        });
+    }
+    let mut jt = jt.expect("set above");
+    if jt.fractions_digest != pass.fractions_digest {
+        if let Some(path) = &p.fractions_blob {
+            let states = codec::decode_fractions(&read_blob(path)?)
+                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
+            jt.tree
+                .set_fraction_states(&states)
+                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
+        }
+        jt.fractions_digest = pass.fractions_digest.clone();
+    }
+    // The estimate.
+    let estimate: Arc<Vec<f32>> = match &p.estimate_blob {
+        None => Arc::new(Vec::new()),
+        Some(path) => {
+            let cached = shared
+                .caches
+                .lock()
+                .expect("cache lock")
+                .estimates
+                .get(&job)
+                .filter(|(d, _)| d == &pass.estimate_digest)
+                .map(|(_, e)| e.clone());
+            match cached {
+                Some(e) => e,
+                None => {
+                    let e = Arc::new(
+                        codec::decode_estimate(&read_blob(path)?)
+                            .map_err(|e| fatal(format!("estimate blob: {e}")))?,
+                    );
+                    shared
+                        .caches
+                        .lock()
+                        .expect("cache lock")
+                        .estimates
+                        .insert(job.clone(), (pass.estimate_digest.clone(), e.clone()));
+                    e
+                }
+            }
+        }
+    };
+    let seed = p
+        .lease
+        .settings
+        .as_ref()
+        .and_then(|s| s.seed)
+        .unwrap_or(scene.seed);
+    let t0 = Instant::now();
+    let out = {
+        let inputs = UnitInputs {
+            scene,
+            params: &js.params,
+            tree: &jt.tree,
+            estimate: &estimate,
+            seed,
+            tile_size: 8,
+        };
+        shared
+            .pool
+            .install(|| render_unit(&inputs, &spec, region, &|_| {}))
+    };
+    let seconds = t0.elapsed().as_secs_f64();
+    let stats = if spec.record() {
+        jt.tree.take_stats().encode()
+    } else {
+        Vec::new()
+    };
+    shared
+        .caches
+        .lock()
+        .expect("cache lock")
+        .trees
+        .insert(job.clone(), jt);
+    let pixels = codec::encode_pixels(&out.film);
+    tracing::info!(
+        "lease {} (job {}): rendered unit {} in {:.3} s",
+        p.lease.lease_id,
+        job,
+        spec.unit,
+        seconds
+    );
+    let header = v1::TileHeader {
+        lease_id: p.lease.lease_id,
+        job_id: job,
+        unit: pass.unit,
+        tile: Some(rect.clone()),
+        counters: Some(v1::TileCounters {
+            rays: out.rays,
+            invalid_samples: out.invalid_samples,
+            split_paths: out.split_paths,
+            extra_light_samples: out.extra_light_samples,
+            render_seconds: seconds,
+        }),
+        pixels_size: pixels.len() as u64,
+        stats_size: stats.len() as u64,
+        pixels_digest: blake3::hash(&pixels).as_bytes().to_vec(),
+        stats_digest: blake3::hash(&stats).as_bytes().to_vec(),
+    };
+    Ok(RenderedTile {
+        header,
+        pixels,
+        stats,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn data(m: &[v1::TileUpload]) -> Vec<Vec<u8>> {
+        m[1..]
+            .iter()
+            .map(|u| match &u.part {
+                Some(v1::tile_upload::Part::Data(d)) => d.clone(),
+                _ => panic!("not data"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn upload_is_header_then_parts_of_at_most_max() {
+        let pixels: Vec<u8> = (0..10u8).collect();
+        let stats: Vec<u8> = (100..107u8).collect();
+        let m = upload_messages(v1::TileHeader::default(), &pixels, &stats, 4);
+        assert!(matches!(m[0].part, Some(v1::tile_upload::Part::Header(_))));
+        let parts = data(&m);
+        assert!(parts.iter().all(|p| !p.is_empty() && p.len() <= 4));
+        let all: Vec<u8> = parts.concat();
+        assert_eq!(all, [pixels.clone(), stats.clone()].concat());
+        // a part spans the end of the pixels and the start of the statistics
+        assert_eq!(parts[2], vec![8, 9, 100, 101]);
+        let m = upload_messages(v1::TileHeader::default(), &pixels, &[], MAX_CHUNK_BYTES);
+        assert_eq!(data(&m), vec![pixels]);
+        let big = vec![1u8; MAX_CHUNK_BYTES + 1];
+        let m = upload_messages(v1::TileHeader::default(), &big, &[2, 3], MAX_CHUNK_BYTES);
+        let lens: Vec<usize> = data(&m).iter().map(|p| p.len()).collect();
+        assert_eq!(lens, [MAX_CHUNK_BYTES, 3]);
+    }
+
+    #[test]
+    fn job_dir_names_are_safe() {
+        assert_eq!(job_dir_name("job-12_a"), "job-12_a");
+        let n = job_dir_name("../etc");
+        assert_eq!(n.len(), 32);
+        assert!(n.chars().all(|c| c.is_ascii_hexdigit()));
+    }
+}

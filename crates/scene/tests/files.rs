@@ -1,0 +1,267 @@
+//! The files a scene reads: `SceneDesc::files` lists each once, root first, and with
+//! `Limits::confine_files` a scene may read only files inside its own directory (absolute
+//! names, `..` and symbolic links leading out are refused with an error naming the file,
+//! line and name), while the default still accepts them.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::*;
+use pathfarm_scene::{load_scene, load_scene_with_limits, Limits, SceneDesc, SceneError};
+
+const TRI_OBJ: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n";
+const TRI_PLY: &str =
+    "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
+0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
+
+/// Removes its directory when dropped, also when the test fails.
+struct Cleanup(PathBuf);
+
+impl Drop for Cleanup {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A fresh directory for test `name`, removed at the end of the test.
+fn test_dir(name: &str) -> (PathBuf, Cleanup) {
+    let d = temp_dir(name);
+    (d.clone(), Cleanup(d))
+}
+
+fn confined() -> Limits {
+    Limits {
+        confine_files: true,
+        ..Limits::default()
+    }
+}
+
+fn write(path: &Path, contents: &[u8]) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(path, contents).unwrap();
+}
+
+fn write_png(path: &Path) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([200, 100, 50]))
+        .save(path)
+        .unwrap();
+}
+
+/// A shape of plugin `kind` (obj or ply) loading `file`.
+fn mesh_shape(kind: &str, file: &str) -> String {
+    format!("<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{file}\"/>\n</shape>")
+}
+
+/// `scene(body)` written as `dir/scene.xml`; returns its path and text.
+fn write_scene_in(dir: &Path, body: &str) -> (PathBuf, String) {
+    let xml = scene(body);
+    let p = dir.join("scene.xml");
+    write(&p, xml.as_bytes());
+    (p, xml)
+}
+
+fn load_confined(p: &Path) -> Result<SceneDesc, SceneError> {
+    load_scene_with_limits(p, &[], &confined())
+}
+
+#[test]
+fn files_lists_every_file_read_once_root_first_in_first_read_order() {
+    let (d, _cleanup) = test_dir("files-list");
+    write_png(&d.join("textures/wood.png"));
+    write(&d.join("meshes/tri.obj"), TRI_OBJ.as_bytes());
+    write(&d.join("tri.ply"), TRI_PLY.as_bytes());
+    write_png(&d.join("sky.png"));
+    // Each file is referenced twice (the texture by two textures, the OBJ by two shapes).
+    let body = format!(
+        "<texture type=\"bitmap\" id=\"a\">\n  <string name=\"filename\" value=\"textures/wood.png\"/>\n</texture>\n\
+         <texture type=\"bitmap\" id=\"b\">\n  <string name=\"filename\" value=\"./textures/wood.png\"/>\n</texture>\n\
+         {}\n{}\n{}\n\
+         <emitter type=\"envmap\">\n  <string name=\"filename\" value=\"sky.png\"/>\n</emitter>",
+        mesh_shape("obj", "meshes/tri.obj"),
+        mesh_shape("ply", "tri.ply"),
+        mesh_shape("obj", "meshes/tri.obj"),
+    );
+    let (p, _) = write_scene_in(&d, &body);
+    let expected = vec![
+        p.clone(),
+        d.join("textures/wood.png"),
+        d.join("meshes/tri.obj"),
+        d.join("tri.ply"),
+        d.join("sky.png"),
+    ];
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(s.files, expected);
+    assert_eq!(s.shapes.len(), 3);
+    assert_eq!(s.textures.len(), 2);
+    // Confinement changes nothing for a self-contained scene.
+    let c = load_confined(&p).unwrap();
+    assert_eq!(c.files, expected);
+    assert_eq!(format!("{:?}", c.shapes), format!("{:?}", s.shapes));
+    // A scene of primitives reads only itself.
+    let (p2, _) = write_scene_in(&d.join("plain"), "<shape type=\"cube\"/>");
+    assert_eq!(load_scene(&p2, &[]).unwrap().files, vec![p2.clone()]);
+}
+
+#[test]
+fn files_lists_absolute_and_parent_names_as_written_without_confinement() {
+    let (d, _cleanup) = test_dir("files-abs");
+    let outside = d.join("outside/abs.obj");
+    write(&outside, TRI_OBJ.as_bytes());
+    write(&d.join("up.obj"), TRI_OBJ.as_bytes());
+    let body = format!(
+        "{}\n{}",
+        mesh_shape("obj", outside.to_str().unwrap()),
+        mesh_shape("obj", "../up.obj")
+    );
+    let (p, _) = write_scene_in(&d.join("scene"), &body);
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(s.files, vec![p.clone(), outside, d.join("scene/../up.obj")]);
+}
+
+#[test]
+fn confinement_refuses_absolute_paths() {
+    let (d, _cleanup) = test_dir("confine-abs");
+    // A valid mesh outside the scene's directory, named by its absolute path.
+    let outside = d.join("outside/abs.obj");
+    write(&outside, TRI_OBJ.as_bytes());
+    for name in ["/etc/passwd", outside.to_str().unwrap()] {
+        let (p, xml) = write_scene_in(&d.join("scene"), &mesh_shape("obj", name));
+        let err = load_confined(&p).unwrap_err();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "filename"),
+            &[name, "absolute", "confine_files"],
+        );
+    }
+    // The default (`pathfarm render`) still reads absolute names.
+    let (p, _) = write_scene_in(
+        &d.join("scene"),
+        &mesh_shape("obj", outside.to_str().unwrap()),
+    );
+    assert_eq!(load_scene(&p, &[]).unwrap().shapes.len(), 1);
+}
+
+#[test]
+fn confinement_refuses_parent_components_even_when_they_stay_inside() {
+    let (d, _cleanup) = test_dir("confine-dotdot");
+    write(&d.join("x.obj"), TRI_OBJ.as_bytes());
+    write(&d.join("scene/x.obj"), TRI_OBJ.as_bytes());
+    write(&d.join("scene/sub/y.obj"), TRI_OBJ.as_bytes());
+    for name in ["../x.obj", "sub/../x.obj", "sub/../../x.obj", ".."] {
+        let (p, xml) = write_scene_in(&d.join("scene"), &mesh_shape("obj", name));
+        let err = load_confined(&p).unwrap_err();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "filename"),
+            &[&format!("'{name}'"), "'..'", "confine_files"],
+        );
+    }
+    let (p, _) = write_scene_in(&d.join("scene"), &mesh_shape("obj", "../x.obj"));
+    assert_eq!(load_scene(&p, &[]).unwrap().shapes.len(), 1);
+}
+
+#[test]
+fn confinement_refuses_symlinks_that_lead_outside_and_accepts_those_that_stay_inside() {
+    use std::os::unix::fs::symlink;
+    let (d, _cleanup) = test_dir("confine-symlink");
+    write(&d.join("outside/x.obj"), TRI_OBJ.as_bytes());
+    write_png(&d.join("outside/t.png"));
+    write(&d.join("scene/models/real.obj"), TRI_OBJ.as_bytes());
+    symlink(d.join("outside/x.obj"), d.join("scene/link.obj")).unwrap();
+    symlink("../outside/t.png", d.join("scene/t.png")).unwrap();
+    // A symlinked directory: the file name has no '..', its directory leads out.
+    symlink(d.join("outside"), d.join("scene/ext")).unwrap();
+    symlink("real.obj", d.join("scene/models/alias.obj")).unwrap();
+    let texture = "<texture type=\"bitmap\" id=\"t\">\n  <string name=\"filename\" value=\"t.png\"/>\n</texture>";
+    for body in [
+        mesh_shape("obj", "link.obj"),
+        mesh_shape("obj", "ext/x.obj"),
+        texture.to_string(),
+    ] {
+        let (p, xml) = write_scene_in(&d.join("scene"), &body);
+        let err = load_confined(&p).unwrap_err();
+        let outside = std::fs::canonicalize(d.join("outside")).unwrap();
+        assert_invalid_at(
+            &err,
+            &p,
+            line_of(&xml, "filename"),
+            &[
+                "symbolic link",
+                &outside.display().to_string(),
+                "confine_files",
+            ],
+        );
+        // Not confined, the link is followed.
+        load_scene(&p, &[]).unwrap();
+    }
+    // A link that stays inside the directory is fine; the file is listed by the name used.
+    let (p, _) = write_scene_in(&d.join("scene"), &mesh_shape("obj", "models/alias.obj"));
+    let s = load_confined(&p).unwrap();
+    assert_eq!(s.files, vec![p.clone(), d.join("scene/models/alias.obj")]);
+}
+
+#[test]
+fn confinement_accepts_subdirectories_and_applies_to_textures_and_envmaps() {
+    let (d, _cleanup) = test_dir("confine-subdir");
+    write(&d.join("scene/models/deep/er/tri.obj"), TRI_OBJ.as_bytes());
+    write(&d.join("scene/models/tri.ply"), TRI_PLY.as_bytes());
+    write_png(&d.join("scene/textures/a b.png"));
+    write_png(&d.join("sky.png"));
+    let body = format!(
+        "{}\n{}\n<texture type=\"bitmap\" id=\"t\">\n  <string name=\"filename\" value=\"textures/a b.png\"/>\n</texture>",
+        mesh_shape("obj", "models/deep/er/tri.obj"),
+        mesh_shape("ply", "./models/tri.ply"),
+    );
+    let (p, _) = write_scene_in(&d.join("scene"), &body);
+    let s = load_confined(&p).unwrap();
+    assert_eq!(s.files.len(), 4);
+    assert_eq!(s.files[1], d.join("scene/models/deep/er/tri.obj"));
+    assert!(s.limits.confine_files);
+
+    let sky = d.join("sky.png");
+    for (body, name) in [
+        (
+            "<emitter type=\"envmap\">\n  <string name=\"filename\" value=\"../sky.png\"/>\n</emitter>"
+                .to_string(),
+            "../sky.png".to_string(),
+        ),
+        (
+            format!(
+                "<texture type=\"bitmap\" id=\"t\">\n  <string name=\"filename\" value=\"{}\"/>\n</texture>",
+                sky.display()
+            ),
+            sky.display().to_string(),
+        ),
+    ] {
+        let (p, xml) = write_scene_in(&d.join("scene"), &body);
+        assert_invalid_at(
+            &load_confined(&p).unwrap_err(),
+            &p,
+            line_of(&xml, "filename"),
+            &[&name, "confine_files"],
+        );
+        load_scene(&p, &[]).unwrap();
+    }
+}
+
+#[test]
+fn confinement_reports_a_missing_file_by_name_and_line() {
+    let (d, _cleanup) = test_dir("confine-missing");
+    let (p, xml) = write_scene_in(&d, &mesh_shape("obj", "models/gone.obj"));
+    assert_invalid_at(
+        &load_confined(&p).unwrap_err(),
+        &p,
+        line_of(&xml, "filename"),
+        &["models/gone.obj", "No such file"],
+    );
+}
+
+#[test]
+fn confinement_is_off_by_default() {
+    assert!(!Limits::default().confine_files);
+}
