@@ -161,6 +161,19 @@ fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Runn
     Running::start(&argv, &env)
 }
 
+/// Waits (at most 300 s) for `pathfarm submit --wait` to end, and checks it succeeded.
+fn wait_for_job(mut run: Running, farm: &Farm) {
+    let t0 = Instant::now();
+    while run.poll().is_none() {
+        let late = t0.elapsed() > Duration::from_secs(300);
+        assert!(!late, "job did not finish\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let ended = run.wait(Duration::from_secs(1));
+    let ok = ended.status.success();
+    assert!(ok, "submit: {}\n{}", ended.describe(), farm.logs());
+}
+
 fn assert_same_exr(got: &Path, reference: &[u8], farm: &Farm) {
     let bytes = fs::read(got).unwrap_or_else(|e| panic!("{}: {e}\n{}", got.display(), farm.logs()));
     // The EXR encoding is deterministic: equal files mean equal pixel bits.
@@ -227,22 +240,7 @@ fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     );
     farm.workers[0].signal(libc::SIGKILL);
     farm.add_worker();
-    let t0 = Instant::now();
-    while run.poll().is_none() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(300),
-            "job did not finish\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let ended = run.wait(Duration::from_secs(1));
-    assert!(
-        ended.status.success(),
-        "submit: {}\n{}",
-        ended.describe(),
-        farm.logs()
-    );
+    wait_for_job(run, &farm);
     assert_same_exr(&out, &reference, &farm);
 }
 
@@ -331,22 +329,7 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
         .wait(Duration::from_secs(10));
     assert!(!dead.status.success());
     farm.start_coordinator();
-    let t0 = Instant::now();
-    while run.poll().is_none() {
-        assert!(
-            t0.elapsed() < Duration::from_secs(300),
-            "job did not finish after the restart\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let ended = run.wait(Duration::from_secs(1));
-    assert!(
-        ended.status.success(),
-        "submit: {}\n{}",
-        ended.describe(),
-        farm.logs()
-    );
+    wait_for_job(run, &farm);
     assert_same_exr(&out, &reference, &farm);
     assert!(
         farm.logs().contains("resumed from its checkpoint"),
