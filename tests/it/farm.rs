@@ -161,6 +161,26 @@ fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Runn
     Running::start(&argv, &env)
 }
 
+/// Tiles worker `i` has had accepted so far (from its log).
+fn tiles_accepted(farm: &Farm, i: usize) -> usize {
+    farm.workers[i]
+        .stderr_text()
+        .matches("tile accepted")
+        .count()
+}
+
+/// Waits (at most 120 s) until worker 0 has had `n` tiles accepted, failing if the job
+/// `run` ends first (then the fault would come too late to test anything).
+fn wait_for_tiles(farm: &Farm, run: &mut Running, n: usize, what: &str) {
+    let t0 = Instant::now();
+    while tiles_accepted(farm, 0) < n {
+        assert!(run.poll().is_none(), "the job ended before {what}");
+        let late = t0.elapsed() > Duration::from_secs(120);
+        assert!(!late, "no tiles\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
 /// Waits (at most 300 s) for `pathfarm submit --wait` to end, and checks it succeeded.
 fn wait_for_job(mut run: Running, farm: &Farm) {
     let t0 = Instant::now();
@@ -216,24 +236,8 @@ fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     let mut run = submit(&farm, 64, &out, &[]);
     // Kill one worker in the middle of the job, once it has delivered tiles (its leases in
     // flight must go to the others).
-    let t0 = Instant::now();
-    while farm.workers[0]
-        .stderr_text()
-        .matches("tile accepted")
-        .count()
-        < 5
-    {
-        assert!(
-            run.poll().is_none(),
-            "the job ended before a worker could be killed"
-        );
-        assert!(
-            t0.elapsed() < Duration::from_secs(120),
-            "no tiles\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    let before = tiles_accepted(&farm, 0);
+    wait_for_tiles(&farm, &mut run, before + 5, "a worker could be killed");
     assert!(
         run.poll().is_none(),
         "the job must still be running when the worker dies"
@@ -297,26 +301,13 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
     let reference = render_reference(&farm.data, 128);
     let out = farm.data.join("resumed.exr");
     let mut run = submit(&farm, 128, &out, &[]);
-    let t0 = Instant::now();
-    let accepted = |farm: &Farm| {
-        farm.workers[0]
-            .stderr_text()
-            .matches("tile accepted")
-            .count()
-    };
-    let before = accepted(&farm);
-    while accepted(&farm) < before + 20 {
-        assert!(
-            run.poll().is_none(),
-            "the job ended before the coordinator could be killed"
-        );
-        assert!(
-            t0.elapsed() < Duration::from_secs(120),
-            "no tiles\n{}",
-            farm.logs()
-        );
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    let before = tiles_accepted(&farm, 0);
+    wait_for_tiles(
+        &farm,
+        &mut run,
+        before + 20,
+        "the coordinator could be killed",
+    );
     assert!(
         run.poll().is_none(),
         "the job must still be running at the kill"

@@ -108,30 +108,18 @@ pub fn decode_estimate(bytes: &[u8]) -> Result<Vec<f32>, CodecError> {
         .collect())
 }
 
-/// Bytes of one pixel: 11 f64 sums and the u32 sample count.
-const PIXEL_BYTES: usize = 11 * 8 + 4;
-
-/// A tile's pixel sums, exactly (raw bits).
+/// A tile's pixel sums, exactly (raw bits, [`PixelStats::write_le`]).
 pub fn encode_pixels(film: &Film) -> Vec<u8> {
     let mut v = header(b"PFPX");
-    v.reserve(4 + film.pixels.len() * PIXEL_BYTES);
+    v.reserve(4 + film.pixels.len() * PixelStats::BYTES);
     v.extend_from_slice(&(film.pixels.len() as u32).to_le_bytes());
-    for p in &film.pixels {
-        let sums = [p.sum_w, p.sum_w2]
-            .into_iter()
-            .chain(p.sum_wl)
-            .chain(p.sum_w2l);
-        for x in sums.chain(p.sum_w2l2) {
-            v.extend_from_slice(&x.to_le_bytes());
-        }
-        v.extend_from_slice(&p.count.to_le_bytes());
-    }
+    film.pixels.iter().for_each(|p| p.write_le(&mut v));
     v
 }
 
 /// The film of `region` from [`encode_pixels`]; the pixel count must match the region.
 pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
-    let (b, n) = body(bytes, b"PFPX", "tile pixels", PIXEL_BYTES)?;
+    let (b, n) = body(bytes, b"PFPX", "tile pixels", PixelStats::BYTES)?;
     if n != region.pixels() {
         return Err(CodecError::Length {
             what: "tile pixels (pixel count)",
@@ -140,17 +128,12 @@ pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
         });
     }
     let mut film = Film::new(region.width(), region.height());
-    for (i, p) in film.pixels.iter_mut().enumerate() {
-        let c = &b[PIXEL_BYTES * i..PIXEL_BYTES * (i + 1)];
-        let f = |k: usize| f64_at(c, k);
-        *p = PixelStats {
-            sum_w: f(0),
-            sum_w2: f(1),
-            sum_wl: [f(2), f(3), f(4)],
-            sum_w2l: [f(5), f(6), f(7)],
-            sum_w2l2: [f(8), f(9), f(10)],
-            count: u32::from_le_bytes(c[88..92].try_into().unwrap()),
-        };
+    for (p, c) in film
+        .pixels
+        .iter_mut()
+        .zip(b.chunks_exact(PixelStats::BYTES))
+    {
+        *p = PixelStats::read_le(c.try_into().unwrap());
     }
     Ok(film)
 }

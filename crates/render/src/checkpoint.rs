@@ -52,13 +52,7 @@ impl Out {
     pub fn film(&mut self, f: &Film) {
         self.u32(f.width);
         self.u32(f.height);
-        for p in &f.pixels {
-            let sums = [p.sum_w, p.sum_w2].into_iter().chain(p.sum_wl);
-            for x in sums.chain(p.sum_w2l).chain(p.sum_w2l2) {
-                self.f64(x);
-            }
-            self.u32(p.count);
-        }
+        f.pixels.iter().for_each(|p| p.write_le(&mut self.0));
     }
     pub fn iteration(&mut self, i: &GuidedIteration) {
         self.u32(i.index);
@@ -129,23 +123,13 @@ impl In<'_> {
     pub fn film(&mut self) -> Result<Film, CheckpointError> {
         let (w, h) = (self.u32()?, self.u32()?);
         let n = w as usize * h as usize;
-        if n.checked_mul(92).is_none_or(|b| b > self.0.len()) {
+        let bytes = n.checked_mul(PixelStats::BYTES);
+        if bytes.is_none_or(|b| b > self.0.len()) {
             return Err(CheckpointError(format!("film {w}x{h} beyond the data")));
         }
         let mut film = Film::new(w, h);
         for p in &mut film.pixels {
-            let mut f = [0.0f64; 11];
-            for x in &mut f {
-                *x = self.f64()?;
-            }
-            *p = PixelStats {
-                sum_w: f[0],
-                sum_w2: f[1],
-                sum_wl: [f[2], f[3], f[4]],
-                sum_w2l: [f[5], f[6], f[7]],
-                sum_w2l2: [f[8], f[9], f[10]],
-                count: self.u32()?,
-            };
+            *p = PixelStats::read_le(self.take(PixelStats::BYTES)?.try_into().unwrap());
         }
         Ok(film)
     }

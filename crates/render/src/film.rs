@@ -62,6 +62,34 @@ impl PixelStats {
     }
 }
 
+impl PixelStats {
+    /// Bytes of [`PixelStats::write_le`]: the 11 f64 sums and the u32 sample count.
+    pub const BYTES: usize = 11 * 8 + 4;
+
+    /// Appends the sums (raw bits, little-endian) and the count: the exact form in which
+    /// tiles travel and checkpoints keep films.
+    pub fn write_le(&self, out: &mut Vec<u8>) {
+        let sums = [self.sum_w, self.sum_w2].into_iter().chain(self.sum_wl);
+        for x in sums.chain(self.sum_w2l).chain(self.sum_w2l2) {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+        out.extend_from_slice(&self.count.to_le_bytes());
+    }
+
+    /// Reads what [`PixelStats::write_le`] wrote (`b` holds [`PixelStats::BYTES`] bytes).
+    pub fn read_le(b: &[u8; Self::BYTES]) -> Self {
+        let f = |k: usize| f64::from_le_bytes(b[8 * k..8 * k + 8].try_into().unwrap());
+        PixelStats {
+            sum_w: f(0),
+            sum_w2: f(1),
+            sum_wl: [f(2), f(3), f(4)],
+            sum_w2l: [f(5), f(6), f(7)],
+            sum_w2l2: [f(8), f(9), f(10)],
+            count: u32::from_le_bytes(b[88..92].try_into().unwrap()),
+        }
+    }
+}
+
 /// The image being rendered.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Film {
