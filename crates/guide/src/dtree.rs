@@ -974,7 +974,7 @@ impl DTree {
     }
 
     /// A 64-bit fingerprint of the structure (child arrays only).
-    pub fn structure_hash(&self, h: &mut crate::wire::Hasher64) {
+    pub fn structure_hash(&self, h: &mut crate::hash::Hasher64) {
         h.write_u64(self.nodes.len() as u64);
         for n in &self.nodes {
             for &c in &n.children {

@@ -8,8 +8,10 @@
 //!   read the frozen `sampling` trees; [`SdTree::record`] (thread safe, `&self`) adds to the
 //!   `building` trees; [`SdTree::refine`] ends an iteration.
 //! * Statistics are exact fixed-point integers ([`stats`]): recording is bit-identical for any
-//!   thread count and order, and worker statistics merge exactly ([`IterationStats`]).
+//!   thread count and order, and worker statistics merge exactly ([`IterationStats`], in
+//!   [`iteration_stats`]); trees fingerprint their structure with [`hash::Hasher64`].
 //! * [`wire`]: versioned, CRC-checked binary forms of a tree and of one iteration's statistics.
+//!   It depends on the domain types; nothing else in the crate depends on it.
 //! * [`schedule`]: iteration schedule and the combination of iteration images.
 //! * [`viz`]: rasterise a quadtree's pdf into an RGB image.
 //!
@@ -39,6 +41,8 @@ pub mod config;
 pub mod dtree;
 pub mod filter;
 pub mod fraction;
+pub mod hash;
+pub mod iteration_stats;
 pub mod light;
 pub mod mapping;
 pub mod record;
@@ -54,13 +58,14 @@ pub use config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
 };
 pub use dtree::{Cell, DTree};
+pub use iteration_stats::{IterationStats, LeafStats, StatsError};
 pub use light::LightStats;
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;
 pub use region::{CellMask, CellWeights, Restriction};
 pub use sdtree::{Leaf, LeafHandle, SdTree, TreeStats};
 pub use stree::{SLookup, STree};
-pub use wire::{IterationStats, LeafStats, StatsError, WireError};
+pub use wire::WireError;
 
 #[cfg(test)]
 mod tests;

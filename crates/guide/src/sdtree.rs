@@ -5,13 +5,14 @@ use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter}
 use crate::dtree::{prefetch, prefetch_block, DTree};
 use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
+use crate::hash::Hasher64;
+use crate::iteration_stats::{IterationStats, LeafStats, StatsError};
 use crate::light::LightStats;
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
 use crate::region::{CellWeights, Restriction};
 use crate::stats::{add_counted, split_exact, to_fixed};
 use crate::stree::{SLookup, STree};
-use crate::wire::{Hasher64, IterationStats, LeafStats, StatsError};
 use glam::Vec3;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 

@@ -12,7 +12,7 @@ use crate::region::{CellMask, CellWeights, Restriction, HEMISPHERE_EPSILON};
 use crate::schedule::*;
 use crate::sdtree::{LeafHandle, SdTree};
 use crate::stats::{to_fixed, FIXED_ONE};
-use crate::wire::{IterationStats, WireError};
+use crate::{IterationStats, WireError};
 use glam::{Vec2, Vec3};
 use std::sync::atomic::AtomicU64;
 
@@ -1736,7 +1736,7 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
     // statistics of another structure are refused
     assert!(matches!(
         one.apply_stats(&merged),
-        Err(crate::wire::StatsError::StructureMismatch)
+        Err(crate::StatsError::StructureMismatch)
     ));
 }
 

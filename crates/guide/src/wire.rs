@@ -1,5 +1,6 @@
 //! Compact, versioned, checksummed binary forms of (a) a whole SD-tree and (b) one iteration's
-//! statistics, plus the exact merge of statistics.
+//! statistics ([`crate::iteration_stats`]). Only encoding and decoding live here: this module
+//! depends on the domain types, and nothing else in the crate depends on it.
 //!
 //! Frame layout (all integers little endian):
 //! `magic[4] | version u16 | reserved u16 (0) | payload_len u64 | payload | crc32 u32`,
@@ -13,9 +14,10 @@ use crate::config::{
 };
 use crate::dtree::{DNode, DTree, MAX_DEPTH};
 use crate::fraction::{FractionState, GradAccum, GRID_LEN};
+use crate::iteration_stats::{IterationStats, LeafStats};
 use crate::light::LightStats;
 use crate::sdtree::{Leaf, SdTree};
-use crate::stats::{add_counted, Acc128};
+use crate::stats::Acc128;
 use crate::stree::{SNode, STree};
 use glam::Vec3;
 use std::sync::atomic::AtomicU64;
@@ -53,17 +55,6 @@ pub enum WireError {
     Malformed(&'static str),
 }
 
-/// Errors of merging or applying statistics.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-pub enum StatsError {
-    /// The statistics were taken on a tree with a different structure.
-    #[error("statistics refer to a different tree structure")]
-    StructureMismatch,
-    /// A leaf or node index does not exist in the tree.
-    #[error("statistics index out of range")]
-    IndexOutOfRange,
-}
-
 // ---------------------------------------------------------------- checksums
 
 const fn crc_table() -> [u32; 256] {
@@ -94,42 +85,6 @@ pub fn crc32(data: &[u8]) -> u32 {
         c = CRC_TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
     }
     !c
-}
-
-/// FNV-1a 64-bit hasher used for structure fingerprints.
-#[derive(Clone, Debug)]
-pub struct Hasher64(u64);
-
-impl Default for Hasher64 {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
-impl Hasher64 {
-    /// A fresh hasher.
-    pub fn new() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-    /// Hashes bytes.
-    pub fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 ^= b as u64;
-            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
-        }
-    }
-    /// Hashes a u32 (little endian).
-    pub fn write_u32(&mut self, v: u32) {
-        self.write(&v.to_le_bytes());
-    }
-    /// Hashes a u64 (little endian).
-    pub fn write_u64(&mut self, v: u64) {
-        self.write(&v.to_le_bytes());
-    }
-    /// The hash value.
-    pub fn finish(&self) -> u64 {
-        self.0
-    }
 }
 
 // ---------------------------------------------------------------- byte io
@@ -628,98 +583,7 @@ impl SdTree {
 
 // ---------------------------------------------------------------- statistics
 
-/// Statistics of one spatial leaf for one iteration (fixed-point integers, see [`crate::stats`]).
-#[derive(Clone, Debug, PartialEq, Eq, Default)]
-pub struct LeafStats {
-    /// Leaf index ([`crate::LeafHandle`]).
-    pub leaf: u32,
-    /// Building statistical weight W.
-    pub weight: u128,
-    /// Positive fraction-gradient sums, one per alpha of [`crate::fraction::GRID`].
-    pub grad_pos: [u128; GRID_LEN],
-    /// Negative fraction-gradient magnitude sums, one per alpha of [`crate::fraction::GRID`].
-    pub grad_neg: [u128; GRID_LEN],
-    /// Fraction-gradient weight sum.
-    pub grad_weight: u128,
-    /// Light-sample sums `[sum, sum of squares, count]` ([`crate::light::LightStats`]).
-    pub light: [u128; 3],
-    /// Touched building quadtree nodes `(node index, 4 quadrant sums)`, ascending by index.
-    pub nodes: Vec<(u32, [u128; 4])>,
-}
-
-/// One iteration's statistics: sparse (only touched leaves and nodes), exactly mergeable.
-#[derive(Clone, Debug, PartialEq, Eq, Default)]
-pub struct IterationStats {
-    /// [`SdTree::structure_hash`] of the tree the statistics were taken on.
-    pub structure_hash: u64,
-    /// Overflow events counted while recording these statistics.
-    pub overflow_events: u64,
-    /// Touched leaves, ascending by index.
-    pub leaves: Vec<LeafStats>,
-}
-
 impl IterationStats {
-    /// Adds `other` into `self` by exact integer addition. Merging the statistics of disjoint
-    /// record sets gives, bit for bit, the statistics of recording them all in one tree.
-    /// Fails if the two were taken on differently structured trees.
-    pub fn merge(&mut self, other: &IterationStats) -> Result<(), StatsError> {
-        if self.structure_hash != other.structure_hash {
-            return Err(StatsError::StructureMismatch);
-        }
-        let mut of = 0u64;
-        let a = std::mem::take(&mut self.leaves);
-        let mut out = Vec::with_capacity(a.len().max(other.leaves.len()));
-        let (mut i, mut j) = (0, 0);
-        while i < a.len() || j < other.leaves.len() {
-            let take_a =
-                j >= other.leaves.len() || (i < a.len() && a[i].leaf < other.leaves[j].leaf);
-            let take_b =
-                i >= a.len() || (j < other.leaves.len() && other.leaves[j].leaf < a[i].leaf);
-            if take_a {
-                out.push(a[i].clone());
-                i += 1;
-            } else if take_b {
-                out.push(other.leaves[j].clone());
-                j += 1;
-            } else {
-                let (x, y) = (&a[i], &other.leaves[j]);
-                out.push(LeafStats {
-                    leaf: x.leaf,
-                    weight: add_counted(x.weight, y.weight, &mut of),
-                    grad_pos: std::array::from_fn(|k| {
-                        add_counted(x.grad_pos[k], y.grad_pos[k], &mut of)
-                    }),
-                    grad_neg: std::array::from_fn(|k| {
-                        add_counted(x.grad_neg[k], y.grad_neg[k], &mut of)
-                    }),
-                    grad_weight: add_counted(x.grad_weight, y.grad_weight, &mut of),
-                    light: std::array::from_fn(|k| add_counted(x.light[k], y.light[k], &mut of)),
-                    nodes: merge_nodes(&x.nodes, &y.nodes, &mut of),
-                });
-                i += 1;
-                j += 1;
-            }
-        }
-        self.leaves = out;
-        self.overflow_events = self.overflow_events + other.overflow_events + of;
-        Ok(())
-    }
-
-    /// Merges many statistics (e.g. one per worker) into one.
-    pub fn merge_all<'a>(
-        parts: impl IntoIterator<Item = &'a IterationStats>,
-    ) -> Result<IterationStats, StatsError> {
-        let mut it = parts.into_iter();
-        let Some(first) = it.next() else {
-            return Ok(IterationStats::default());
-        };
-        let mut acc = first.clone();
-        for p in it {
-            acc.merge(p)?;
-        }
-        Ok(acc)
-    }
-
     /// Serialises into a `PFIS` frame.
     pub fn encode(&self) -> Vec<u8> {
         let mut w = W(Vec::new());
@@ -786,33 +650,6 @@ impl IterationStats {
             leaves,
         })
     }
-}
-
-fn merge_nodes(
-    a: &[(u32, [u128; 4])],
-    b: &[(u32, [u128; 4])],
-    of: &mut u64,
-) -> Vec<(u32, [u128; 4])> {
-    let mut out = Vec::with_capacity(a.len().max(b.len()));
-    let (mut i, mut j) = (0, 0);
-    while i < a.len() || j < b.len() {
-        if j >= b.len() || (i < a.len() && a[i].0 < b[j].0) {
-            out.push(a[i]);
-            i += 1;
-        } else if i >= a.len() || b[j].0 < a[i].0 {
-            out.push(b[j]);
-            j += 1;
-        } else {
-            let mut s = a[i].1;
-            for q in 0..4 {
-                s[q] = add_counted(s[q], b[j].1[q], of);
-            }
-            out.push((a[i].0, s));
-            i += 1;
-            j += 1;
-        }
-    }
-    out
 }
 
 #[cfg(test)]
