@@ -8,6 +8,7 @@ use pathfarm_guide::SdTree;
 use pathfarm_render::guided::{
     guide_config, render_guided_with_policy, Budget, FallbackPolicy, GuidingVerdict, Next, Session,
 };
+use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
 use pathfarm_scene::{load_scene, GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
@@ -57,7 +58,8 @@ enum Restarts {
     AtEveryCheckpoint,
 }
 
-/// The session driven over `tile`-pixel tiles, each unit's tiles handed in in a scrambled
+/// The session driven over `tile`-pixel tiles (0: each unit re-tiled with another tile
+/// size, as the farm re-tiles units by cost), each unit's tiles handed in in a scrambled
 /// order (`order_seed`), each tile rendered on a worker copy of the tree.
 fn render_tiled(
     scene: &Scene,
@@ -72,7 +74,7 @@ fn render_tiled(
     let (lo, hi) = scene.accel.bounds();
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
-    let tiles = Region::tiles(w, h, tile);
+    let tiles = Region::tiles(w, h, tile.max(1));
     let budget = Budget::Spp(spp);
     let mut session = Session::new(params, budget, tree, w, h, tiles.clone(), policy);
     let mut restored = 0;
@@ -84,6 +86,11 @@ fn render_tiled(
     let mut clock = 0.0;
     while let Next::Render(spec) = session.next(clock) {
         kinds.push(spec.kind);
+        if tile == 0 {
+            let edge = 3 + (spec.unit % 11) as u32;
+            session.retile(Region::tiles(w, h, edge)).expect("retile");
+        }
+        let tiles = session.tiles().to_vec();
         let mut order: Vec<usize> = (0..tiles.len()).collect();
         let mut x = order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15);
         for i in (1..order.len()).rev() {
@@ -112,9 +119,12 @@ fn render_tiled(
                 .expect("tile accepted");
         }
         // A coordinator restarted between iterations continues from the checkpoint alone.
-        if let (Restarts::AtEveryCheckpoint, Some(bytes)) = (restarts, session.checkpoint()) {
-            let tiles = tiles.clone();
-            session = Session::restore(params, budget, tiles, policy, &bytes).expect("restore");
+        if let (Restarts::AtEveryCheckpoint, Some(cp)) = (restarts, session.checkpoint()) {
+            let bytes = cp.to_bytes(&session.tree().encode());
+            let (cp, tree) = Checkpoint::from_bytes(&bytes).expect("read back");
+            let tiles = Region::tiles(w, h, tile.max(1));
+            session =
+                Session::restore(params, budget, tiles, policy, &cp, tree).expect("restore");
             worker = WorkerTree {
                 version: None,
                 tree: None,
@@ -177,6 +187,9 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     // another tiling and another arrival order: the same bits
     let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 13, 99, policy, Restarts::Never);
     assert_same(&(film, tree), &single, "13-pixel tiles");
+    // every unit tiled differently
+    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 0, 5, policy, Restarts::Never);
+    assert_same(&(film, tree), &single, "a tiling per unit");
     // restarted from a checkpoint after every iteration: the same bits
     let (film, tree, _) = render_tiled(
         &scene,
@@ -252,14 +265,17 @@ fn damaged_checkpoints_are_refused() {
         tiles.clone(),
         FallbackPolicy::Rule,
     );
-    let bytes = s.checkpoint().expect("a fresh session can be checkpointed");
+    let cp = s.checkpoint().expect("a fresh session can be checkpointed");
+    let bytes = cp.to_bytes(&s.tree().encode());
     let restore = |b: &[u8]| {
+        let (cp, tree) = Checkpoint::from_bytes(b)?;
         Session::restore(
             &params,
             Budget::Spp(8),
             tiles.clone(),
             FallbackPolicy::Rule,
-            b,
+            &cp,
+            tree,
         )
     };
     assert!(restore(&bytes).is_ok());

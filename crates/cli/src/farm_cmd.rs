@@ -178,11 +178,25 @@ impl Signals {
 
 pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
     let rt = runtime()?;
-    rt.block_on(async move {
+    let r = rt.block_on(async move {
         let mut signals = Signals::new()?;
         let shutdown = async move { signals.recv().await };
         serve_coordinator(args, shutdown).await
-    })
+    });
+    log_peak_memory("coordinator");
+    r
+}
+
+/// Logs the process's peak resident memory (Linux: VmHWM), for operators and benchmarks.
+fn log_peak_memory(what: &str) {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let kb = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok());
+    if let Some(kb) = kb {
+        tracing::info!(peak_rss_mb = kb as f64 / 1024.0, "{what} exiting");
+    }
 }
 
 async fn serve_coordinator(
@@ -198,7 +212,7 @@ async fn serve_coordinator(
         limits: Limits::default(),
         bundle_limits: Default::default(),
         scheduler: Default::default(),
-        default_tile: 32,
+        default_tile: None,
     };
     coordinator::serve(cfg, shutdown).await?;
     Ok(())
@@ -232,11 +246,13 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         cache_dir: args.cache.unwrap_or_else(default_cache),
     };
     let rt = runtime()?;
-    rt.block_on(async move {
+    let r = rt.block_on(async move {
         let mut signals = Signals::new()?;
         pathfarm_farm::worker::run(cfg, async move { signals.recv().await }).await?;
         Ok(())
-    })
+    });
+    log_peak_memory("worker");
+    r
 }
 
 fn job_options(

@@ -48,9 +48,21 @@ pub type AuthChannel = InterceptedService<Channel, Auth>;
 /// The endpoint of `url` (`http://host:port`).
 pub fn endpoint(url: &str) -> Result<Endpoint, ClientError> {
     Endpoint::from_shared(url.to_string())
-        .map(|e| e.connect_timeout(Duration::from_secs(5)))
+        .map(|e| {
+            e.connect_timeout(Duration::from_secs(5))
+                .initial_stream_window_size(STREAM_WINDOW)
+                .initial_connection_window_size(CONNECTION_WINDOW)
+                .tcp_nodelay(true)
+        })
         .map_err(|e| ClientError::Usage(format!("invalid coordinator URL {url:?}: {e}")))
 }
+
+/// HTTP/2 flow-control windows of the farm's connections. h2's default of 64 KiB caps a
+/// stream at one window per round trip: a 7 MB tile upload took 60 ms on loopback, a 50 MB
+/// tree download 0.4 s. Trees and tiles are tens of MB, so the windows are too.
+pub const STREAM_WINDOW: u32 = 16 << 20;
+/// See [`STREAM_WINDOW`].
+pub const CONNECTION_WINDOW: u32 = 64 << 20;
 
 /// Exponential backoff for reconnects: 100 ms, doubling, at most 5 s.
 #[derive(Clone, Debug)]

@@ -14,4 +14,5 @@ pub mod client;
 pub mod codec;
 pub mod coordinator;
 pub mod scheduler;
+pub mod tiling;
 pub mod worker;

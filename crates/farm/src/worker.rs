@@ -161,11 +161,18 @@ struct Caches {
 
 const SCENE_CACHE: usize = 2;
 
-/// The outcome of one lease.
+/// The outcome of rendering one lease.
 enum LeaseEnd {
-    Uploaded(v1::TileAck),
+    /// Rendered: the upload runs while the next lease renders.
+    Rendered(RenderedTile),
     Cancelled,
     Failed { reason: String, fatal: bool },
+}
+
+/// The outcome of one lease's upload.
+enum UploadEnd {
+    Acked(v1::TileAck),
+    Failed(String),
 }
 
 struct Running {
@@ -237,12 +244,15 @@ async fn session<S: Future<Output = ()>>(
     heartbeat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut queue: VecDeque<v1::Lease> = VecDeque::new();
     let mut running: Option<Running> = None;
+    // Uploads in progress: (lease, job) -> outcome. The next lease renders meanwhile.
+    let mut uploads: tokio::task::JoinSet<(u64, String, UploadEnd)> = tokio::task::JoinSet::new();
+    let mut uploading: Vec<u64> = Vec::new();
     let mut shutdown_seen = *stop;
     let lost: Option<String> = loop {
         if running.is_none() {
             if let Some(lease) = queue.pop_front() {
                 running = Some(start_lease(shared, &api, lease));
-            } else if draining {
+            } else if draining && uploads.is_empty() {
                 break None;
             }
         }
@@ -262,6 +272,7 @@ async fn session<S: Future<Output = ()>>(
             _ = heartbeat.tick() => {
                 let mut ids: Vec<u64> = running.iter().map(|r| r.lease_id).collect();
                 ids.extend(queue.iter().map(|l| l.lease_id));
+                ids.extend(uploading.iter().copied());
                 send(&tx, Msg::Heartbeat(v1::Heartbeat { active_lease_ids: ids }));
             }
             end = async { (&mut running.as_mut().expect("guarded").handle).await }, if running.is_some() => {
@@ -271,14 +282,10 @@ async fn session<S: Future<Output = ()>>(
                     fatal: false,
                 });
                 match end {
-                    LeaseEnd::Uploaded(ack) if ack.accepted => {
-                        tracing::info!("lease {} (job {}): tile accepted{}", r.lease_id, r.job_id,
-                            if ack.duplicate { " (duplicate)" } else { "" });
-                    }
-                    LeaseEnd::Uploaded(ack) => {
-                        tracing::warn!("lease {} (job {}): tile rejected: {:?} {}", r.lease_id, r.job_id,
-                            v1::TileRejectReason::try_from(ack.reject_reason).unwrap_or(v1::TileRejectReason::Unspecified),
-                            ack.detail);
+                    LeaseEnd::Rendered(tile) => {
+                        let (id, job, api) = (r.lease_id, r.job_id.clone(), api.clone());
+                        uploading.push(id);
+                        uploads.spawn(async move { (id, job, upload(api, tile).await) });
                     }
                     LeaseEnd::Cancelled => {
                         tracing::info!("lease {} (job {}): cancelled, nothing uploaded", r.lease_id, r.job_id);
@@ -290,6 +297,27 @@ async fn session<S: Future<Output = ()>>(
                 }
                 if !draining {
                     send(&tx, Msg::RequestWork(v1::RequestWork { slots: 1 }));
+                }
+            }
+            Some(done) = uploads.join_next(), if !uploads.is_empty() => {
+                let (id, job, end) = done.unwrap_or_else(|e| {
+                    (0, String::new(), UploadEnd::Failed(format!("upload task: {e}")))
+                });
+                uploading.retain(|&l| l != id);
+                match end {
+                    UploadEnd::Acked(ack) if ack.accepted => {
+                        tracing::info!("lease {id} (job {job}): tile accepted{}",
+                            if ack.duplicate { " (duplicate)" } else { "" });
+                    }
+                    UploadEnd::Acked(ack) => {
+                        tracing::warn!("lease {id} (job {job}): tile rejected: {:?} {}",
+                            v1::TileRejectReason::try_from(ack.reject_reason).unwrap_or(v1::TileRejectReason::Unspecified),
+                            ack.detail);
+                    }
+                    UploadEnd::Failed(reason) => {
+                        tracing::error!("lease {id} (job {job}) failed: {reason}");
+                        send(&tx, Msg::LeaseFailed(v1::LeaseFailed { lease_id: id, reason, fatal: false }));
+                    }
                 }
             }
             msg = inbound.message() => {
@@ -345,8 +373,13 @@ async fn session<S: Future<Output = ()>>(
                 r.job_id
             );
         }
-        let _ = r.handle.await;
+        if let Ok(LeaseEnd::Rendered(tile)) = r.handle.await {
+            let (id, job) = (r.lease_id, r.job_id);
+            let api = api.clone();
+            uploads.spawn(async move { (id, job, upload(api, tile).await) });
+        }
     }
+    while uploads.join_next().await.is_some() {}
     drop(tx);
     match lost {
         Some(m) if !draining => Err(SessionEnd::Lost(m)),
@@ -415,8 +448,12 @@ async fn do_lease(
     lease: v1::Lease,
     cancelled: Arc<AtomicBool>,
 ) -> LeaseEnd {
+    let fetch_start = Instant::now();
     let prepared = match prepare(&shared, &mut api, &lease).await {
-        Ok(p) => p,
+        Ok(mut p) => {
+            p.fetch_seconds = fetch_start.elapsed().as_secs_f64();
+            p
+        }
         Err(f) => {
             return LeaseEnd::Failed {
                 reason: f.reason,
@@ -447,13 +484,15 @@ async fn do_lease(
     if cancelled.load(Ordering::SeqCst) {
         return LeaseEnd::Cancelled;
     }
+    LeaseEnd::Rendered(tile)
+}
+
+/// Uploads a rendered tile: the header, then its pixels and statistics in chunks.
+async fn upload(mut api: Api, tile: RenderedTile) -> UploadEnd {
     let msgs = upload_messages(tile.header, &tile.pixels, &tile.stats, MAX_CHUNK_BYTES);
     match api.upload_tile(tokio_stream::iter(msgs)).await {
-        Ok(ack) => LeaseEnd::Uploaded(ack.into_inner()),
-        Err(s) => LeaseEnd::Failed {
-            reason: format!("upload failed: {} ({:?})", s.message(), s.code()),
-            fatal: false,
-        },
+        Ok(ack) => UploadEnd::Acked(ack.into_inner()),
+        Err(s) => UploadEnd::Failed(format!("upload failed: {} ({:?})", s.message(), s.code())),
     }
 }
 
@@ -496,6 +535,8 @@ struct Prepared {
     tree_blob: Option<PathBuf>,
     fractions_blob: Option<PathBuf>,
     estimate_blob: Option<PathBuf>,
+    /// Seconds spent fetching the blobs.
+    fetch_seconds: f64,
 }
 
 struct RenderedTile {
@@ -617,6 +658,7 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
         tree_blob,
         fractions_blob,
         estimate_blob,
+        fetch_seconds: 0.0,
     })
 }
 
@@ -701,6 +743,7 @@ fn read_blob(p: &Path) -> Result<Vec<u8>, Fail> {
 }
 
 fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
+    let start = Instant::now();
     let js = load_job_scene(shared, &p)?;
     let scene = &js.scene;
     let pass = p.lease.pass.as_ref().expect("checked in prepare");
@@ -724,14 +767,15 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
             }
         }
     };
-    let tree_bytes = match &p.tree_blob {
-        Some(path) => Some(read_blob(path)?),
-        None => None,
-    };
     let stale = jt.as_ref().is_none_or(|t| t.tree_digest != want_tree)
         || (pass.fractions_digest.is_empty()
             && jt.as_ref().is_some_and(|t| !t.fractions_digest.is_empty()));
     if stale {
+        // Read only when the cached copy is not this version (a tree is tens of MB).
+        let tree_bytes = match &p.tree_blob {
+            Some(path) => Some(read_blob(path)?),
+            None => None,
+        };
         jt = Some(JobTree {
             tree_digest: want_tree.clone(),
             fractions_digest: Vec::new(),
@@ -785,6 +829,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .as_ref()
         .and_then(|s| s.seed)
         .unwrap_or(scene.seed);
+    let prepare_seconds = p.fetch_seconds + start.elapsed().as_secs_f64();
     let t0 = Instant::now();
     let out = {
         let inputs = UnitInputs {
@@ -800,6 +845,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
             .install(|| render_unit(&inputs, &spec, region, &|_| {}))
     };
     let seconds = t0.elapsed().as_secs_f64();
+    let serialize_start = Instant::now();
     let stats = if spec.record() {
         jt.tree.take_stats().encode()
     } else {
@@ -812,12 +858,18 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .trees
         .insert(job.clone(), jt);
     let pixels = codec::encode_pixels(&out.film);
+    let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
+    let stats_digest = blake3::hash(&stats).as_bytes().to_vec();
+    let serialize_seconds = serialize_start.elapsed().as_secs_f64();
     tracing::info!(
-        "lease {} (job {}): rendered unit {} in {:.3} s",
+        "lease {} (job {}): rendered unit {} in {:.3} s (inputs {:.3} s, serialising {:.3} s, {} bytes)",
         p.lease.lease_id,
         job,
         spec.unit,
-        seconds
+        seconds,
+        prepare_seconds,
+        serialize_seconds,
+        pixels.len() + stats.len()
     );
     let header = v1::TileHeader {
         lease_id: p.lease.lease_id,
@@ -830,11 +882,13 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
             split_paths: out.split_paths,
             extra_light_samples: out.extra_light_samples,
             render_seconds: seconds,
+            prepare_seconds,
+            serialize_seconds,
         }),
         pixels_size: pixels.len() as u64,
         stats_size: stats.len() as u64,
-        pixels_digest: blake3::hash(&pixels).as_bytes().to_vec(),
-        stats_digest: blake3::hash(&stats).as_bytes().to_vec(),
+        pixels_digest,
+        stats_digest,
     };
     Ok(RenderedTile {
         header,

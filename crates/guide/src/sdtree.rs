@@ -11,10 +11,11 @@ use crate::light::LightStats;
 use crate::mapping::{dir_to_uv, pdf_uv_to_solid_angle, uv_to_dir};
 use crate::record::Record;
 use crate::region::{CellWeights, Restriction};
-use crate::stats::{add_counted, split_exact, to_fixed};
+use crate::stats::{add_counted, split_exact, to_fixed, Acc128};
 use crate::stree::{SLookup, STree};
 use glam::Vec3;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::OnceLock;
 
 /// Deepest S-tree level (root = 0): 20 splits per axis, about the precision of the f32 lookup.
 pub const MAX_SPATIAL_DEPTH: u32 = 60;
@@ -121,6 +122,58 @@ pub struct SdTree {
     pub(crate) overflow: AtomicU64,
     /// Set by `refine` when `max_dtree_nodes` raised the quadtree threshold.
     pub(crate) raised_rho: Option<f64>,
+    /// [`SdTree::structure_hash`], computed once per structure (every statistics exchange
+    /// checks it, and it walks the whole tree).
+    pub(crate) hash: OnceLock<u64>,
+    /// Leaves recorded into since the last [`SdTree::take_stats`] or refinement (one bit a
+    /// leaf): taking the statistics of a tile visits only those.
+    pub(crate) touched: TouchedLeaves,
+}
+
+/// A set of leaf indices that many recording threads may add to: one bit a leaf.
+#[derive(Debug, Default)]
+pub(crate) struct TouchedLeaves(Vec<AtomicU64>);
+
+impl TouchedLeaves {
+    /// An empty set of `n` leaves.
+    pub(crate) fn new(n: usize) -> Self {
+        Self((0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect())
+    }
+
+    /// Adds `leaf` (a load first: after a leaf's first record the word is only read).
+    #[inline]
+    fn insert(&self, leaf: u32) {
+        let (w, bit) = ((leaf / 64) as usize, 1u64 << (leaf % 64));
+        if let Some(word) = self.0.get(w) {
+            if word.load(Relaxed) & bit == 0 {
+                word.fetch_or(bit, Relaxed);
+            }
+        }
+    }
+
+    /// The leaves in the set, ascending, emptying it.
+    fn drain(&self) -> Vec<u32> {
+        let mut out = Vec::new();
+        for (w, word) in self.0.iter().enumerate() {
+            let mut bits = word.swap(0, Relaxed);
+            while bits != 0 {
+                out.push(w as u32 * 64 + bits.trailing_zeros());
+                bits &= bits - 1;
+            }
+        }
+        out
+    }
+}
+
+impl Clone for TouchedLeaves {
+    fn clone(&self) -> Self {
+        Self(
+            self.0
+                .iter()
+                .map(|w| AtomicU64::new(w.load(Relaxed)))
+                .collect(),
+        )
+    }
 }
 
 impl Clone for SdTree {
@@ -132,6 +185,8 @@ impl Clone for SdTree {
             built: self.built,
             overflow: AtomicU64::new(self.overflow.load(Relaxed)),
             raised_rho: self.raised_rho,
+            hash: self.hash.clone(),
+            touched: self.touched.clone(),
         }
     }
 }
@@ -158,6 +213,8 @@ impl SdTree {
             built: false,
             overflow: AtomicU64::new(0),
             raised_rho: None,
+            hash: OnceLock::new(),
+            touched: TouchedLeaves::new(1),
         }
     }
 
@@ -312,6 +369,7 @@ impl SdTree {
     /// (thread safe, exact; see [`crate::light`]).
     #[inline]
     pub fn record_light_sample(&self, h: LeafHandle, value: f32) {
+        self.touched.insert(h.0);
         self.leaves[h.0 as usize]
             .light
             .record(value, &self.overflow);
@@ -446,6 +504,7 @@ impl SdTree {
         rec: &Record,
     ) {
         let l = &self.leaves[leaf as usize];
+        self.touched.insert(leaf);
         l.building.add_weight(qw, &self.overflow);
         if qv != 0 {
             match self.config.directional_filter {
@@ -586,6 +645,8 @@ impl SdTree {
             l.building = refined;
             l.light.clear();
         }
+        self.hash = OnceLock::new();
+        self.touched = TouchedLeaves::new(self.leaves.len());
     }
 
     /// The quadtree refinement threshold of the last refinement, if `max_dtree_nodes` made it
@@ -672,6 +733,10 @@ impl SdTree {
     /// 64-bit fingerprint of everything statistics refer to: the S-tree and the structure of
     /// every building quadtree. Statistics only apply to a tree with the same fingerprint.
     pub fn structure_hash(&self) -> u64 {
+        *self.hash.get_or_init(|| self.compute_structure_hash())
+    }
+
+    fn compute_structure_hash(&self) -> u64 {
         let mut h = Hasher64::new();
         h.write_u64(self.stree.nodes.len() as u64);
         for n in &self.stree.nodes {
@@ -699,24 +764,24 @@ impl SdTree {
             overflow_events: self.overflow.swap(0, Relaxed),
             leaves: Vec::new(),
         };
-        for (i, l) in self.leaves.iter().enumerate() {
+        // Only leaves recorded into can hold statistics; within them most nodes are zero,
+        // so nodes are read first and written only when they hold something.
+        for i in self.touched.drain() {
+            let Some(l) = self.leaves.get(i as usize) else {
+                continue;
+            };
             let mut ls = LeafStats {
-                leaf: i as u32,
-                weight: l.building.weight.take(),
-                grad_pos: std::array::from_fn(|k| l.grad.pos[k].take()),
-                grad_neg: std::array::from_fn(|k| l.grad.neg[k].take()),
-                grad_weight: l.grad.weight.take(),
+                leaf: i,
+                weight: take_nonzero(&l.building.weight),
+                grad_pos: std::array::from_fn(|k| take_nonzero(&l.grad.pos[k])),
+                grad_neg: std::array::from_fn(|k| take_nonzero(&l.grad.neg[k])),
+                grad_weight: take_nonzero(&l.grad.weight),
                 light: l.light.take(),
                 nodes: Vec::new(),
             };
             l.grad.stepped.set(0);
             for (ni, n) in l.building.nodes.iter().enumerate() {
-                let s = [
-                    n.sums[0].take(),
-                    n.sums[1].take(),
-                    n.sums[2].take(),
-                    n.sums[3].take(),
-                ];
+                let s = n.sums.each_ref().map(take_nonzero);
                 if s.iter().any(|&x| x != 0) {
                     ls.nodes.push((ni as u32, s));
                 }
@@ -775,6 +840,16 @@ impl SdTree {
         self.overflow.fetch_add(of + s.overflow_events, Relaxed);
         Ok(())
     }
+}
+
+/// The accumulator's value, leaving zero (written only if it was not zero already).
+#[inline]
+fn take_nonzero(a: &Acc128) -> u128 {
+    let v = a.get();
+    if v != 0 {
+        a.set(0);
+    }
+    v
 }
 
 /// Whether [`SdTree::record`] uses `rec` at all: positive finite weight and mixture pdf,

@@ -577,6 +577,8 @@ impl SdTree {
             built,
             overflow: AtomicU64::new(overflow),
             raised_rho: None,
+            hash: Default::default(),
+            touched: crate::sdtree::TouchedLeaves::new(nl),
         })
     }
 }

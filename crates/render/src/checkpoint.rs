@@ -2,9 +2,11 @@
 //! data directory resumes a job where its last finished iteration left it, with the bits an
 //! uninterrupted run gives (the units after the checkpoint depend only on this state).
 //!
-//! Format: magic `PFCK`, version byte, then the fields in declaration order, little-endian;
-//! the tree in its own wire form ([`SdTree::encode`]). Decoding checks every length (a
-//! checkpoint is read back from disk, which may be damaged).
+//! A checkpoint comes in parts ([`Checkpoint`]): the state (magic `PFCK`, version byte, then
+//! the fields in declaration order, little-endian), each film apart, and the tree in its own
+//! wire form ([`SdTree::encode`]), so that a driver storing them by content writes a finished
+//! iteration's film and a published tree once. Decoding checks every length (a checkpoint is
+//! read back from disk, which may be damaged).
 
 use pathfarm_guide::schedule::IterationOutcome;
 use pathfarm_guide::SdTree;
@@ -13,7 +15,7 @@ use crate::film::{Film, PixelStats};
 use crate::guided::GuidedIteration;
 
 const MAGIC: &[u8; 4] = b"PFCK";
-const VERSION: u8 = 1;
+const VERSION: u8 = 2;
 
 /// A checkpoint that does not decode.
 #[derive(Debug, thiserror::Error)]
@@ -163,11 +165,71 @@ pub(crate) fn header(out: &mut Out) {
 pub(crate) fn check_header(inp: &mut In) -> Result<(), CheckpointError> {
     let m = inp.take(5)?;
     if &m[..4] != MAGIC || m[4] != VERSION {
-        return Err(CheckpointError("not a version-1 session checkpoint".into()));
+        return Err(CheckpointError("not a version-2 session checkpoint".into()));
     }
     Ok(())
 }
 
-pub(crate) fn decode_tree(bytes: &[u8]) -> Result<SdTree, CheckpointError> {
+/// A [`crate::session::Session`]'s checkpoint in parts: the films are most of its bytes, and
+/// a finished iteration's film never changes, so a driver that stores the parts by content
+/// writes each film once. The tree is saved beside it by the driver (its own wire form).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checkpoint {
+    /// Everything but the films and the tree.
+    pub state: Vec<u8>,
+    /// The iteration films in order, then the path fallback's film ([`encode_film`]).
+    pub films: Vec<Vec<u8>>,
+}
+
+/// A film as checkpoint bytes: width, height, then every pixel's sums (exact bits).
+pub fn encode_film(f: &Film) -> Vec<u8> {
+    let mut o = Out(Vec::with_capacity(8 + f.pixels.len() * PixelStats::BYTES));
+    o.film(f);
+    o.0
+}
+
+/// Reads [`encode_film`]'s bytes of a `width x height` film.
+pub fn decode_film(bytes: &[u8], width: u32, height: u32) -> Result<Film, CheckpointError> {
+    let mut i = In(bytes);
+    let f = i.film()?;
+    if (f.width, f.height) != (width, height) || !i.0.is_empty() {
+        return Err(CheckpointError(format!(
+            "a film of {}x{} ({} bytes) for a {width}x{height} job",
+            f.width,
+            f.height,
+            bytes.len()
+        )));
+    }
+    Ok(f)
+}
+
+impl Checkpoint {
+    /// The checkpoint and the tree's encoding as one byte string (a single-file form).
+    pub fn to_bytes(&self, tree: &[u8]) -> Vec<u8> {
+        let mut o = Out::default();
+        header(&mut o);
+        o.bytes(&self.state);
+        o.u64(self.films.len() as u64);
+        self.films.iter().for_each(|f| o.bytes(f));
+        o.bytes(tree);
+        o.0
+    }
+
+    /// Reads [`Checkpoint::to_bytes`]: the checkpoint and the tree.
+    pub fn from_bytes(bytes: &[u8]) -> Result<(Checkpoint, SdTree), CheckpointError> {
+        let mut i = In(bytes);
+        check_header(&mut i)?;
+        let state = i.bytes()?;
+        let films = (0..i.len(8)?).map(|_| i.bytes()).collect::<Result<_, _>>()?;
+        let tree = decode_tree(&i.bytes()?)?;
+        if !i.0.is_empty() {
+            return Err(CheckpointError(format!("{} bytes after the end", i.0.len())));
+        }
+        Ok((Checkpoint { state, films }, tree))
+    }
+}
+
+/// Reads a tree saved with a checkpoint.
+pub fn decode_tree(bytes: &[u8]) -> Result<SdTree, CheckpointError> {
     SdTree::decode(bytes).map_err(|e| CheckpointError(format!("tree: {e}")))
 }

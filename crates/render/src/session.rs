@@ -18,7 +18,7 @@ use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, It
 use pathfarm_guide::{IterationStats, SdTree, StatsError};
 use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
 
-use crate::checkpoint::{self, CheckpointError, In, Out};
+use crate::checkpoint::{self, Checkpoint, CheckpointError, In, Out};
 use crate::film::Film;
 use crate::guided::{
     combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
@@ -73,6 +73,8 @@ pub enum TileError {
         got: Region,
         expected: Region,
     },
+    #[error("the unit cannot be re-tiled: {0}")]
+    NotRetilable(&'static str),
     #[error("tile {0}: guide statistics for a unit that records nothing")]
     UnexpectedStats(usize),
     #[error("tile {index}: guide statistics do not fit the tree: {source}")]
@@ -138,6 +140,8 @@ enum Phase {
 #[derive(Clone, Debug)]
 struct Pending {
     spec: PassSpec,
+    /// The unit's tiles (the session's default tiling unless the driver re-tiled it).
+    tiles: Vec<Region>,
     film: Film,
     done: Vec<bool>,
     left: usize,
@@ -245,6 +249,11 @@ impl Session {
         }
     }
 
+    /// The image's width and height.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
     /// The master tree: units sample from it (with the fractions of the current unit).
     pub fn tree(&self) -> &SdTree {
         &self.tree
@@ -270,9 +279,33 @@ impl Session {
         self.estimate_version
     }
 
-    /// The tiles units are rendered in.
+    /// The tiles of the unit in flight, or the default tiling units are issued with.
     pub fn tiles(&self) -> &[Region] {
-        &self.tiles
+        match &self.pending {
+            Some(p) => &p.tiles,
+            None => &self.tiles,
+        }
+    }
+
+    /// Re-tiles the unit just issued, before any of its tiles is in: a farm sizes each
+    /// unit's tiles to its work. Any tiling gives the same bits (each pixel's additions do
+    /// not depend on its tile). `tiles` must be disjoint, non-empty and cover the image.
+    pub fn retile(&mut self, tiles: Vec<Region>) -> Result<(), TileError> {
+        let Some(p) = self.pending.as_mut() else {
+            return Err(TileError::NotRetilable("no unit is in flight"));
+        };
+        if p.left != p.tiles.len() {
+            return Err(TileError::NotRetilable("some of its tiles are in already"));
+        }
+        if !covers_exactly(&tiles, self.width, self.height) {
+            return Err(TileError::NotRetilable(
+                "the tiles are not disjoint regions covering the image",
+            ));
+        }
+        p.done = vec![false; tiles.len()];
+        p.left = tiles.len();
+        p.tiles = tiles;
+        Ok(())
     }
 
     /// Samples per pixel rendered so far (guided and unguided).
@@ -288,7 +321,7 @@ impl Session {
     /// Tiles accepted / total of the unit in flight.
     pub fn tiles_done(&self) -> (usize, usize) {
         match &self.pending {
-            Some(p) => (p.done.len() - p.left, p.done.len()),
+            Some(p) => (p.tiles.len() - p.left, p.tiles.len()),
             None => (0, self.tiles.len()),
         }
     }
@@ -364,7 +397,7 @@ impl Session {
                 expected,
             });
         };
-        let Some(&tile) = self.tiles.get(index) else {
+        let Some(&tile) = p.tiles.get(index) else {
             return Err(TileError::NoSuchTile(index));
         };
         if p.done[index] {
@@ -453,6 +486,7 @@ impl Session {
         self.next_unit += 1;
         self.pending = Some(Pending {
             spec,
+            tiles: self.tiles.clone(),
             film: Film::new(self.width, self.height),
             done: vec![false; self.tiles.len()],
             left: self.tiles.len(),
@@ -508,9 +542,12 @@ impl Session {
     }
 
     /// The iteration's next unit, or `None` when its passes are done. Training passes are
-    /// one unit each (the fractions step between them); the passes of an iteration that
-    /// records nothing are one unit with an spp budget, one per pass with a time budget (so
-    /// the clock can end it).
+    /// one unit each: the learned fractions take their Adam steps between them, as in the
+    /// one-process render of the 2019 paper, so every training pass is a synchronisation
+    /// point of a farm (stepping once per iteration instead, measured with 8 paired seeds at
+    /// 64 spp, gave 1.2-2.6 % higher relMSE: docs/decisions/fraction-steps-per-pass.md). The
+    /// passes of an iteration that records nothing are one unit with an spp budget, one per
+    /// pass with a time budget (so the clock can end it).
     fn iteration_unit(&self, it: &Iteration, now: f64) -> Option<PassSpec> {
         let passes = match it.until {
             IterationLength::Passes(p) if it.passes >= p => return None,
@@ -848,9 +885,10 @@ fn copy_region(dst: &mut Film, src: &Film, region: Region) {
 }
 
 impl Session {
-    /// The session's state as bytes ([`crate::checkpoint`]), between iterations only (when
-    /// no unit is in flight and the next iteration is not planned yet): `None` otherwise.
-    pub fn checkpoint(&self) -> Option<Vec<u8>> {
+    /// The session's state ([`crate::checkpoint`]), between iterations only (when no unit is
+    /// in flight and the next iteration is not planned yet): `None` otherwise. The tree is
+    /// not in it: keep [`Session::tree`]'s encoding with it (a farm publishes that anyway).
+    pub fn checkpoint(&self) -> Option<Checkpoint> {
         if self.pending.is_some() || !matches!(self.phase, Phase::Plan) {
             return None;
         }
@@ -877,7 +915,6 @@ impl Session {
         o.u64(self.iterations.len() as u64);
         self.iterations.iter().for_each(|i| o.iteration(i));
         o.u64(self.films.len() as u64);
-        self.films.iter().for_each(|f| o.film(f));
         o.u64(self.history.len() as u64);
         self.history.iter().for_each(|h| o.outcome(h));
         o.opt_u32(self.kept.map(|k| k as u32));
@@ -893,14 +930,16 @@ impl Session {
         for v in [self.rays, self.invalid, self.splits, self.light_splits] {
             o.u64(v);
         }
-        o.bytes(&self.tree.encode());
-        Some(o.0)
+        let films = self.films.iter().chain([&self.fallback.path_film]);
+        Some(Checkpoint {
+            state: o.0,
+            films: films.map(checkpoint::encode_film).collect(),
+        })
     }
 
     fn checkpoint_fallback(&self, o: &mut Out) {
         let f = &self.fallback;
         o.u8(f.enabled as u8);
-        o.film(&f.path_film);
         o.f64(f.path_seconds);
         for v in [f.path_rays, f.path_spp, f.probe_spp] {
             o.u64(v);
@@ -911,16 +950,18 @@ impl Session {
         o.opt_u32(f.fell_back_after);
     }
 
-    /// A session from [`Session::checkpoint`] bytes, for the same job (parameters, budget,
-    /// tiles, policy): it continues exactly as the checkpointed session would have.
+    /// A session from a [`Session::checkpoint`] and the tree saved with it, for the same
+    /// job (parameters, budget, tiles, policy): it continues exactly as the checkpointed
+    /// session would have.
     pub fn restore(
         params: &GuidedParams,
         budget: Budget,
         tiles: Vec<Region>,
         policy: FallbackPolicy,
-        bytes: &[u8],
+        checkpoint: &Checkpoint,
+        tree: SdTree,
     ) -> Result<Session, CheckpointError> {
-        let mut i = In(bytes);
+        let mut i = In(&checkpoint.state);
         checkpoint::check_header(&mut i)?;
         let (width, height) = (i.u32()?, i.u32()?);
         let (tree_version, fraction_version, k) = (i.u32()?, i.u32()?, i.u32()?);
@@ -937,7 +978,20 @@ impl Session {
         s.iterations = (0..i.len(45)?)
             .map(|_| i.iteration())
             .collect::<Result<_, _>>()?;
-        s.films = (0..i.len(8)?).map(|_| i.film()).collect::<Result<_, _>>()?;
+        let nfilms = i.u64()? as usize;
+        if nfilms + 1 != checkpoint.films.len() {
+            return Err(CheckpointError(format!(
+                "{} films for {nfilms} iterations",
+                checkpoint.films.len()
+            )));
+        }
+        let mut films = checkpoint
+            .films
+            .iter()
+            .map(|f| checkpoint::decode_film(f, width, height))
+            .collect::<Result<Vec<_>, _>>()?;
+        let path_film = films.pop().expect("checked");
+        s.films = films;
         s.history = (0..i.len(32)?)
             .map(|_| i.outcome())
             .collect::<Result<_, _>>()?;
@@ -953,6 +1007,7 @@ impl Session {
             .collect::<Result<_, _>>()?;
         s.estimate_version = i.u32()?;
         s.restore_fallback(&mut i)?;
+        s.fallback.path_film = path_film;
         for v in [
             &mut s.rays,
             &mut s.invalid,
@@ -961,7 +1016,7 @@ impl Session {
         ] {
             *v = i.u64()?;
         }
-        s.tree = checkpoint::decode_tree(&i.bytes()?)?;
+        s.tree = tree;
         if !i.0.is_empty() {
             return Err(CheckpointError(format!(
                 "{} bytes after the end",
@@ -974,7 +1029,6 @@ impl Session {
     fn restore_fallback(&mut self, i: &mut In) -> Result<(), CheckpointError> {
         let f = &mut self.fallback;
         f.enabled = i.bool()?;
-        f.path_film = i.film()?;
         f.path_seconds = i.f64()?;
         f.path_rays = i.u64()?;
         f.path_spp = i.u64()?;
@@ -984,4 +1038,26 @@ impl Session {
         f.fell_back_after = i.opt_u32()?;
         Ok(())
     }
+}
+
+/// Whether `tiles` are non-empty regions inside the `width x height` image that cover every
+/// pixel exactly once.
+fn covers_exactly(tiles: &[Region], width: u32, height: u32) -> bool {
+    let mut seen = vec![false; width as usize * height as usize];
+    let mut covered = 0usize;
+    for t in tiles {
+        if !t.is_valid_in(width, height) {
+            return false;
+        }
+        for y in t.y0..t.y1 {
+            for x in t.x0..t.x1 {
+                let i = y as usize * width as usize + x as usize;
+                if std::mem::replace(&mut seen[i], true) {
+                    return false;
+                }
+                covered += 1;
+            }
+        }
+    }
+    covered == seen.len()
 }

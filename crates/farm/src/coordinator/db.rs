@@ -43,10 +43,16 @@ pub(crate) struct JobRecord {
     pub iteration: u32,
     #[prost(uint64, tag = "14")]
     pub started_unix_ms: u64,
-    /// The job session's last checkpoint (a blob digest; empty = none): taken between
-    /// iterations, so a restarted coordinator resumes the job from there.
+    /// The job session's last checkpoint's state (a blob digest; empty = none): taken
+    /// between iterations, so a restarted coordinator resumes the job from there.
     #[prost(bytes = "vec", tag = "15")]
     pub checkpoint: Vec<u8>,
+    /// The checkpoint's tree (a blob digest), and its films in order ([`crate::coordinator`]'s
+    /// checkpoints module).
+    #[prost(bytes = "vec", tag = "16")]
+    pub checkpoint_tree: Vec<u8>,
+    #[prost(bytes = "vec", repeated, tag = "17")]
+    pub checkpoint_films: Vec<Vec<u8>>,
 }
 
 pub(crate) struct Db {

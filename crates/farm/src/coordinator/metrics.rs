@@ -1,134 +1,224 @@
-//! `GET /metrics` in the Prometheus text format, served by a minimal HTTP/1.1 responder on
-//! `CoordinatorConfig::metrics` (no HTTP framework: one request per connection).
+//! The coordinator's Prometheus metrics (prometheus-client), served at `GET /metrics` on
+//! `CoordinatorConfig::metrics` by axum.
+//!
+//! Counters are updated where things happen; the gauges (jobs by state, workers, tiles in
+//! flight and ready) are read from the coordinator's state at each scrape, so they are
+//! never stale.
 
-use std::fmt::Write as _;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 
-use super::{Shared, State};
+use super::ledger::UnitLedger;
+use super::Shared;
 use pathfarm_proto::v1;
 
-/// Renders the current metrics.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StateLabel {
+    state: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct PhaseLabel {
+    phase: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct OutcomeLabel {
+    outcome: &'static str,
+}
+
+type Seconds = Counter<f64, AtomicU64>;
+
+/// Every metric the coordinator exports.
+pub(crate) struct Metrics {
+    registry: Registry,
+    jobs: Family<StateLabel, Gauge>,
+    workers: Gauge,
+    tiles_in_flight: Gauge,
+    tiles_ready: Gauge,
+    /// Bytes of blobs and results sent (a plain atomic: the unit ledger reads it too).
+    pub(crate) blob_bytes_fetched: AtomicU64,
+    blob_bytes_sent: Counter,
+    tile_bytes_uploaded: Counter,
+    tiles: Family<OutcomeLabel, Counter>,
+    units: Counter,
+    unit_seconds: Family<PhaseLabel, Seconds>,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let mut registry = Registry::with_prefix("pathfarm");
+        let m = Metrics {
+            jobs: Family::default(),
+            workers: Gauge::default(),
+            tiles_in_flight: Gauge::default(),
+            tiles_ready: Gauge::default(),
+            blob_bytes_fetched: AtomicU64::new(0),
+            blob_bytes_sent: Counter::default(),
+            tile_bytes_uploaded: Counter::default(),
+            tiles: Family::default(),
+            units: Counter::default(),
+            unit_seconds: Family::default(),
+            registry: Registry::default(),
+        };
+        registry.register("jobs", "Jobs by state", m.jobs.clone());
+        registry.register("workers", "Connected workers", m.workers.clone());
+        registry.register(
+            "tiles_in_flight",
+            "Tiles leased to workers and not yet in",
+            m.tiles_in_flight.clone(),
+        );
+        registry.register(
+            "tiles_ready",
+            "Tiles waiting for a worker",
+            m.tiles_ready.clone(),
+        );
+        registry.register(
+            "blob_bytes_sent",
+            "Bytes of blobs (scenes, trees, fractions, estimates) and results sent",
+            m.blob_bytes_sent.clone(),
+        );
+        registry.register(
+            "tile_bytes_received",
+            "Bytes of tile uploads (pixel sums and guide statistics) received",
+            m.tile_bytes_uploaded.clone(),
+        );
+        registry.register(
+            "tiles",
+            "Tile uploads by outcome (accepted, rejected)",
+            m.tiles.clone(),
+        );
+        registry.register("units", "Units (passes of a job) finished", m.units.clone());
+        registry.register(
+            "unit_seconds",
+            "Seconds spent on finished units by phase: render, prepare and serialize on the \
+             workers; receive, decode, merge, end (refinement), checkpoint and publish \
+             (tree broadcast) on the coordinator; wall per unit",
+            m.unit_seconds.clone(),
+        );
+        Metrics { registry, ..m }
+    }
+}
+
+impl Metrics {
+    /// Counts `bytes` of blob or result sent.
+    pub(crate) fn blob_sent(&self, bytes: u64) {
+        self.blob_bytes_fetched.fetch_add(bytes, Relaxed);
+        self.blob_bytes_sent.inc_by(bytes);
+    }
+
+    /// Counts a tile upload of `bytes`, accepted or not.
+    pub(crate) fn tile_upload(&self, bytes: u64, accepted: bool) {
+        self.tile_bytes_uploaded.inc_by(bytes);
+        let outcome = if accepted { "accepted" } else { "rejected" };
+        self.tiles.get_or_create(&OutcomeLabel { outcome }).inc();
+    }
+
+    /// Adds a finished unit's accounts.
+    pub(crate) fn observe_unit(&self, l: &UnitLedger) {
+        self.units.inc();
+        let phases = [
+            ("wall", l.started.elapsed().as_secs_f64()),
+            ("render", l.render_s),
+            ("prepare", l.prepare_s),
+            ("serialize", l.serialize_s),
+            ("receive", l.receive_s),
+            ("decode", l.decode_s),
+            ("merge", l.merge_s),
+            ("end", l.end_s),
+            ("checkpoint", l.checkpoint_s),
+            ("publish", l.publish_s),
+        ];
+        for (phase, s) in phases {
+            self.unit_seconds
+                .get_or_create(&PhaseLabel { phase })
+                .inc_by(s.max(0.0));
+        }
+    }
+}
+
+/// The metrics in the text exposition format, with the gauges read now.
 pub(crate) fn render(shared: &Shared) -> String {
-    let mut out = String::new();
-    let st: std::sync::MutexGuard<'_, State> = shared.lock();
-    let _ = writeln!(
-        out,
-        "# HELP pathfarm_jobs Jobs by state.\n# TYPE pathfarm_jobs gauge"
-    );
-    for state in [
-        v1::JobState::Queued,
-        v1::JobState::Training,
-        v1::JobState::FinalPass,
-        v1::JobState::Assembling,
-        v1::JobState::Done,
-        v1::JobState::Failed,
-        v1::JobState::Cancelled,
-    ] {
-        let count = st
-            .jobs
-            .iter()
-            .filter(|(&n, j)| {
-                super::status_of(n, &j.record, j.active.as_ref()).state == state as i32
-            })
-            .count();
-        let _ = writeln!(
-            out,
-            "pathfarm_jobs{{state=\"{}\"}} {count}",
-            state.as_str_name()
-        );
-    }
-    let workers = st.workers.values().filter(|w| w.tx.is_some()).count();
     let m = &shared.metrics;
-    let gauges = [
-        ("pathfarm_workers", "Connected workers.", workers as u64),
-        (
-            "pathfarm_tiles_in_flight",
-            "Live leases.",
-            st.sched.in_flight_total() as u64,
-        ),
-        (
-            "pathfarm_tiles_ready",
-            "Tiles waiting for a worker.",
-            st.sched.ready_total() as u64,
-        ),
-    ];
-    drop(st);
-    for (name, help, v) in gauges {
-        let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+    {
+        let st = shared.lock();
+        let mut counts = [0i64; 7];
+        for (&n, j) in &st.jobs {
+            let s = super::status_of(n, &j.record, j.active.as_ref()).state;
+            if let Some(i) = STATES.iter().position(|x| *x as i32 == s) {
+                counts[i] += 1;
+            }
+        }
+        for (state, count) in STATES.iter().zip(counts) {
+            let label = StateLabel {
+                state: state_label(*state),
+            };
+            m.jobs.get_or_create(&label).set(count);
+        }
+        let workers = st.workers.values().filter(|w| w.tx.is_some()).count();
+        m.workers.set(workers as i64);
+        m.tiles_in_flight.set(st.sched.in_flight_total() as i64);
+        m.tiles_ready.set(st.sched.ready_total() as i64);
     }
-    let counters = [
-        (
-            "pathfarm_blob_bytes_fetched_total",
-            "Bytes of blobs and results sent.",
-            m.blob_bytes_fetched.load(Ordering::Relaxed),
-        ),
-        (
-            "pathfarm_tile_bytes_uploaded_total",
-            "Bytes of tile uploads received.",
-            m.tile_bytes_uploaded.load(Ordering::Relaxed),
-        ),
-        (
-            "pathfarm_tiles_accepted_total",
-            "Tiles accepted.",
-            m.tiles_accepted.load(Ordering::Relaxed),
-        ),
-        (
-            "pathfarm_tiles_rejected_total",
-            "Tile uploads rejected.",
-            m.tiles_rejected.load(Ordering::Relaxed),
-        ),
-    ];
-    for (name, help, v) in counters {
-        let _ = writeln!(
-            out,
-            "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
-        );
+    let mut out = String::new();
+    if let Err(e) = prometheus_client::encoding::text::encode(&mut out, &m.registry) {
+        tracing::error!("encoding metrics: {e}");
     }
-    let secs = m.merge_nanos.load(Ordering::Relaxed) as f64 * 1e-9;
-    let _ = writeln!(
-        out,
-        "# HELP pathfarm_merge_seconds_total Seconds spent merging tiles into sessions (and refining).\n\
-         # TYPE pathfarm_merge_seconds_total counter\npathfarm_merge_seconds_total {secs}"
-    );
     out
 }
 
-/// Serves `/metrics` on `listener` forever.
+const STATES: [v1::JobState; 7] = [
+    v1::JobState::Queued,
+    v1::JobState::Training,
+    v1::JobState::FinalPass,
+    v1::JobState::Assembling,
+    v1::JobState::Done,
+    v1::JobState::Failed,
+    v1::JobState::Cancelled,
+];
+
+fn state_label(s: v1::JobState) -> &'static str {
+    match s {
+        v1::JobState::Queued => "queued",
+        v1::JobState::Training => "training",
+        v1::JobState::FinalPass => "final_pass",
+        v1::JobState::Assembling => "assembling",
+        v1::JobState::Done => "done",
+        v1::JobState::Failed => "failed",
+        v1::JobState::Cancelled => "cancelled",
+        v1::JobState::Unspecified => "unspecified",
+    }
+}
+
+/// Serves `GET /metrics` on `listener` until the task is aborted.
 pub(crate) async fn serve(shared: Arc<Shared>, listener: TcpListener) {
-    loop {
-        let Ok((mut sock, _)) = listener.accept().await else {
-            continue;
-        };
-        let shared = shared.clone();
-        tokio::spawn(async move {
-            let mut buf = vec![0u8; 4096];
-            let mut got = 0;
-            while got < buf.len() {
-                match sock.read(&mut buf[got..]).await {
-                    Ok(0) | Err(_) => break,
-                    Ok(k) => got += k,
-                }
-                if buf[..got].windows(4).any(|w| w == b"\r\n\r\n") {
-                    break;
-                }
-            }
-            let request = String::from_utf8_lossy(&buf[..got]);
-            let response = if request.starts_with("GET /metrics ") {
-                let body = render(&shared);
-                format!(
-                    "HTTP/1.1 200 OK\r\ncontent-type: text/plain; version=0.0.4\r\ncontent-length: {}\r\nconnection: close\r\n\r\n{body}",
-                    body.len()
+    use axum::routing::get;
+    let app = axum::Router::new().route(
+        "/metrics",
+        get(move || {
+            let shared = shared.clone();
+            async move {
+                let body = tokio::task::spawn_blocking(move || render(&shared))
+                    .await
+                    .unwrap_or_default();
+                (
+                    [(
+                        axum::http::header::CONTENT_TYPE,
+                        "application/openmetrics-text; version=1.0.0; charset=utf-8",
+                    )],
+                    body,
                 )
-            } else {
-                "HTTP/1.1 404 Not Found\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
-                    .to_string()
-            };
-            let _ = sock.write_all(response.as_bytes()).await;
-            let _ = sock.shutdown().await;
-        });
+            }
+        }),
+    );
+    if let Err(e) = axum::serve(listener, app).await {
+        tracing::error!("metrics server: {e}");
     }
 }

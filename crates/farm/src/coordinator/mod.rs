@@ -22,7 +22,9 @@
 //! Concurrency: one [`Mutex`] holds the scheduler, the jobs with their sessions and the
 //! workers' channels; it is never held across an `.await`.
 
+mod checkpoints;
 mod db;
+mod ledger;
 mod metrics;
 mod service;
 mod store;
@@ -49,11 +51,14 @@ use tonic::Status;
 
 use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
 use crate::codec;
+use crate::tiling::CostMap;
 use crate::scheduler::{
     Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, TaskKey, WorkerId,
 };
 
 use db::{Db, JobRecord};
+use metrics::Metrics;
+use ledger::UnitLedger;
 use store::BlobStore;
 
 /// How the coordinator runs.
@@ -73,8 +78,10 @@ pub struct CoordinatorConfig {
     pub bundle_limits: BundleLimits,
     /// Lease timeouts and attempts.
     pub scheduler: SchedulerConfig,
-    /// Tile edge when a job does not set one (32).
-    pub default_tile: u32,
+    /// Tile edge when a job does not set one; `None` (the default): a few tiles per
+    /// worker thread, of equal cost as measured in the job's earlier units
+    /// ([`crate::tiling`]).
+    pub default_tile: Option<u32>,
 }
 
 /// Why the coordinator could not start or stopped.
@@ -132,16 +139,6 @@ pub(crate) struct Shared {
     pub(crate) metrics: Metrics,
 }
 
-/// Counters for `/metrics`.
-#[derive(Default)]
-pub(crate) struct Metrics {
-    pub(crate) blob_bytes_fetched: std::sync::atomic::AtomicU64,
-    pub(crate) tile_bytes_uploaded: std::sync::atomic::AtomicU64,
-    pub(crate) tiles_accepted: std::sync::atomic::AtomicU64,
-    pub(crate) tiles_rejected: std::sync::atomic::AtomicU64,
-    pub(crate) merge_nanos: std::sync::atomic::AtomicU64,
-}
-
 pub(crate) type Outbox = mpsc::UnboundedSender<Result<v1::CoordinatorMessage, Status>>;
 
 pub(crate) struct WorkerConn {
@@ -168,7 +165,15 @@ pub(crate) struct Active {
     pub(crate) clock: Instant,
     pub(crate) seed: u64,
     pub(crate) spec: Option<PassSpec>,
-    pub(crate) tiles: Vec<Region>,
+    /// The job's fixed tile edge, or `None` for tiles cut by cost ([`CostMap::tiles`]).
+    pub(crate) tile: Option<u32>,
+    /// What the image cost per sample in the job's earlier units.
+    pub(crate) cost: CostMap,
+    /// Where the time and bytes of the unit in flight went.
+    pub(crate) ledger: UnitLedger,
+    /// Checkpoints taken so far (a background write records its checkpoint only if no later
+    /// one was taken meanwhile).
+    pub(crate) checkpoint_seq: u64,
     pub(crate) tree_digest: Option<(u32, Digest)>,
     pub(crate) fractions_digest: Option<((u32, u32), Digest)>,
     pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
@@ -188,6 +193,20 @@ pub(crate) struct State {
     pub(crate) leases: HashMap<u64, LeaseInfo>,
     pub(crate) next_job: u64,
     pub(crate) next_worker: u64,
+    /// Blobs that jobs stopped referring to, deleted by the next
+    /// [`Shared::collect_garbage`] unless another job still refers to them.
+    pub(crate) garbage: Vec<Digest>,
+}
+
+/// Render threads of the connected workers that take work (at least 1): what a unit's tiles
+/// are shared among.
+pub(crate) fn slots(workers: &BTreeMap<u64, WorkerConn>) -> usize {
+    let n: u64 = workers
+        .values()
+        .filter(|w| w.tx.is_some() && !w.draining)
+        .map(|w| w.register.threads.max(1) as u64)
+        .sum();
+    n.clamp(1, 1 << 16) as usize
 }
 
 pub(crate) fn unix_ms() -> u64 {
@@ -218,7 +237,7 @@ pub(crate) struct Prepared {
     width: u32,
     height: u32,
     tree: SdTree,
-    tile: u32,
+    tile: Option<u32>,
 }
 
 impl Shared {
@@ -241,6 +260,7 @@ impl Shared {
             leases: HashMap::new(),
             next_job: 1,
             next_worker: 1,
+            garbage: Vec::new(),
         };
         let shared = Arc::new(Shared {
             cfg,
@@ -380,10 +400,9 @@ impl Shared {
         let seed = scene_settings.seed.unwrap_or(scene.seed);
         let (lo, hi) = scene.accel.bounds();
         let tree = SdTree::new(lo, hi, guided::guide_config(&params, &scene));
-        let tile = if settings.tile_size == 0 {
-            self.cfg.default_tile.max(1)
-        } else {
-            settings.tile_size
+        let tile = match settings.tile_size {
+            0 => self.cfg.default_tile.map(|t| t.max(1)),
+            t => Some(t),
         };
         Ok(Prepared {
             params,
@@ -396,71 +415,21 @@ impl Shared {
         })
     }
 
-    /// The session of job `n` restored from its last checkpoint, if it has one that reads
-    /// back (a damaged one is logged and the job starts over: the same bits, later).
-    fn resume(
-        &self,
-        n: u64,
-        record: &JobRecord,
-        p: &Prepared,
-        tiles: &[Region],
-    ) -> Option<Session> {
-        let digest = Digest(record.checkpoint.as_slice().try_into().ok()?);
-        let restored = std::fs::read(self.blobs.path(&digest))
-            .map_err(|e| e.to_string())
-            .and_then(|bytes| {
-                Session::restore(
-                    &p.params,
-                    p.budget,
-                    tiles.to_vec(),
-                    FallbackPolicy::Rule,
-                    &bytes,
-                )
-                .map_err(|e| e.to_string())
-            });
-        match restored {
-            Ok(s) => {
-                tracing::info!(
-                    job = %job_name(n),
-                    "resumed from its checkpoint after iteration {} ({} spp done)",
-                    s.iteration(),
-                    s.spp_done()
-                );
-                Some(s)
-            }
-            Err(e) => {
-                tracing::warn!(job = %job_name(n), "checkpoint unusable, starting over: {e}");
-                None
-            }
+    /// The unit `spec` of job `n` is complete: checkpoint the session (between iterations),
+    /// log the unit's accounts, and go on to the next unit.
+    pub(crate) fn end_unit(self: &Arc<Self>, st: &mut State, n: u64, spec: PassSpec) {
+        let checkpoint_s = self.save_checkpoint(st, n);
+        if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
+            a.ledger.checkpoint_s = checkpoint_s;
+            let kind = format!("{:?}", spec.kind);
+            a.ledger
+                .finish(&job_name(n), &spec, &kind, &self.metrics);
         }
-    }
-
-    /// Stores job `n`'s session checkpoint if one can be taken now (between iterations)
-    /// and records it, replacing (and deleting) the previous one.
-    pub(crate) fn save_checkpoint(&self, st: &mut State, n: u64) {
-        let Some(job) = st.jobs.get_mut(&n) else {
-            return;
-        };
-        let Some(bytes) = job.active.as_ref().and_then(|a| a.session.checkpoint()) else {
-            return;
-        };
-        let digest = match self.blobs.put(&bytes) {
-            Ok(d) => d,
-            Err(e) => return tracing::error!(job = %job_name(n), "checkpoint not stored: {e}"),
-        };
-        let old = std::mem::replace(&mut job.record.checkpoint, digest.0.to_vec());
-        if let Err(e) = self.db.put(n, &job.record) {
-            return tracing::error!(job = %job_name(n), "checkpoint not recorded: {e}");
-        }
-        if let Ok(d) = <[u8; 32]>::try_from(old.as_slice()) {
-            if d != digest.0 {
-                let _ = std::fs::remove_file(self.blobs.path(&Digest(d)));
-            }
-        }
+        self.drive(st, n);
     }
 
     /// Adds a prepared job to the scheduler and starts its session.
-    pub(crate) fn start_job(&self, st: &mut State, n: u64, p: Prepared) {
+    pub(crate) fn start_job(self: &Arc<Self>, st: &mut State, n: u64, p: Prepared) {
         let priority = st.jobs[&n]
             .record
             .request
@@ -471,7 +440,8 @@ impl Shared {
             tracing::error!(job = %job_name(n), "{e}");
             return;
         }
-        let tiles = Region::tiles(p.width, p.height, p.tile);
+        // The session's default tiling; each unit is re-tiled as it is issued (`drive`).
+        let tiles = Region::tiles(p.width, p.height, p.tile.unwrap_or(32));
         let samples_total = match p.budget {
             Budget::Spp(s) => s as u64 * p.width as u64 * p.height as u64,
             Budget::Seconds(_) => 0,
@@ -500,7 +470,10 @@ impl Shared {
             clock: Instant::now(),
             seed: p.seed,
             spec: None,
-            tiles,
+            tile: p.tile,
+            cost: CostMap::new(p.width, p.height),
+            ledger: UnitLedger::default(),
+            checkpoint_seq: 0,
             tree_digest: None,
             fractions_digest: None,
             estimate_digest: None,
@@ -510,7 +483,7 @@ impl Shared {
     }
 
     /// Advances job `n`'s session: offers its next unit, or finishes the job.
-    pub(crate) fn drive(&self, st: &mut State, n: u64) {
+    pub(crate) fn drive(self: &Arc<Self>, st: &mut State, n: u64) {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
             return;
         };
@@ -518,11 +491,28 @@ impl Shared {
         match a.session.next(now) {
             Next::Wait => {}
             Next::Render(spec) => {
-                if let Err(e) = self.publish(a, &spec) {
-                    self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
+                let publish_start = Instant::now();
+                match self.publish(a, &spec) {
+                    Ok(replaced) => st.garbage.extend(replaced),
+                    Err(e) => {
+                        self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
+                        return;
+                    }
+                }
+                let publish_s = publish_start.elapsed().as_secs_f64();
+                let tiling = match a.tile {
+                    Some(t) => {
+                        let (w, h) = a.session.size();
+                        Region::tiles(w, h, t)
+                    },
+                    None => a.cost.tiles(slots(&st.workers), spec.unit_spp()),
+                };
+                if let Err(e) = a.session.retile(tiling) {
+                    self.fail_job(st, n, format!("tiling unit {}: {e}", spec.unit));
                     return;
                 }
-                let tiles = a.tiles.len() as u32;
+                let tiles = a.session.tiles().len() as u32;
+                a.ledger = UnitLedger::start(publish_s, &self.metrics);
                 a.spec = Some(spec);
                 tracing::info!(
                     job = %job_name(n),
@@ -544,55 +534,78 @@ impl Shared {
                 job.record.state = v1::JobState::Assembling as i32;
                 job.record.spp_done = a.session.spp_done();
                 job.record.iteration = a.session.iteration();
+                let mut released: Vec<Digest> = a.tree_digest.map(|x| x.1).into_iter().collect();
+                released.extend(a.fractions_digest.map(|x| x.1));
+                let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
+                released.extend(e.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
+                let _ = st.sched.remove_job(JobId(n));
+                st.leases.retain(|_, l| l.key.job != JobId(n));
+                self.publish_status(st, n);
                 let (film, stats, tree) = a.session.finish();
                 tracing::info!(
                     job = %job_name(n),
                     iterations = stats.iterations.len(),
                     "assembling results"
                 );
-                let stored = (|| -> Result<(Digest, Digest, Digest), String> {
-                    let exr = pathfarm_render::output::encode_exr(&film, false)
-                        .map_err(|e| e.to_string())?;
-                    let png =
-                        pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
-                    let tree = tree.encode();
-                    let put = |b: &[u8]| self.blobs.put(b).map_err(|e| e.to_string());
-                    Ok((put(&exr)?, put(&png)?, put(&tree)?))
-                })();
-                let _ = st.sched.remove_job(JobId(n));
-                st.leases.retain(|_, l| l.key.job != JobId(n));
-                match stored {
-                    Err(e) => self.fail_job(st, n, format!("cannot store the results: {e}")),
-                    Ok((exr, png, tree)) => {
-                        let job = st.jobs.get_mut(&n).expect("checked");
-                        job.record.state = v1::JobState::Done as i32;
-                        job.record.exr = exr.0.to_vec();
-                        job.record.png = png.0.to_vec();
-                        job.record.tree = tree.0.to_vec();
-                        job.record.finished_unix_ms = unix_ms();
-                        let checkpoint = std::mem::take(&mut job.record.checkpoint);
-                        if let Ok(d) = <[u8; 32]>::try_from(checkpoint.as_slice()) {
-                            let _ = std::fs::remove_file(self.blobs.path(&Digest(d)));
-                        }
-                        tracing::info!(job = %job_name(n), exr = %exr.to_hex(), "job done");
-                        self.persist(st, n);
-                        self.publish_status(st, n);
-                    }
-                }
+                let shared = self.clone();
+                tokio::task::spawn_blocking(move || shared.assemble(n, film, tree, released));
             }
         }
     }
 
-    /// Stores the blobs `spec` needs that are not stored yet.
-    fn publish(&self, a: &mut Active, spec: &PassSpec) -> std::io::Result<()> {
+    /// Encodes and stores job `n`'s results (off the state lock: EXR and PNG encoding take
+    /// a while) and marks it DONE, unless it was cancelled meanwhile. The session's blobs
+    /// (`released`, and the checkpoint) become garbage once the results are durable.
+    fn assemble(&self, n: u64, film: pathfarm_render::Film, tree: SdTree, released: Vec<Digest>) {
+        let stored = (|| -> Result<[Digest; 3], String> {
+            let exr =
+                pathfarm_render::output::encode_exr(&film, false).map_err(|e| e.to_string())?;
+            let png = pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
+            let tree = tree.encode();
+            let put = |b: &[u8]| self.blobs.put(b).map_err(|e| e.to_string());
+            Ok([put(&exr)?, put(&png)?, put(&tree)?])
+        })();
+        let mut st = self.lock();
+        let st = &mut *st;
+        st.garbage.extend(released);
+        let assembling = st
+            .jobs
+            .get(&n)
+            .is_some_and(|j| j.record.state == v1::JobState::Assembling as i32);
+        match stored {
+            Err(e) => self.fail_job(st, n, format!("cannot store the results: {e}")),
+            Ok(results) if !assembling => st.garbage.extend(results),
+            Ok([exr, png, tree]) => {
+                let job = st.jobs.get_mut(&n).expect("checked");
+                job.record.state = v1::JobState::Done as i32;
+                job.record.exr = exr.0.to_vec();
+                job.record.png = png.0.to_vec();
+                job.record.tree = tree.0.to_vec();
+                job.record.finished_unix_ms = unix_ms();
+                let parts = checkpoints::take_parts(&mut job.record);
+                tracing::info!(job = %job_name(n), exr = %exr.to_hex(), "job done");
+                self.persist(st, n);
+                st.garbage.extend(parts);
+                self.publish_status(st, n);
+            }
+        }
+        self.collect_garbage(st);
+    }
+
+    /// Stores the blobs `spec` needs that are not stored yet (not durably: a unit's inputs
+    /// are derived from the session, which a checkpoint keeps). Returns the digests they
+    /// replace (garbage candidates).
+    fn publish(&self, a: &mut Active, spec: &PassSpec) -> std::io::Result<Vec<Digest>> {
+        let mut replaced = Vec::new();
         if a.tree_digest.map(|(v, _)| v) != Some(spec.tree_version) {
-            let d = self.blobs.put(&a.session.tree().encode())?;
-            a.tree_digest = Some((spec.tree_version, d));
+            let d = self.blobs.put_unsynced(&a.session.tree().encode())?;
+            replaced.extend(a.tree_digest.replace((spec.tree_version, d)).map(|x| x.1));
         }
         let fv = (spec.tree_version, spec.fraction_version);
         if a.fractions_digest.map(|(v, _)| v) != Some(fv) {
             let bytes = codec::encode_fractions(&a.session.tree().fraction_states());
-            a.fractions_digest = Some((fv, self.blobs.put(&bytes)?));
+            let d = self.blobs.put_unsynced(&bytes)?;
+            replaced.extend(a.fractions_digest.replace((fv, d)).map(|x| x.1));
         }
         let ev = a.session.estimate_version();
         if a.estimate_digest.as_ref().map(|(v, _)| *v) != Some(ev) {
@@ -600,14 +613,28 @@ impl Shared {
             let digest = if estimate.is_empty() {
                 Vec::new()
             } else {
-                self.blobs
-                    .put(&codec::encode_estimate(estimate))?
-                    .0
-                    .to_vec()
+                let bytes = codec::encode_estimate(estimate);
+                self.blobs.put_unsynced(&bytes)?.0.to_vec()
             };
-            a.estimate_digest = Some((ev, digest));
+            let old = a.estimate_digest.replace((ev, digest));
+            replaced.extend(old.and_then(|(_, d)| <[u8; 32]>::try_from(d).ok().map(Digest)));
         }
-        Ok(())
+        Ok(replaced)
+    }
+
+    /// The blobs an ending job's session referred to: its published inputs and checkpoint.
+    fn release_session_blobs(&self, st: &mut State, n: u64) {
+        let Some(job) = st.jobs.get_mut(&n) else {
+            return;
+        };
+        let mut out = checkpoints::take_parts(&mut job.record);
+        if let Some(a) = &job.active {
+            out.extend(a.tree_digest.map(|x| x.1));
+            out.extend(a.fractions_digest.map(|x| x.1));
+            let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
+            out.extend(e.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
+        }
+        st.garbage.extend(out);
     }
 
     /// Marks job `n` FAILED (if not already terminal), cancelling its leases.
@@ -631,6 +658,8 @@ impl Shared {
             return false;
         }
         tracing::warn!(job = %job_name(n), state = ?state, "job ended: {reason}");
+        self.release_session_blobs(st, n);
+        let job = st.jobs.get_mut(&n).expect("checked");
         job.active = None;
         job.record.state = state as i32;
         if state == v1::JobState::Failed {
@@ -644,6 +673,7 @@ impl Shared {
         st.leases.retain(|_, l| l.key.job != JobId(n));
         self.persist(st, n);
         self.publish_status(st, n);
+        self.collect_garbage(st);
         true
     }
 
@@ -714,7 +744,7 @@ impl Shared {
         let a = job.active.as_ref()?;
         let spec = a.spec.as_ref()?;
         let request = job.record.request.as_ref()?;
-        let region = *a.tiles.get(lease.key.tile as usize)?;
+        let region = *a.session.tiles().get(lease.key.tile as usize)?;
         let mut pass = codec::spec_to_proto(spec);
         if spec.guide() || spec.record() {
             pass.tree_digest = a.tree_digest.map(|(_, d)| d.0.to_vec()).unwrap_or_default();
@@ -778,7 +808,7 @@ impl Shared {
     }
 
     /// The periodic tick: expiries, waiting sessions, dispatch.
-    pub(crate) fn tick(&self) {
+    pub(crate) fn tick(self: &Arc<Self>) {
         let mut st = self.lock();
         let now = self.now();
         let events = st.sched.tick(now);

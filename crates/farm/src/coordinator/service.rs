@@ -20,6 +20,7 @@ use tonic::{Request, Response, Status, Streaming};
 use super::*;
 use crate::bundle::digest_of;
 use crate::scheduler::Rejection;
+use super::ledger::TileTimes;
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::DataChunk, Status>> + Send>>;
 
@@ -100,6 +101,9 @@ pub(super) async fn run(
         }
     };
     let result = tonic::transport::Server::builder()
+        .initial_stream_window_size(crate::client::STREAM_WINDOW)
+        .initial_connection_window_size(crate::client::CONNECTION_WINDOW)
+        .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(v1::jobs_server::JobsServer::with_interceptor(
@@ -699,6 +703,7 @@ impl Workers for Svc {
             }) => h,
             _ => return corrupt("the first message of UploadTile must be a TileHeader"),
         };
+        let received = std::time::Instant::now();
         let total = header.pixels_size.saturating_add(header.stats_size);
         if header.pixels_size == 0 || total > 1 << 32 {
             return corrupt(format!(
@@ -725,16 +730,10 @@ impl Workers for Svc {
                 bytes.len()
             ));
         }
-        self.shared
-            .metrics
-            .tile_bytes_uploaded
-            .fetch_add(total, std::sync::atomic::Ordering::Relaxed);
-        let ack = self.upload_tile_inner(header, bytes);
-        let counter = match &ack {
-            Ok(a) if a.get_ref().accepted => &self.shared.metrics.tiles_accepted,
-            _ => &self.shared.metrics.tiles_rejected,
-        };
-        counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let receive_s = received.elapsed().as_secs_f64();
+        let ack = self.upload_tile_inner(header, bytes, receive_s);
+        let accepted = matches!(&ack, Ok(a) if a.get_ref().accepted);
+        self.shared.metrics.tile_upload(total, accepted);
         ack
     }
 }
@@ -742,10 +741,7 @@ impl Workers for Svc {
 impl Svc {
     fn count_fetch(&self, path: &std::path::Path) {
         if let Ok(meta) = std::fs::metadata(path) {
-            self.shared
-                .metrics
-                .blob_bytes_fetched
-                .fetch_add(meta.len(), std::sync::atomic::Ordering::Relaxed);
+            self.shared.metrics.blob_sent(meta.len());
         }
     }
 
@@ -753,7 +749,10 @@ impl Svc {
         &self,
         header: v1::TileHeader,
         bytes: Vec<u8>,
+        receive_s: f64,
     ) -> Result<Response<v1::TileAck>, Status> {
+        let decode_start = std::time::Instant::now();
+        let total = bytes.len() as u64;
         let (pixels, stats_bytes) = bytes.split_at(header.pixels_size as usize);
         if digest_of(pixels).0.as_slice() != header.pixels_digest.as_slice() {
             return corrupt("pixels_digest does not match the pixel payload");
@@ -780,16 +779,17 @@ impl Svc {
             ));
         };
         let n = info.key.job.0;
-        let Some(region) = st
+        let current = st
             .jobs
             .get(&n)
             .and_then(|j| j.active.as_ref())
-            .and_then(|a| a.tiles.get(info.key.tile as usize).copied())
-        else {
+            .filter(|a| a.spec.is_some_and(|s| s.unit == info.key.unit))
+            .and_then(|a| a.session.tiles().get(info.key.tile as usize).copied());
+        let Some(region) = current else {
             return Ok(ack(
                 false,
                 v1::TileRejectReason::Superseded,
-                format!("{} is over", job_name(n)),
+                format!("unit {} of {} is over", info.key.unit, job_name(n)),
             ));
         };
         if header.job_id != job_name(n)
@@ -832,11 +832,16 @@ impl Svc {
             split_paths: c.split_paths,
             extra_light_samples: c.extra_light_samples,
         };
+        let times = TileTimes {
+            receive_s,
+            decode_s: decode_start.elapsed().as_secs_f64(),
+            bytes: total,
+        };
         let job = st.jobs.get_mut(&n).expect("checked");
         let a = job.active.as_mut().expect("checked");
         let secs = a.clock.elapsed().as_secs_f64();
         let merge_start = std::time::Instant::now();
-        let unit_spp = a.spec.map_or(0, |s| s.unit_spp());
+        let spec = a.spec.expect("checked");
         if let Err(e) = a.session.add_tile(
             info.key.unit,
             info.key.tile as usize,
@@ -851,7 +856,17 @@ impl Svc {
             );
             return Ok(ack(false, v1::TileRejectReason::Superseded, e.to_string()));
         }
-        job.record.samples_done += region.pixels() as u64 * unit_spp;
+        let merge_s = merge_start.elapsed().as_secs_f64();
+        let samples = region.pixels() as u64 * spec.unit_spp();
+        a.cost
+            .record(region, c.render_seconds / samples.max(1) as f64);
+        if completion.unit_done {
+            a.ledger.end_s = merge_s;
+            a.ledger.tile(&c, &times, 0.0);
+        } else {
+            a.ledger.tile(&c, &times, merge_s);
+        }
+        job.record.samples_done += samples;
         if let Some(w) = st.workers.get_mut(&info.worker.0) {
             w.tiles_done += 1;
         }
@@ -860,13 +875,8 @@ impl Svc {
             l.done = true;
         }
         if completion.unit_done {
-            shared.save_checkpoint(&mut st, n);
-            shared.drive(&mut st, n);
+            shared.end_unit(&mut st, n, spec);
         }
-        shared.metrics.merge_nanos.fetch_add(
-            merge_start.elapsed().as_nanos() as u64,
-            std::sync::atomic::Ordering::Relaxed,
-        );
         shared.publish_status(&st, n);
         shared.dispatch(&mut st);
         Ok(ack(true, v1::TileRejectReason::Unspecified, String::new()))

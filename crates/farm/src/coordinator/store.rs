@@ -66,6 +66,26 @@ impl BlobStore {
         result.map(|()| digest)
     }
 
+    /// [`BlobStore::put`] without waiting for the disk: for blobs derived from state that is
+    /// kept durably elsewhere (a unit's inputs), or made durable later ([`BlobStore::sync`]).
+    pub(crate) fn put_unsynced(&self, bytes: &[u8]) -> io::Result<Digest> {
+        let digest = digest_of(bytes);
+        if self.has(&digest) {
+            return Ok(digest);
+        }
+        let tmp = self.temp_path("blob");
+        let result = fs::write(&tmp, bytes).and_then(|()| fs::rename(&tmp, self.path(&digest)));
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result.map(|()| digest)
+    }
+
+    /// Waits until the blob `d` is on disk.
+    pub(crate) fn sync(&self, d: &Digest) -> io::Result<()> {
+        fs::File::open(self.path(d))?.sync_all()
+    }
+
     /// Starts an upload of a blob of `size` bytes with digest `digest`.
     pub(crate) fn begin(&self, digest: Digest, size: u64) -> io::Result<Upload> {
         let path = self.temp_path("upload");

@@ -57,7 +57,7 @@ fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         limits: Limits::default(),
         bundle_limits: BundleLimits::default(),
         scheduler: SchedulerConfig::default(),
-        default_tile: 8,
+        default_tile: Some(8),
     }
 }
 
@@ -540,7 +540,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
                 invalid_samples: out.invalid_samples,
                 split_paths: out.split_paths,
                 extra_light_samples: out.extra_light_samples,
-                render_seconds: 0.0,
+                ..Default::default()
             }),
             pixels_size: pixels.len() as u64,
             stats_size: stats.len() as u64,
@@ -571,7 +571,9 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .status
             .unwrap();
         assert_ne!(status.state, v1::JobState::Failed as i32, "{status:?}");
-        if status.state == v1::JobState::Done as i32 {
+        // the last tile ends the job: its results are assembled in the background
+        let ended = [v1::JobState::Assembling, v1::JobState::Done];
+        if ended.iter().any(|&e| status.state == e as i32) {
             break;
         }
         tx.send(send(W::RequestWork(v1::RequestWork { slots: 1 })))
@@ -657,14 +659,14 @@ async fn metrics_report_jobs_by_state() {
     let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
     jobs.submit_job(submit_request(file)).await.unwrap();
     let mut sock = tokio::net::TcpStream::connect(port).await.unwrap();
-    sock.write_all(b"GET /metrics HTTP/1.1\r\nhost: x\r\n\r\n")
+    sock.write_all(b"GET /metrics HTTP/1.1\r\nhost: x\r\nconnection: close\r\n\r\n")
         .await
         .unwrap();
     let mut text = String::new();
     sock.read_to_string(&mut text).await.unwrap();
     assert!(text.starts_with("HTTP/1.1 200"), "{text}");
     assert!(
-        text.contains("pathfarm_jobs{state=\"JOB_STATE_QUEUED\"} 1"),
+        text.contains("pathfarm_jobs{state=\"queued\"} 1"),
         "{text}"
     );
     assert!(text.contains("pathfarm_workers 0"), "{text}");

@@ -1,0 +1,119 @@
+//! Where the time and the bytes of one unit went: rendering on the workers against the
+//! farm's own work (fetching and decoding inputs, serialising, transferring, merging,
+//! refining, publishing). Logged as one `unit finished` line per unit and added to the
+//! metrics; the farm benchmark (`bench/farm.py`) reads the lines.
+
+use std::sync::atomic::Ordering::Relaxed;
+use std::time::Instant;
+
+use pathfarm_proto::v1;
+use pathfarm_render::pass::PassSpec;
+
+use super::Metrics;
+
+/// The accounts of the unit in flight.
+#[derive(Clone, Debug)]
+pub(crate) struct UnitLedger {
+    /// When its tiles were offered.
+    pub(crate) started: Instant,
+    /// Seconds to encode and store the unit's inputs (tree, fractions, estimate).
+    pub(crate) publish_s: f64,
+    /// Sums over its accepted tiles of the workers' seconds.
+    pub(crate) render_s: f64,
+    pub(crate) prepare_s: f64,
+    pub(crate) serialize_s: f64,
+    /// Sums over its accepted tiles of the coordinator's seconds: receiving the upload
+    /// (first to last message), checking and decoding it, handing it to the session.
+    pub(crate) receive_s: f64,
+    pub(crate) decode_s: f64,
+    pub(crate) merge_s: f64,
+    /// Seconds of the last tile's hand-over, which ends the unit (and, at an iteration's
+    /// end, refines the tree and updates the pixel estimate), and of the checkpoint.
+    pub(crate) end_s: f64,
+    pub(crate) checkpoint_s: f64,
+    /// Bytes of tile uploads accepted, and of blobs sent since the unit started.
+    pub(crate) bytes_up: u64,
+    blobs_sent_before: u64,
+    pub(crate) tiles: u32,
+}
+
+impl Default for UnitLedger {
+    fn default() -> Self {
+        Self {
+            started: Instant::now(),
+            publish_s: 0.0,
+            render_s: 0.0,
+            prepare_s: 0.0,
+            serialize_s: 0.0,
+            receive_s: 0.0,
+            decode_s: 0.0,
+            merge_s: 0.0,
+            end_s: 0.0,
+            checkpoint_s: 0.0,
+            bytes_up: 0,
+            blobs_sent_before: 0,
+            tiles: 0,
+        }
+    }
+}
+
+/// What the coordinator measured of one accepted tile.
+pub(crate) struct TileTimes {
+    pub(crate) receive_s: f64,
+    pub(crate) decode_s: f64,
+    pub(crate) bytes: u64,
+}
+
+impl UnitLedger {
+    /// A unit whose inputs took `publish_s` to publish starts now.
+    pub(crate) fn start(publish_s: f64, metrics: &Metrics) -> Self {
+        Self {
+            publish_s,
+            blobs_sent_before: metrics.blob_bytes_fetched.load(Relaxed),
+            ..Self::default()
+        }
+    }
+
+    /// Adds an accepted tile (`merge_s`: its hand-over to the session).
+    pub(crate) fn tile(&mut self, c: &v1::TileCounters, t: &TileTimes, merge_s: f64) {
+        self.render_s += c.render_seconds.max(0.0);
+        self.prepare_s += c.prepare_seconds.max(0.0);
+        self.serialize_s += c.serialize_seconds.max(0.0);
+        self.receive_s += t.receive_s;
+        self.decode_s += t.decode_s;
+        self.merge_s += merge_s;
+        self.bytes_up += t.bytes;
+        self.tiles += 1;
+    }
+
+    /// Logs the finished unit and adds it to the metrics.
+    pub(crate) fn finish(&self, job: &str, spec: &PassSpec, kind: &str, metrics: &Metrics) {
+        let (unit, iteration) = (spec.unit, spec.iteration);
+        let wall = self.started.elapsed().as_secs_f64();
+        let sent = metrics
+            .blob_bytes_fetched
+            .load(Relaxed)
+            .saturating_sub(self.blobs_sent_before);
+        tracing::info!(
+            job,
+            unit,
+            iteration,
+            kind,
+            tiles = self.tiles,
+            wall_s = wall,
+            render_s = self.render_s,
+            prepare_s = self.prepare_s,
+            serialize_s = self.serialize_s,
+            receive_s = self.receive_s,
+            decode_s = self.decode_s,
+            merge_s = self.merge_s,
+            end_s = self.end_s,
+            checkpoint_s = self.checkpoint_s,
+            publish_s = self.publish_s,
+            bytes_up = self.bytes_up,
+            bytes_down = sent,
+            "unit finished"
+        );
+        metrics.observe_unit(self);
+    }
+}
