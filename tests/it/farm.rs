@@ -26,18 +26,63 @@ struct Farm {
     coordinator: Option<Running>,
     workers: Vec<Running>,
     port: u16,
+    /// With TLS: the CA certificate, the coordinator's certificate and key (PEM files).
+    tls: Option<TlsFiles>,
+}
+
+struct TlsFiles {
+    ca: PathBuf,
+    cert: PathBuf,
+    key: PathBuf,
+}
+
+impl TlsFiles {
+    /// A CA and a certificate it signs for localhost and 127.0.0.1, made now, written to `dir`.
+    fn make(dir: &Path) -> TlsFiles {
+        use rcgen::{BasicConstraints, CertificateParams, IsCa, KeyPair};
+        let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
+        ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        let ca_key = KeyPair::generate().unwrap();
+        let ca = ca_params.self_signed(&ca_key).unwrap();
+        let names = vec!["localhost".to_string(), "127.0.0.1".to_string()];
+        let key = KeyPair::generate().unwrap();
+        let cert = CertificateParams::new(names)
+            .unwrap()
+            .signed_by(&key, &ca, &ca_key)
+            .unwrap();
+        let files = TlsFiles {
+            ca: dir.join("ca.pem"),
+            cert: dir.join("coordinator.pem"),
+            key: dir.join("coordinator-key.pem"),
+        };
+        fs::write(&files.ca, ca.pem()).unwrap();
+        fs::write(&files.cert, cert.pem()).unwrap();
+        fs::write(&files.key, key.serialize_pem()).unwrap();
+        files
+    }
 }
 
 impl Farm {
     fn start(tag: &str, workers: usize) -> Farm {
+        Farm::start_with(tag, workers, Security::Plain)
+    }
+
+    fn start_with(tag: &str, workers: usize, security: Security) -> Farm {
         let data = temp_dir(&format!("farm-{tag}"));
         let port = free_port();
+        let tls = (security == Security::Tls).then(|| TlsFiles::make(&data));
+        let scheme = if tls.is_some() {
+            "https://localhost"
+        } else {
+            "http://127.0.0.1"
+        };
         let mut farm = Farm {
-            url: format!("http://127.0.0.1:{port}"),
+            url: format!("{scheme}:{port}"),
             data,
             coordinator: None,
             workers: Vec::new(),
             port,
+            tls,
         };
         farm.start_coordinator();
         for _ in 0..workers {
@@ -47,11 +92,29 @@ impl Farm {
     }
 
     fn start_coordinator(&mut self) {
+        self.start_coordinator_with(&[]);
+    }
+
+    fn start_coordinator_with(&mut self, extra: &[&str]) {
         let listen = format!("127.0.0.1:{}", self.port);
         let data = self.data.join("coordinator");
-        let args = ["coordinator", "--listen", &listen, "--data", s(&data)];
+        let mut args = vec!["coordinator", "--listen", &listen, "--data", s(&data)];
+        args.extend_from_slice(extra);
+        if let Some(t) = &self.tls {
+            args.extend(["--tls-cert", s(&t.cert), "--tls-key", s(&t.key)]);
+        }
         self.coordinator = Some(Running::start(&args, &[("PATHFARM_TOKEN", TOKEN)]));
         self.wait_listening();
+    }
+
+    /// The environment of a process talking to the coordinator: the token, and the CA
+    /// certificate with TLS.
+    fn client_env(&self) -> Vec<(&'static str, String)> {
+        let mut env = vec![("PATHFARM_TOKEN", TOKEN.to_string())];
+        if let Some(t) = &self.tls {
+            env.push(("PATHFARM_TLS_CA", s(&t.ca).to_string()));
+        }
+        env
     }
 
     fn add_worker(&mut self) {
@@ -66,8 +129,9 @@ impl Farm {
             "--cache",
             s(&cache),
         ];
-        self.workers
-            .push(Running::start(&args, &[("PATHFARM_TOKEN", TOKEN)]));
+        let env = self.client_env();
+        let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+        self.workers.push(Running::start(&args, &env));
     }
 
     /// Waits (at most 30 s) until the coordinator accepts connections.
@@ -156,9 +220,19 @@ fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Runn
         s(out).to_string(),
     ]);
     let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
-    let mut env = vec![("PATHFARM_TOKEN", TOKEN)];
-    env.extend_from_slice(extra_env);
+    let base = farm.client_env();
+    let mut env: Vec<(&str, &str)> = base.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    for (k, v) in extra_env {
+        env.retain(|(key, _)| key != k);
+        env.push((k, v));
+    }
     Running::start(&argv, &env)
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Security {
+    Plain,
+    Tls,
 }
 
 /// Tiles worker `i` has had accepted so far (from its log).
@@ -334,4 +408,350 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
     let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
     assert!(r.status.success(), "fetch: {}", r.describe());
     assert_same_exr(&fetched, &small, &farm);
+}
+
+#[test]
+fn tls_farm_renders_bit_identical_and_refuses_plain_text() {
+    // A certificate made by the test: coordinator, worker and client speak TLS only.
+    let mut farm = Farm::start_with("tls", 1, Security::Tls);
+    let reference = render_reference(&farm.data, 8);
+    let out = farm.data.join("farm.exr");
+    let run = submit(&farm, 8, &out, &[]).wait(Duration::from_secs(300));
+    assert!(
+        run.status.success(),
+        "submit over TLS: {}\n{}",
+        run.describe(),
+        farm.logs()
+    );
+    assert_same_exr(&out, &reference, &farm);
+    assert!(
+        farm.workers[0].poll().is_none(),
+        "the TLS worker is still connected"
+    );
+    // a plain-text client cannot talk to the TLS port
+    let plain = format!("http://127.0.0.1:{}", farm.port);
+    let argv = ["status", "--coordinator", &plain];
+    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    assert!(
+        !r.status.success(),
+        "plain text against TLS must fail: {}",
+        r.describe()
+    );
+    // https without the CA certificate is refused before connecting, with the reason
+    let argv = ["status", "--coordinator", &farm.url];
+    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    assert!(!r.status.success());
+    assert!(
+        r.stderr.contains("--tls-ca"),
+        "names the missing flag: {}",
+        r.stderr
+    );
+}
+
+/// Files in the coordinator's data directory other than the job database (blobs, temporaries).
+fn stored_files(farm: &Farm) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut stack = vec![farm.data.join("coordinator")];
+    while let Some(d) = stack.pop() {
+        for e in fs::read_dir(&d).into_iter().flatten().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if !p.ends_with("jobs.redb") {
+                out.push(p.display().to_string());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn bundle_over_the_size_limit_is_refused_before_anything_is_uploaded() {
+    // the coordinator takes bundles of at most 2 KB: door-ajar's is larger
+    let mut farm = Farm::start("limit", 0);
+    farm.coordinator = None;
+    let _ = fs::remove_dir_all(farm.data.join("coordinator"));
+    farm.start_coordinator_with(&["--max-bundle-bytes", "2000"]);
+    let out = farm.data.join("never.exr");
+    let r = submit(&farm, 8, &out, &[]).wait(Duration::from_secs(60));
+    assert!(!r.status.success(), "an oversized bundle must be refused");
+    assert!(
+        r.stderr.contains("more than") && r.stderr.contains("2000 bytes"),
+        "the error names the limit: {}",
+        r.stderr
+    );
+    assert!(
+        stored_files(&farm).is_empty(),
+        "stored: {:?}",
+        stored_files(&farm)
+    );
+    assert!(!out.exists());
+}
+
+#[test]
+fn a_client_or_worker_of_another_protocol_version_is_refused_and_nothing_is_stored() {
+    use pathfarm_proto::v1;
+    let farm = Farm::start("protocol", 0);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let channel = tonic::transport::Endpoint::from_shared(farm.url.clone())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let token: tonic::metadata::MetadataValue<_> = format!("Bearer {TOKEN}").parse().unwrap();
+        let stamp = move |mut req: tonic::Request<()>| {
+            req.metadata_mut().insert("authorization", token.clone());
+            req.metadata_mut()
+                .insert(pathfarm_proto::PROTOCOL_HEADER, "999".parse().unwrap());
+            Ok(req)
+        };
+        let mut jobs = v1::jobs_client::JobsClient::with_interceptor(channel.clone(), stamp);
+        let err = jobs
+            .submit_job(v1::SubmitJobRequest::default())
+            .await
+            .expect_err("another protocol version is refused");
+        assert_eq!(err.code(), tonic::Code::FailedPrecondition, "{err:?}");
+        assert!(
+            err.message().contains("client protocol 999"),
+            "says which: {}",
+            err.message()
+        );
+        // a worker of another protocol version is refused on Register, with the reason
+        let mut workers = v1::workers_client::WorkersClient::new(channel);
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tx.send(v1::WorkerMessage {
+            msg: Some(v1::worker_message::Msg::Register(v1::Register {
+                protocol_version: 999,
+                build_id: "another-build".into(),
+                threads: 1,
+                host_name: "test".into(),
+                worker_name: "old".into(),
+            })),
+        })
+        .await
+        .unwrap();
+        let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+        req.metadata_mut()
+            .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
+        let mut inbound = workers.control(req).await.unwrap().into_inner();
+        let first = inbound.message().await.unwrap().unwrap();
+        match first.msg {
+            Some(v1::coordinator_message::Msg::Refused(r)) => {
+                assert!(r.reason.contains("worker protocol 999"), "{}", r.reason)
+            }
+            other => panic!("expected Refused, got {other:?}"),
+        }
+    });
+    assert!(
+        stored_files(&farm).is_empty(),
+        "stored: {:?}",
+        stored_files(&farm)
+    );
+}
+
+#[test]
+fn worker_on_sigterm_hands_back_its_leases_and_the_job_completes_bit_identical() {
+    let mut farm = Farm::start("drain", 2);
+    let reference = render_reference(&farm.data, 64);
+    let out = farm.data.join("farm.exr");
+    let mut run = submit(&farm, 64, &out, &[]);
+    let before = tiles_accepted(&farm, 0);
+    wait_for_tiles(&farm, &mut run, before + 3, "the worker could be stopped");
+    farm.workers[0].signal(libc::SIGTERM);
+    let t0 = Instant::now();
+    while farm.workers[0].poll().is_none() {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "SIGTERM: the worker did not exit\n{}",
+            farm.logs()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let status = farm.workers[0].poll().unwrap();
+    assert!(
+        status.success(),
+        "a drained worker exits 0: {status:?}\n{}",
+        farm.logs()
+    );
+    assert!(
+        farm.workers[0].stderr_text().contains("drained"),
+        "{}",
+        farm.logs()
+    );
+    wait_for_job(run, &farm);
+    assert_same_exr(&out, &reference, &farm);
+}
+
+/// A small deterministic generator for the soak's schedule.
+struct SoakRng(u64);
+
+impl SoakRng {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 33) % n.max(1)
+    }
+}
+
+#[test]
+fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted() {
+    // Three jobs at once on three workers; every 150-650 ms (seeded) a random worker is
+    // killed with SIGKILL and a new one started, at most 10 times. Bounded: 300 s.
+    let mut farm = Farm::start("soak", 3);
+    let specs = [(24u32, "3"), (32, "9"), (16, "21")];
+    let mut runs = Vec::new();
+    for (i, (spp, seed)) in specs.iter().enumerate() {
+        let out = farm.data.join(format!("soak-{i}.exr"));
+        let mut args: Vec<String> = vec!["submit".into()];
+        args.extend(job_args(*spp));
+        let n = args.len();
+        args[n - 1] = seed.to_string();
+        args.extend([
+            "--coordinator".into(),
+            farm.url.clone(),
+            "--tile".into(),
+            "8".into(),
+        ]);
+        args.extend(["--wait".into(), "-o".into(), s(&out).to_string()]);
+        let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let env = farm.client_env();
+        let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+        runs.push((Running::start(&argv, &env), out, *spp, *seed));
+    }
+    let mut rng = SoakRng(0x5eed_50a4);
+    let mut kills = 0;
+    let t0 = Instant::now();
+    while runs.iter_mut().any(|r| r.0.poll().is_none()) {
+        assert!(
+            t0.elapsed() < Duration::from_secs(300),
+            "soak did not finish\n{}",
+            farm.logs()
+        );
+        std::thread::sleep(Duration::from_millis(150 + rng.below(500)));
+        if kills < 10 && runs.iter_mut().any(|r| r.0.poll().is_none()) {
+            let alive: Vec<usize> = (0..farm.workers.len())
+                .filter(|&i| farm.workers[i].poll().is_none())
+                .collect();
+            let victim = alive[rng.below(alive.len() as u64) as usize];
+            farm.workers[victim].signal(libc::SIGKILL);
+            farm.add_worker();
+            kills += 1;
+        }
+    }
+    assert!(kills >= 3, "the soak killed {kills} workers");
+    for (run, out, spp, seed) in runs {
+        let ended = run.wait(Duration::from_secs(5));
+        assert!(
+            ended.status.success(),
+            "submit: {}\n{}",
+            ended.describe(),
+            farm.logs()
+        );
+        // the reference: pathfarm render of the same job
+        let reference = farm.data.join(format!("ref-{seed}.exr"));
+        let mut args: Vec<String> = vec!["render".into()];
+        args.extend(job_args(spp));
+        let n = args.len();
+        args[n - 1] = seed.to_string();
+        args.extend(["--no-png".into(), "-o".into(), s(&reference).to_string()]);
+        let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let r = Running::start(&argv, &[]).wait(Duration::from_secs(120));
+        assert!(r.status.success(), "render: {}", r.describe());
+        assert_same_exr(&out, &fs::read(&reference).unwrap(), &farm);
+    }
+}
+
+#[test]
+fn cluster_leaves_no_process_or_directory_behind_on_success_and_on_interrupt() {
+    let dir = temp_dir("cluster");
+    let out = dir.join("cluster.exr");
+    let mut args: Vec<String> = vec!["cluster".into(), "--workers".into(), "2".into()];
+    args.extend(["--threads-per-worker".into(), "1".into()]);
+    args.extend(job_args(8));
+    args.extend(["-o".into(), s(&out).to_string()]);
+    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+    let tmp = dir.join("tmp");
+    fs::create_dir_all(&tmp).unwrap();
+    let env = [("TMPDIR", s(&tmp))];
+    let run = Running::start(&argv, &env);
+    let pid = run.pid().expect("running");
+    let r = run.wait(Duration::from_secs(300));
+    assert!(r.status.success(), "cluster: {}", r.describe());
+    assert!(out.exists() && out.with_extension("png").exists());
+    assert!(
+        children_of(pid).is_empty(),
+        "children left: {:?}",
+        children_of(pid)
+    );
+    assert_eq!(
+        fs::read_dir(&tmp).unwrap().count(),
+        0,
+        "the cluster's directory is removed"
+    );
+    // interrupted (Ctrl-C) once the processes are up: everything is torn down
+    let out2 = dir.join("interrupted.exr");
+    let n = argv.len();
+    let mut argv2 = argv.clone();
+    argv2[n - 1] = s(&out2);
+    let mut run = Running::start(&argv2, &env);
+    let pid = run.pid().expect("running");
+    let t0 = Instant::now();
+    while children_of(pid).len() < 3 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "the cluster did not start its processes"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let kids = children_of(pid);
+    run.signal(libc::SIGINT);
+    let r = run.wait(Duration::from_secs(60));
+    assert!(!r.status.success(), "an interrupted cluster fails");
+    for k in kids {
+        assert!(
+            !Path::new(&format!("/proc/{k}")).exists() || is_zombie(k),
+            "process {k} left behind"
+        );
+    }
+    assert!(!out2.exists(), "no output from an interrupted cluster");
+    assert_eq!(
+        fs::read_dir(&tmp).unwrap().count(),
+        0,
+        "the cluster's directory is removed"
+    );
+    let _ = fs::remove_dir_all(&dir);
+}
+
+/// Pids whose parent is `pid` (from /proc).
+fn children_of(pid: u32) -> Vec<u32> {
+    let mut out = Vec::new();
+    for e in fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Ok(p) = e.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        let stat = fs::read_to_string(format!("/proc/{p}/stat")).unwrap_or_default();
+        // pid (comm) state ppid ...
+        let after = stat.rsplit_once(')').map(|x| x.1).unwrap_or("");
+        let ppid = after
+            .split_whitespace()
+            .nth(1)
+            .and_then(|x| x.parse::<u32>().ok());
+        if ppid == Some(pid) {
+            out.push(p);
+        }
+    }
+    out
+}
+
+fn is_zombie(pid: u32) -> bool {
+    let stat = fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    stat.rsplit_once(')')
+        .map(|x| x.1.trim_start().starts_with('Z'))
+        .unwrap_or(true)
 }

@@ -5,10 +5,10 @@
 //! significance level).
 
 use pathfarm_guide::SdTree;
+use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
     guide_config, render_guided_with_policy, Budget, FallbackPolicy, GuidingVerdict, Next, Session,
 };
-use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
 use pathfarm_scene::{load_scene, GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
@@ -123,8 +123,7 @@ fn render_tiled(
             let bytes = cp.to_bytes(&session.tree().encode());
             let (cp, tree) = Checkpoint::from_bytes(&bytes).expect("read back");
             let tiles = Region::tiles(w, h, tile.max(1));
-            session =
-                Session::restore(params, budget, tiles, policy, &cp, tree).expect("restore");
+            session = Session::restore(params, budget, tiles, policy, &cp, tree).expect("restore");
             worker = WorkerTree {
                 version: None,
                 tree: None,

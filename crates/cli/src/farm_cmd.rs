@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use pathfarm_farm::client::{self, Budget, Client, SubmitOptions};
+use pathfarm_farm::client::{self, Budget, Client, Remote, SubmitOptions};
 use pathfarm_proto::v1;
 use pathfarm_render::output;
 use pathfarm_scene::Limits;
@@ -29,9 +29,21 @@ pub struct CoordinatorArgs {
     /// Require `authorization: Bearer TOKEN` on every call.
     #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
-    /// Prometheus metrics address.
+    /// Prometheus metrics address (serves GET /metrics).
     #[arg(long, value_name = "ADDR")]
     pub metrics: Option<SocketAddr>,
+    /// Serve TLS only, with this certificate chain (PEM); needs --tls-key.
+    #[arg(long, value_name = "PEM", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "PEM", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Largest scene bundle accepted, all files together, in bytes (default 4 GiB).
+    #[arg(long, value_name = "BYTES")]
+    pub max_bundle_bytes: Option<u64>,
+    /// Largest single file of a bundle, in bytes (default 1 GiB).
+    #[arg(long, value_name = "BYTES")]
+    pub max_file_bytes: Option<u64>,
 }
 
 #[derive(Args)]
@@ -45,6 +57,9 @@ pub struct WorkerArgs {
     /// Bearer token for the coordinator.
     #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// CA certificate (PEM) that signed the coordinator's: connect with TLS (https:// URL).
+    #[arg(long, env = "PATHFARM_TLS_CA", value_name = "PEM")]
+    pub tls_ca: Option<PathBuf>,
     /// A name for this worker, shown by `pathfarm status`.
     #[arg(long)]
     pub name: Option<String>,
@@ -63,6 +78,32 @@ pub struct ConnArgs {
     /// Bearer token for the coordinator.
     #[arg(long, env = "PATHFARM_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// CA certificate (PEM) that signed the coordinator's: connect with TLS (https:// URL).
+    #[arg(long, env = "PATHFARM_TLS_CA", value_name = "PEM")]
+    pub tls_ca: Option<PathBuf>,
+}
+
+impl ConnArgs {
+    /// The coordinator these flags name.
+    fn remote(&self) -> Result<Remote> {
+        remote(
+            &self.coordinator,
+            self.token.as_deref(),
+            self.tls_ca.as_deref(),
+        )
+    }
+}
+
+fn remote(url: &str, token: Option<&str>, tls_ca: Option<&Path>) -> Result<Remote> {
+    let tls_ca = match tls_ca {
+        Some(p) => Some(std::fs::read(p).with_context(|| format!("--tls-ca {}", p.display()))?),
+        None => None,
+    };
+    Ok(Remote {
+        url: url.to_string(),
+        token: token.map(str::to_string),
+        tls_ca,
+    })
 }
 
 /// Render settings shared by `submit` and `cluster`.
@@ -204,13 +245,28 @@ async fn serve_coordinator(
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
     use pathfarm_farm::coordinator::{self, CoordinatorConfig};
+    let tls = match (&args.tls_cert, &args.tls_key) {
+        (Some(c), Some(k)) => Some(coordinator::TlsIdentity {
+            cert_pem: std::fs::read(c).with_context(|| format!("--tls-cert {}", c.display()))?,
+            key_pem: std::fs::read(k).with_context(|| format!("--tls-key {}", k.display()))?,
+        }),
+        _ => None,
+    };
+    let mut bundle_limits = pathfarm_farm::bundle::BundleLimits::default();
+    if let Some(b) = args.max_bundle_bytes {
+        bundle_limits.max_total_bytes = b;
+    }
+    if let Some(b) = args.max_file_bytes {
+        bundle_limits.max_file_bytes = b;
+    }
     let cfg = CoordinatorConfig {
         listen: args.listen,
         data_dir: args.data,
         token: args.token,
+        tls,
         metrics: args.metrics,
         limits: Limits::default(),
-        bundle_limits: Default::default(),
+        bundle_limits,
         scheduler: Default::default(),
         default_tile: None,
     };
@@ -239,8 +295,11 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         bail!("--threads must be at least 1");
     }
     let cfg = pathfarm_farm::worker::WorkerConfig {
-        coordinator: args.coordinator,
-        token: args.token,
+        coordinator: remote(
+            &args.coordinator,
+            args.token.as_deref(),
+            args.tls_ca.as_deref(),
+        )?,
         threads,
         name: args.name.unwrap_or_default(),
         cache_dir: args.cache.unwrap_or_else(default_cache),
@@ -375,8 +434,7 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
             None => None,
         };
         let work = async {
-            let mut client =
-                client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+            let mut client = client::connect(&args.conn.remote()?).await?;
             let job = client.submit(&args.scene, &opts).await?;
             println!("{job}");
             if args.wait {
@@ -430,8 +488,7 @@ fn print_job_row(s: &v1::JobStatus) {
 
 pub fn status(args: StatusArgs) -> Result<()> {
     runtime()?.block_on(async move {
-        let mut client =
-            client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+        let mut client = client::connect(&args.conn.remote()?).await?;
         if let Some(job) = &args.job {
             let r = client.status(job).await?;
             let s = r.status.unwrap_or_default();
@@ -497,8 +554,7 @@ pub fn status(args: StatusArgs) -> Result<()> {
 
 pub fn cancel(args: CancelArgs) -> Result<()> {
     runtime()?.block_on(async move {
-        let mut client =
-            client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+        let mut client = client::connect(&args.conn.remote()?).await?;
         let r = client.cancel(&args.job).await?;
         let state = r.status.map_or("unknown", |s| state_name(s.state));
         if r.cancelled {
@@ -515,8 +571,7 @@ pub fn fetch(args: FetchArgs) -> Result<()> {
         let mut signals = Signals::new()?;
         let outs = open_outputs(&args.output)?;
         let work = async {
-            let mut client =
-                client::connect(&args.conn.coordinator, args.conn.token.as_deref()).await?;
+            let mut client = client::connect(&args.conn.remote()?).await?;
             write_results(&mut client, &args.job, outs).await
         };
         tokio::select! {
@@ -690,7 +745,8 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
             let start = Instant::now();
             let mut client = loop {
                 cluster.check_alive()?;
-                if let Ok(mut c) = client::connect(&url, Some(&token)).await {
+                let r = remote(&url, Some(&token), None)?;
+                if let Ok(mut c) = client::connect(&r).await {
                     if c.list_workers().await.is_ok() {
                         break c;
                     }

@@ -11,12 +11,13 @@ use pathfarm_proto::MAX_CHUNK_BYTES;
 use pathfarm_scene::Limits;
 use tonic::metadata::{Ascii, MetadataValue};
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use tonic::{Code, Request, Status};
 
 use crate::bundle::{self, BundleError};
 
-/// Adds `authorization: Bearer TOKEN` to every call (nothing without a token).
+/// Adds `authorization: Bearer TOKEN` (nothing without a token) and the protocol version
+/// ([`pathfarm_proto::PROTOCOL_HEADER`]) to every call.
 #[derive(Clone)]
 pub struct Auth(Option<MetadataValue<Ascii>>);
 
@@ -38,6 +39,10 @@ impl tonic::service::Interceptor for Auth {
         if let Some(v) = &self.0 {
             req.metadata_mut().insert("authorization", v.clone());
         }
+        req.metadata_mut().insert(
+            pathfarm_proto::PROTOCOL_HEADER,
+            MetadataValue::from(pathfarm_proto::PROTOCOL_VERSION),
+        );
         Ok(req)
     }
 }
@@ -45,16 +50,55 @@ impl tonic::service::Interceptor for Auth {
 /// A channel with the bearer-token interceptor.
 pub type AuthChannel = InterceptedService<Channel, Auth>;
 
-/// The endpoint of `url` (`http://host:port`).
-pub fn endpoint(url: &str) -> Result<Endpoint, ClientError> {
-    Endpoint::from_shared(url.to_string())
+/// Where the coordinator is and how to reach it.
+#[derive(Clone, Debug, Default)]
+pub struct Remote {
+    /// `http://host:port`, or `https://host:port` with [`Remote::tls_ca`].
+    pub url: String,
+    /// Bearer token sent on every call.
+    pub token: Option<String>,
+    /// PEM certificate(s) of the CA that signed the coordinator's certificate: the
+    /// connection is TLS (rustls) and the coordinator's name is checked against the URL's host.
+    pub tls_ca: Option<Vec<u8>>,
+}
+
+impl Remote {
+    /// A plain-text remote (no token, no TLS).
+    pub fn plain(url: impl Into<String>) -> Self {
+        Remote {
+            url: url.into(),
+            ..Default::default()
+        }
+    }
+}
+
+/// The endpoint of `r` (`http://host:port`, or `https://` with a CA certificate).
+pub fn endpoint(r: &Remote) -> Result<Endpoint, ClientError> {
+    let url = &r.url;
+    let ep = Endpoint::from_shared(url.to_string())
         .map(|e| {
             e.connect_timeout(Duration::from_secs(5))
                 .initial_stream_window_size(STREAM_WINDOW)
                 .initial_connection_window_size(CONNECTION_WINDOW)
                 .tcp_nodelay(true)
         })
-        .map_err(|e| ClientError::Usage(format!("invalid coordinator URL {url:?}: {e}")))
+        .map_err(|e| ClientError::Usage(format!("invalid coordinator URL {url:?}: {e}")))?;
+    let https = ep.uri().scheme_str() == Some("https");
+    match (&r.tls_ca, https) {
+        (Some(ca), true) => {
+            let tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(ca));
+            ep.tls_config(tls)
+                .map_err(|e| ClientError::Usage(format!("TLS for {url}: {}", error_chain(&e))))
+        }
+        (Some(_), false) => Err(ClientError::Usage(format!(
+            "a TLS CA certificate was given but the coordinator URL {url:?} is not https://"
+        ))),
+        (None, true) => Err(ClientError::Usage(format!(
+            "{url}: an https:// coordinator needs the CA certificate that signed its \
+             certificate (--tls-ca or PATHFARM_TLS_CA)"
+        ))),
+        (None, false) => Ok(ep),
+    }
 }
 
 /// HTTP/2 flow-control windows of the farm's connections. h2's default of 64 KiB caps a
@@ -181,13 +225,13 @@ pub struct Client {
 }
 
 /// Connects to the coordinator at `url` (`http://host:port`), with an optional bearer token.
-pub async fn connect(url: &str, token: Option<&str>) -> Result<Client, ClientError> {
-    let auth = Auth::new(token)?;
-    let channel = endpoint(url)?
+pub async fn connect(r: &Remote) -> Result<Client, ClientError> {
+    let auth = Auth::new(r.token.as_deref())?;
+    let channel = endpoint(r)?
         .connect()
         .await
         .map_err(|e| ClientError::Connect {
-            url: url.to_string(),
+            url: r.url.clone(),
             message: error_chain(&e),
         })?;
     Ok(Client {
@@ -195,10 +239,26 @@ pub async fn connect(url: &str, token: Option<&str>) -> Result<Client, ClientErr
     })
 }
 
+/// A manifest's proto form.
+fn bundle_proto(m: &bundle::Manifest) -> v1::Bundle {
+    v1::Bundle {
+        root: m.root.clone(),
+        files: m
+            .files
+            .iter()
+            .map(|e| v1::BundleFile {
+                path: e.path.clone(),
+                digest: e.digest.0.to_vec(),
+                size: e.size,
+            })
+            .collect(),
+    }
+}
+
 /// Connects lazily: the channel dials on first use and redials after failures.
-pub fn connect_lazy(url: &str, token: Option<&str>) -> Result<Client, ClientError> {
-    let auth = Auth::new(token)?;
-    let channel = endpoint(url)?.connect_lazy();
+pub fn connect_lazy(r: &Remote) -> Result<Client, ClientError> {
+    let auth = Auth::new(r.token.as_deref())?;
+    let channel = endpoint(r)?.connect_lazy();
     Ok(Client {
         jobs: JobsClient::with_interceptor(channel, auth),
     })
@@ -237,12 +297,16 @@ impl Client {
         .await
         .map_err(|e| ClientError::Usage(format!("bundling task failed: {e}")))??;
         let digests: Vec<Vec<u8>> = manifest.files.iter().map(|e| e.digest.0.to_vec()).collect();
+        let bundle = bundle_proto(&manifest);
         let mut missing = Vec::new();
-        for batch in digests.chunks(50_000) {
+        for (i, batch) in digests.chunks(50_000).enumerate() {
+            // the first request carries the manifest: a bundle over the coordinator's limits
+            // is refused before anything is uploaded
             let r = self
                 .jobs
                 .find_missing_blobs(v1::FindMissingBlobsRequest {
                     digests: batch.to_vec(),
+                    bundle: (i == 0).then(|| bundle.clone()),
                 })
                 .await?
                 .into_inner();
@@ -271,18 +335,7 @@ impl Client {
             _ => None,
         };
         let req = v1::SubmitJobRequest {
-            bundle: Some(v1::Bundle {
-                root: manifest.root.clone(),
-                files: manifest
-                    .files
-                    .iter()
-                    .map(|e| v1::BundleFile {
-                        path: e.path.clone(),
-                        digest: e.digest.0.to_vec(),
-                        size: e.size,
-                    })
-                    .collect(),
-            }),
+            bundle: Some(bundle),
             settings: Some(v1::JobSettings {
                 scene: Some(v1::SceneSettings {
                     integrator: None,

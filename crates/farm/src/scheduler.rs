@@ -125,7 +125,8 @@ pub struct SchedulerConfig {
     /// Counted failures (expiry, loss, reported failure) after which a tile fails its job
     /// (default 5; at least 1).
     pub max_attempts: u32,
-    /// Leases a worker may hold at once (default 2: one rendering, one prefetched; at least 1).
+    /// Leases a worker may hold at once (default 3: one uploading, one rendering, one
+    /// prefetched; at least 1).
     pub leases_per_worker: u32,
 }
 
@@ -135,7 +136,7 @@ impl Default for SchedulerConfig {
             lease_timeout: Duration::from_secs(60),
             heartbeat_timeout: Duration::from_secs(15),
             max_attempts: 5,
-            leases_per_worker: 2,
+            leases_per_worker: 3,
         }
     }
 }
@@ -1563,12 +1564,15 @@ mod tests {
     #[test]
     fn worker_lease_limit_is_respected() {
         let mut s = setup(&[W1], 5);
+        let limit = s.config().leases_per_worker;
         let a = s.next_lease(W1, Millis(0)).unwrap();
-        s.next_lease(W1, Millis(0)).unwrap();
+        for _ in 1..limit {
+            s.next_lease(W1, Millis(0)).unwrap();
+        }
         assert_eq!(s.next_lease(W1, Millis(0)), None);
         s.complete(W1, a.id, secs(1)).unwrap();
-        assert_eq!(s.next_lease(W1, secs(1)).unwrap().key.tile, 2);
-        assert_eq!(s.worker_info(W1).unwrap().leases_held, 2);
+        assert_eq!(s.next_lease(W1, secs(1)).unwrap().key.tile, limit);
+        assert_eq!(s.worker_info(W1).unwrap().leases_held, limit as usize);
     }
 
     #[test]

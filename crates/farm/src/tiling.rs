@@ -279,18 +279,43 @@ mod tests {
         // The bottom half of the image cost 9x the top: costs follow the planned shares
         // (within 30 %: cuts are on whole pixels), and cheap pixels go into bigger tiles.
         let mut map = CostMap::new(640, 360);
-        map.record(Region { x0: 0, y0: 0, x1: 640, y1: 176 }, 1e-6);
-        map.record(Region { x0: 0, y0: 176, x1: 640, y1: 360 }, 9e-6);
+        map.record(
+            Region {
+                x0: 0,
+                y0: 0,
+                x1: 640,
+                y1: 176,
+            },
+            1e-6,
+        );
+        map.record(
+            Region {
+                x0: 0,
+                y0: 176,
+                x1: 640,
+                y1: 360,
+            },
+            9e-6,
+        );
         let weights = [1.0; 8];
         let tiles = map.tiles_weighted(&weights);
         assert_eq!(tiles.len(), 8);
         let costs: Vec<f64> = tiles.iter().map(|&t| map.cost(t)).collect();
         let mean = costs.iter().sum::<f64>() / costs.len() as f64;
-        assert!(costs.iter().all(|&c| c < 1.3 * mean && c > 0.7 * mean), "{costs:?}");
-        assert!(costs.windows(2).all(|w| w[0] >= w[1]), "most costly first: {costs:?}");
+        assert!(
+            costs.iter().all(|&c| c < 1.3 * mean && c > 0.7 * mean),
+            "{costs:?}"
+        );
+        assert!(
+            costs.windows(2).all(|w| w[0] >= w[1]),
+            "most costly first: {costs:?}"
+        );
         let areas: Vec<usize> = tiles.iter().map(|t| t.pixels()).collect();
         let (lo, hi) = (areas.iter().min().unwrap(), areas.iter().max().unwrap());
-        assert!(*hi > 2 * lo, "cheap pixels go into bigger tiles ({areas:?})");
+        assert!(
+            *hi > 2 * lo,
+            "cheap pixels go into bigger tiles ({areas:?})"
+        );
         // a long unit on 2 threads: big tiles first, the last ones small
         let tiles = map.tiles(2, 1_000_000);
         let costs: Vec<f64> = tiles.iter().map(|&t| map.cost(t)).collect();

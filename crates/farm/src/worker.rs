@@ -21,16 +21,14 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 
 use crate::bundle::{self, Digest, Manifest, ManifestEntry};
-use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff};
+use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote};
 use crate::codec;
 
 /// How a worker runs.
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
-    /// The coordinator's URL, `http://host:port`.
-    pub coordinator: String,
-    /// Bearer token sent on every call.
-    pub token: Option<String>,
+    /// The coordinator: URL, token, TLS.
+    pub coordinator: Remote,
     /// Render threads (at least 1).
     pub threads: usize,
     /// Optional operator-chosen name (empty = none).
@@ -58,7 +56,8 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
     if cfg.threads == 0 {
         return Err(WorkerError::Config("threads must be at least 1".into()));
     }
-    let auth = Auth::new(cfg.token.as_deref()).map_err(|e| WorkerError::Config(e.to_string()))?;
+    let auth = Auth::new(cfg.coordinator.token.as_deref())
+        .map_err(|e| WorkerError::Config(e.to_string()))?;
     let ep = endpoint(&cfg.coordinator).map_err(|e| WorkerError::Config(e.to_string()))?;
     for d in ["blobs", "bundles"] {
         std::fs::create_dir_all(cfg.cache_dir.join(d)).map_err(|e| {
@@ -93,7 +92,7 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
                 let d = backoff.next_delay();
                 tracing::warn!(
                     "cannot reach the coordinator at {}: {}; retrying in {:?}",
-                    cfg.coordinator,
+                    cfg.coordinator.url,
                     error_chain(&e),
                     d
                 );
@@ -166,7 +165,10 @@ enum LeaseEnd {
     /// Rendered: the upload runs while the next lease renders.
     Rendered(RenderedTile),
     Cancelled,
-    Failed { reason: String, fatal: bool },
+    Failed {
+        reason: String,
+        fatal: bool,
+    },
 }
 
 /// The outcome of one lease's upload.
@@ -229,7 +231,7 @@ async fn session<S: Future<Output = ()>>(
     backoff.reset();
     tracing::info!(
         "registered with {} as worker {} (coordinator {})",
-        cfg.coordinator,
+        cfg.coordinator.url,
         registered.worker_id,
         registered.build_id
     );

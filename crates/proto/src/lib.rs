@@ -27,6 +27,11 @@ pub const FILE_DESCRIPTOR_SET: &[u8] =
 /// would misread; adding fields or messages does not bump it (fields are never renumbered).
 pub const PROTOCOL_VERSION: u32 = 1;
 
+/// gRPC metadata key in which pathfarm's clients and workers send [`PROTOCOL_VERSION`] on
+/// every call; the coordinator refuses a call naming another version (calls without it, from
+/// stock gRPC tools, are served).
+pub const PROTOCOL_HEADER: &str = "pathfarm-protocol";
+
 /// The most payload bytes one chunk message carries (`DataChunk`, `BlobChunk`, `TileUpload`
 /// data parts): 1 MiB. Senders split payloads into parts of at most this size; receivers
 /// reject larger parts.

@@ -199,6 +199,8 @@ fn job_and_tile_messages_round_trip() {
                 split_paths: 300,
                 extra_light_samples: 40,
                 render_seconds: 1.25,
+                prepare_seconds: 0.5,
+                serialize_seconds: 0.0625,
             }),
             pixels_size: 32 * 32 * 16,
             stats_size: 0,

@@ -388,6 +388,7 @@ async fn stubs_talk_over_loopback() {
     let missing = jobs
         .find_missing_blobs(v1::FindMissingBlobsRequest {
             digests: vec![digest.clone()],
+            bundle: None,
         })
         .await
         .unwrap()
@@ -413,6 +414,7 @@ async fn stubs_talk_over_loopback() {
     let missing = jobs
         .find_missing_blobs(v1::FindMissingBlobsRequest {
             digests: vec![digest.clone(), vec![8u8; 32]],
+            bundle: None,
         })
         .await
         .unwrap()

@@ -220,10 +220,15 @@ impl Checkpoint {
         let mut i = In(bytes);
         check_header(&mut i)?;
         let state = i.bytes()?;
-        let films = (0..i.len(8)?).map(|_| i.bytes()).collect::<Result<_, _>>()?;
+        let films = (0..i.len(8)?)
+            .map(|_| i.bytes())
+            .collect::<Result<_, _>>()?;
         let tree = decode_tree(&i.bytes()?)?;
         if !i.0.is_empty() {
-            return Err(CheckpointError(format!("{} bytes after the end", i.0.len())));
+            return Err(CheckpointError(format!(
+                "{} bytes after the end",
+                i.0.len()
+            )));
         }
         Ok((Checkpoint { state, films }, tree))
     }

@@ -115,11 +115,7 @@ impl Shared {
                 .collect::<std::io::Result<Vec<_>>>()?;
             self.blobs.sync(&tree)?;
             let state = self.blobs.put(&cp.state)?;
-            Ok(Parts {
-                state,
-                films,
-                tree,
-            })
+            Ok(Parts { state, films, tree })
         })();
         let mut st = self.lock();
         let parts = match written {

@@ -64,7 +64,21 @@ fn err(e: impl std::fmt::Display) -> String {
 }
 
 impl Db {
+    /// Opens the database at `path`, creating it if it does not exist. A new database is
+    /// made under a temporary name and renamed into place once it is complete, so a
+    /// coordinator killed while creating it leaves no half-made file at `path`.
     pub(crate) fn open(path: &Path) -> Result<Db, String> {
+        if !path.exists() {
+            let tmp = path.with_extension("redb.new");
+            let _ = std::fs::remove_file(&tmp);
+            {
+                let db = Database::create(&tmp).map_err(err)?;
+                let tx = db.begin_write().map_err(err)?;
+                tx.open_table(JOBS).map_err(err)?;
+                tx.commit().map_err(err)?;
+            }
+            std::fs::rename(&tmp, path).map_err(err)?;
+        }
         let db = Database::create(path).map_err(err)?;
         let tx = db.begin_write().map_err(err)?;
         tx.open_table(JOBS).map_err(err)?;

@@ -51,14 +51,14 @@ use tonic::Status;
 
 use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
 use crate::codec;
-use crate::tiling::CostMap;
 use crate::scheduler::{
     Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, TaskKey, WorkerId,
 };
+use crate::tiling::CostMap;
 
 use db::{Db, JobRecord};
-use metrics::Metrics;
 use ledger::UnitLedger;
+use metrics::Metrics;
 use store::BlobStore;
 
 /// How the coordinator runs.
@@ -70,6 +70,9 @@ pub struct CoordinatorConfig {
     pub data_dir: PathBuf,
     /// If set, every RPC of both services needs `authorization: Bearer <token>`.
     pub token: Option<String>,
+    /// If set, the gRPC port speaks TLS only (rustls) with this certificate chain and key
+    /// (PEM), so tokens and scenes never cross the network in clear.
+    pub tls: Option<TlsIdentity>,
     /// If set, Prometheus metrics (text format) are served at `GET /metrics` on this address.
     pub metrics: Option<SocketAddr>,
     /// Scene loading limits (files are always confined to the bundle).
@@ -82,6 +85,24 @@ pub struct CoordinatorConfig {
     /// worker thread, of equal cost as measured in the job's earlier units
     /// ([`crate::tiling`]).
     pub default_tile: Option<u32>,
+}
+
+/// The coordinator's TLS certificate chain and private key, PEM.
+#[derive(Clone)]
+pub struct TlsIdentity {
+    pub cert_pem: Vec<u8>,
+    pub key_pem: Vec<u8>,
+}
+
+impl std::fmt::Debug for TlsIdentity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // never print the key
+        write!(
+            f,
+            "TlsIdentity {{ cert: {} bytes, key: .. }}",
+            self.cert_pem.len()
+        )
+    }
 }
 
 /// Why the coordinator could not start or stopped.
@@ -98,6 +119,8 @@ pub enum CoordinatorError {
     Database(String),
     #[error("gRPC reflection: {0}")]
     Reflection(String),
+    #[error("TLS certificate or key: {0}")]
+    Tls(String),
     #[error("gRPC server: {0}")]
     Transport(#[from] tonic::transport::Error),
 }
@@ -107,13 +130,13 @@ pub async fn serve(
     cfg: CoordinatorConfig,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), CoordinatorError> {
-    let listener = TcpListener::bind(cfg.listen)
+    // The data directory first: accepting connections means ready.
+    let shared = Shared::open(cfg)?;
+    let addr = shared.cfg.listen;
+    let listener = TcpListener::bind(addr)
         .await
-        .map_err(|error| CoordinatorError::Bind {
-            addr: cfg.listen,
-            error,
-        })?;
-    serve_with_listener(cfg, listener, shutdown).await
+        .map_err(|error| CoordinatorError::Bind { addr, error })?;
+    service::run(shared, listener, Some(addr), shutdown).await
 }
 
 /// As [`serve`], on an already bound listener (`cfg.listen` is ignored).
@@ -422,8 +445,7 @@ impl Shared {
         if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
             a.ledger.checkpoint_s = checkpoint_s;
             let kind = format!("{:?}", spec.kind);
-            a.ledger
-                .finish(&job_name(n), &spec, &kind, &self.metrics);
+            a.ledger.finish(&job_name(n), &spec, &kind, &self.metrics);
         }
         self.drive(st, n);
     }
@@ -504,7 +526,7 @@ impl Shared {
                     Some(t) => {
                         let (w, h) = a.session.size();
                         Region::tiles(w, h, t)
-                    },
+                    }
                     None => a.cost.tiles(slots(&st.workers), spec.unit_spp()),
                 };
                 if let Err(e) = a.session.retile(tiling) {
@@ -857,7 +879,7 @@ pub(crate) fn digest_from(bytes: &[u8], field: &str) -> Result<Digest, Status> {
     Ok(Digest(arr))
 }
 
-fn manifest_from_proto(b: &v1::Bundle) -> Result<Manifest, Status> {
+pub(crate) fn manifest_from_proto(b: &v1::Bundle) -> Result<Manifest, Status> {
     let mut files = Vec::with_capacity(b.files.len());
     for (i, f) in b.files.iter().enumerate() {
         files.push(ManifestEntry {

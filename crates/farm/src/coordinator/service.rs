@@ -17,10 +17,10 @@ use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream, UnboundedReceive
 use tokio_stream::Stream;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::ledger::TileTimes;
 use super::*;
 use crate::bundle::digest_of;
 use crate::scheduler::Rejection;
-use super::ledger::TileTimes;
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::DataChunk, Status>> + Send>>;
 
@@ -100,7 +100,14 @@ pub(super) async fn run(
             }
         }
     };
-    let result = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = &shared.cfg.tls {
+        let identity = tonic::transport::Identity::from_pem(&tls.cert_pem, &tls.key_pem);
+        builder = builder
+            .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+            .map_err(|e| CoordinatorError::Tls(crate::client::error_chain(&e)))?;
+    }
+    let result = builder
         .initial_stream_window_size(crate::client::STREAM_WINDOW)
         .initial_connection_window_size(crate::client::CONNECTION_WINDOW)
         .tcp_nodelay(true)
@@ -129,6 +136,16 @@ struct Auth {
 
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        // A pathfarm client names its protocol; stock gRPC clients (grpcurl) need not.
+        if let Some(v) = req.metadata().get(pathfarm_proto::PROTOCOL_HEADER) {
+            let ours = pathfarm_proto::PROTOCOL_VERSION.to_string();
+            if v.as_bytes() != ours.as_bytes() {
+                return Err(Status::failed_precondition(format!(
+                    "protocol version mismatch: client protocol {}, coordinator {ours}",
+                    v.to_str().unwrap_or("?")
+                )));
+            }
+        }
         let Some(expected) = &self.expected else {
             return Ok(req);
         };
@@ -201,9 +218,15 @@ impl Jobs for Svc {
         &self,
         req: Request<v1::FindMissingBlobsRequest>,
     ) -> Result<Response<v1::FindMissingBlobsResponse>, Status> {
+        let req = req.into_inner();
+        if let Some(b) = &req.bundle {
+            manifest_from_proto(b)?
+                .validate(&self.shared.cfg.bundle_limits)
+                .map_err(|e| bad(format!("bundle: {e}")))?;
+        }
         let mut seen = std::collections::HashSet::new();
         let mut missing = Vec::new();
-        for (i, d) in req.into_inner().digests.into_iter().enumerate() {
+        for (i, d) in req.digests.into_iter().enumerate() {
             let digest = digest_from(&d, &format!("digests[{i}]"))?;
             if seen.insert(digest) && !self.shared.blobs.has(&digest) {
                 missing.push(d);
@@ -278,7 +301,19 @@ impl Jobs for Svc {
         })
         .await
         .map_err(|e| Status::internal(format!("job validation panicked: {e}")))?;
-        let prepared = prepared?;
+        let prepared = match prepared {
+            Ok(p) => p,
+            Err(status) => {
+                // Nothing of a refused submission is kept: its blobs go unless a job uses them.
+                let mut st = self.shared.lock();
+                let digests = req.bundle.iter().flat_map(|b| &b.files);
+                let digests =
+                    digests.filter_map(|f| <[u8; 32]>::try_from(f.digest.as_slice()).ok());
+                st.garbage.extend(digests.map(crate::bundle::Digest));
+                self.shared.collect_garbage(&mut st);
+                return Err(status);
+            }
+        };
         let mut st = self.shared.lock();
         let n = st.next_job;
         st.next_job += 1;

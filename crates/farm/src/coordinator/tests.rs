@@ -53,6 +53,7 @@ fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         listen: "127.0.0.1:0".parse().unwrap(),
         data_dir: data,
         token: token.map(str::to_string),
+        tls: None,
         metrics: None,
         limits: Limits::default(),
         bundle_limits: BundleLimits::default(),
@@ -238,6 +239,7 @@ async fn corrupt_blob_upload_is_rejected_and_not_stored() {
     let missing = jobs
         .find_missing_blobs(v1::FindMissingBlobsRequest {
             digests: vec![digest.0.to_vec()],
+            bundle: None,
         })
         .await
         .unwrap()
@@ -665,10 +667,7 @@ async fn metrics_report_jobs_by_state() {
     let mut text = String::new();
     sock.read_to_string(&mut text).await.unwrap();
     assert!(text.starts_with("HTTP/1.1 200"), "{text}");
-    assert!(
-        text.contains("pathfarm_jobs{state=\"queued\"} 1"),
-        "{text}"
-    );
+    assert!(text.contains("pathfarm_jobs{state=\"queued\"} 1"), "{text}");
     assert!(text.contains("pathfarm_workers 0"), "{text}");
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);
