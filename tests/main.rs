@@ -9,6 +9,7 @@ mod it {
     pub mod crosscheck;
     pub mod determinism;
     pub mod farm;
+    pub mod farm_sim;
     pub mod guide_cli;
     pub mod guided;
     pub mod hostile;

@@ -1,0 +1,341 @@
+//! The farm's two state machines together, without sockets: several guided job sessions
+//! driven through the lease scheduler on an injected clock, by simulated workers that join,
+//! die, hang (stop heartbeating, so their leases expire) and deliver late (their results are
+//! then stale and rejected), in a seeded random schedule. Every job that is not cancelled must
+//! end with the image and tree of the one-process render, bit for bit (deterministic checks,
+//! no significance level); the cancelled job must take no more tiles.
+
+use std::collections::{BTreeMap, HashMap};
+use std::time::Duration;
+
+use pathfarm_farm::scheduler::{
+    Event, JobId, LeaseId, Millis, Rejection, Scheduler, SchedulerConfig, WorkerId,
+};
+use pathfarm_guide::SdTree;
+use pathfarm_render::guided::{
+    guide_config, render_guided_with_policy, Budget, FallbackPolicy, Next, Session,
+};
+use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
+use pathfarm_render::{Film, Region, RenderSettings, Scene};
+use pathfarm_scene::load_scene;
+
+use crate::common::*;
+
+/// A small seeded generator (splitmix64).
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+    fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+    fn chance(&mut self, percent: u64) -> bool {
+        self.below(100) < percent
+    }
+}
+
+fn scene(res: (u32, u32)) -> Scene {
+    let defs: Vec<(String, String)> = [
+        ("integrator", "guided_path".to_string()),
+        ("resx", res.0.to_string()),
+        ("resy", res.1.to_string()),
+    ]
+    .into_iter()
+    .map(|(a, b)| (a.to_string(), b))
+    .collect();
+    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
+    Scene::build(&desc).expect("build")
+}
+
+/// A job as the driver holds it: its session and the unit in flight.
+struct SimJob {
+    seed: u64,
+    spp: u32,
+    session: Session,
+    spec: Option<PassSpec>,
+    /// The tree as published for the unit's tree version: encoded when the version's first
+    /// unit is offered (its building statistics empty), as the coordinator publishes it.
+    published: (u32, Vec<u8>),
+    done: bool,
+    cancelled: bool,
+}
+
+/// A result a worker computed and will deliver at `due`.
+struct Pending {
+    lease: LeaseId,
+    job: JobId,
+    unit: u64,
+    tile: u32,
+    due: Millis,
+    out: TileOutput,
+    stats: Option<pathfarm_guide::IterationStats>,
+}
+
+struct SimWorker {
+    /// Per job: the tree copy and the (tree, fraction) version it holds.
+    trees: HashMap<u64, ((u32, u32), SdTree)>,
+    pending: Vec<Pending>,
+    /// A hung worker neither heartbeats nor delivers until it resumes.
+    hung_until: Option<Millis>,
+}
+
+impl SimWorker {
+    /// The worker's copy of `job`'s tree at `version`: a new tree version is decoded from
+    /// the published bytes, new fractions are taken from the master.
+    fn tree(&mut self, job: u64, j: &SimJob, version: (u32, u32)) -> &mut SdTree {
+        let master = j.session.tree();
+        let e = self
+            .trees
+            .entry(job)
+            .or_insert_with(|| ((u32::MAX, u32::MAX), master.clone()));
+        if e.0 .0 != version.0 {
+            assert_eq!(j.published.0, version.0, "the published tree is the unit's");
+            e.1 = SdTree::decode(&j.published.1).expect("decode");
+        }
+        if e.0 != version {
+            e.1.set_fraction_states(&master.fraction_states())
+                .expect("same leaves");
+        }
+        e.0 = version;
+        &mut e.1
+    }
+}
+
+/// Offers a job's next unit to the scheduler, or marks it done.
+fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: &mut Rng) {
+    match j.session.next(now.0 as f64 * 1e-3) {
+        Next::Render(spec) => {
+            if j.published.0 != spec.tree_version || j.published.1.is_empty() {
+                j.published = (spec.tree_version, j.session.tree().encode());
+            }
+            // every unit cut differently: the tiling must not matter
+            let (w, h) = j.session.size();
+            let edge = 3 + tiling.below(9) as u32;
+            j.session.retile(Region::tiles(w, h, edge)).expect("retile");
+            let n = j.session.tiles().len() as u32;
+            sched.offer_unit(id, spec.unit, n).expect("offer");
+            j.spec = Some(spec);
+        }
+        Next::Wait => unreachable!("driven only between units"),
+        Next::Done => j.done = true,
+    }
+}
+
+fn one_process(scene: &Scene, spp: u32, seed: u64) -> (Film, SdTree) {
+    let params = scene.guided.clone().expect("guided");
+    let settings = RenderSettings::new(Some(spp), None, seed);
+    let (film, _, tree) = render_guided_with_policy(
+        scene,
+        &params,
+        Budget::Spp(spp),
+        &settings,
+        &|_| {},
+        &|_| {},
+        FallbackPolicy::Rule,
+    );
+    (film, tree)
+}
+
+#[test]
+fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits() {
+    let scene = scene((17, 11));
+    let params = scene.guided.clone().expect("guided");
+    let config = SchedulerConfig {
+        lease_timeout: Duration::from_millis(400),
+        heartbeat_timeout: Duration::from_millis(1500),
+        max_attempts: 1000,
+        leases_per_worker: 3,
+    };
+    for sim_seed in [1u64, 2, 3] {
+        let mut rng = Rng(sim_seed * 0x1234_5678);
+        let mut tiling = Rng(sim_seed ^ 0xabcd);
+        let mut sched = Scheduler::new(config.clone());
+        let mut now = Millis(0);
+        let mut jobs: BTreeMap<u64, SimJob> = BTreeMap::new();
+        for (n, (seed, spp)) in [(3u64, 12u32), (7, 16), (11, 8), (13, 12)]
+            .iter()
+            .enumerate()
+        {
+            let (lo, hi) = scene.accel.bounds();
+            let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
+            let tiles = Region::tiles(scene.width, scene.height, 4);
+            let session = Session::new(
+                &params,
+                Budget::Spp(*spp),
+                tree,
+                scene.width,
+                scene.height,
+                tiles,
+                FallbackPolicy::Rule,
+            );
+            let id = JobId(n as u64);
+            sched
+                .add_job(id, rng.below(3) as i32, now)
+                .expect("add job");
+            let mut j = SimJob {
+                seed: *seed,
+                spp: *spp,
+                session,
+                spec: None,
+                published: (0, Vec::new()),
+                done: false,
+                cancelled: false,
+            };
+            drive(&mut sched, &mut j, id, now, &mut tiling);
+            jobs.insert(n as u64, j);
+        }
+        let cancel_job = 2u64;
+        let cancel_at = 10 + rng.below(20);
+        let mut workers: BTreeMap<u64, SimWorker> = BTreeMap::new();
+        let mut next_worker = 0u64;
+        let (mut deaths, mut stale, mut accepted_after_cancel) = (0, 0, 0);
+        for step in 0..200_000u64 {
+            if jobs.values().all(|j| j.done || j.cancelled) {
+                break;
+            }
+            assert!(step < 199_999, "seed {sim_seed}: the jobs did not finish");
+            now = Millis(now.0 + 1 + rng.below(40));
+            // joins and deaths
+            if workers.len() < 4 && (workers.is_empty() || rng.chance(3)) {
+                let id = WorkerId(next_worker);
+                next_worker += 1;
+                sched.register_worker(id, 1, now).expect("register");
+                let w = SimWorker {
+                    trees: HashMap::new(),
+                    pending: Vec::new(),
+                    hung_until: None,
+                };
+                workers.insert(id.0, w);
+            }
+            if workers.len() > 1 && rng.chance(4) {
+                let ids: Vec<u64> = workers.keys().copied().collect();
+                let victim = ids[rng.below(ids.len() as u64) as usize];
+                workers.remove(&victim);
+                let _ = sched.worker_lost(WorkerId(victim));
+                deaths += 1;
+            }
+            // a worker hangs for a while (no heartbeats: its leases expire)
+            if rng.chance(4) {
+                let ids: Vec<u64> = workers.keys().copied().collect();
+                let w = ids[rng.below(ids.len() as u64) as usize];
+                let until = Millis(now.0 + 200 + rng.below(1000));
+                workers.get_mut(&w).unwrap().hung_until = Some(until);
+            }
+            if step == cancel_at {
+                let j = jobs.get_mut(&cancel_job).unwrap();
+                if !j.done {
+                    sched.cancel_job(JobId(cancel_job)).expect("cancel");
+                    j.cancelled = true;
+                }
+            }
+            // each live worker: heartbeat, take leases, deliver what is due
+            let ids: Vec<u64> = workers.keys().copied().collect();
+            for wid in ids {
+                let w = workers.get_mut(&wid).unwrap();
+                if w.hung_until.is_some_and(|t| now < t) {
+                    continue;
+                }
+                w.hung_until = None;
+                let held: Vec<LeaseId> = w.pending.iter().map(|p| p.lease).collect();
+                let _ = sched.heartbeat(WorkerId(wid), &held, now);
+                while let Some(lease) = sched.next_lease(WorkerId(wid), now) {
+                    let job = lease.key.job;
+                    let j = &jobs[&job.0];
+                    let spec = j.spec.expect("a unit in flight");
+                    assert_eq!(spec.unit, lease.key.unit);
+                    let region = j.session.tiles()[lease.key.tile as usize];
+                    let version = (spec.tree_version, spec.fraction_version);
+                    let estimate = j.session.estimate().to_vec();
+                    let seed = j.seed;
+                    let tree = w.tree(job.0, j, version);
+                    let inputs = UnitInputs {
+                        scene: &scene,
+                        params: &params,
+                        tree,
+                        estimate: &estimate,
+                        seed,
+                        tile_size: 4,
+                    };
+                    let out = render_unit(&inputs, &spec, region, &|_| {});
+                    let stats = spec.record().then(|| tree.take_stats());
+                    // mostly prompt, sometimes later than the lease lives
+                    let delay = if rng.chance(15) {
+                        500 + rng.below(800)
+                    } else {
+                        rng.below(60)
+                    };
+                    w.pending.push(Pending {
+                        lease: lease.id,
+                        job,
+                        unit: lease.key.unit,
+                        tile: lease.key.tile,
+                        due: Millis(now.0 + delay),
+                        out,
+                        stats,
+                    });
+                }
+                let (due, later): (Vec<Pending>, Vec<Pending>) =
+                    w.pending.drain(..).partition(|p| p.due <= now);
+                w.pending = later;
+                for p in due {
+                    match sched.complete(WorkerId(wid), p.lease, now) {
+                        Ok(c) => {
+                            let j = jobs.get_mut(&p.job.0).unwrap();
+                            accepted_after_cancel += j.cancelled as u32;
+                            j.session
+                                .add_tile(
+                                    p.unit,
+                                    p.tile as usize,
+                                    &p.out,
+                                    p.stats.as_ref(),
+                                    now.0 as f64 * 1e-3,
+                                )
+                                .expect("the session takes what the scheduler accepted");
+                            if c.unit_done {
+                                drive(&mut sched, j, p.job, now, &mut tiling);
+                            }
+                        }
+                        Err(
+                            Rejection::Expired
+                            | Rejection::Superseded
+                            | Rejection::UnknownLease
+                            | Rejection::JobGone,
+                        ) => stale += 1,
+                        Err(r) => panic!("seed {sim_seed}: unexpected rejection {r:?}"),
+                    }
+                }
+            }
+            for e in sched.tick(now) {
+                if let Event::JobFailed { job, reason } = e {
+                    panic!("seed {sim_seed}: {job} failed: {reason}");
+                }
+            }
+        }
+        assert!(
+            deaths >= 1 && stale >= 1,
+            "seed {sim_seed}: the schedule had faults ({deaths} deaths, {stale} stale results)"
+        );
+        assert_eq!(accepted_after_cancel, 0, "a cancelled job takes no tiles");
+        for (n, j) in jobs {
+            if j.cancelled {
+                continue;
+            }
+            let (film, _, tree) = j.session.finish();
+            let (ref_film, ref_tree) = one_process(&scene, j.spp, j.seed);
+            assert!(
+                film_bits(&film) == film_bits(&ref_film),
+                "seed {sim_seed}, job {n}: the image differs from the one-process render"
+            );
+            assert!(
+                tree.encode() == ref_tree.encode(),
+                "seed {sim_seed}, job {n}: the tree differs from the one-process render"
+            );
+        }
+    }
+}
