@@ -48,6 +48,7 @@ SHARED = os.path.normpath(os.path.join(ROOT, "..", "shared", "scenes"))
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 UNIT_RE = re.compile(r"unit finished (.*)$")
 FIELD_RE = re.compile(r'(\w+)=("[^"]*"|\S+)')
+ITER_RE = re.compile(r"iteration (\d+): spp=\d+ .* time=([\d.]+)s")
 PEAK_RE = re.compile(r"(coordinator|worker) exiting peak_rss_mb=([\d.]+)")
 TOKEN = "farm-bench-token"
 
@@ -296,10 +297,12 @@ def main():
                 print(f"rep {r + 1}/{a.reps}: {kind}", file=sys.stderr, flush=True)
                 if kind == "render":
                     out = os.path.join(tmp, "render.exr")
-                    wall, rss, stdout, _ = timed([a.binary, "render"] + job_flags(a) + [
-                        "--threads", str(threads), "--no-png", "-o", out])
+                    env = dict(os.environ, RUST_LOG="info")
+                    wall, rss, stdout, err = timed([a.binary, "render"] + job_flags(a) + [
+                        "--threads", str(threads), "--no-png", "-o", out], env=env)
                     ref = open(out, "rb").read()
-                    runs["render"].append({"wall": wall, "rss_mb": rss / 1024.0})
+                    its = {int(k): float(t) for k, t in ITER_RE.findall(ANSI.sub("", err))}
+                    runs["render"].append({"wall": wall, "rss_mb": rss / 1024.0, "iterations": its})
                 elif kind == "cluster":
                     out = os.path.join(tmp, "cluster.exr")
                     env = dict(os.environ, RUST_LOG="info")
@@ -359,14 +362,16 @@ def report(a, runs, threads):
         say(f"## Per training iteration: {kind}")
         say("")
         say("Seconds are medians over repetitions of the sums over the iteration's units; worker "
-            "seconds (render, inputs, serialise) are divided by the worker threads.")
+            "seconds (render, inputs, serialise) are divided by the worker threads. `one process s`: "
+            "the iteration's time in `pathfarm render` (its log line); wall / one process is the "
+            "farm's cost of the iteration, e.g. the final pass's throughput is its inverse.")
         say("")
         its = [per_iteration(x["units"], threads) for x in rs]
         keys = sorted({k for it in its for k in it})
         cols = ["units", "wall_s", "render_s", "prepare_s", "serialize_s", "receive_s", "decode_s",
                 "merge_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"]
-        say("| iteration | " + " | ".join(c.replace("_s", "") for c in cols) + " | overhead |")
-        say("|" + "---|" * (len(cols) + 2))
+        say("| iteration | one process s | " + " | ".join(c.replace("_s", "") for c in cols) + " | overhead |")
+        say("|" + "---|" * (len(cols) + 3))
         tot = {c: 0.0 for c in cols}
         for k in keys:
             row = {c: med([it[k][c] for it in its if k in it]) for c in cols}
@@ -375,11 +380,13 @@ def report(a, runs, threads):
             over = (row["wall_s"] - row["render_s"]) / row["wall_s"] if row["wall_s"] else 0
             cells = [f"{row[c]:.0f}" if c in ("units",) else
                      (f"{row[c] / 1e6:.1f} MB" if c.startswith("bytes") else f"{row[c]:.3f}") for c in cols]
-            say(f"| {k} | " + " | ".join(cells) + f" | {100 * over:.1f} % |")
+            one = med([r["iterations"][k] for r in runs["render"] if k in r.get("iterations", {})])
+            say(f"| {k} | {one:.3f} | " + " | ".join(cells) + f" | {100 * over:.1f} % |")
         over = (tot["wall_s"] - tot["render_s"]) / tot["wall_s"] if tot["wall_s"] else 0
         cells = [f"{tot[c]:.0f}" if c == "units" else
                  (f"{tot[c] / 1e6:.1f} MB" if c.startswith("bytes") else f"{tot[c]:.3f}") for c in cols]
-        say("| all | " + " | ".join(cells) + f" | {100 * over:.1f} % |")
+        one = med([sum(r.get("iterations", {}).values()) for r in runs["render"]])
+        say(f"| all | {one:.3f} | " + " | ".join(cells) + f" | {100 * over:.1f} % |")
         say("")
         walls = [x["wall"] for x in rs]
         say(f"Outside the units (start-up, scene upload and validation, assembling, download): "

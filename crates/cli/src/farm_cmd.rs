@@ -121,6 +121,15 @@ pub struct JobArgs {
     /// Override a scene parameter declared with <default>, e.g. -D spp=64.
     #[arg(short = 'D', value_name = "NAME=VALUE")]
     pub defines: Vec<String>,
+    /// Render at this resolution instead of the scene film's, e.g. 1280x720.
+    #[arg(long, value_name = "WxH", value_parser = parse_resolution)]
+    pub resolution: Option<(u32, u32)>,
+}
+
+fn parse_resolution(s: &str) -> Result<(u32, u32), String> {
+    let bad = || format!("{s:?} is not WIDTHxHEIGHT (e.g. 1280x720)");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    Ok((w.parse().map_err(|_| bad())?, h.parse().map_err(|_| bad())?))
 }
 
 #[derive(Args)]
@@ -326,6 +335,7 @@ fn job_options(
     }
     Ok(SubmitOptions {
         defines: parse_defines(&job.defines)?,
+        resolution: job.resolution,
         budget: match (job.spp, job.time) {
             (Some(n), _) => Some(Budget::Spp(n)),
             (None, Some(t)) => Some(Budget::Seconds(t)),

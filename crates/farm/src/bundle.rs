@@ -563,6 +563,32 @@ fn place(e: &ManifestEntry, blob: &Path, target: &Path) -> Result<(), BundleErro
 ///
 /// A file the scene needs and the bundle lacks is a [`BundleError::Scene`] naming it, the
 /// scene file and line.
+/// Sets the film of `desc` to `width x height` (a job's resolution override), within the
+/// film limits the loader applies to a scene's own film.
+pub fn override_resolution(
+    desc: &mut SceneDesc,
+    width: u32,
+    height: u32,
+    limits: &Limits,
+) -> Result<(), String> {
+    let side = limits.max_film_side;
+    if width == 0 || height == 0 || width > side || height > side {
+        return Err(format!(
+            "resolution {width}x{height}: each side must be between 1 and {side} \
+             (Limits::max_film_side)"
+        ));
+    }
+    if width as u64 * height as u64 > limits.max_film_pixels {
+        return Err(format!(
+            "resolution {width}x{height}: more than {} pixels (Limits::max_film_pixels)",
+            limits.max_film_pixels
+        ));
+    }
+    desc.sensor.film.width = width;
+    desc.sensor.film.height = height;
+    Ok(())
+}
+
 pub fn check(
     manifest: &Manifest,
     dir: &Path,

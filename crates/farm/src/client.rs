@@ -211,6 +211,8 @@ pub enum Budget {
 #[derive(Clone, Debug, Default)]
 pub struct SubmitOptions {
     pub defines: Vec<(String, String)>,
+    /// Film width and height instead of the scene's.
+    pub resolution: Option<(u32, u32)>,
     pub budget: Option<Budget>,
     pub seed: Option<u64>,
     pub tile_size: Option<u32>,
@@ -347,7 +349,10 @@ impl Client {
                             value: v.clone(),
                         })
                         .collect(),
-                    resolution: None,
+                    resolution: opts.resolution.map(|(width, height)| v1::Resolution {
+                        width,
+                        height,
+                    }),
                     seed: opts.seed,
                 }),
                 budget,

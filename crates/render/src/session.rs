@@ -434,6 +434,22 @@ impl Session {
         Ok(())
     }
 
+    /// The image as it stands: the finished iterations' films combined as the final image
+    /// would combine them (`None` before the first iteration ends). A farm shows it as a
+    /// preview while the job runs.
+    pub fn preview(&self) -> Option<Film> {
+        let n = self.films.len();
+        if n == 0 {
+            return None;
+        }
+        let weights = self.weights();
+        if weights.iter().all(|&w| !(w > 0.0)) {
+            return Some(self.films[n - 1].clone());
+        }
+        let refs: Vec<&Film> = self.films.iter().collect();
+        Some(combine_films(&refs, &weights))
+    }
+
     /// The final film, the statistics and the trained tree, once [`Session::next`] said
     /// `Done`.
     pub fn finish(mut self) -> (Film, GuidedStats, SdTree) {

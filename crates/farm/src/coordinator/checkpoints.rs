@@ -217,6 +217,7 @@ fn referenced(st: &State) -> HashSet<Digest> {
             live.extend(p.digests());
         }
         if let Some(a) = &job.active {
+            live.extend(a.preview);
             live.extend(a.tree_digest.map(|(_, x)| x));
             live.extend(a.fractions_digest.map(|(_, x)| x));
             live.extend(a.estimate_digest.as_ref().and_then(|(_, x)| d(x)));

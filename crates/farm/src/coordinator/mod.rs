@@ -197,6 +197,8 @@ pub(crate) struct Active {
     /// Checkpoints taken so far (a background write records its checkpoint only if no later
     /// one was taken meanwhile).
     pub(crate) checkpoint_seq: u64,
+    /// The PNG preview of the image so far (updated at every iteration's end).
+    pub(crate) preview: Option<Digest>,
     pub(crate) tree_digest: Option<(u32, Digest)>,
     pub(crate) fractions_digest: Option<((u32, u32), Digest)>,
     pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
@@ -365,13 +367,6 @@ impl Shared {
         }
         let settings = req.settings.clone().unwrap_or_default();
         let scene_settings = settings.scene.clone().unwrap_or_default();
-        if let Some(r) = &scene_settings.resolution {
-            if r.width != 0 || r.height != 0 {
-                return Err(bad(
-                    "settings.scene.resolution: a resolution override is not supported yet; use -D",
-                ));
-            }
-        }
         let overrides = overrides_of(&scene_settings)?;
         let dir = self.blobs.temp_path("bundle");
         let result = (|| {
@@ -381,8 +376,12 @@ impl Shared {
                 confine_files: true,
                 ..self.cfg.limits.clone()
             };
-            let desc = bundle::check(&manifest, &dir, &overrides, &limits)
+            let mut desc = bundle::check(&manifest, &dir, &overrides, &limits)
                 .map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))?;
+            if let Some(r) = &scene_settings.resolution {
+                bundle::override_resolution(&mut desc, r.width, r.height, &limits)
+                    .map_err(|e| bad(format!("settings.scene.resolution: {e}")))?;
+            }
             Scene::build(&desc).map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))
         })();
         let _ = std::fs::remove_dir_all(&dir);
@@ -442,12 +441,49 @@ impl Shared {
     /// log the unit's accounts, and go on to the next unit.
     pub(crate) fn end_unit(self: &Arc<Self>, st: &mut State, n: u64, spec: PassSpec) {
         let checkpoint_s = self.save_checkpoint(st, n);
+        if checkpoint_s > 0.0 {
+            self.update_preview(st, n);
+        }
         if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
             a.ledger.checkpoint_s = checkpoint_s;
             let kind = format!("{:?}", spec.kind);
             a.ledger.finish(&job_name(n), &spec, &kind, &self.metrics);
         }
         self.drive(st, n);
+    }
+
+    /// Renders job `n`'s image so far as its PNG preview, in the background.
+    fn update_preview(self: &Arc<Self>, st: &mut State, n: u64) {
+        let Some(film) = st
+            .jobs
+            .get(&n)
+            .and_then(|j| j.active.as_ref())
+            .and_then(|a| a.session.preview())
+        else {
+            return;
+        };
+        let shared = self.clone();
+        tokio::task::spawn_blocking(move || {
+            let png = match pathfarm_render::output::encode_png(&film) {
+                Ok(p) => p,
+                Err(e) => return tracing::warn!(job = %job_name(n), "preview: {e}"),
+            };
+            let digest = match shared.blobs.put_unsynced(&png) {
+                Ok(d) => d,
+                Err(e) => return tracing::warn!(job = %job_name(n), "preview: {e}"),
+            };
+            let mut st = shared.lock();
+            let st = &mut *st;
+            match st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
+                Some(a) => {
+                    if let Some(old) = a.preview.replace(digest).filter(|&o| o != digest) {
+                        st.garbage.push(old);
+                    }
+                }
+                None => st.garbage.push(digest),
+            }
+            shared.publish_status(st, n);
+        });
     }
 
     /// Adds a prepared job to the scheduler and starts its session.
@@ -496,6 +532,7 @@ impl Shared {
             cost: CostMap::new(p.width, p.height),
             ledger: UnitLedger::default(),
             checkpoint_seq: 0,
+            preview: None,
             tree_digest: None,
             fractions_digest: None,
             estimate_digest: None,
@@ -557,6 +594,7 @@ impl Shared {
                 job.record.spp_done = a.session.spp_done();
                 job.record.iteration = a.session.iteration();
                 let mut released: Vec<Digest> = a.tree_digest.map(|x| x.1).into_iter().collect();
+                released.extend(a.preview);
                 released.extend(a.fractions_digest.map(|x| x.1));
                 let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
                 released.extend(e.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
@@ -651,6 +689,7 @@ impl Shared {
         };
         let mut out = checkpoints::take_parts(&mut job.record);
         if let Some(a) = &job.active {
+            out.extend(a.preview);
             out.extend(a.tree_digest.map(|x| x.1));
             out.extend(a.fractions_digest.map(|x| x.1));
             let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
@@ -815,6 +854,9 @@ impl Shared {
                     tracing::warn!(job = %job_name(key.job.0), lease = lease.0, worker = worker.0, "lease expired");
                     send_cancel(st, worker, lease, "lease expired");
                 }
+                Event::WorkerLost { worker, returned } if returned.is_empty() => {
+                    tracing::info!(worker = worker.0, "worker gone (it held no leases)");
+                }
                 Event::WorkerLost { worker, returned } => {
                     tracing::warn!(worker = worker.0, returned = returned.len(), "worker lost");
                 }
@@ -921,7 +963,8 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         state: r.state,
         iteration: r.iteration,
         samples_done: r.samples_done,
-        preview_available: r.state == v1::JobState::Done as i32,
+        preview_available: r.state == v1::JobState::Done as i32
+            || a.is_some_and(|a| a.preview.is_some()),
         failure_reason: r.failure_reason.clone(),
         submitted_unix_ms: r.submitted_unix_ms,
         finished_unix_ms: r.finished_unix_ms,
@@ -941,6 +984,7 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
             s.unit = spec.unit;
             s.pass_kind = codec::spec_to_proto(spec).kind;
         }
+        s.eta_seconds = eta(r, a, &request);
         if r.started_unix_ms != 0 {
             s.state = if a.session.in_final_pass() {
                 v1::JobState::FinalPass as i32
@@ -950,6 +994,22 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         }
     }
     s
+}
+
+/// Seconds until the job is done: with an spp budget, the time so far scaled by the samples
+/// left over the samples done; with a time budget, the budget left. `None` before the job
+/// started rendering.
+fn eta(r: &JobRecord, a: &Active, request: &v1::SubmitJobRequest) -> Option<f64> {
+    if r.started_unix_ms == 0 {
+        return None;
+    }
+    let elapsed = unix_ms().saturating_sub(r.started_unix_ms) as f64 * 1e-3;
+    let budget = request.settings.as_ref().and_then(|s| s.budget);
+    if let Some(v1::job_settings::Budget::TimeSeconds(t)) = budget {
+        return Some((t - elapsed).max(0.0));
+    }
+    let (done, total) = (r.samples_done as f64, a.samples_total as f64);
+    (done > 0.0 && total > 0.0).then(|| elapsed * (total - done).max(0.0) / done)
 }
 
 /// Sets the health status of every service.

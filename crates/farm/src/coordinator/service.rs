@@ -450,13 +450,21 @@ impl Jobs for Svc {
                 v1::ResultKind::PngPreview => r.png.clone(),
                 v1::ResultKind::SdTree => r.tree.clone(),
             };
-            if r.state != v1::JobState::Done as i32 || d.is_empty() {
+            // while the job runs, the preview of the image so far
+            let running_preview = st.jobs[&n].active.as_ref().and_then(|a| a.preview);
+            if let (v1::ResultKind::PngPreview, Some(p), false) =
+                (kind, running_preview, r.state == v1::JobState::Done as i32)
+            {
+                p.0.to_vec()
+            } else if r.state != v1::JobState::Done as i32 || d.is_empty() {
                 return Err(Status::failed_precondition(format!(
-                    "{}: the result {kind:?} is available once the job is DONE",
+                    "{}: the result {kind:?} is available once the job is DONE (a PNG \
+                     preview once its first iteration is done)",
                     req.job_id
                 )));
+            } else {
+                d
             }
-            d
         };
         let path = self.shared.blobs.path(&digest_from(&digest, "result")?);
         self.count_fetch(&path);

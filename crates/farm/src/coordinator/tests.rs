@@ -471,6 +471,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let dir = temp_dir("e2e-worker");
     let mut scene: Option<Scene> = None;
     let mut tiles = 0;
+    let (mut saw_preview, mut saw_eta) = (false, false);
     loop {
         let m = inbound.message().await.unwrap().unwrap();
         let Some(v1::coordinator_message::Msg::LeaseOffer(offer)) = m.msg else {
@@ -573,6 +574,8 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .status
             .unwrap();
         assert_ne!(status.state, v1::JobState::Failed as i32, "{status:?}");
+        saw_preview |= status.preview_available && status.state != v1::JobState::Done as i32;
+        saw_eta |= status.eta_seconds.is_some_and(|e| e.is_finite() && e >= 0.0);
         // the last tile ends the job: its results are assembled in the background
         let ended = [v1::JobState::Assembling, v1::JobState::Done];
         if ended.iter().any(|&e| status.state == e as i32) {
@@ -583,6 +586,8 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .unwrap();
     }
     assert!(tiles >= 4);
+    assert!(saw_preview, "a preview of the image so far while the job ran");
+    assert!(saw_eta, "an ETA while the job ran");
     // the watch stream ends with DONE
     let mut last = first;
     while let Some(s) = watch.message().await.unwrap() {
