@@ -163,6 +163,24 @@ pub struct StatusArgs {
 }
 
 #[derive(Args)]
+pub struct HealthArgs {
+    /// The gRPC service to ask about: "" (default) = the farm (serving once a worker is
+    /// registered), pathfarm.v1.Workers = the coordinator is up.
+    #[arg(long, default_value = "")]
+    pub service: String,
+    /// The coordinator's URL, e.g. http://127.0.0.1:50051.
+    #[arg(
+        long,
+        env = "PATHFARM_COORDINATOR",
+        default_value = "http://127.0.0.1:50051"
+    )]
+    pub coordinator: String,
+    /// CA certificate (PEM) that signed the coordinator's: connect with TLS (https:// URL).
+    #[arg(long, env = "PATHFARM_TLS_CA", value_name = "PEM")]
+    pub tls_ca: Option<PathBuf>,
+}
+
+#[derive(Args)]
 pub struct CancelArgs {
     pub job: String,
     #[command(flatten)]
@@ -560,6 +578,23 @@ pub fn status(args: StatusArgs) -> Result<()> {
         }
         Ok(())
     })
+}
+
+/// Exits 0 if the service is SERVING (a container health check), 1 otherwise.
+pub fn health(args: HealthArgs) -> Result<()> {
+    let r = remote(&args.coordinator, None, args.tls_ca.as_deref())?;
+    let serving = runtime()?.block_on(client::health(&r, &args.service))?;
+    let name = if args.service.is_empty() {
+        "the farm"
+    } else {
+        &args.service
+    };
+    if serving {
+        println!("{name}: SERVING");
+        Ok(())
+    } else {
+        bail!("{name}: not serving")
+    }
 }
 
 pub fn cancel(args: CancelArgs) -> Result<()> {

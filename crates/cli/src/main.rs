@@ -43,6 +43,8 @@ enum Command {
     Fetch(farm_cmd::FetchArgs),
     /// Render one scene on a local farm: a coordinator and N worker processes.
     Cluster(farm_cmd::ClusterArgs),
+    /// Ask a coordinator's gRPC health service (exit 0 if SERVING): container health checks.
+    Health(farm_cmd::HealthArgs),
 }
 
 fn main() {
@@ -65,6 +67,7 @@ fn main() {
         Command::Cancel(a) => farm_cmd::cancel(a),
         Command::Fetch(a) => farm_cmd::fetch(a),
         Command::Cluster(a) => farm_cmd::cluster(a),
+        Command::Health(a) => farm_cmd::health(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

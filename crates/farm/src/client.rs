@@ -241,6 +241,27 @@ pub async fn connect(r: &Remote) -> Result<Client, ClientError> {
     })
 }
 
+/// Asks the coordinator's `grpc.health.v1.Health` whether `service` ("" = the farm as a
+/// whole) is serving: `Ok(true)` if SERVING. No token needed (health checks are open).
+pub async fn health(r: &Remote, service: &str) -> Result<bool, ClientError> {
+    use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient};
+    let channel = endpoint(r)?
+        .connect()
+        .await
+        .map_err(|e| ClientError::Connect {
+            url: r.url.clone(),
+            message: error_chain(&e),
+        })?;
+    let status = HealthClient::new(channel)
+        .check(tonic_health::pb::HealthCheckRequest {
+            service: service.to_string(),
+        })
+        .await?
+        .into_inner()
+        .status;
+    Ok(status == ServingStatus::Serving as i32)
+}
+
 /// A manifest's proto form.
 fn bundle_proto(m: &bundle::Manifest) -> v1::Bundle {
     v1::Bundle {
@@ -349,10 +370,9 @@ impl Client {
                             value: v.clone(),
                         })
                         .collect(),
-                    resolution: opts.resolution.map(|(width, height)| v1::Resolution {
-                        width,
-                        height,
-                    }),
+                    resolution: opts
+                        .resolution
+                        .map(|(width, height)| v1::Resolution { width, height }),
                     seed: opts.seed,
                 }),
                 budget,

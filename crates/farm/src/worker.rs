@@ -703,7 +703,12 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
     };
     let mut desc = bundle::check(&p.manifest, &dest, &p.defines, &limits)
         .map_err(|e| fatal(format!("loading the scene: {e}")))?;
-    if let Some(r) = p.lease.settings.as_ref().and_then(|s| s.resolution.as_ref()) {
+    if let Some(r) = p
+        .lease
+        .settings
+        .as_ref()
+        .and_then(|s| s.resolution.as_ref())
+    {
         bundle::override_resolution(&mut desc, r.width, r.height, &limits).map_err(fatal)?;
     }
     let mut scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;

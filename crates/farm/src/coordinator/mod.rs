@@ -1026,11 +1026,10 @@ pub(crate) async fn update_health(
     } else {
         tonic_health::ServingStatus::NotServing
     };
-    for name in [
-        "",
-        pathfarm_proto::JOBS_SERVICE,
-        pathfarm_proto::WORKERS_SERVICE,
-    ] {
+    // The farm (and its job API) serves once a worker is registered; the worker API serves
+    // from the start (`service::run`), so that a readiness probe on it does not keep the
+    // first worker out.
+    for name in ["", pathfarm_proto::JOBS_SERVICE] {
         reporter.set_service_status(name, status).await;
     }
 }

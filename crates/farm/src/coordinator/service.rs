@@ -37,15 +37,17 @@ pub(super) async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), CoordinatorError> {
     let (health, health_service) = tonic_health::server::health_reporter();
-    for name in [
-        "",
-        pathfarm_proto::JOBS_SERVICE,
-        pathfarm_proto::WORKERS_SERVICE,
-    ] {
+    for name in ["", pathfarm_proto::JOBS_SERVICE] {
         health
             .set_service_status(name, tonic_health::ServingStatus::NotServing)
             .await;
     }
+    health
+        .set_service_status(
+            pathfarm_proto::WORKERS_SERVICE,
+            tonic_health::ServingStatus::Serving,
+        )
+        .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(pathfarm_proto::FILE_DESCRIPTOR_SET)
         .build_v1()

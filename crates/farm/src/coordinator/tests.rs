@@ -575,7 +575,9 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .unwrap();
         assert_ne!(status.state, v1::JobState::Failed as i32, "{status:?}");
         saw_preview |= status.preview_available && status.state != v1::JobState::Done as i32;
-        saw_eta |= status.eta_seconds.is_some_and(|e| e.is_finite() && e >= 0.0);
+        saw_eta |= status
+            .eta_seconds
+            .is_some_and(|e| e.is_finite() && e >= 0.0);
         // the last tile ends the job: its results are assembled in the background
         let ended = [v1::JobState::Assembling, v1::JobState::Done];
         if ended.iter().any(|&e| status.state == e as i32) {
@@ -586,7 +588,10 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .unwrap();
     }
     assert!(tiles >= 4);
-    assert!(saw_preview, "a preview of the image so far while the job ran");
+    assert!(
+        saw_preview,
+        "a preview of the image so far while the job ran"
+    );
     assert!(saw_eta, "an ETA while the job ran");
     // the watch stream ends with DONE
     let mut last = first;
