@@ -12,3 +12,11 @@ fi
 
 # One build profile for tests and benchmarks: release.
 cargo test --release --workspace "$@"
+
+# With test-name arguments, only the cargo tests run.
+if [ "$#" -eq 0 ]; then
+    # Kubernetes manifests against the API schemas (offline; pip kubernetes-validate).
+    tests/k8s/validate.sh
+    # The docker-compose farm (builds the image; skips without Docker unless CI=true).
+    tests/compose/compose_test.sh
+fi

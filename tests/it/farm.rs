@@ -489,7 +489,7 @@ fn bundle_over_the_size_limit_is_refused_before_anything_is_uploaded() {
 }
 
 #[test]
-fn a_client_or_worker_of_another_protocol_version_is_refused_and_nothing_is_stored() {
+fn a_client_or_worker_of_another_protocol_version_or_build_is_refused_and_nothing_is_stored() {
     use pathfarm_proto::v1;
     let farm = Farm::start("protocol", 0);
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -537,12 +537,37 @@ fn a_client_or_worker_of_another_protocol_version_is_refused_and_nothing_is_stor
         let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
         req.metadata_mut()
             .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
-        let mut inbound = workers.control(req).await.unwrap().into_inner();
+        let mut inbound = workers.clone().control(req).await.unwrap().into_inner();
         let first = inbound.message().await.unwrap().unwrap();
         match first.msg {
             Some(v1::coordinator_message::Msg::Refused(r)) => {
                 assert!(r.reason.contains("worker protocol 999"), "{}", r.reason)
             }
+            other => panic!("expected Refused, got {other:?}"),
+        }
+        // the right protocol but another build: refused, saying so
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tx.send(v1::WorkerMessage {
+            msg: Some(v1::worker_message::Msg::Register(v1::Register {
+                protocol_version: pathfarm_proto::PROTOCOL_VERSION,
+                build_id: "another-build".into(),
+                threads: 1,
+                host_name: "test".into(),
+                worker_name: "other".into(),
+            })),
+        })
+        .await
+        .unwrap();
+        let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+        req.metadata_mut()
+            .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
+        let mut inbound = workers.control(req).await.unwrap().into_inner();
+        match inbound.message().await.unwrap().unwrap().msg {
+            Some(v1::coordinator_message::Msg::Refused(r)) => assert!(
+                r.reason.contains("build mismatch") && r.reason.contains("another-build"),
+                "{}",
+                r.reason
+            ),
             other => panic!("expected Refused, got {other:?}"),
         }
     });
