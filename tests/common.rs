@@ -278,3 +278,40 @@ impl Running {
         std::fs::read_to_string(&self.stderr).unwrap_or_default()
     }
 }
+
+/// The shipped door-ajar scene with `guided_path` (its pathfarm preset) at `res`.
+pub fn door_ajar(res: (u32, u32)) -> Scene {
+    let defs: Vec<(String, String)> = [
+        ("integrator", "guided_path".to_string()),
+        ("resx", res.0.to_string()),
+        ("resy", res.1.to_string()),
+    ]
+    .into_iter()
+    .map(|(a, b)| (a.to_string(), b))
+    .collect();
+    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
+    Scene::build(&desc).expect("build")
+}
+
+/// A small seeded generator (splitmix64) for test schedules.
+pub struct TestRng(pub u64);
+
+impl TestRng {
+    pub fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `0..n` (0 for n = 0).
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.next() % n.max(1)
+    }
+
+    /// True with probability `percent` / 100.
+    pub fn chance(&mut self, percent: u64) -> bool {
+        self.below(100) < percent
+    }
+}

@@ -117,6 +117,18 @@ impl Farm {
         env
     }
 
+    /// Starts `pathfarm ARGS` talking to this farm ([`Farm::client_env`], with `extra_env`
+    /// replacing or adding variables).
+    fn start_client(&self, args: &[&str], extra_env: &[(&str, &str)]) -> Running {
+        let base = self.client_env();
+        let mut env: Vec<(&str, &str)> = base.iter().map(|(k, v)| (*k, v.as_str())).collect();
+        for (k, v) in extra_env {
+            env.retain(|(key, _)| key != k);
+            env.push((k, v));
+        }
+        Running::start(args, &env)
+    }
+
     fn add_worker(&mut self) {
         let n = self.workers.len();
         let cache = self.data.join(format!("worker-{n}"));
@@ -129,9 +141,8 @@ impl Farm {
             "--cache",
             s(&cache),
         ];
-        let env = self.client_env();
-        let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
-        self.workers.push(Running::start(&args, &env));
+        let worker = self.start_client(&args, &[]);
+        self.workers.push(worker);
     }
 
     /// Waits (at most 30 s) until the coordinator accepts connections.
@@ -185,21 +196,36 @@ fn s(p: &Path) -> &str {
 /// The job the tests render: the shipped door-ajar scene (gaussian filter: tiles need their
 /// halo) with guided_path's pathfarm preset, small, an spp budget.
 fn job_args(spp: u32) -> Vec<String> {
+    job_args_seeded(spp, 5)
+}
+
+/// [`job_args`] with another seed.
+fn job_args_seeded(spp: u32, seed: u64) -> Vec<String> {
     let scene = project_scene("door-ajar");
     let mut v: Vec<String> = vec![scene.to_str().unwrap().to_string()];
     for d in ["integrator=guided_path", "resx=40", "resy=24"] {
         v.push("-D".into());
         v.push(d.into());
     }
-    v.extend(["--spp".into(), spp.to_string(), "--seed".into(), "5".into()]);
+    v.extend([
+        "--spp".into(),
+        spp.to_string(),
+        "--seed".into(),
+        seed.to_string(),
+    ]);
     v
 }
 
 /// `pathfarm render` of the job: the reference EXR's bytes.
 fn render_reference(dir: &Path, spp: u32) -> Vec<u8> {
-    let out = dir.join("render.exr");
+    render_reference_seeded(dir, spp, 5)
+}
+
+/// [`render_reference`] with another seed.
+fn render_reference_seeded(dir: &Path, spp: u32, seed: u64) -> Vec<u8> {
+    let out = dir.join(format!("render-{seed}.exr"));
     let mut args: Vec<String> = vec!["render".into()];
-    args.extend(job_args(spp));
+    args.extend(job_args_seeded(spp, seed));
     args.extend(["--no-png".into(), "-o".into(), s(&out).to_string()]);
     let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
     let r = Running::start(&argv, &[]).wait(Duration::from_secs(300));
@@ -208,8 +234,19 @@ fn render_reference(dir: &Path, spp: u32) -> Vec<u8> {
 }
 
 fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Running {
+    submit_seeded(farm, spp, 5, out, extra_env)
+}
+
+/// [`submit`] with another seed.
+fn submit_seeded(
+    farm: &Farm,
+    spp: u32,
+    seed: u64,
+    out: &Path,
+    extra_env: &[(&str, &str)],
+) -> Running {
     let mut args: Vec<String> = vec!["submit".into()];
-    args.extend(job_args(spp));
+    args.extend(job_args_seeded(spp, seed));
     args.extend([
         "--coordinator".into(),
         farm.url.clone(),
@@ -220,13 +257,7 @@ fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Runn
         s(out).to_string(),
     ]);
     let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
-    let base = farm.client_env();
-    let mut env: Vec<(&str, &str)> = base.iter().map(|(k, v)| (*k, v.as_str())).collect();
-    for (k, v) in extra_env {
-        env.retain(|(key, _)| key != k);
-        env.push((k, v));
-    }
-    Running::start(&argv, &env)
+    farm.start_client(&argv, extra_env)
 }
 
 #[derive(Clone, Copy, PartialEq, Eq)]
@@ -611,45 +642,18 @@ fn worker_on_sigterm_hands_back_its_leases_and_the_job_completes_bit_identical()
     assert_same_exr(&out, &reference, &farm);
 }
 
-/// A small deterministic generator for the soak's schedule.
-struct SoakRng(u64);
-
-impl SoakRng {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (self.0 >> 33) % n.max(1)
-    }
-}
-
 #[test]
 fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted() {
     // Three jobs at once on three workers; every 150-650 ms (seeded) a random worker is
     // killed with SIGKILL and a new one started, at most 10 times. Bounded: 300 s.
     let mut farm = Farm::start("soak", 3);
-    let specs = [(24u32, "3"), (32, "9"), (16, "21")];
+    let specs = [(24u32, 3u64), (32, 9), (16, 21)];
     let mut runs = Vec::new();
-    for (i, (spp, seed)) in specs.iter().enumerate() {
+    for (i, &(spp, seed)) in specs.iter().enumerate() {
         let out = farm.data.join(format!("soak-{i}.exr"));
-        let mut args: Vec<String> = vec!["submit".into()];
-        args.extend(job_args(*spp));
-        let n = args.len();
-        args[n - 1] = seed.to_string();
-        args.extend([
-            "--coordinator".into(),
-            farm.url.clone(),
-            "--tile".into(),
-            "8".into(),
-        ]);
-        args.extend(["--wait".into(), "-o".into(), s(&out).to_string()]);
-        let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
-        let env = farm.client_env();
-        let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
-        runs.push((Running::start(&argv, &env), out, *spp, *seed));
+        runs.push((submit_seeded(&farm, spp, seed, &out, &[]), out, spp, seed));
     }
-    let mut rng = SoakRng(0x5eed_50a4);
+    let mut rng = TestRng(0x5eed_50a4);
     let mut kills = 0;
     let t0 = Instant::now();
     while runs.iter_mut().any(|r| r.0.poll().is_none()) {
@@ -679,16 +683,8 @@ fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted
             farm.logs()
         );
         // the reference: pathfarm render of the same job
-        let reference = farm.data.join(format!("ref-{seed}.exr"));
-        let mut args: Vec<String> = vec!["render".into()];
-        args.extend(job_args(spp));
-        let n = args.len();
-        args[n - 1] = seed.to_string();
-        args.extend(["--no-png".into(), "-o".into(), s(&reference).to_string()]);
-        let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
-        let r = Running::start(&argv, &[]).wait(Duration::from_secs(120));
-        assert!(r.status.success(), "render: {}", r.describe());
-        assert_same_exr(&out, &fs::read(&reference).unwrap(), &farm);
+        let reference = render_reference_seeded(&farm.data, spp, seed);
+        assert_same_exr(&out, &reference, &farm);
     }
 }
 

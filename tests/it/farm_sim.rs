@@ -17,41 +17,8 @@ use pathfarm_render::guided::{
 };
 use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
-use pathfarm_scene::load_scene;
 
 use crate::common::*;
-
-/// A small seeded generator (splitmix64).
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n.max(1)
-    }
-    fn chance(&mut self, percent: u64) -> bool {
-        self.below(100) < percent
-    }
-}
-
-fn scene(res: (u32, u32)) -> Scene {
-    let defs: Vec<(String, String)> = [
-        ("integrator", "guided_path".to_string()),
-        ("resx", res.0.to_string()),
-        ("resy", res.1.to_string()),
-    ]
-    .into_iter()
-    .map(|(a, b)| (a.to_string(), b))
-    .collect();
-    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
-    Scene::build(&desc).expect("build")
-}
 
 /// A job as the driver holds it: its session and the unit in flight.
 struct SimJob {
@@ -108,7 +75,7 @@ impl SimWorker {
 }
 
 /// Offers a job's next unit to the scheduler, or marks it done.
-fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: &mut Rng) {
+fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: &mut TestRng) {
     match j.session.next(now.0 as f64 * 1e-3) {
         Next::Render(spec) => {
             if j.published.0 != spec.tree_version || j.published.1.is_empty() {
@@ -144,7 +111,7 @@ fn one_process(scene: &Scene, spp: u32, seed: u64) -> (Film, SdTree) {
 
 #[test]
 fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits() {
-    let scene = scene((17, 11));
+    let scene = door_ajar((17, 11));
     let params = scene.guided.clone().expect("guided");
     let config = SchedulerConfig {
         lease_timeout: Duration::from_millis(400),
@@ -153,8 +120,8 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
         leases_per_worker: 3,
     };
     for sim_seed in [1u64, 2, 3] {
-        let mut rng = Rng(sim_seed * 0x1234_5678);
-        let mut tiling = Rng(sim_seed ^ 0xabcd);
+        let mut rng = TestRng(sim_seed * 0x1234_5678);
+        let mut tiling = TestRng(sim_seed ^ 0xabcd);
         let mut sched = Scheduler::new(config.clone());
         let mut now = Millis(0);
         let mut jobs: BTreeMap<u64, SimJob> = BTreeMap::new();

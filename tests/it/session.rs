@@ -11,22 +11,9 @@ use pathfarm_render::guided::{
 };
 use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
-use pathfarm_scene::{load_scene, GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
+use pathfarm_scene::{GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
 
 use crate::common::*;
-
-fn door_ajar(res: (u32, u32)) -> Scene {
-    let defs: Vec<(String, String)> = [
-        ("integrator", "guided_path".to_string()),
-        ("resx", res.0.to_string()),
-        ("resy", res.1.to_string()),
-    ]
-    .into_iter()
-    .map(|(a, b)| (a.to_string(), b))
-    .collect();
-    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
-    Scene::build(&desc).expect("build")
-}
 
 /// A worker's view: the tree of a version, refreshed when the unit names another version.
 struct WorkerTree {

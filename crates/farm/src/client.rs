@@ -226,16 +226,21 @@ pub struct Client {
     jobs: JobsClient<AuthChannel>,
 }
 
-/// Connects to the coordinator at `url` (`http://host:port`), with an optional bearer token.
-pub async fn connect(r: &Remote) -> Result<Client, ClientError> {
-    let auth = Auth::new(r.token.as_deref())?;
-    let channel = endpoint(r)?
+/// A connected channel to the coordinator `r`.
+async fn dial(r: &Remote) -> Result<Channel, ClientError> {
+    endpoint(r)?
         .connect()
         .await
         .map_err(|e| ClientError::Connect {
             url: r.url.clone(),
             message: error_chain(&e),
-        })?;
+        })
+}
+
+/// Connects to the coordinator at `url` (`http://host:port`), with an optional bearer token.
+pub async fn connect(r: &Remote) -> Result<Client, ClientError> {
+    let auth = Auth::new(r.token.as_deref())?;
+    let channel = dial(r).await?;
     Ok(Client {
         jobs: JobsClient::with_interceptor(channel, auth),
     })
@@ -245,13 +250,7 @@ pub async fn connect(r: &Remote) -> Result<Client, ClientError> {
 /// whole) is serving: `Ok(true)` if SERVING. No token needed (health checks are open).
 pub async fn health(r: &Remote, service: &str) -> Result<bool, ClientError> {
     use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient};
-    let channel = endpoint(r)?
-        .connect()
-        .await
-        .map_err(|e| ClientError::Connect {
-            url: r.url.clone(),
-            message: error_chain(&e),
-        })?;
+    let channel = dial(r).await?;
     let status = HealthClient::new(channel)
         .check(tonic_health::pb::HealthCheckRequest {
             service: service.to_string(),

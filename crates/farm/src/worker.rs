@@ -247,7 +247,7 @@ async fn session<S: Future<Output = ()>>(
     let mut queue: VecDeque<v1::Lease> = VecDeque::new();
     let mut running: Option<Running> = None;
     // Uploads in progress: (lease, job) -> outcome. The next lease renders meanwhile.
-    let mut uploads: tokio::task::JoinSet<(u64, String, UploadEnd)> = tokio::task::JoinSet::new();
+    let mut uploads = Uploads::new();
     let mut uploading: Vec<u64> = Vec::new();
     let mut shutdown_seen = *stop;
     let lost: Option<String> = loop {
@@ -285,9 +285,8 @@ async fn session<S: Future<Output = ()>>(
                 });
                 match end {
                     LeaseEnd::Rendered(tile) => {
-                        let (id, job, api) = (r.lease_id, r.job_id.clone(), api.clone());
-                        uploading.push(id);
-                        uploads.spawn(async move { (id, job, upload(api, tile).await) });
+                        uploading.push(r.lease_id);
+                        spawn_upload(&mut uploads, &api, r.lease_id, r.job_id.clone(), tile);
                     }
                     LeaseEnd::Cancelled => {
                         tracing::info!("lease {} (job {}): cancelled, nothing uploaded", r.lease_id, r.job_id);
@@ -376,9 +375,7 @@ async fn session<S: Future<Output = ()>>(
             );
         }
         if let Ok(LeaseEnd::Rendered(tile)) = r.handle.await {
-            let (id, job) = (r.lease_id, r.job_id);
-            let api = api.clone();
-            uploads.spawn(async move { (id, job, upload(api, tile).await) });
+            spawn_upload(&mut uploads, &api, r.lease_id, r.job_id, tile);
         }
     }
     while uploads.join_next().await.is_some() {}
@@ -488,6 +485,15 @@ async fn do_lease(
     }
     LeaseEnd::Rendered(tile)
 }
+
+/// Uploads lease `id`'s tile in the background; its outcome arrives on `uploads`.
+fn spawn_upload(uploads: &mut Uploads, api: &Api, id: u64, job: String, tile: RenderedTile) {
+    let api = api.clone();
+    uploads.spawn(async move { (id, job, upload(api, tile).await) });
+}
+
+/// Uploads in progress: (lease, job) and the outcome.
+type Uploads = tokio::task::JoinSet<(u64, String, UploadEnd)>;
 
 /// Uploads a rendered tile: the header, then its pixels and statistics in chunks.
 async fn upload(mut api: Api, tile: RenderedTile) -> UploadEnd {

@@ -216,12 +216,7 @@ fn referenced(st: &State) -> HashSet<Digest> {
         if let Some(p) = Parts::of(r) {
             live.extend(p.digests());
         }
-        if let Some(a) = &job.active {
-            live.extend(a.preview);
-            live.extend(a.tree_digest.map(|(_, x)| x));
-            live.extend(a.fractions_digest.map(|(_, x)| x));
-            live.extend(a.estimate_digest.as_ref().and_then(|(_, x)| d(x)));
-        }
+        live.extend(job.active.iter().flat_map(|a| a.blobs()));
     }
     live
 }

@@ -3,7 +3,6 @@
 //! refining, publishing). Logged as one `unit finished` line per unit and added to the
 //! metrics; the farm benchmark (`bench/farm.py`) reads the lines.
 
-use std::sync::atomic::Ordering::Relaxed;
 use std::time::Instant;
 
 use pathfarm_proto::v1;
@@ -69,7 +68,7 @@ impl UnitLedger {
     pub(crate) fn start(publish_s: f64, metrics: &Metrics) -> Self {
         Self {
             publish_s,
-            blobs_sent_before: metrics.blob_bytes_fetched.load(Relaxed),
+            blobs_sent_before: metrics.blob_bytes_sent.get(),
             ..Self::default()
         }
     }
@@ -91,8 +90,8 @@ impl UnitLedger {
         let (unit, iteration) = (spec.unit, spec.iteration);
         let wall = self.started.elapsed().as_secs_f64();
         let sent = metrics
-            .blob_bytes_fetched
-            .load(Relaxed)
+            .blob_bytes_sent
+            .get()
             .saturating_sub(self.blobs_sent_before);
         tracing::info!(
             job,

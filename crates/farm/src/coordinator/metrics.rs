@@ -5,7 +5,7 @@
 //! flight and ready) are read from the coordinator's state at each scrape, so they are
 //! never stale.
 
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 
 use prometheus_client::encoding::EncodeLabelSet;
@@ -43,9 +43,8 @@ pub(crate) struct Metrics {
     workers: Gauge,
     tiles_in_flight: Gauge,
     tiles_ready: Gauge,
-    /// Bytes of blobs and results sent (a plain atomic: the unit ledger reads it too).
-    pub(crate) blob_bytes_fetched: AtomicU64,
-    blob_bytes_sent: Counter,
+    /// Bytes of blobs and results sent (the unit ledger reads it too).
+    pub(crate) blob_bytes_sent: Counter,
     tile_bytes_uploaded: Counter,
     tiles: Family<OutcomeLabel, Counter>,
     units: Counter,
@@ -60,7 +59,6 @@ impl Default for Metrics {
             workers: Gauge::default(),
             tiles_in_flight: Gauge::default(),
             tiles_ready: Gauge::default(),
-            blob_bytes_fetched: AtomicU64::new(0),
             blob_bytes_sent: Counter::default(),
             tile_bytes_uploaded: Counter::default(),
             tiles: Family::default(),
@@ -110,7 +108,6 @@ impl Default for Metrics {
 impl Metrics {
     /// Counts `bytes` of blob or result sent.
     pub(crate) fn blob_sent(&self, bytes: u64) {
-        self.blob_bytes_fetched.fetch_add(bytes, Relaxed);
         self.blob_bytes_sent.inc_by(bytes);
     }
 

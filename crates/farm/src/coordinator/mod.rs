@@ -205,6 +205,24 @@ pub(crate) struct Active {
     pub(crate) samples_total: u64,
 }
 
+impl Active {
+    /// The blobs the job's unit in flight refers to: its published inputs (tree, fractions,
+    /// pixel estimate) and the preview.
+    pub(crate) fn blobs(&self) -> Vec<Digest> {
+        let estimate = self.estimate_digest.as_ref().map(|x| x.1.as_slice());
+        let estimate = estimate.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest));
+        let published = [
+            self.tree_digest.map(|x| x.1),
+            self.fractions_digest.map(|x| x.1),
+        ];
+        published
+            .into_iter()
+            .chain([estimate, self.preview])
+            .flatten()
+            .collect()
+    }
+}
+
 pub(crate) struct Job {
     pub(crate) record: JobRecord,
     pub(crate) active: Option<Active>,
@@ -593,11 +611,7 @@ impl Shared {
                 job.record.state = v1::JobState::Assembling as i32;
                 job.record.spp_done = a.session.spp_done();
                 job.record.iteration = a.session.iteration();
-                let mut released: Vec<Digest> = a.tree_digest.map(|x| x.1).into_iter().collect();
-                released.extend(a.preview);
-                released.extend(a.fractions_digest.map(|x| x.1));
-                let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
-                released.extend(e.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
+                let released = a.blobs();
                 let _ = st.sched.remove_job(JobId(n));
                 st.leases.retain(|_, l| l.key.job != JobId(n));
                 self.publish_status(st, n);
@@ -688,13 +702,7 @@ impl Shared {
             return;
         };
         let mut out = checkpoints::take_parts(&mut job.record);
-        if let Some(a) = &job.active {
-            out.extend(a.preview);
-            out.extend(a.tree_digest.map(|x| x.1));
-            out.extend(a.fractions_digest.map(|x| x.1));
-            let e = a.estimate_digest.as_ref().map(|x| x.1.as_slice());
-            out.extend(e.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
-        }
+        out.extend(job.active.iter().flat_map(Active::blobs));
         st.garbage.extend(out);
     }
 
