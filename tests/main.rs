@@ -6,6 +6,7 @@ mod common;
 mod it {
     pub mod analytic;
     pub mod bad_input;
+    pub mod converge;
     pub mod crosscheck;
     pub mod determinism;
     pub mod farm;

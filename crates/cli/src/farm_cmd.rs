@@ -415,7 +415,8 @@ fn state_name(s: i32) -> &'static str {
 }
 
 /// Watches `job` with a progress bar until it ends; errors unless it ended DONE.
-async fn wait_for(client: &mut Client, job: &str) -> Result<()> {
+/// Follows `job` with a progress bar until it ends; its last status if it is done.
+async fn wait_for(client: &mut Client, job: &str) -> Result<v1::JobStatus> {
     let bar = ProgressBar::new(1);
     bar.set_style(
         ProgressStyle::with_template(
@@ -442,7 +443,7 @@ async fn wait_for(client: &mut Client, job: &str) -> Result<()> {
     bar.finish_and_clear();
     let status = status?;
     match v1::JobState::try_from(status.state) {
-        Ok(v1::JobState::Done) => Ok(()),
+        Ok(v1::JobState::Done) => Ok(status),
         Ok(v1::JobState::Failed) => bail!("job {job} failed: {}", status.failure_reason),
         Ok(v1::JobState::Cancelled) => bail!("job {job} was cancelled"),
         _ => bail!("job {job} ended in state {}", state_name(status.state)),
@@ -466,10 +467,11 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
             let job = client.submit(&args.scene, &opts).await?;
             println!("{job}");
             if args.wait {
-                wait_for(&mut client, &job).await?;
+                let status = wait_for(&mut client, &job).await?;
                 if let Some(outs) = outs {
                     write_results(&mut client, &job, outs).await?;
                 }
+                print_summary(&status);
             }
             anyhow::Ok(())
         };
@@ -478,6 +480,15 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
             _ = signals.recv() => bail!("interrupted"),
         }
     })
+}
+
+/// A finished job's summary line, in the form of `pathfarm render`'s.
+fn print_summary(s: &v1::JobStatus) {
+    let wall = s.finished_unix_ms.saturating_sub(s.started_unix_ms) as f64 / 1000.0;
+    println!(
+        "summary: job={} spp={} wall_s={wall:.3} nonfinite={}",
+        s.job_id, s.spp_done, s.nonfinite
+    );
 }
 
 fn ms_ago(unix_ms: u64) -> String {
@@ -532,6 +543,7 @@ pub fn status(args: StatusArgs) -> Result<()> {
             println!("tiles:      {}/{}", s.tiles_done, s.tiles_total);
             println!("samples:    {}/{}", s.samples_done, s.samples_total);
             println!("spp done:   {}", s.spp_done);
+            println!("nonfinite:  {}", s.nonfinite);
             if let Some(e) = s.eta_seconds {
                 println!("eta:        {e:.0} s");
             }
@@ -806,18 +818,19 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
                 "submitted job {job} to a cluster of {} workers",
                 args.workers
             );
-            {
+            let status = {
                 let watch = wait_for(&mut client, &job);
                 tokio::pin!(watch);
                 let mut tick = tokio::time::interval(Duration::from_millis(500));
                 loop {
                     tokio::select! {
-                        r = &mut watch => { r?; break; }
+                        r = &mut watch => break r?,
                         _ = tick.tick() => cluster.check_alive()?,
                     }
                 }
-            }
+            };
             write_results(&mut client, &job, outs).await?;
+            print_summary(&status);
             anyhow::Ok(())
         };
         let r = tokio::select! {

@@ -1,5 +1,6 @@
 //! `pathfarm`: the command line.
 
+mod converge;
 mod cpu_time;
 mod farm_cmd;
 mod guide_cmd;
@@ -43,21 +44,31 @@ enum Command {
     Fetch(farm_cmd::FetchArgs),
     /// Render one scene on a local farm: a coordinator and N worker processes.
     Cluster(farm_cmd::ClusterArgs),
+    /// Error against time: every method at every budget against a reference (CSV, charts,
+    /// a noise figure, a summary).
+    Converge(converge::ConvergeArgs),
     /// Ask a coordinator's gRPC health service (exit 0 if SERVING): container health checks.
     Health(farm_cmd::HealthArgs),
 }
 
 fn main() {
+    let cli = Cli::parse();
+    // converge renders dozens of times: each render's progress lines would bury its own
+    // progress bar, so it logs warnings only unless RUST_LOG says otherwise.
+    let level = match cli.command {
+        Command::Converge(_) => "warn",
+        _ => "info",
+    };
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
         )
         .with_target(false)
         .init();
-    let cli = Cli::parse();
     let result: Result<()> = match cli.command {
         Command::Render(a) => render_cmd::render(a),
+        Command::Converge(a) => converge::converge(a),
         Command::Info(a) => render_cmd::info(a),
         Command::Guide(c) => guide_cmd::run(c),
         Command::Coordinator(a) => farm_cmd::coordinator(a),

@@ -185,15 +185,6 @@ pub fn render(args: RenderArgs) -> Result<()> {
         scene.lights.lights.len(),
         desc.features
     );
-    let settings = RenderSettings::new(
-        args.spp.or(if args.time.is_some() {
-            None
-        } else {
-            Some(scene.sample_count)
-        }),
-        args.time.map(Duration::from_secs_f64),
-        args.seed.unwrap_or(scene.seed),
-    );
     let bar = ProgressBar::new(1);
     bar.set_style(
         ProgressStyle::with_template(
@@ -206,62 +197,30 @@ pub fn render(args: RenderArgs) -> Result<()> {
         bar.set_length(p.samples_total);
         bar.set_position(p.samples_done);
     };
-    let (film, stats) = match &scene.guided {
-        None => pathfarm_render::render(&scene, &settings, &progress),
-        Some(params) => {
-            // --spp / --time set the guided budget (training + final) as they set the
-            // path tracer's; otherwise the integrator's own budget applies.
-            let budget = match (args.spp, args.time) {
-                (Some(s), _) => Budget::Spp(s),
-                (None, Some(t)) => Budget::Seconds(t),
-                (None, None) => guided::params_budget(params, &scene),
-            };
-            guided::check_budget(params, budget).map_err(anyhow::Error::msg)?;
-            let on_iteration = |it: &guided::GuidedIteration| {
-                bar.suspend(|| {
-                    tracing::info!(
-                        "iteration {}: spp={} nodes={} leaves={} variance={:.6e} time={:.3}s rays_per_sample={:.3}",
-                        it.index,
-                        it.spp,
-                        it.nodes,
-                        it.leaves,
-                        it.variance,
-                        it.seconds,
-                        it.rays_per_sample
-                    )
-                })
-            };
-            let (film, gs, _tree) = guided::render_guided_with(
-                &scene,
-                params,
-                budget,
-                &settings,
-                &progress,
-                &on_iteration,
-            );
-            bar.suspend(|| {
-                tracing::info!(
-                    "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?} \
-                     path_fallback={} split_paths={} extra_light_samples={}",
-                    gs.training_fraction,
-                    gs.tree_memory_bytes as f64 / 1048576.0,
-                    gs.weights,
-                    gs.path_fallback_after
-                        .map_or("no".to_string(), |k| format!("after_iteration_{k}")),
-                    gs.split_paths,
-                    gs.extra_light_samples
-                )
-            });
-            (
-                film,
-                pathfarm_render::RenderStats {
-                    spp: gs.spp,
-                    wall: gs.wall,
-                    invalid_samples: gs.invalid_samples,
-                },
+    let on_iteration = |it: &guided::GuidedIteration| {
+        bar.suspend(|| {
+            tracing::info!(
+                "iteration {}: spp={} nodes={} leaves={} variance={:.6e} time={:.3}s rays_per_sample={:.3}",
+                it.index,
+                it.spp,
+                it.nodes,
+                it.leaves,
+                it.variance,
+                it.seconds,
+                it.rays_per_sample
             )
-        }
+        })
     };
+    let budget = RenderBudget {
+        spp: args.spp,
+        time: args.time,
+    };
+    let seed = args.seed.unwrap_or(scene.seed);
+    let rendered = render_scene(&scene, budget, seed, &progress, &on_iteration)?;
+    if let Some(gs) = &rendered.guided {
+        bar.suspend(|| log_guided(gs));
+    }
+    let (film, stats) = (rendered.film, rendered.stats);
     let cpu = (process_cpu_time() - cpu0).as_secs_f64();
     bar.finish_and_clear();
     if stats.spp == 0 {
@@ -275,6 +234,12 @@ pub fn render(args: RenderArgs) -> Result<()> {
         tracing::warn!(
             "{} samples were NaN or infinite and counted as zero",
             stats.invalid_samples
+        );
+    }
+    if stats.nonfinite_records > 0 {
+        tracing::warn!(
+            "{} guide records were NaN or infinite and left out of the SD-tree",
+            stats.nonfinite_records
         );
     }
     let exr = output::encode_exr(&film, args.aovs)
@@ -293,13 +258,91 @@ pub fn render(args: RenderArgs) -> Result<()> {
     outfile::commit_all(outputs)?;
     let samples = film.width as f64 * film.height as f64 * stats.spp as f64;
     println!(
-        "summary: resolution={}x{} spp={} wall_s={:.3} cpu_s={:.3} samples_per_cpu_s={:.0}",
+        "summary: resolution={}x{} spp={} wall_s={:.3} cpu_s={:.3} samples_per_cpu_s={:.0} \
+         nonfinite={}",
         film.width,
         film.height,
         stats.spp,
         stats.wall.as_secs_f64(),
         cpu,
-        samples / cpu.max(1e-9)
+        samples / cpu.max(1e-9),
+        stats.nonfinite()
     );
     Ok(())
+}
+
+/// A render's budget as the command line gives it: `--spp`, `--time`, or neither (the
+/// scene's own).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct RenderBudget {
+    pub spp: Option<u32>,
+    pub time: Option<f64>,
+}
+
+/// What rendering a scene in this process gives.
+pub struct Rendered {
+    pub film: pathfarm_render::Film,
+    pub stats: pathfarm_render::RenderStats,
+    /// The guided integrator's statistics (`guided_path` scenes only).
+    pub guided: Option<guided::GuidedStats>,
+}
+
+/// Renders `scene` with its integrator within `budget` from `seed`: `pathfarm render`'s
+/// work, shared with `pathfarm converge`.
+pub fn render_scene(
+    scene: &Scene,
+    budget: RenderBudget,
+    seed: u64,
+    progress: &(dyn Fn(pathfarm_render::Progress) + Sync),
+    on_iteration: &dyn Fn(&guided::GuidedIteration),
+) -> Result<Rendered> {
+    // Without --spp or --time the path tracer renders the scene's sample count.
+    let spp = match budget.time {
+        Some(_) => budget.spp,
+        None => budget.spp.or(Some(scene.sample_count)),
+    };
+    let settings = &RenderSettings::new(spp, budget.time.map(Duration::from_secs_f64), seed);
+    let Some(params) = &scene.guided else {
+        let (film, stats) = pathfarm_render::render(scene, settings, progress);
+        return Ok(Rendered {
+            film,
+            stats,
+            guided: None,
+        });
+    };
+    // --spp / --time set the guided budget (training + final) as they set the path
+    // tracer's; otherwise the integrator's own budget applies.
+    let b = match (budget.spp, budget.time) {
+        (Some(s), _) => Budget::Spp(s),
+        (None, Some(t)) => Budget::Seconds(t),
+        (None, None) => guided::params_budget(params, scene),
+    };
+    guided::check_budget(params, b).map_err(anyhow::Error::msg)?;
+    let (film, gs, _tree) =
+        guided::render_guided_with(scene, params, b, settings, progress, on_iteration);
+    let stats = pathfarm_render::RenderStats {
+        spp: gs.spp,
+        wall: gs.wall,
+        invalid_samples: gs.invalid_samples,
+        nonfinite_records: gs.nonfinite_records,
+    };
+    Ok(Rendered {
+        film,
+        stats,
+        guided: Some(gs),
+    })
+}
+
+fn log_guided(gs: &guided::GuidedStats) {
+    tracing::info!(
+        "guided: training_fraction={:.3} tree_memory_mb={:.3} weights={:?} \
+         path_fallback={} split_paths={} extra_light_samples={}",
+        gs.training_fraction,
+        gs.tree_memory_bytes as f64 / 1048576.0,
+        gs.weights,
+        gs.path_fallback_after
+            .map_or("no".to_string(), |k| format!("after_iteration_{k}")),
+        gs.split_paths,
+        gs.extra_light_samples
+    );
 }

@@ -895,6 +895,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         counters: Some(v1::TileCounters {
             rays: out.rays,
             invalid_samples: out.invalid_samples,
+            nonfinite_records: out.nonfinite_records,
             split_paths: out.split_paths,
             extra_light_samples: out.extra_light_samples,
             render_seconds: seconds,

@@ -10,9 +10,10 @@ use glam::Vec3;
 ///
 /// Validity rules applied by [`crate::SdTree::record`]:
 /// * records with a non-finite or non-positive `weight`, a non-finite or non-positive
-///   `pdf_mix`, or a non-finite `position`/`direction` are skipped entirely;
+///   `pdf_mix`, or a non-finite `radiance`/`position`/`direction` are skipped entirely; those
+///   skipped for a NaN or infinity are counted ([`crate::SdTree::take_nonfinite_records`]);
 /// * otherwise W gains `weight`; the sum gains `weight * radiance / pdf_mix` only when that value
-///   is finite and > 0 (zero, negative or non-finite radiance changes W only);
+///   is > 0 (zero or negative radiance changes W only);
 /// * the learned fraction uses the record when it is not `is_delta` and `product > 0`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Record {

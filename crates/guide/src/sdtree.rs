@@ -120,6 +120,10 @@ pub struct SdTree {
     pub(crate) leaves: Vec<Leaf>,
     pub(crate) built: bool,
     pub(crate) overflow: AtomicU64,
+    /// Records and light samples rejected because a value was NaN or infinite, since the
+    /// last [`SdTree::take_nonfinite_records`] (not part of the statistics or the wire form:
+    /// renderers report it beside their own non-finite sample count).
+    pub(crate) nonfinite: AtomicU64,
     /// Set by `refine` when `max_dtree_nodes` raised the quadtree threshold.
     pub(crate) raised_rho: Option<f64>,
     /// [`SdTree::structure_hash`], computed once per structure (every statistics exchange
@@ -184,6 +188,7 @@ impl Clone for SdTree {
             leaves: self.leaves.clone(),
             built: self.built,
             overflow: AtomicU64::new(self.overflow.load(Relaxed)),
+            nonfinite: AtomicU64::new(self.nonfinite.load(Relaxed)),
             raised_rho: self.raised_rho,
             hash: self.hash.clone(),
             touched: self.touched.clone(),
@@ -212,6 +217,7 @@ impl SdTree {
             leaves: vec![Leaf::initial()],
             built: false,
             overflow: AtomicU64::new(0),
+            nonfinite: AtomicU64::new(0),
             raised_rho: None,
             hash: OnceLock::new(),
             touched: TouchedLeaves::new(1),
@@ -241,6 +247,12 @@ impl SdTree {
     /// Whether sampling distributions exist (at least one [`SdTree::refine`] happened).
     pub fn is_built(&self) -> bool {
         self.built
+    }
+
+    /// Records and light samples rejected since the last call because a value was NaN or
+    /// infinite, leaving zero: a renderer adds it to the non-finite count it reports.
+    pub fn take_nonfinite_records(&self) -> u64 {
+        self.nonfinite.swap(0, Relaxed)
     }
 
     /// Number of fixed-point overflow events so far (0 unless sums exceed `2^80` units or one
@@ -369,6 +381,10 @@ impl SdTree {
     /// (thread safe, exact; see [`crate::light`]).
     #[inline]
     pub fn record_light_sample(&self, h: LeafHandle, value: f32) {
+        if !value.is_finite() {
+            self.nonfinite.fetch_add(1, Relaxed);
+            return;
+        }
         self.touched.insert(h.0);
         self.leaves[h.0 as usize]
             .light
@@ -414,6 +430,9 @@ impl SdTree {
     /// guide at the vertex have it and save a lookup).
     pub fn record_at(&self, rec: &Record, at: &SLookup, rng: &mut impl FnMut() -> f32) {
         if !record_is_valid(rec) {
+            if record_has_nonfinite(rec) {
+                self.nonfinite.fetch_add(1, Relaxed);
+            }
             return;
         }
         let w = rec.weight as f64;
@@ -853,7 +872,7 @@ fn take_nonzero(a: &Acc128) -> u128 {
 }
 
 /// Whether [`SdTree::record`] uses `rec` at all: positive finite weight and mixture pdf,
-/// finite position and direction.
+/// finite radiance, position and direction.
 fn record_is_valid(rec: &Record) -> bool {
     let w = rec.weight as f64;
     let pm = rec.pdf_mix as f64;
@@ -861,6 +880,17 @@ fn record_is_valid(rec: &Record) -> bool {
         && w.is_finite()
         && pm > 0.0
         && pm.is_finite()
+        && rec.radiance.is_finite()
         && rec.position.is_finite()
         && rec.direction.is_finite()
+}
+
+/// Whether one of the values [`record_is_valid`] checks is NaN or infinite (a record
+/// rejected for that is counted; one of weight 0 is routine and is not).
+fn record_has_nonfinite(rec: &Record) -> bool {
+    !(rec.weight.is_finite()
+        && rec.pdf_mix.is_finite()
+        && rec.radiance.is_finite()
+        && rec.position.is_finite()
+        && rec.direction.is_finite())
 }

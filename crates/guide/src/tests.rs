@@ -363,7 +363,8 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
             &mut rng.rng(),
         );
     }
-    // Zero-radiance, negative and NaN radiance records only add to W; invalid weights add nothing.
+    // Zero and negative radiance records only add to W; NaN or infinite radiance and invalid
+    // weights add nothing, and the non-finite ones are counted.
     let leaf = &tree.leaves()[0];
     let sums_before: Vec<u128> = leaf
         .building
@@ -399,12 +400,18 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
         sums_before, sums_after,
         "zero / invalid radiance must not change sums"
     );
-    assert_eq!(leaf.building.weight_fixed(), w_before + 4 * FIXED_ONE);
+    assert_eq!(leaf.building.weight_fixed(), w_before + 2 * FIXED_ONE);
+    assert_eq!(
+        tree.take_nonfinite_records(),
+        3,
+        "NaN and inf radiance, NaN weight"
+    );
+    assert_eq!(tree.take_nonfinite_records(), 0, "taken");
 
     tree.refine(0);
     let t = &tree.leaves()[0].sampling;
     let w = t.weight();
-    assert_eq!(w, (n + 4) as f64);
+    assert_eq!(w, (n + 2) as f64);
     let mean: f64 = vals.iter().sum::<f64>() / n as f64;
     let var: f64 = vals.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64;
     let se = (var / n as f64).sqrt();
@@ -1512,6 +1519,7 @@ fn light_sample_statistics_freeze_their_mean_and_deviation_at_refinement() {
     for v in [0.0, 1.0, 2.0, 3.0, -1.0, f32::NAN, f32::INFINITY] {
         t.record_light_sample(h, v); // the last three are ignored
     }
+    assert_eq!(t.take_nonfinite_records(), 2, "NaN and inf are counted");
     assert_eq!(
         t.light_sample_stats_leaf(h),
         (0.0, 0.0),

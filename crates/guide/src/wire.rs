@@ -576,6 +576,7 @@ impl SdTree {
             leaves,
             built,
             overflow: AtomicU64::new(overflow),
+            nonfinite: AtomicU64::new(0),
             raised_rho: None,
             hash: Default::default(),
             touched: crate::sdtree::TouchedLeaves::new(nl),

@@ -15,7 +15,7 @@ use crate::film::{Film, PixelStats};
 use crate::guided::GuidedIteration;
 
 const MAGIC: &[u8; 4] = b"PFCK";
-const VERSION: u8 = 2;
+const VERSION: u8 = 3;
 
 /// A checkpoint that does not decode.
 #[derive(Debug, thiserror::Error)]
@@ -165,7 +165,7 @@ pub(crate) fn header(out: &mut Out) {
 pub(crate) fn check_header(inp: &mut In) -> Result<(), CheckpointError> {
     let m = inp.take(5)?;
     if &m[..4] != MAGIC || m[4] != VERSION {
-        return Err(CheckpointError("not a version-2 session checkpoint".into()));
+        return Err(CheckpointError("not a version-3 session checkpoint".into()));
     }
     Ok(())
 }

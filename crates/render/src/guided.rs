@@ -77,6 +77,8 @@ pub struct GuidedStats {
     pub wall: Duration,
     /// Camera samples that produced a non-finite value (counted as zero).
     pub invalid_samples: u64,
+    /// Guide records and light samples rejected for a non-finite value.
+    pub nonfinite_records: u64,
     /// Path fallback: the training iteration after which the rest of the budget was rendered
     /// as plain path tracing (guiding did not pay), if it happened.
     pub path_fallback_after: Option<u32>,

@@ -94,6 +94,8 @@ pub struct TileOutput {
     pub rays: u64,
     /// Camera samples with a non-finite value (counted as zero).
     pub invalid_samples: u64,
+    /// Guide records and light samples the tree rejected for a non-finite value.
+    pub nonfinite_records: u64,
     /// Extra paths made by splitting.
     pub split_paths: u64,
     /// Extra light samples taken by light splitting.
@@ -171,6 +173,7 @@ pub fn render_unit(
         film,
         rays: counters.rays.total(),
         invalid_samples: invalid,
+        nonfinite_records: inputs.tree.take_nonfinite_records(),
         split_paths: counters.splits.total(),
         extra_light_samples: counters.light_splits.total(),
     }

@@ -60,6 +60,16 @@ pub struct RenderStats {
     pub wall: Duration,
     /// Camera samples that produced a non-finite value (counted as zero).
     pub invalid_samples: u64,
+    /// Guide records and light samples rejected for a non-finite value (guided renders).
+    pub nonfinite_records: u64,
+}
+
+impl RenderStats {
+    /// Everything the render dropped for being NaN or infinite: samples and guide records
+    /// (the `nonfinite=` of the summary line).
+    pub fn nonfinite(&self) -> u64 {
+        self.invalid_samples + self.nonfinite_records
+    }
 }
 
 /// One camera sample, kept until it has been splatted: its film position
@@ -367,6 +377,7 @@ where
         spp: spp_done,
         wall: start.elapsed(),
         invalid_samples: ctx.invalid.load(Ordering::Relaxed),
+        nonfinite_records: 0,
     }
 }
 

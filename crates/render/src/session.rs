@@ -184,6 +184,7 @@ pub struct Session {
     fallback: Fallback,
     rays: u64,
     invalid: u64,
+    nonfinite_records: u64,
     splits: u64,
     light_splits: u64,
     finished_at: f64,
@@ -243,6 +244,7 @@ impl Session {
             },
             rays: 0,
             invalid: 0,
+            nonfinite_records: 0,
             splits: 0,
             light_splits: 0,
             finished_at: 0.0,
@@ -311,6 +313,11 @@ impl Session {
     /// Samples per pixel rendered so far (guided and unguided).
     pub fn spp_done(&self) -> u64 {
         self.spp_done + self.fallback.path_spp
+    }
+
+    /// Samples and guide records dropped so far for a NaN or infinite value.
+    pub fn nonfinite(&self) -> u64 {
+        self.invalid + self.nonfinite_records
     }
 
     /// The training iteration in progress (or the last one).
@@ -424,6 +431,7 @@ impl Session {
         self.rays += out.rays;
         p.rays += out.rays;
         self.invalid += out.invalid_samples;
+        self.nonfinite_records += out.nonfinite_records;
         self.splits += out.split_paths;
         self.light_splits += out.extra_light_samples;
         if p.left == 0 {
@@ -476,6 +484,7 @@ impl Session {
             weights,
             wall: std::time::Duration::from_secs_f64(self.finished_at.max(0.0)),
             invalid_samples: self.invalid,
+            nonfinite_records: self.nonfinite_records,
             path_fallback_after: self.fallback.fell_back_after,
             split_paths: self.splits,
             extra_light_samples: self.light_splits,
@@ -943,7 +952,14 @@ impl Session {
         self.estimate.iter().for_each(|&x| o.u32(x.to_bits()));
         o.u32(self.estimate_version);
         self.checkpoint_fallback(&mut o);
-        for v in [self.rays, self.invalid, self.splits, self.light_splits] {
+        let counters = [
+            self.rays,
+            self.invalid,
+            self.nonfinite_records,
+            self.splits,
+            self.light_splits,
+        ];
+        for v in counters {
             o.u64(v);
         }
         let films = self.films.iter().chain([&self.fallback.path_film]);
@@ -1027,6 +1043,7 @@ impl Session {
         for v in [
             &mut s.rays,
             &mut s.invalid,
+            &mut s.nonfinite_records,
             &mut s.splits,
             &mut s.light_splits,
         ] {

@@ -53,6 +53,9 @@ pub(crate) struct JobRecord {
     pub checkpoint_tree: Vec<u8>,
     #[prost(bytes = "vec", repeated, tag = "17")]
     pub checkpoint_films: Vec<Vec<u8>>,
+    /// Samples and guide records dropped for a NaN or infinite value (final once done).
+    #[prost(uint64, tag = "18")]
+    pub nonfinite: u64,
 }
 
 pub(crate) struct Db {

@@ -611,6 +611,7 @@ impl Shared {
                 job.record.state = v1::JobState::Assembling as i32;
                 job.record.spp_done = a.session.spp_done();
                 job.record.iteration = a.session.iteration();
+                job.record.nonfinite = a.session.nonfinite();
                 let released = a.blobs();
                 let _ = st.sched.remove_job(JobId(n));
                 st.leases.retain(|_, l| l.key.job != JobId(n));
@@ -979,6 +980,7 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         spp_done: r.spp_done,
         priority: request.priority,
         started_unix_ms: r.started_unix_ms,
+        nonfinite: r.nonfinite,
         ..Default::default()
     };
     if let Some(a) = a {
@@ -988,6 +990,7 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         s.tiles_total = if a.spec.is_some() { total as u32 } else { 0 };
         s.samples_total = a.samples_total;
         s.spp_done = a.session.spp_done();
+        s.nonfinite = a.session.nonfinite();
         if let Some(spec) = &a.spec {
             s.unit = spec.unit;
             s.pass_kind = codec::spec_to_proto(spec).kind;

@@ -874,6 +874,7 @@ impl Svc {
             film,
             rays: c.rays,
             invalid_samples: c.invalid_samples,
+            nonfinite_records: c.nonfinite_records,
             split_paths: c.split_paths,
             extra_light_samples: c.extra_light_samples,
         };

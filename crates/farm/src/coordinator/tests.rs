@@ -541,6 +541,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             counters: Some(v1::TileCounters {
                 rays: out.rays,
                 invalid_samples: out.invalid_samples,
+                nonfinite_records: out.nonfinite_records,
                 split_paths: out.split_paths,
                 extra_light_samples: out.extra_light_samples,
                 ..Default::default()
