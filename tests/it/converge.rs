@@ -2,6 +2,7 @@
 //! reference cache.
 
 use std::path::Path;
+use std::process::Output;
 
 use pathfarm_render::output::read_exr_rgb;
 
@@ -55,39 +56,50 @@ fn read_csv(path: &Path) -> Vec<CsvRow> {
         .collect()
 }
 
-fn converge(out: &Path, cache: &Path) -> std::process::Output {
+/// `pathfarm converge` on door-ajar at `resx` x `resy` into `out`, caching references in
+/// `cache`, with `extra` arguments.
+fn converge(out: &Path, cache: &Path, (resx, resy): (u32, u32), extra: &[&str]) -> Output {
     let scene = project_scene("door-ajar");
-    pathfarm(&[
+    let (resx, resy) = (format!("resx={resx}"), format!("resy={resy}"));
+    let mut args = vec![
         "converge",
         scene.to_str().unwrap(),
         "-o",
         out.to_str().unwrap(),
         "-D",
-        "resx=64",
+        &resx,
         "-D",
-        "resy=36",
-        "--spp-budgets",
-        "4,16",
-        "--methods",
-        "path,guided",
-        "--sweep",
-        "s_tree_threshold=500,8000",
-        "--repeats",
-        "2",
-        "--reference-budget",
-        "128",
+        &resy,
         "--cache",
         cache.to_str().unwrap(),
-        "--threads",
-        "2",
-    ])
+    ];
+    args.extend_from_slice(extra);
+    pathfarm(&args)
 }
 
 #[test]
 fn converge_writes_every_run_its_image_and_an_error_that_matches_the_image() {
     let dir = temp_dir("converge");
     let (out, cache) = (dir.join("out"), dir.join("cache"));
-    let o = converge(&out, &cache);
+    let o = converge(
+        &out,
+        &cache,
+        (64, 36),
+        &[
+            "--spp-budgets",
+            "4,16",
+            "--methods",
+            "path,guided",
+            "--sweep",
+            "s_tree_threshold=500,8000",
+            "--repeats",
+            "2",
+            "--reference-budget",
+            "128",
+            "--threads",
+            "2",
+        ],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let rows = read_csv(&out.join("results.csv"));
     // 2 methods + 2 swept values of guided, 2 budgets, 2 repeats.
@@ -167,18 +179,9 @@ fn converge_writes_every_run_its_image_and_an_error_that_matches_the_image() {
 #[test]
 fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
     let dir = temp_dir("converge-cache");
-    let (cache, scene) = (dir.join("cache"), project_scene("door-ajar"));
+    let cache = dir.join("cache");
     let run = |out: &str, extra: &[&str]| {
-        let out = dir.join(out);
         let mut args = vec![
-            "converge",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "-D",
-            "resx=32",
-            "-D",
-            "resy=18",
             "--spp-budgets",
             "2",
             "--methods",
@@ -187,11 +190,9 @@ fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
             "1",
             "--reference-budget",
             "16",
-            "--cache",
-            cache.to_str().unwrap(),
         ];
         args.extend_from_slice(extra);
-        pathfarm(&args)
+        converge(&dir.join(out), &cache, (32, 18), &args)
     };
     let o = run("a", &[]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

@@ -168,6 +168,7 @@ fn job_and_tile_messages_round_trip() {
         unit: 9,
         pass_kind: v1::PassKind::Guided as i32,
         started_unix_ms: 1_767_225_601_000,
+        nonfinite: 3,
     });
     round_trip(&v1::SubmitJobRequest {
         bundle: Some(v1::Bundle {
@@ -201,6 +202,7 @@ fn job_and_tile_messages_round_trip() {
                 render_seconds: 1.25,
                 prepare_seconds: 0.5,
                 serialize_seconds: 0.0625,
+                nonfinite_records: 5,
             }),
             pixels_size: 32 * 32 * 16,
             stats_size: 0,

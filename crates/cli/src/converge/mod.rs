@@ -209,6 +209,10 @@ pub fn converge(args: ConvergeArgs) -> Result<()> {
         .with_context(|| format!("creating {}", dir.join("images").display()))?;
     reference::save(&reference, &dir.join("reference.exr"))?;
     let rows = run_all(&mut ctx, &plan, &args, &reference.image, &bar, &finished)?;
+    let mut reference = reference;
+    if reference.floor.is_none() {
+        reference.floor = floor_from_runs(&args, &plan, &reference.image)?;
+    }
     bar.finish_and_clear();
     write_outputs(&args, &plan, &rows, &reference, Setup { threads, crop })?;
     println!(
@@ -320,6 +324,7 @@ fn write_outputs(
         budget_unit: plan.unit,
         reference_source: &reference.source,
         floor: reference.floor,
+        given_reference: args.reference.is_some(),
         cpu: &cpu_name(),
         threads: setup.threads,
         rows,
@@ -330,6 +335,33 @@ fn write_outputs(
     write("summary.md", md.as_bytes())
 }
 
+/// A given reference's floor from the first two repeats at the largest budget of every
+/// in-process method (the median over methods); None with one repeat.
+fn floor_from_runs(args: &ConvergeArgs, plan: &Plan, reference: &Image) -> Result<Option<f64>> {
+    if args.repeats < 2 {
+        return Ok(None);
+    }
+    let budget = largest(plan);
+    let mut floors = Vec::new();
+    for v in plan
+        .variants
+        .iter()
+        .filter(|v| !matches!(v.method, Method::Cluster { .. }))
+    {
+        let img = |r| run::read_image(&image_path(&args.output, &file_stem(&v.label), budget, r));
+        floors.push(metrics::cross_floor(&img(0)?, &img(1)?, reference));
+    }
+    Ok(Some(summary::median(&floors)).filter(|f| f.is_finite()))
+}
+
+fn largest(plan: &Plan) -> Budget {
+    *plan
+        .budgets
+        .iter()
+        .max_by(|a, b| a.value().total_cmp(&b.value()))
+        .expect("at least one budget")
+}
+
 /// `crops.png` from the first repeat at the largest budget; the crop used, as X,Y,W,H.
 fn write_crops(
     args: &ConvergeArgs,
@@ -337,11 +369,7 @@ fn write_crops(
     reference: &reference::Reference,
     crop: Option<crops::Crop>,
 ) -> Result<String> {
-    let budget = *plan
-        .budgets
-        .iter()
-        .max_by(|a, b| a.value().total_cmp(&b.value()))
-        .expect("at least one budget");
+    let budget = largest(plan);
     let images = plan
         .variants
         .iter()

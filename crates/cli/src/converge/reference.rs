@@ -13,8 +13,8 @@ use super::run::{read_image, run, Budget, RunContext};
 /// The reference and what is known of its own error.
 pub struct Reference {
     pub image: Image,
-    /// Its relMSE against the truth, estimated from two independent halves (None for a
-    /// reference the user gave).
+    /// Its relMSE against the truth: estimated from two independent halves when rendered,
+    /// else from pairs of runs once they are done (`None` until then, or with one repeat).
     pub floor: Option<f64>,
     /// Where it came from, for the summary.
     pub source: String,

@@ -75,19 +75,9 @@ pub fn run(
     seed: u64,
     exr: &Path,
 ) -> Result<(Image, Measured)> {
-    match variant.method {
-        Method::Cluster { workers } => run_cluster(ctx, workers, budget, seed, exr),
-        _ => run_here(ctx, variant, budget, seed, exr),
+    if let Method::Cluster { workers } = variant.method {
+        return run_cluster(ctx, workers, budget, seed, exr);
     }
-}
-
-fn run_here(
-    ctx: &mut RunContext,
-    variant: &Variant,
-    budget: Budget,
-    seed: u64,
-    exr: &Path,
-) -> Result<(Image, Measured)> {
     let path = ctx.scene.path;
     ctx.scene.guided = match &variant.method {
         Method::Guided(preset) => {

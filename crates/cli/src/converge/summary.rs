@@ -145,6 +145,8 @@ pub struct SummaryInput<'a> {
     pub budget_unit: &'a str,
     pub reference_source: &'a str,
     pub floor: Option<f64>,
+    /// The reference was given (`--reference`), not rendered.
+    pub given_reference: bool,
     pub cpu: &'a str,
     pub threads: usize,
     pub rows: &'a [Row],
@@ -163,19 +165,27 @@ pub fn markdown(s: &SummaryInput) -> String {
         s.cpu, s.threads, s.resolution.0, s.resolution.1
     );
     let _ = writeln!(o, "- Reference: {}.", s.reference_source);
-    match s.floor {
-        Some(f) => {
+    match (s.floor, s.given_reference) {
+        (Some(f), false) => {
             let _ = writeln!(
                 o,
-                "- The reference's own relMSE, estimated from its two independent halves: \
-                 {f:.3e}. Errors near it measure the reference, not the method."
+                "- The reference's own relMSE, estimated from its two independent halves \
+                 (a quarter of their relMSE against each other): {f:.3e}. Errors near it \
+                 measure the reference, not the method."
             );
         }
-        None => {
+        (Some(f), true) => {
             let _ = writeln!(
                 o,
-                "- The reference's own error is not known (a given image)."
+                "- The floor under every curve, estimated as `bench/floor.py` does from two \
+                 independent runs a, b of each method at the largest budget, mean((a - ref)(b - \
+                 ref) / (ref^2 + 0.01)), median over the methods: {f:.3e}. It is the \
+                 reference's own error plus any difference between what pathfarm and the \
+                 reference's renderer converge to."
             );
+        }
+        (None, _) => {
+            let _ = writeln!(o, "- The reference's own error is not known (one repeat).");
         }
     }
     let _ = writeln!(
