@@ -188,6 +188,204 @@ fn send(tx: &mpsc::Sender<v1::WorkerMessage>, msg: v1::worker_message::Msg) -> b
     tx.try_send(v1::WorkerMessage { msg: Some(msg) }).is_ok()
 }
 
+/// One control-stream session's leases: queued, rendering and uploading, and whether the
+/// worker is draining. The session loop feeds it one event at a time.
+struct Leases {
+    tx: mpsc::Sender<v1::WorkerMessage>,
+    queue: VecDeque<v1::Lease>,
+    running: Option<Running>,
+    /// Uploads in progress: (lease, job) -> outcome. The next lease renders meanwhile.
+    uploads: Uploads,
+    uploading: Vec<u64>,
+    draining: bool,
+}
+
+impl Leases {
+    fn send(&self, msg: v1::worker_message::Msg) {
+        send(&self.tx, msg);
+    }
+
+    /// SIGTERM or Ctrl-C: stop taking leases and hand back the ones not started.
+    fn on_shutdown(&mut self) {
+        use v1::worker_message::Msg;
+        self.draining = true;
+        tracing::info!("shutting down: draining");
+        self.send(Msg::Draining(v1::Draining {}));
+        let ids: Vec<u64> = self.queue.drain(..).map(|l| l.lease_id).collect();
+        if !ids.is_empty() {
+            tracing::info!("handing back leases {ids:?}");
+            self.send(Msg::HandBack(v1::HandBack { lease_ids: ids }));
+        }
+    }
+
+    fn heartbeat(&self) {
+        let mut ids: Vec<u64> = self.running.iter().map(|r| r.lease_id).collect();
+        ids.extend(self.queue.iter().map(|l| l.lease_id));
+        ids.extend(self.uploading.iter().copied());
+        let hb = v1::Heartbeat {
+            active_lease_ids: ids,
+        };
+        self.send(v1::worker_message::Msg::Heartbeat(hb));
+    }
+
+    /// The running lease's render ended: upload it (while the next one renders) or report.
+    fn on_rendered(&mut self, api: &Api, r: Running, end: LeaseEnd) {
+        use v1::worker_message::Msg;
+        let (id, job) = (r.lease_id, r.job_id);
+        match end {
+            LeaseEnd::Rendered(tile) => {
+                self.uploading.push(id);
+                spawn_upload(&mut self.uploads, api, id, job, tile);
+            }
+            LeaseEnd::Cancelled => {
+                tracing::info!("lease {id} (job {job}): cancelled, nothing uploaded");
+            }
+            LeaseEnd::Failed { reason, fatal } => {
+                tracing::error!("lease {id} (job {job}) failed: {reason}");
+                let failed = v1::LeaseFailed {
+                    lease_id: id,
+                    reason,
+                    fatal,
+                };
+                self.send(Msg::LeaseFailed(failed));
+            }
+        }
+        if !self.draining {
+            self.send(Msg::RequestWork(v1::RequestWork { slots: 1 }));
+        }
+    }
+
+    fn on_uploaded(&mut self, id: u64, job: String, end: UploadEnd) {
+        self.uploading.retain(|&l| l != id);
+        match end {
+            UploadEnd::Acked(ack) if ack.accepted => {
+                let dup = if ack.duplicate { " (duplicate)" } else { "" };
+                tracing::info!("lease {id} (job {job}): tile accepted{dup}");
+            }
+            UploadEnd::Acked(ack) => {
+                let reason = v1::TileRejectReason::try_from(ack.reject_reason)
+                    .unwrap_or(v1::TileRejectReason::Unspecified);
+                tracing::warn!(
+                    "lease {id} (job {job}): tile rejected: {reason:?} {}",
+                    ack.detail
+                );
+            }
+            UploadEnd::Failed(reason) => {
+                tracing::error!("lease {id} (job {job}) failed: {reason}");
+                let failed = v1::LeaseFailed {
+                    lease_id: id,
+                    reason,
+                    fatal: false,
+                };
+                self.send(v1::worker_message::Msg::LeaseFailed(failed));
+            }
+        }
+    }
+
+    fn on_message(&mut self, msg: v1::CoordinatorMessage) {
+        use v1::coordinator_message::Msg as C;
+        use v1::worker_message::Msg;
+        match msg.msg {
+            Some(C::LeaseOffer(o)) => {
+                let Some(lease) = o.lease else { return };
+                tracing::info!(
+                    "lease {} (job {}): offered, unit {} tile {:?}",
+                    lease.lease_id,
+                    lease.job_id,
+                    lease.pass.as_ref().map_or(0, |p| p.unit),
+                    lease.tile.as_ref().map(|t| (t.x0, t.y0, t.x1, t.y1))
+                );
+                if self.draining {
+                    let ids = vec![lease.lease_id];
+                    self.send(Msg::HandBack(v1::HandBack { lease_ids: ids }));
+                } else {
+                    self.queue.push_back(lease);
+                }
+            }
+            Some(C::CancelLease(c)) => self.on_cancel(c),
+            Some(C::Drain(d)) => {
+                if !self.draining {
+                    tracing::info!("the coordinator asks to drain: {}", d.reason);
+                    self.draining = true;
+                    self.send(Msg::Draining(v1::Draining {}));
+                }
+            }
+            Some(C::Registered(_)) | Some(C::Refused(_)) | None => {}
+        }
+    }
+
+    fn on_cancel(&mut self, c: v1::CancelLease) {
+        if let Some(i) = self.queue.iter().position(|l| l.lease_id == c.lease_id) {
+            let l = self.queue.remove(i).expect("position");
+            let (id, job) = (l.lease_id, l.job_id);
+            tracing::info!(
+                "lease {id} (job {job}): cancelled before start: {}",
+                c.reason
+            );
+            if !self.draining {
+                let more = v1::RequestWork { slots: 1 };
+                self.send(v1::worker_message::Msg::RequestWork(more));
+            }
+        } else if let Some(r) = self.running.as_ref().filter(|r| r.lease_id == c.lease_id) {
+            let (id, job) = (r.lease_id, &r.job_id);
+            tracing::info!(
+                "lease {id} (job {job}): cancelled while rendering: {}",
+                c.reason
+            );
+            r.cancelled.store(true, Ordering::SeqCst);
+        }
+    }
+
+    /// The stream broke (or the worker drained): leases not started are abandoned (the
+    /// coordinator re-queues them); the one rendering is finished and uploaded if it can be.
+    async fn finish(mut self, api: &Api, lost: bool) {
+        if let Some(r) = self.running.take() {
+            if lost {
+                let (id, job) = (r.lease_id, &r.job_id);
+                tracing::info!("lease {id} (job {job}): finishing after the stream broke");
+            }
+            if let Ok(LeaseEnd::Rendered(tile)) = r.handle.await {
+                spawn_upload(&mut self.uploads, api, r.lease_id, r.job_id, tile);
+            }
+        }
+        while self.uploads.join_next().await.is_some() {}
+    }
+}
+
+fn lost(s: tonic::Status) -> SessionEnd {
+    SessionEnd::Lost(format!("{} ({:?})", s.message(), s.code()))
+}
+
+/// Opens the control stream and registers: the coordinator's answer and the stream.
+async fn register(
+    cfg: &WorkerConfig,
+    api: &mut Api,
+    tx: &mpsc::Sender<v1::WorkerMessage>,
+    rx: mpsc::Receiver<v1::WorkerMessage>,
+) -> Result<(v1::Registered, tonic::Streaming<v1::CoordinatorMessage>), SessionEnd> {
+    let register = v1::Register {
+        protocol_version: PROTOCOL_VERSION,
+        build_id: crate::build::build_id().to_string(),
+        threads: cfg.threads as u32,
+        host_name: host_name(),
+        worker_name: cfg.name.clone(),
+    };
+    send(tx, v1::worker_message::Msg::Register(register));
+    let mut inbound = api
+        .control(ReceiverStream::new(rx))
+        .await
+        .map_err(lost)?
+        .into_inner();
+    let first = inbound.message().await.map_err(lost)?;
+    match first.and_then(|m| m.msg) {
+        Some(v1::coordinator_message::Msg::Registered(r)) => Ok((r, inbound)),
+        Some(v1::coordinator_message::Msg::Refused(r)) => Err(SessionEnd::Refused(r.reason)),
+        _ => Err(SessionEnd::Lost(
+            "the coordinator did not answer Register".into(),
+        )),
+    }
+}
+
 async fn session<S: Future<Output = ()>>(
     cfg: &WorkerConfig,
     shared: &Arc<Shared>,
@@ -198,36 +396,7 @@ async fn session<S: Future<Output = ()>>(
 ) -> Result<(), SessionEnd> {
     use v1::worker_message::Msg;
     let (tx, rx) = mpsc::channel::<v1::WorkerMessage>(64);
-    send(
-        &tx,
-        Msg::Register(v1::Register {
-            protocol_version: PROTOCOL_VERSION,
-            build_id: crate::build::build_id().to_string(),
-            threads: cfg.threads as u32,
-            host_name: host_name(),
-            worker_name: cfg.name.clone(),
-        }),
-    );
-    let mut inbound = api
-        .control(ReceiverStream::new(rx))
-        .await
-        .map_err(|s| SessionEnd::Lost(format!("{} ({:?})", s.message(), s.code())))?
-        .into_inner();
-    let first = inbound
-        .message()
-        .await
-        .map_err(|s| SessionEnd::Lost(format!("{} ({:?})", s.message(), s.code())))?;
-    let registered = match first.and_then(|m| m.msg) {
-        Some(v1::coordinator_message::Msg::Registered(r)) => r,
-        Some(v1::coordinator_message::Msg::Refused(r)) => {
-            return Err(SessionEnd::Refused(r.reason))
-        }
-        _ => {
-            return Err(SessionEnd::Lost(
-                "the coordinator did not answer Register".into(),
-            ))
-        }
-    };
+    let (registered, mut inbound) = register(cfg, &mut api, &tx, rx).await?;
     backoff.reset();
     tracing::info!(
         "registered with {} as worker {} (coordinator {})",
@@ -235,26 +404,28 @@ async fn session<S: Future<Output = ()>>(
         registered.worker_id,
         registered.build_id
     );
-    let mut draining = *stop;
-    if draining {
-        send(&tx, Msg::Draining(v1::Draining {}));
+    let mut l = Leases {
+        tx,
+        queue: VecDeque::new(),
+        running: None,
+        uploads: Uploads::new(),
+        uploading: Vec::new(),
+        draining: *stop,
+    };
+    if l.draining {
+        l.send(Msg::Draining(v1::Draining {}));
     } else {
-        send(&tx, Msg::RequestWork(v1::RequestWork { slots: 2 }));
+        l.send(Msg::RequestWork(v1::RequestWork { slots: 2 }));
     }
     let hb = Duration::from_millis(registered.heartbeat_interval_ms.max(50) as u64);
     let mut heartbeat = tokio::time::interval(hb);
     heartbeat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut queue: VecDeque<v1::Lease> = VecDeque::new();
-    let mut running: Option<Running> = None;
-    // Uploads in progress: (lease, job) -> outcome. The next lease renders meanwhile.
-    let mut uploads = Uploads::new();
-    let mut uploading: Vec<u64> = Vec::new();
     let mut shutdown_seen = *stop;
     let lost: Option<String> = loop {
-        if running.is_none() {
-            if let Some(lease) = queue.pop_front() {
-                running = Some(start_lease(shared, &api, lease));
-            } else if draining && uploads.is_empty() {
+        if l.running.is_none() {
+            if let Some(lease) = l.queue.pop_front() {
+                l.running = Some(start_lease(shared, &api, lease));
+            } else if l.draining && l.uploads.is_empty() {
                 break None;
             }
         }
@@ -262,124 +433,32 @@ async fn session<S: Future<Output = ()>>(
             _ = shutdown.as_mut(), if !shutdown_seen => {
                 shutdown_seen = true;
                 *stop = true;
-                draining = true;
-                tracing::info!("shutting down: draining");
-                send(&tx, Msg::Draining(v1::Draining {}));
-                let ids: Vec<u64> = queue.drain(..).map(|l| l.lease_id).collect();
-                if !ids.is_empty() {
-                    tracing::info!("handing back leases {ids:?}");
-                    send(&tx, Msg::HandBack(v1::HandBack { lease_ids: ids }));
-                }
+                l.on_shutdown();
             }
-            _ = heartbeat.tick() => {
-                let mut ids: Vec<u64> = running.iter().map(|r| r.lease_id).collect();
-                ids.extend(queue.iter().map(|l| l.lease_id));
-                ids.extend(uploading.iter().copied());
-                send(&tx, Msg::Heartbeat(v1::Heartbeat { active_lease_ids: ids }));
-            }
-            end = async { (&mut running.as_mut().expect("guarded").handle).await }, if running.is_some() => {
-                let r = running.take().expect("guarded");
+            _ = heartbeat.tick() => l.heartbeat(),
+            end = async { (&mut l.running.as_mut().expect("guarded").handle).await }, if l.running.is_some() => {
+                let r = l.running.take().expect("guarded");
                 let end = end.unwrap_or_else(|e| LeaseEnd::Failed {
                     reason: format!("render task panicked: {e}"),
                     fatal: false,
                 });
-                match end {
-                    LeaseEnd::Rendered(tile) => {
-                        uploading.push(r.lease_id);
-                        spawn_upload(&mut uploads, &api, r.lease_id, r.job_id.clone(), tile);
-                    }
-                    LeaseEnd::Cancelled => {
-                        tracing::info!("lease {} (job {}): cancelled, nothing uploaded", r.lease_id, r.job_id);
-                    }
-                    LeaseEnd::Failed { reason, fatal } => {
-                        tracing::error!("lease {} (job {}) failed: {reason}", r.lease_id, r.job_id);
-                        send(&tx, Msg::LeaseFailed(v1::LeaseFailed { lease_id: r.lease_id, reason, fatal }));
-                    }
-                }
-                if !draining {
-                    send(&tx, Msg::RequestWork(v1::RequestWork { slots: 1 }));
-                }
+                l.on_rendered(&api, r, end);
             }
-            Some(done) = uploads.join_next(), if !uploads.is_empty() => {
+            Some(done) = l.uploads.join_next(), if !l.uploads.is_empty() => {
                 let (id, job, end) = done.unwrap_or_else(|e| {
                     (0, String::new(), UploadEnd::Failed(format!("upload task: {e}")))
                 });
-                uploading.retain(|&l| l != id);
-                match end {
-                    UploadEnd::Acked(ack) if ack.accepted => {
-                        tracing::info!("lease {id} (job {job}): tile accepted{}",
-                            if ack.duplicate { " (duplicate)" } else { "" });
-                    }
-                    UploadEnd::Acked(ack) => {
-                        tracing::warn!("lease {id} (job {job}): tile rejected: {:?} {}",
-                            v1::TileRejectReason::try_from(ack.reject_reason).unwrap_or(v1::TileRejectReason::Unspecified),
-                            ack.detail);
-                    }
-                    UploadEnd::Failed(reason) => {
-                        tracing::error!("lease {id} (job {job}) failed: {reason}");
-                        send(&tx, Msg::LeaseFailed(v1::LeaseFailed { lease_id: id, reason, fatal: false }));
-                    }
-                }
+                l.on_uploaded(id, job, end);
             }
-            msg = inbound.message() => {
-                let msg = match msg {
-                    Ok(Some(m)) => m,
-                    Ok(None) => break Some("the control stream ended".to_string()),
-                    Err(s) => break Some(format!("{} ({:?})", s.message(), s.code())),
-                };
-                use v1::coordinator_message::Msg as C;
-                match msg.msg {
-                    Some(C::LeaseOffer(o)) => {
-                        let Some(lease) = o.lease else { continue };
-                        tracing::info!("lease {} (job {}): offered, unit {} tile {:?}", lease.lease_id, lease.job_id,
-                            lease.pass.as_ref().map_or(0, |p| p.unit),
-                            lease.tile.as_ref().map(|t| (t.x0, t.y0, t.x1, t.y1)));
-                        if draining {
-                            send(&tx, Msg::HandBack(v1::HandBack { lease_ids: vec![lease.lease_id] }));
-                        } else {
-                            queue.push_back(lease);
-                        }
-                    }
-                    Some(C::CancelLease(c)) => {
-                        if let Some(i) = queue.iter().position(|l| l.lease_id == c.lease_id) {
-                            let l = queue.remove(i).expect("position");
-                            tracing::info!("lease {} (job {}): cancelled before start: {}", l.lease_id, l.job_id, c.reason);
-                            if !draining {
-                                send(&tx, Msg::RequestWork(v1::RequestWork { slots: 1 }));
-                            }
-                        } else if let Some(r) = running.as_ref().filter(|r| r.lease_id == c.lease_id) {
-                            tracing::info!("lease {} (job {}): cancelled while rendering: {}", r.lease_id, r.job_id, c.reason);
-                            r.cancelled.store(true, Ordering::SeqCst);
-                        }
-                    }
-                    Some(C::Drain(d)) => {
-                        if !draining {
-                            tracing::info!("the coordinator asks to drain: {}", d.reason);
-                            draining = true;
-                            send(&tx, Msg::Draining(v1::Draining {}));
-                        }
-                    }
-                    Some(C::Registered(_)) | Some(C::Refused(_)) | None => {}
-                }
-            }
+            msg = inbound.message() => match msg {
+                Ok(Some(m)) => l.on_message(m),
+                Ok(None) => break Some("the control stream ended".to_string()),
+                Err(s) => break Some(format!("{} ({:?})", s.message(), s.code())),
+            },
         }
     };
-    // The stream broke (or the worker drained): leases not started are abandoned (the
-    // coordinator re-queues them); the one rendering is finished and uploaded if it can be.
-    if let Some(r) = running.take() {
-        if lost.is_some() {
-            tracing::info!(
-                "lease {} (job {}): finishing after the stream broke",
-                r.lease_id,
-                r.job_id
-            );
-        }
-        if let Ok(LeaseEnd::Rendered(tile)) = r.handle.await {
-            spawn_upload(&mut uploads, &api, r.lease_id, r.job_id, tile);
-        }
-    }
-    while uploads.join_next().await.is_some() {}
-    drop(tx);
+    let draining = l.draining;
+    l.finish(&api, lost.is_some()).await;
     match lost {
         Some(m) if !draining => Err(SessionEnd::Lost(m)),
         Some(_) if !*stop => Err(SessionEnd::Lost("drained by the coordinator".into())),
@@ -758,6 +837,79 @@ fn read_blob(p: &Path) -> Result<Vec<u8>, Fail> {
     std::fs::read(p).map_err(|e| retryable(format!("{}: {e}", p.display())))
 }
 
+/// The job's tree copy (from the cache), refreshed for the lease's tree version and
+/// fractions: a tree blob is read only when the cached copy is another version (a tree is
+/// tens of MB).
+fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, Fail> {
+    let pass = p.lease.pass.as_ref().expect("checked in prepare");
+    let cached = shared
+        .caches
+        .lock()
+        .expect("cache lock")
+        .trees
+        .remove(&p.lease.job_id);
+    let want_tree = &pass.tree_digest;
+    let stale = cached.as_ref().is_none_or(|t| &t.tree_digest != want_tree)
+        || (pass.fractions_digest.is_empty()
+            && cached
+                .as_ref()
+                .is_some_and(|t| !t.fractions_digest.is_empty()));
+    let mut jt = match cached {
+        Some(t) if !stale => t,
+        _ => {
+            let tree = match &p.tree_blob {
+                Some(path) => SdTree::decode(&read_blob(path)?)
+                    .map_err(|e| fatal(format!("tree blob: {e}")))?,
+                None => {
+                    let (lo, hi) = js.scene.accel.bounds();
+                    SdTree::new(lo, hi, guide_config(&js.params, &js.scene))
+                }
+            };
+            JobTree {
+                tree_digest: want_tree.clone(),
+                fractions_digest: Vec::new(),
+                tree,
+            }
+        }
+    };
+    if jt.fractions_digest != pass.fractions_digest {
+        if let Some(path) = &p.fractions_blob {
+            let states = codec::decode_fractions(&read_blob(path)?)
+                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
+            jt.tree
+                .set_fraction_states(&states)
+                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
+        }
+        jt.fractions_digest = pass.fractions_digest.clone();
+    }
+    Ok(jt)
+}
+
+/// The lease's pixel estimate (guided roulette), cached per job by digest.
+fn lease_estimate(shared: &Shared, p: &Prepared) -> Result<Arc<Vec<f32>>, Fail> {
+    let Some(path) = &p.estimate_blob else {
+        return Ok(Arc::new(Vec::new()));
+    };
+    let pass = p.lease.pass.as_ref().expect("checked in prepare");
+    let job = &p.lease.job_id;
+    let caches = || shared.caches.lock().expect("cache lock");
+    let cached = caches()
+        .estimates
+        .get(job)
+        .filter(|(d, _)| d == &pass.estimate_digest)
+        .map(|(_, e)| e.clone());
+    if let Some(e) = cached {
+        return Ok(e);
+    }
+    let e = codec::decode_estimate(&read_blob(path)?)
+        .map_err(|e| fatal(format!("estimate blob: {e}")))?;
+    let e = Arc::new(e);
+    caches()
+        .estimates
+        .insert(job.clone(), (pass.estimate_digest.clone(), e.clone()));
+    Ok(e)
+}
+
 fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     let start = Instant::now();
     let js = load_job_scene(shared, &p)?;
@@ -771,74 +923,8 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .ok_or_else(|| fatal("the lease has no tile"))?;
     let region = codec::region_from_proto(rect, scene.width, scene.height).map_err(fatal)?;
     let job = p.lease.job_id.clone();
-    // The job's tree copy, refreshed for the lease's tree and fractions.
-    let mut jt = shared.caches.lock().expect("cache lock").trees.remove(&job);
-    let want_tree = pass.tree_digest.clone();
-    let fresh = |bytes: Option<&[u8]>| -> Result<SdTree, Fail> {
-        match bytes {
-            Some(b) => SdTree::decode(b).map_err(|e| fatal(format!("tree blob: {e}"))),
-            None => {
-                let (lo, hi) = scene.accel.bounds();
-                Ok(SdTree::new(lo, hi, guide_config(&js.params, scene)))
-            }
-        }
-    };
-    let stale = jt.as_ref().is_none_or(|t| t.tree_digest != want_tree)
-        || (pass.fractions_digest.is_empty()
-            && jt.as_ref().is_some_and(|t| !t.fractions_digest.is_empty()));
-    if stale {
-        // Read only when the cached copy is not this version (a tree is tens of MB).
-        let tree_bytes = match &p.tree_blob {
-            Some(path) => Some(read_blob(path)?),
-            None => None,
-        };
-        jt = Some(JobTree {
-            tree_digest: want_tree.clone(),
-            fractions_digest: Vec::new(),
-            tree: fresh(tree_bytes.as_deref())?,
-        });
-    }
-    let mut jt = jt.expect("set above");
-    if jt.fractions_digest != pass.fractions_digest {
-        if let Some(path) = &p.fractions_blob {
-            let states = codec::decode_fractions(&read_blob(path)?)
-                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
-            jt.tree
-                .set_fraction_states(&states)
-                .map_err(|e| fatal(format!("fractions blob: {e}")))?;
-        }
-        jt.fractions_digest = pass.fractions_digest.clone();
-    }
-    // The estimate.
-    let estimate: Arc<Vec<f32>> = match &p.estimate_blob {
-        None => Arc::new(Vec::new()),
-        Some(path) => {
-            let cached = shared
-                .caches
-                .lock()
-                .expect("cache lock")
-                .estimates
-                .get(&job)
-                .filter(|(d, _)| d == &pass.estimate_digest)
-                .map(|(_, e)| e.clone());
-            match cached {
-                Some(e) => e,
-                None => {
-                    let e = Arc::new(
-                        codec::decode_estimate(&read_blob(path)?)
-                            .map_err(|e| fatal(format!("estimate blob: {e}")))?,
-                    );
-                    shared
-                        .caches
-                        .lock()
-                        .expect("cache lock")
-                        .estimates
-                        .insert(job.clone(), (pass.estimate_digest.clone(), e.clone()));
-                    e
-                }
-            }
-        }
-    };
+    let mut jt = lease_tree(shared, &p, &js)?;
+    let estimate = lease_estimate(shared, &p)?;
     let seed = p
         .lease
         .settings

@@ -103,76 +103,8 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
         ],
     )?;
     let path = path_params(p)?;
-    let budget_type = choice(
-        p,
-        "budget_type",
-        d.budget_type,
-        &[
-            ("spp", GuidedBudgetType::Spp),
-            ("seconds", GuidedBudgetType::Seconds),
-        ],
-    )?;
-    let (max_budget, unit, limit) = match budget_type {
-        GuidedBudgetType::Spp => (limits.max_spp as f64, "spp", "Limits::max_spp"),
-        GuidedBudgetType::Seconds => (
-            limits.max_time_seconds,
-            "seconds",
-            "Limits::max_time_seconds",
-        ),
-    };
-    let budget = match p.f64_opt("budget")? {
-        None => None,
-        Some((b, loc)) if !(b > 0.0) => {
-            return Err(invalid(
-                &loc,
-                format!(
-                    "parameter 'budget' of {} must be positive (got {})",
-                    p.what(),
-                    format_number(b)
-                ),
-            ))
-        }
-        Some((b, loc)) if b > max_budget => {
-            return Err(invalid(
-                &loc,
-                format!(
-                    "parameter 'budget' of {} is {} {unit}, more than the limit of {} \
-                     ({limit})",
-                    p.what(),
-                    format_number(b),
-                    max_budget
-                ),
-            ))
-        }
-        Some((b, _)) => Some(b as f32 as f64),
-    };
-    let max_memory_mb = match p.float_opt("max_memory_mb")? {
-        None => None,
-        Some(m) if !(m > 0.0) => {
-            return Err(invalid(
-                p.loc(),
-                format!(
-                    "parameter 'max_memory_mb' of {} must be positive (got {m})",
-                    p.what()
-                ),
-            ))
-        }
-        Some(m) => Some(m as f64),
-    };
-    let max_nodes = p.int_opt("max_nodes")?;
-    let max_nodes = match max_nodes {
-        None => None,
-        Some((n, loc)) if n < 1 => {
-            return Err(invalid(
-                &loc,
-                format!(
-                    "parameter 'max_nodes' of {} must be at least 1 (got {n})",
-                    p.what()
-                ),
-            ))
-        }
-        Some((n, _)) => Some(n as u64),
-    };
+    let (budget_type, budget) = guided_budget(p, limits, d.budget_type)?;
+    let (max_memory_mb, max_nodes) = guided_caps(p)?;
     Ok(GuidedParams {
         path,
         budget,
@@ -269,4 +201,88 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
         max_memory_mb,
         max_nodes,
     })
+}
+
+/// `budget_type` and `budget`, the budget within the limits of its unit.
+fn guided_budget(
+    p: &Props,
+    limits: &Limits,
+    default_type: GuidedBudgetType,
+) -> Result<(GuidedBudgetType, Option<f64>), SceneError> {
+    let budget_type = choice(
+        p,
+        "budget_type",
+        default_type,
+        &[
+            ("spp", GuidedBudgetType::Spp),
+            ("seconds", GuidedBudgetType::Seconds),
+        ],
+    )?;
+    let (max_budget, unit, limit) = match budget_type {
+        GuidedBudgetType::Spp => (limits.max_spp as f64, "spp", "Limits::max_spp"),
+        GuidedBudgetType::Seconds => (
+            limits.max_time_seconds,
+            "seconds",
+            "Limits::max_time_seconds",
+        ),
+    };
+    let budget = match p.f64_opt("budget")? {
+        None => None,
+        Some((b, loc)) if !(b > 0.0) => {
+            return Err(invalid(
+                &loc,
+                format!(
+                    "parameter 'budget' of {} must be positive (got {})",
+                    p.what(),
+                    format_number(b)
+                ),
+            ))
+        }
+        Some((b, loc)) if b > max_budget => {
+            return Err(invalid(
+                &loc,
+                format!(
+                    "parameter 'budget' of {} is {} {unit}, more than the limit of {} \
+                     ({limit})",
+                    p.what(),
+                    format_number(b),
+                    max_budget
+                ),
+            ))
+        }
+        Some((b, _)) => Some(b as f32 as f64),
+    };
+    Ok((budget_type, budget))
+}
+
+/// The memory caps of the spatial tree: `max_memory_mb` and `max_nodes`.
+fn guided_caps(p: &Props) -> Result<(Option<f64>, Option<u64>), SceneError> {
+    let max_memory_mb = match p.float_opt("max_memory_mb")? {
+        None => None,
+        Some(m) if !(m > 0.0) => {
+            return Err(invalid(
+                p.loc(),
+                format!(
+                    "parameter 'max_memory_mb' of {} must be positive (got {m})",
+                    p.what()
+                ),
+            ))
+        }
+        Some(m) => Some(m as f64),
+    };
+    let max_nodes = p.int_opt("max_nodes")?;
+    let max_nodes = match max_nodes {
+        None => None,
+        Some((n, loc)) if n < 1 => {
+            return Err(invalid(
+                &loc,
+                format!(
+                    "parameter 'max_nodes' of {} must be at least 1 (got {n})",
+                    p.what()
+                ),
+            ))
+        }
+        Some((n, _)) => Some(n as u64),
+    };
+    Ok((max_memory_mb, max_nodes))
 }

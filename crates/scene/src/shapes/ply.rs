@@ -20,6 +20,7 @@ use super::mesh::{
 use crate::desc::TriangleMesh;
 use crate::error::SceneError;
 use crate::limits::format_bytes;
+use crate::Limits;
 
 /// The longest header line read.
 const HEADER_LINE_CAP: usize = 64 << 10;
@@ -410,38 +411,7 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
         } else if element.def.name == "face" {
             for f in 0..element.count {
                 let e = reading.next(element, f).map_err(err)?;
-                let list = e
-                    .get("vertex_indices")
-                    .or_else(|| e.get("vertex_index"))
-                    .ok_or_else(|| err(format!("face {f}: no 'vertex_indices' list")))?;
-                let idx: Vec<i64> = match list {
-                    Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
-                    Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
-                    Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
-                    Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
-                    Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
-                    Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
-                    _ => {
-                        return Err(err(format!(
-                            "face {f}: vertex indices are not an integer list"
-                        )))
-                    }
-                };
-                if idx.len() < 3 {
-                    return Err(err(format!("face {f} has fewer than 3 vertices")));
-                }
-                check_limit(
-                    idx.len() as u64,
-                    "vertices",
-                    limits.max_polygon_vertices,
-                    "max_polygon_vertices",
-                )
-                .map_err(|m| err(format!("face {f} has {m}")))?;
-                if let Some(bad) = idx.iter().find(|&&i| i < 0 || i as u64 >= nv) {
-                    return Err(err(format!(
-                        "face {f}: vertex index {bad} out of range ({nv} vertices)"
-                    )));
-                }
+                let idx = face_indices(&e, f, nv, &limits).map_err(err)?;
                 let triangles = mesh.indices.len() as u64 + idx.len() as u64 - 2;
                 if triangles > limits.max_mesh_triangles {
                     return Err(err(format!(
@@ -458,8 +428,7 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
                     reserved_triangles += more;
                     mesh.indices.reserve_exact(more as usize);
                 }
-                let corners: Vec<u32> = idx.iter().map(|&i| i as u32).collect();
-                super::mesh::triangulate(&corners, &mut mesh.indices);
+                super::mesh::triangulate(&idx, &mut mesh.indices);
             }
             faces_read = true;
         } else {
@@ -473,6 +442,40 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
         mesh.uvs = Some(uvs);
     }
     Ok(mesh)
+}
+
+/// Face `f`'s vertex indices: an integer list of at least 3 and at most
+/// `max_polygon_vertices` indices, each below `nv`.
+fn face_indices(e: &DefaultElement, f: u64, nv: u64, limits: &Limits) -> Result<Vec<u32>, String> {
+    let list = e
+        .get("vertex_indices")
+        .or_else(|| e.get("vertex_index"))
+        .ok_or_else(|| format!("face {f}: no 'vertex_indices' list"))?;
+    let idx: Vec<i64> = match list {
+        Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
+        Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
+        _ => return Err(format!("face {f}: vertex indices are not an integer list")),
+    };
+    if idx.len() < 3 {
+        return Err(format!("face {f} has fewer than 3 vertices"));
+    }
+    check_limit(
+        idx.len() as u64,
+        "vertices",
+        limits.max_polygon_vertices,
+        "max_polygon_vertices",
+    )
+    .map_err(|m| format!("face {f} has {m}"))?;
+    if let Some(bad) = idx.iter().find(|&&i| i < 0 || i as u64 >= nv) {
+        return Err(format!(
+            "face {f}: vertex index {bad} out of range ({nv} vertices)"
+        ));
+    }
+    Ok(idx.into_iter().map(|i| i as u32).collect())
 }
 
 #[cfg(test)]
