@@ -34,7 +34,7 @@ pub struct Accel {
     analytic: Vec<(u32, Analytic)>,
     shapes: Vec<ShapeGeom>,
     bounds: (Vec3, Vec3),
-    /// The scene's length scale for ray offsets, see [`offset_origin`].
+    /// The scene's length scale for ray offsets, see [`super::offset_origin`].
     offset_floor: f32,
     /// So few triangles ([`FLAT_MAX`]) that testing them all beats walking the
     /// BVH: rays are tested against every triangle, in BVH primitive order.
@@ -133,7 +133,7 @@ impl Accel {
         self.bounds
     }
 
-    /// The floor of spawned rays' offsets ([`offset_origin`]): 1 for scenes that reach at
+    /// The floor of spawned rays' offsets ([`super::offset_origin`]): 1 for scenes that reach at
     /// least 1 from the origin, the scene's extent for smaller ones.
     #[inline]
     pub fn offset_floor(&self) -> f32 {

@@ -4,7 +4,7 @@ use glam::{Vec2, Vec3};
 use std::f32::consts::PI;
 
 use super::LightSample;
-use crate::geometry::{offset_origin, Accel, Analytic, ShapeGeom};
+use crate::geometry::{Accel, Analytic, ShapeGeom};
 use crate::sampling::{concentric_disk, uniform_sphere, uniform_triangle, Distribution1D};
 
 /// A triangle of an emitting mesh, prepared for sampling.
@@ -125,20 +125,7 @@ impl AreaLight {
                 flip,
             }) => {
                 let n = uniform_sphere(u);
-                let (p, n) = (*center + n * *radius, if *flip { -n } else { n });
-                // The sampled point is on the sphere only to f32 rounding; when it lands on
-                // the far side of the surface, a shadow ray arriving at a grazing angle (a
-                // short chord: a point near the reference, inside a glowing sphere or beside
-                // a lamp) meets the sphere before its end and the sample is lost (a 1e-4
-                // relative deficit in a closed emitting sphere). The shadow ray aims at the
-                // point lifted off the surface on the emitting side, by the same offset
-                // spawned rays use: the segment then stays on the reference's side of the
-                // tangent plane, which the sphere never crosses.
-                let ls = self.towards(p_ref, p, n)?;
-                return Some(LightSample {
-                    point: offset_origin(p, n, n, accel.offset_floor()),
-                    ..ls
-                });
+                (*center + n * *radius, if *flip { -n } else { n })
             }
             ShapeGeom::Analytic(a @ Analytic::Disk { to_world, .. }) => {
                 let d = concentric_disk(u);
