@@ -12,7 +12,8 @@ use glam::Vec3;
 /// * records with a non-finite or non-positive `weight`, a non-finite or non-positive
 ///   `pdf_mix`, or a non-finite `position`/`direction` are skipped entirely;
 /// * otherwise W gains `weight`; the sum gains `weight * radiance / pdf_mix` only when that value
-///   is finite and > 0 (zero, negative or non-finite radiance changes W only);
+///   is > 0 and below [`crate::sdtree::MAX_RECORD_VALUE`] (zero, negative, non-finite or
+///   absurdly large values change W only);
 /// * the learned fraction uses the record when it is not `is_delta` and `product > 0`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Record {
