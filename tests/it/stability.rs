@@ -170,25 +170,41 @@ fn allowed_failures(n: usize) -> usize {
     k.max(n / 100)
 }
 
+/// One pixel's comparison: per channel the difference, its estimated variance and a
+/// tolerated known bias (0 but for documented deficits), and the pixel's magnitude.
+struct PixelDiff {
+    d: [f64; 3],
+    var: [f64; 3],
+    slack: [f64; 3],
+    scale: f64,
+}
+
 /// The statistical test every comparison uses. Per pixel and channel, a difference `d`
-/// with estimated variance `v` fails when |d| / sqrt(v) exceeds the two-sided 0.001
-/// quantile (differences at float-rounding level, 1e-5 relative, pass; beyond that a zero
-/// variance cannot explain them). At most [`allowed_failures`] pixels may fail. The image
-/// mean of the differences must be within 4 standard errors (two-sided ~6e-5).
-fn check(diffs: &[([f64; 3], [f64; 3], f64)], what: &str) {
+/// (less the tolerated bias) with estimated variance `v` fails when |d| / sqrt(v) exceeds
+/// the two-sided 0.001 quantile (differences at float-rounding level, 1e-5 relative, pass;
+/// beyond that a zero variance cannot explain them). At most [`allowed_failures`] pixels
+/// may fail. The image mean of the differences must be within 4 standard errors
+/// (two-sided ~6e-5) plus the mean tolerated bias.
+fn check(diffs: &[PixelDiff], what: &str) {
     let z = z_two_sided(0.001);
     let (mut fails, mut examples) = (0usize, Vec::new());
-    let (mut dsum, mut vsum) = (0.0f64, 0.0f64);
-    for (i, (d, v, scale)) in diffs.iter().enumerate() {
+    let (mut dsum, mut vsum, mut slack) = (0.0f64, 0.0f64, 0.0f64);
+    for (i, p) in diffs.iter().enumerate() {
         let mut bad = false;
         for c in 0..3 {
-            dsum += d[c];
-            vsum += v[c];
-            bad |=
-                d[c].abs() > 1e-5 * scale.max(1.0) && (v[c] <= 0.0 || d[c].abs() / v[c].sqrt() > z);
+            let (v, s) = (p.var[c], p.slack[c]);
+            let d = p.d[c].signum() * (p.d[c].abs() - s).max(0.0);
+            dsum += p.d[c];
+            vsum += v;
+            slack += s;
+            bad |= d.abs() > 1e-5 * p.scale.max(1.0) && (v <= 0.0 || d.abs() / v.sqrt() > z);
         }
         if bad && examples.len() < 6 {
-            examples.push(format!("pixel {i}: d {d:?} sd {:?}", v.map(f64::sqrt)));
+            examples.push(format!(
+                "pixel {i}: d {:?} sd {:?}",
+                p.d,
+                p.var.map(f64::sqrt)
+            ));
         }
         fails += bad as usize;
     }
@@ -199,11 +215,13 @@ fn check(diffs: &[([f64; 3], [f64; 3], f64)], what: &str) {
         diffs.len()
     );
     let se = vsum.sqrt();
+    let n = (3 * diffs.len()) as f64;
     assert!(
-        dsum.abs() <= 4.0 * se + 1e-6 * diffs.len() as f64,
-        "{what}: mean difference {} (se {})",
-        dsum / (3 * diffs.len()) as f64,
-        se / (3 * diffs.len()) as f64
+        dsum.abs() <= 4.0 * se + slack + 1e-6 * n,
+        "{what}: mean difference {} (se {}, tolerated bias {})",
+        dsum / n,
+        se / n,
+        slack / n
     );
 }
 
@@ -212,8 +230,7 @@ fn assert_matches(r: &Rendered, expected: impl Fn(usize) -> [f32; 3], what: &str
     assert_matches_within(r, expected, 0.0, what)
 }
 
-/// [`assert_matches`] tolerating a known relative bias of up to `slack` (differences are
-/// shrunk towards 0 by `slack * expected` before the test).
+/// [`assert_matches`] tolerating a known relative bias of up to `slack` (see [`check`]).
 fn assert_matches_within(
     r: &Rendered,
     expected: impl Fn(usize) -> [f32; 3],
@@ -226,12 +243,12 @@ fn assert_matches_within(
         .map(|i| {
             let e = expected(i);
             let scale = e.iter().fold(0.0f32, |a, b| a.max(b.abs())) as f64;
-            let shrink = |d: f64, e: f32| d.signum() * (d.abs() - slack * e.abs() as f64).max(0.0);
-            (
-                [0, 1, 2].map(|c| shrink((m[i][c] - e[c]) as f64, e[c])),
-                [0, 1, 2].map(|c| v[i][c] as f64),
+            PixelDiff {
+                d: [0, 1, 2].map(|c| (m[i][c] - e[c]) as f64),
+                var: [0, 1, 2].map(|c| v[i][c] as f64),
+                slack: e.map(|x| slack * x.abs() as f64),
                 scale,
-            )
+            }
         })
         .collect();
     check(&diffs, what);
@@ -254,18 +271,25 @@ fn assert_agree(a: &Rendered, b: &Rendered, what: &str) {
                 .iter()
                 .chain(&mb[i])
                 .fold(0.0f32, |x, y| x.max(y.abs())) as f64;
-            (
-                [0, 1, 2].map(|c| (ma[i][c] - mb[i][c]) as f64),
-                [0, 1, 2].map(|c| (va[i][c] + vb[i][c]) as f64),
+            PixelDiff {
+                d: [0, 1, 2].map(|c| (ma[i][c] - mb[i][c]) as f64),
+                var: [0, 1, 2].map(|c| (va[i][c] + vb[i][c]) as f64),
+                slack: [0.0; 3],
                 scale,
-            )
+            }
         })
         .collect();
     check(&diffs, what);
 }
 
-/// The seed of every render; the suite was run with other seeds too (see each test).
-const SEED: u64 = 1;
+/// The seed of every render (renders in one test use it and the seeds just above it): 1, or
+/// `PATHFARM_STABILITY_SEED` to run the suite with other seeds (it passed for 1, 2 and 3).
+static SEED: std::sync::LazyLock<u64> = std::sync::LazyLock::new(|| {
+    std::env::var("PATHFARM_STABILITY_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(1)
+});
 
 #[test]
 fn allowed_failures_is_the_binomial_tail_quantile() {
@@ -289,7 +313,7 @@ fn light_sealed_inside_a_closed_box_leaves_the_outside_exactly_black() {
     let cam = Cam::new([3.0, -4.0, 2.5], [0.0; 3], 40.0, 16);
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), cam, SEALED_LAMP);
-        let r = render_xml_stats("sealed", &xml, 32, SEED);
+        let r = render_xml_stats("sealed", &xml, 32, *SEED);
         assert_finite(&r, &format!("{method:?}"));
         for (i, p) in r.film.pixels.iter().enumerate() {
             assert!(
@@ -309,7 +333,7 @@ fn camera_inside_the_sealed_box_sees_its_lit_interior_as_both_estimators_agree()
     let cam = Cam::new([0.5, -0.9, 0.6], [0.0, 1.0, -0.5], 90.0, 16);
     let [path, guided] = METHODS.map(|m| {
         let xml = scene(&m.integrator(-1, ""), cam, SEALED_LAMP);
-        render_xml_stats("sealed-inside", &xml, 256, SEED + m as u64)
+        render_xml_stats("sealed-inside", &xml, 256, *SEED + m as u64)
     });
     let lit = path.film.mean_rgb().iter().filter(|p| p[0] > 0.1).count();
     assert!(lit * 2 > path.film.pixels.len(), "the interior is lit");
@@ -360,7 +384,7 @@ fn light_escaping_a_fixture_through_a_small_hole_renders_the_same_with_both_esti
     let cam = Cam::new([0.0, -5.0, -0.8], [0.0, 0.0, -1.5], 45.0, 16);
     let [path, guided] = METHODS.map(|m| {
         let xml = scene(&m.integrator(-1, ""), cam, &fixture_with_hole());
-        render_xml_stats("fixture", &xml, 256, SEED + m as u64)
+        render_xml_stats("fixture", &xml, 256, *SEED + m as u64)
     });
     let spot = path.film.mean_rgb().iter().fold(0.0f32, |a, p| a.max(p[0]));
     assert!(
@@ -402,8 +426,8 @@ fn tiny_bright_light_renders_the_image_of_a_large_one_of_the_same_power() {
             let xml = scene(&integrator, cam, &sphere_lamp_room(r, l));
             render_xml_stats("lamp", &xml, 128, seed)
         };
-        let large = render_lamp(0.1, 10.0, SEED);
-        let tiny = render_lamp(1e-4, 1e7, SEED + 10);
+        let large = render_lamp(0.1, 10.0, *SEED);
+        let tiny = render_lamp(1e-4, 1e7, *SEED + 10);
         assert_agree(&tiny, &large, &format!("{method:?}: tiny vs large lamp"));
     }
 }
@@ -428,7 +452,7 @@ fn camera_a_hair_above_a_plane_at_grazing_angles_sees_albedo_times_sky() {
     };
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), cam, body);
-        let r = render_xml_stats("grazing", &xml, 64, SEED);
+        let r = render_xml_stats("grazing", &xml, 64, *SEED);
         assert_matches(&r, |_| [1.0, 0.25, 0.4], &format!("{method:?}: grazing"));
     }
 }
@@ -468,7 +492,7 @@ fn near_specular_rough_mirror_and_glass_vanish_in_the_white_furnace() {
     for (tag, bsdf) in cases {
         for method in METHODS {
             let xml = scene(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
-            let r = render_xml_stats(tag, &xml, 64, SEED);
+            let r = render_xml_stats(tag, &xml, 64, *SEED);
             assert_matches(&r, |_| [1.0; 3], &format!("{method:?}: {tag} furnace"));
         }
     }
@@ -510,7 +534,7 @@ fn near_specular_conductor_plastic_and_glass_render_like_their_smooth_versions()
     for method in METHODS {
         let [smooth, rough] = [false, true].map(|rough| {
             let xml = scene(&method.integrator(-1, ""), cam, &three_spheres(rough));
-            render_xml_stats("near-specular", &xml, 128, SEED + rough as u64)
+            render_xml_stats("near-specular", &xml, 128, *SEED + rough as u64)
         });
         assert_agree(
             &rough,
@@ -550,7 +574,7 @@ fn index_matched_dielectrics_vanish_in_the_white_furnace() {
     for (tag, bsdf) in INDEX_MATCHED {
         for method in METHODS {
             let xml = scene(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
-            let r = render_xml_stats(tag, &xml, 64, SEED);
+            let r = render_xml_stats(tag, &xml, 64, *SEED);
             assert_matches(&r, |_| [1.0; 3], &format!("{method:?}: {tag} furnace"));
         }
     }
@@ -572,12 +596,12 @@ fn index_matched_dielectrics_in_a_lit_scene_leave_its_image_unchanged() {
     let cam = Cam::new([0.0, -4.0, 2.0], [0.0, 0.0, 0.4], 50.0, 16);
     for method in METHODS {
         let integrator = method.integrator(-1, "");
-        let empty = render_xml_stats("matched-empty", &scene(&integrator, cam, lit), 128, SEED);
+        let empty = render_xml_stats("matched-empty", &scene(&integrator, cam, lit), 128, *SEED);
         for (tag, bsdf) in INDEX_MATCHED {
             let body = format!(
                 r#"{lit}<shape type="sphere"><point name="center" x="0.2" y="-0.8" z="0.8"/><float name="radius" value="0.6"/>{bsdf}</shape>"#
             );
-            let r = render_xml_stats(tag, &scene(&integrator, cam, &body), 128, SEED + 1);
+            let r = render_xml_stats(tag, &scene(&integrator, cam, &body), 128, *SEED + 1);
             assert_agree(&r, &empty, &format!("{method:?}: {tag} in the lit scene"));
         }
     }
@@ -621,8 +645,8 @@ fn degenerate_triangles_in_a_mesh_are_never_hit_and_change_nothing() {
     };
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), cam, body);
-        let clean = render_with_obj("quad", &xml, &quad_obj(0.0, ""), 64, SEED);
-        let degenerate = render_with_obj("degenerate", &xml, &quad_obj(0.0, DEGENERATE), 64, SEED);
+        let clean = render_with_obj("quad", &xml, &quad_obj(0.0, ""), 64, *SEED);
+        let degenerate = render_with_obj("degenerate", &xml, &quad_obj(0.0, DEGENERATE), 64, *SEED);
         let (mc, md) = (clean.film.mean_rgb(), degenerate.film.mean_rgb());
         assert_matches(
             &degenerate,
@@ -649,13 +673,13 @@ fn emitting_mesh_with_zero_area_triangles_lights_like_the_clean_mesh() {
     let cam = Cam::new([0.0, -4.0, 3.0], [0.0; 3], 45.0, 16);
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), cam, body);
-        let clean = render_with_obj("lamp-clean", &xml, &quad_obj(0.0, ""), 64, SEED);
+        let clean = render_with_obj("lamp-clean", &xml, &quad_obj(0.0, ""), 64, *SEED);
         let degenerate = render_with_obj(
             "lamp-degenerate",
             &xml,
             &quad_obj(0.0, DEGENERATE),
             64,
-            SEED + 1,
+            *SEED + 1,
         );
         assert_agree(
             &degenerate,
@@ -687,7 +711,7 @@ fn mesh_of_only_zero_area_triangles_loads_and_renders_nothing() {
                 continue;
             }
         };
-        let r = render_scene(&scene, 16, SEED);
+        let r = render_scene(&scene, 16, *SEED);
         assert_finite(&r, &format!("{method:?}"));
         assert!(
             r.film.mean_rgb().iter().all(|p| *p == [0.0; 3]),
@@ -715,11 +739,18 @@ fn inside_cam(res: u32) -> Cam {
 
 /// Found, not fixed: inside the glowing sphere every path's value is the same
 /// Le (1 + a + ...) (the MIS weights of light and BSDF samples are 1/2 each there, every
-/// term deterministic), yet 17 % of samples come out low by 5e-5 or more (at most 0.08,
-/// one term lost), scalar and wavefront estimators alike; the image is low by 4e-5
-/// relative with albedo 0.6 (1.3e-4 for 1000 bounces at 0.999). Not geometry: in 200000
-/// probes from hit points on the sphere no shadow ray was occluded and no continuation
-/// ray missed. The tests tolerate a relative deficit of twice that, and no more.
+/// term deterministic), yet 17 % of samples come out low by 5e-5 or more (at most 0.1, a
+/// continuum, never high), scalar and wavefront estimators alike: over 100000 samples the
+/// mean is low by 5.2e-5 relative with albedo 0.6 (about 1.3e-4 for 1000 bounces at
+/// 0.999). Not occlusion: in 200000 probes from hit points on the sphere no shadow ray was
+/// occluded and no continuation ray missed. Probable cause (an estimate, not verified): a
+/// continuation ray starts 4e-5 off the surface, so one leaving at a grazing elevation
+/// theta below about sqrt(2 * 4e-5) = 9e-3 meets the concave wall far beyond the point its
+/// direction from the surface point reaches, and the BSDF side's MIS weight, which
+/// evaluates the light pdf at the point actually hit, drops from 1/2 towards 0 while the
+/// light side kept 1/2; such directions have probability theta^2 = 8e-5 per bounce, the
+/// size of the deficit. The tests tolerate a relative deficit of about twice the measured
+/// one, and no more.
 const SPHERE_DEFICIT: f64 = 1e-4;
 const SPHERE_DEFICIT_1000: f64 = 3e-4;
 
@@ -746,7 +777,7 @@ fn camera_inside_a_closed_glowing_sphere_sees_emission_over_one_minus_albedo() {
     for method in METHODS {
         let integrator = method.integrator(60, no_roulette(method));
         let xml = scene(&integrator, inside_cam(16), &glowing_sphere_interior(le, a));
-        let r = render_xml_stats("inside-sphere", &xml, 64, SEED);
+        let r = render_xml_stats("inside-sphere", &xml, 64, *SEED);
         let what = format!("{method:?}: inside the sphere");
         assert_matches_within(&r, |_| [le / (1.0 - a); 3], SPHERE_DEFICIT, &what);
     }
@@ -762,7 +793,7 @@ fn camera_inside_a_closed_sphere_facing_away_from_its_light_sees_black() {
         <emitter type="constant"><rgb name="radiance" value="1"/></emitter>"#;
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), inside_cam(16), body);
-        let r = render_xml_stats("inside-outward", &xml, 16, SEED);
+        let r = render_xml_stats("inside-outward", &xml, 16, *SEED);
         assert_finite(&r, &format!("{method:?}"));
         assert!(
             r.film.mean_rgb().iter().all(|p| *p == [0.0; 3]),
@@ -783,7 +814,7 @@ fn camera_inside_a_glass_sphere_in_the_furnace_sees_eta_squared() {
     );
     for method in METHODS {
         let xml = scene(&method.integrator(-1, ""), inside_cam(16), &body);
-        let r = render_xml_stats("inside-glass", &xml, 64, SEED);
+        let r = render_xml_stats("inside-glass", &xml, 64, *SEED);
         assert_matches(&r, |_| [2.25; 3], &format!("{method:?}: inside glass"));
     }
 }
@@ -824,7 +855,7 @@ fn thousand_bounce_paths_stay_finite_on_a_small_stack_and_sum_the_geometric_seri
                     .stack_size(256 << 10)
                     .build()
                     .unwrap()
-                    .install(|| render_scene(&scene, 16, SEED))
+                    .install(|| render_scene(&scene, 16, *SEED))
             })
             .unwrap()
             .join()
@@ -909,9 +940,9 @@ fn uniformly_scaled_scenes_from_1e_minus_4_to_1e4_render_the_unscaled_image() {
             assert!(scene.triangle_count > 64, "the BVH is under test");
             render_scene(&scene, 64, seed)
         };
-        let unit = at(1.0, SEED);
+        let unit = at(1.0, *SEED);
         for (k, s) in [1e-4f32, 1e4].into_iter().enumerate() {
-            let scaled = at(s, SEED + 1 + k as u64);
+            let scaled = at(s, *SEED + 1 + k as u64);
             assert_agree(&scaled, &unit, &format!("{method:?}: scale {s:e} vs 1"));
         }
     }
