@@ -17,4 +17,5 @@ mod it {
     pub mod outputs;
     pub mod session;
     pub mod shared_scenes;
+    pub mod stability;
 }

@@ -60,10 +60,20 @@ impl RoughDielectric {
         d
     }
 
+    /// Equal interior and exterior IOR: there is no interface. Every microfacet then
+    /// refracts straight through with Fresnel 0, so the BSDF is a delta transmission
+    /// `wo = -wi`; Walter's model degenerates there (the half vector `wi + eta wo` is 0 and
+    /// `dwh/dwo` infinite), and sampling it would reject every direction: the object would
+    /// absorb all light instead of vanishing.
+    #[inline]
+    fn index_matched(&self) -> bool {
+        self.eta == 1.0
+    }
+
     pub fn flags(&self) -> BsdfFlags {
         BsdfFlags {
-            smooth: true,
-            delta: false,
+            smooth: !self.index_matched(),
+            delta: self.index_matched(),
             transmission: true,
         }
     }
@@ -74,6 +84,18 @@ impl RoughDielectric {
         let cos_theta_i = wi.z;
         if cos_theta_i == 0.0 || !cos_theta_i.is_finite() {
             return None;
+        }
+        if self.index_matched() {
+            return Some(BsdfSample {
+                wo: -wi,
+                pdf: 1.0,
+                weight: self.specular_transmittance,
+                eta: 1.0,
+                lobe: Lobe {
+                    delta: true,
+                    transmission: true,
+                },
+            });
         }
         let distr = self.distr();
         let sdistr = self.sample_distr(cos_theta_i);
@@ -161,7 +183,7 @@ impl RoughDielectric {
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {
         let cos_theta_i = wi.z;
-        if cos_theta_i == 0.0 || wo.z == 0.0 {
+        if cos_theta_i == 0.0 || wo.z == 0.0 || self.index_matched() {
             return Vec3::ZERO;
         }
         let Some((m, reflect, eta)) = self.half_vector(wi, wo) else {
@@ -189,7 +211,7 @@ impl RoughDielectric {
 
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {
         let cos_theta_i = wi.z;
-        if cos_theta_i == 0.0 || wo.z == 0.0 {
+        if cos_theta_i == 0.0 || wo.z == 0.0 || self.index_matched() {
             return 0.0;
         }
         let Some((m, reflect, eta)) = self.half_vector(wi, wo) else {

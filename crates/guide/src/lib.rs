@@ -69,3 +69,5 @@ pub use wire::WireError;
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_stability;

@@ -13,7 +13,8 @@ use glam::Vec3;
 ///   `pdf_mix`, or a non-finite `radiance`/`position`/`direction` are skipped entirely; those
 ///   skipped for a NaN or infinity are counted ([`crate::SdTree::take_nonfinite_records`]);
 /// * otherwise W gains `weight`; the sum gains `weight * radiance / pdf_mix` only when that value
-///   is > 0 (zero or negative radiance changes W only);
+///   is > 0 and below [`crate::sdtree::MAX_RECORD_VALUE`] (zero, negative or absurdly large
+///   values change W only);
 /// * the learned fraction uses the record when it is not `is_delta` and `product > 0`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Record {

@@ -439,7 +439,7 @@ impl SdTree {
         let pm = rec.pdf_mix as f64;
         let uv = dir_to_uv(rec.direction);
         let value = w * rec.radiance as f64 / pm;
-        let (qv, ov) = if value > 0.0 && value.is_finite() {
+        let (qv, ov) = if value > 0.0 && value < MAX_RECORD_VALUE {
             to_fixed(value)
         } else {
             (0, false)
@@ -870,6 +870,14 @@ fn take_nonzero(a: &Acc128) -> u128 {
     }
     v
 }
+
+/// Largest value `weight * radiance / pdf_mix` one record may deposit: 2^48 (2.8e14); a
+/// larger (or non-finite) value changes W only, like a non-finite radiance. A quadtree cell
+/// sums records in 128-bit fixed point with 48 fractional bits, room for 2^80: 2^32 records
+/// of this size still fit. Larger values (no physical estimate comes near them; a subnormal
+/// `pdf_mix` can make them) saturated each record and then wrapped the sums, and a wrapped
+/// total made refinement split every cell to the maximum depth (4^20 nodes: out of memory).
+pub const MAX_RECORD_VALUE: f64 = (1u64 << 48) as f64;
 
 /// Whether [`SdTree::record`] uses `rec` at all: positive finite weight and mixture pdf,
 /// finite radiance, position and direction.

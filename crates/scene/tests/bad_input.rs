@@ -4,6 +4,7 @@ mod common;
 
 use common::*;
 use pathfarm_scene::*;
+use std::path::PathBuf;
 
 #[test]
 fn malformed_xml_reports_the_line_of_the_syntax_error() {
@@ -232,4 +233,144 @@ fn truncated_or_mangled_scene_files_give_errors_never_panics() {
         }
     }
     assert!(errors > 100, "only {errors} errors");
+}
+
+/// `mesh` written as `name` beside a scene that loads it with `<shape type="kind">`
+/// (extra `shape_body` inside the shape): the load error.
+fn mesh_error(
+    tag: &str,
+    kind: &str,
+    name: &str,
+    mesh: &[u8],
+    shape_body: &str,
+) -> (SceneError, PathBuf, String) {
+    let d = temp_dir(tag);
+    std::fs::write(d.join(name), mesh).unwrap();
+    let xml = scene(&format!(
+        "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{name}\"/>{shape_body}\n</shape>"
+    ));
+    let p = d.join("scene.xml");
+    std::fs::write(&p, &xml).unwrap();
+    let err = load_scene(&p, &[]).expect_err(tag);
+    (err, p, xml)
+}
+
+/// A binary little-endian PLY triangle with the given vertex coordinates.
+fn binary_ply(coords: [[f32; 3]; 3]) -> Vec<u8> {
+    let mut b = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+    for v in coords.iter().flatten() {
+        b.extend(v.to_le_bytes());
+    }
+    b.push(3);
+    for i in 0..3i32 {
+        b.extend(i.to_le_bytes());
+    }
+    b
+}
+
+#[test]
+fn infinite_and_nan_mesh_data_is_rejected_naming_the_mesh_file() {
+    // NaN or Inf anywhere in a mesh's vertex data (positions, normals, texture
+    // coordinates; OBJ, ASCII and binary PLY), or a finite position that the shape's
+    // transform sends to infinity, must never reach the renderer: the load fails at the
+    // shape's line, naming the file and saying what is non-finite.
+    let ascii_ply = |v1: &str| {
+        format!("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n{v1}\n0 1 0\n3 0 1 2\n")
+    };
+    let cases: Vec<(&str, &str, &str, Vec<u8>, &str)> = vec![
+        (
+            "obj-inf",
+            "obj",
+            "inf.obj",
+            b"v 0 0 0\nv 1 inf 0\nv 0 1 0\nf 1 2 3\n".to_vec(),
+            "",
+        ),
+        (
+            "obj-neg-inf",
+            "obj",
+            "ninf.obj",
+            b"v 0 0 0\nv 1 0 -inf\nv 0 1 0\nf 1 2 3\n".to_vec(),
+            "",
+        ),
+        (
+            "obj-overflow",
+            "obj",
+            "big.obj",
+            b"v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n".to_vec(),
+            "",
+        ),
+        (
+            "obj-nan-normal",
+            "obj",
+            "nrm.obj",
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nvn nan 0 1\nvn 0 0 1\nf 1//1 2//2 3//3\n"
+                .to_vec(),
+            "",
+        ),
+        (
+            "obj-inf-uv",
+            "obj",
+            "uv.obj",
+            b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt inf 0\nvt 0 1\nf 1/1 2/2 3/3\n".to_vec(),
+            "",
+        ),
+        (
+            "ply-ascii-nan",
+            "ply",
+            "nan.ply",
+            ascii_ply("1 nan 0").into_bytes(),
+            "",
+        ),
+        (
+            "ply-ascii-inf",
+            "ply",
+            "inf.ply",
+            ascii_ply("1 0 inf").into_bytes(),
+            "",
+        ),
+        (
+            "ply-binary-nan",
+            "ply",
+            "nanb.ply",
+            binary_ply([[0.0; 3], [1.0, f32::NAN, 0.0], [0.0, 1.0, 0.0]]),
+            "",
+        ),
+        (
+            "ply-binary-inf",
+            "ply",
+            "infb.ply",
+            binary_ply([[0.0; 3], [f32::INFINITY, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+            "",
+        ),
+        (
+            "obj-transformed-to-inf",
+            "obj",
+            "far.obj",
+            b"v 0 0 0\nv 3e38 0 0\nv 0 1 0\nf 1 2 3\n".to_vec(),
+            "\n  <transform name=\"to_world\"><scale value=\"100\"/></transform>",
+        ),
+    ];
+    for (tag, kind, name, mesh, body) in cases {
+        let (err, p, xml) = mesh_error(tag, kind, name, &mesh, body);
+        let shown = err.to_string();
+        assert!(shown.contains(name), "{tag}: {shown}");
+        // (in f64 the transformed vertex is 3e40: beyond the world-coordinate limit; the
+        // ASCII PLY reader accepts only digits, so "nan"/"inf" fail to parse at their line)
+        let says = match tag {
+            "obj-transformed-to-inf" => "world space",
+            "ply-ascii-nan" | "ply-ascii-inf" => "line 11",
+            _ => "non-finite",
+        };
+        assert!(shown.contains(says), "{tag}: says what is wrong: {shown}");
+        // (the world-space bound is checked per shape: reported at its element)
+        let line = if tag == "obj-transformed-to-inf" {
+            line_of(&xml, "<shape")
+        } else {
+            line_of(&xml, name)
+        };
+        assert!(
+            shown.contains(&format!("{}:{line}", p.display())),
+            "{tag}: at the shape's line: {shown}"
+        );
+    }
 }

@@ -475,3 +475,38 @@ fn all_finite_rejects_nan_and_infinities() {
         assert!(!crate::all_finite([bad]));
     }
 }
+
+#[test]
+fn index_matched_rough_dielectric_passes_light_straight_through() {
+    // eta = 1 (equal IORs): no interface, whatever the roughness. Walter's model is
+    // degenerate there (half vector 0); before the fix every sample was rejected and the
+    // object rendered black. Now: a delta transmission wo = -wi of weight
+    // `specular_transmittance`, no continuous part.
+    let mut rng = Pcg32::new(9, 9);
+    for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
+        for alpha in [1e-4f32, 0.3, 1.0] {
+            let b = Bsdf::RoughDielectric(RoughDielectric::new(
+                kind,
+                alpha,
+                alpha,
+                true,
+                1.0,
+                Vec3::ONE,
+                Vec3::splat(0.8),
+            ));
+            let flags = b.flags();
+            assert!(flags.delta && !flags.smooth, "{kind:?} {alpha}: {flags:?}");
+            for _ in 0..100 {
+                let wi = uniform_sphere(&mut rng);
+                let (ul, u) = (rng.f32(), Vec2::new(rng.f32(), rng.f32()));
+                let s = b.sample(wi, ul, u).expect("never absorbed");
+                assert_eq!(s.wo, -wi);
+                assert_eq!(s.weight, Vec3::splat(0.8));
+                assert!(s.lobe.delta && s.lobe.transmission && s.eta == 1.0);
+                let wo = uniform_sphere(&mut rng);
+                assert_eq!(b.eval(wi, wo), Vec3::ZERO);
+                assert_eq!(b.pdf(wi, wo), 0.0);
+            }
+        }
+    }
+}

@@ -34,6 +34,8 @@ pub struct Accel {
     analytic: Vec<(u32, Analytic)>,
     shapes: Vec<ShapeGeom>,
     bounds: (Vec3, Vec3),
+    /// The scene's length scale for ray offsets, see [`super::offset_origin`].
+    offset_floor: f32,
     /// So few triangles ([`FLAT_MAX`]) that testing them all beats walking the
     /// BVH: rays are tested against every triangle, in BVH primitive order.
     flat: bool,
@@ -121,6 +123,7 @@ impl Accel {
             analytic,
             shapes,
             bounds: (lo, hi),
+            offset_floor: offset_floor(lo, hi),
             flat,
         }
     }
@@ -128,6 +131,13 @@ impl Accel {
     /// Axis-aligned bounds of the whole scene.
     pub fn bounds(&self) -> (Vec3, Vec3) {
         self.bounds
+    }
+
+    /// The floor of spawned rays' offsets ([`super::offset_origin`]): 1 for scenes that reach at
+    /// least 1 from the origin, the scene's extent for smaller ones.
+    #[inline]
+    pub fn offset_floor(&self) -> f32 {
+        self.offset_floor
     }
 
     pub fn shape(&self, i: u32) -> &ShapeGeom {
@@ -141,7 +151,7 @@ impl Accel {
         let mut best: Option<Hit> = None;
         let mut tmax = ray.tmax;
         if !self.tris.is_empty() {
-            let mut r = TraceRay::new(ray);
+            let mut r = TraceRay::new(ray, self.offset_floor);
             let (prim, bary) = self.traverse::<false>(&mut r);
             if prim != u32::MAX {
                 best = Some(self.triangle_hit(prim, r.tmax, bary));
@@ -188,7 +198,12 @@ impl Accel {
 
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
-        if !self.tris.is_empty() && self.traverse::<true>(&mut TraceRay::new(ray)).0 != u32::MAX {
+        if !self.tris.is_empty()
+            && self
+                .traverse::<true>(&mut TraceRay::new(ray, self.offset_floor))
+                .0
+                != u32::MAX
+        {
             return false;
         }
         !ANALYTIC || self.analytic_unoccluded(ray)
@@ -528,8 +543,8 @@ impl Node {
 
     /// Ray against the eight child boxes: the hit mask (leaf primitives in the low 24
     /// bits, obvhs' encoding; bit `24 + s` for a hit inner child in slot `s`) and each
-    /// box's entry distance. Boxes are culled beyond `tmax` and before obvhs' floor of
-    /// 1e-4.
+    /// box's entry distance. Boxes are culled beyond `tmax` and before the ray's
+    /// `box_floor` (obvhs' floor of 1e-4, scaled for scenes smaller than 1).
     ///
     /// Written over all eight slots at once so that it compiles to 8-wide
     /// vector code: per axis both planes' distances by one FMA each (near
@@ -537,8 +552,6 @@ impl Node {
     /// fixed offsets), then the hit lanes' codes ORed.
     #[inline(always)]
     fn intersect(&self, ray: &TraceRay) -> (u32, [f32; 8]) {
-        /// obvhs' lower bound on the entry distance of a box.
-        const EPSILON: f32 = 0.0001;
         // `if a > b { a } else { b }` rather than f32::max: no NaN fix-up,
         // one vmaxps (operands are finite: inv_dir is clamped).
         #[inline(always)]
@@ -583,7 +596,7 @@ impl Node {
             let (t0x, t1x) = (min(ax, bx), max(ax, bx));
             let (t0y, t1y) = (min(ay, by), max(ay, by));
             let (t0z, t1z) = (min(az, bz), max(az, bz));
-            let t0 = max(max(t0x, t0y), max(t0z, EPSILON));
+            let t0 = max(max(t0x, t0y), max(t0z, ray.box_floor));
             let t1 = min(min(t1x, t1y), min(t1z, ray.tmax));
             near[i] = t0;
             let bits = self.code[i] & SLOT_ORDER[i];
@@ -618,11 +631,15 @@ struct TraceRay {
     tmin: f32,
     /// End of the ray; shortened to the closest hit found so far.
     tmax: f32,
+    /// Lower bound on the entry distance of a box: obvhs' 1e-4 times the scene's
+    /// [`Accel::offset_floor`] (so 1e-4 at unit scale and above). A fixed 1e-4 culled
+    /// every box within 1e-4 of the ray's origin, in a scene 1e-4 across nearly all of it.
+    box_floor: f32,
 }
 
 impl TraceRay {
     #[inline(always)]
-    fn new(ray: &Ray) -> Self {
+    fn new(ray: &Ray, offset_floor: f32) -> Self {
         let direction = Vec3A::from(ray.d);
         let tiny = direction.abs().cmple(Vec3A::splat(f32::EPSILON));
         let clamped = Vec3A::splat(1.0 / f32::EPSILON).copysign(direction);
@@ -635,6 +652,7 @@ impl TraceRay {
             neg_org_inv: -origin * inv_dir,
             tmin: ray.tmin,
             tmax: ray.tmax,
+            box_floor: 1e-4 * offset_floor,
         }
     }
 }
@@ -788,6 +806,21 @@ impl TriSoa {
             hits |= ((ok & (ti <= r.tmax)) as u32) << i;
         }
         (hits & lanes, [t, bu, bv])
+    }
+}
+
+/// The offset floor of a scene with bounds `lo`..`hi`: its largest coordinate magnitude,
+/// at most 1 (and 1 when that is not a positive finite number). Ray offsets grow with a
+/// point's distance from the origin, but a fixed floor of 1 would make them 20 % of a
+/// scene 1e-4 across (its rays would start inside thin objects and skip contact
+/// shadows); a floor that shrinks with the scene makes the offset a fixed fraction of the
+/// scene at every scale. Scenes reaching 1 or more keep 1 (their renders unchanged).
+fn offset_floor(lo: Vec3, hi: Vec3) -> f32 {
+    let extent = lo.abs().max(hi.abs()).max_element();
+    if extent > 0.0 && extent < 1.0 {
+        extent
+    } else {
+        1.0
     }
 }
 

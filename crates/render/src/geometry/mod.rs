@@ -49,19 +49,20 @@ pub struct SurfaceInteraction {
 
 /// Offset scale for spawned rays: relative to the magnitude of the point, so
 /// that it works at any scene scale (a fixed epsilon fails far from the
-/// origin).
+/// origin), and never below `floor` times that fraction: `floor` is the scene's
+/// [`Accel::offset_floor`] (1, or the extent of a scene smaller than 1).
 #[inline]
-pub fn offset_origin(p: Vec3, ng: Vec3, d: Vec3) -> Vec3 {
-    let scale = (1.0 + p.abs().max_element()) * 2.0e-5;
+pub fn offset_origin(p: Vec3, ng: Vec3, d: Vec3, floor: f32) -> Vec3 {
+    let scale = (floor + p.abs().max_element()) * 2.0e-5;
     let n = if ng.dot(d) >= 0.0 { ng } else { -ng };
     p + n * scale
 }
 
-/// A ray leaving surface point `p` in direction `d`.
+/// A ray leaving surface point `p` in direction `d` (`floor`: see [`offset_origin`]).
 #[inline]
-pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3) -> Ray {
+pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3, floor: f32) -> Ray {
     Ray {
-        o: offset_origin(p, ng, d),
+        o: offset_origin(p, ng, d, floor),
         d,
         tmin: 0.0,
         tmax: f32::INFINITY,
@@ -71,8 +72,8 @@ pub fn spawn_ray(p: Vec3, ng: Vec3, d: Vec3) -> Ray {
 /// A shadow ray from surface point `p` towards `target` (stopping just short
 /// of it). Returns the ray; `d` is unit length.
 #[inline]
-pub fn spawn_ray_to(p: Vec3, ng: Vec3, target: Vec3) -> Ray {
-    let o = offset_origin(p, ng, target - p);
+pub fn spawn_ray_to(p: Vec3, ng: Vec3, target: Vec3, floor: f32) -> Ray {
+    let o = offset_origin(p, ng, target - p, floor);
     let v = target - o;
     let dist = v.length();
     Ray {

@@ -848,7 +848,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
                         let f = bsdf.eval(wi, wo);
                         let mut w_light = 0.0;
                         if f != Vec3::ZERO {
-                            let shadow = ls.shadow_ray(si.p, si.ng);
+                            let shadow = ls.shadow_ray(si.p, si.ng, accel.offset_floor());
                             rays += 1;
                             if accel.unoccluded::<ANALYTIC>(&shadow) {
                                 w_light = if ls.delta {
@@ -1019,7 +1019,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
             end_path!('paths)
         }
 
-        ray = spawn_ray(si.p, si.ng, ms.wo_world);
+        ray = spawn_ray(si.p, si.ng, ms.wo_world, accel.offset_floor());
         hit = accel.intersect::<ANALYTIC>(&ray);
         rays += 1;
     }

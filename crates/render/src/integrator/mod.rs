@@ -65,7 +65,7 @@ fn hidden_emitters_skipped<const ANALYTIC: bool>(
             break;
         }
         let si = accel.interaction(ray, &h);
-        *ray = spawn_ray(si.p, si.ng, ray.d);
+        *ray = spawn_ray(si.p, si.ng, ray.d, accel.offset_floor());
         hit = accel.intersect::<ANALYTIC>(ray);
     }
     hit?;

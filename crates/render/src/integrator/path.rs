@@ -108,6 +108,8 @@ pub(super) struct Shading<'a> {
     pub frame: Frame,
     /// Direction towards the previous vertex, in the shading frame.
     pub wi: Vec3,
+    /// The scene's [`crate::geometry::Accel::offset_floor`], for the rays leaving `p`.
+    pub offset_floor: f32,
 }
 
 /// The surface the lane's ray found: emission (MIS-weighted against the previous
@@ -163,6 +165,7 @@ pub(super) fn surface<'a, const ENV: bool>(
         bsdf,
         frame,
         wi,
+        offset_floor: scene.accel.offset_floor(),
     })
 }
 
@@ -179,7 +182,7 @@ pub(super) fn next_event(lane: &mut Lane, sh: &Shading<'_>, ls: &LightSample) {
             power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
         };
         lane.shadow = Some((
-            ls.shadow_ray(sh.p, sh.ng),
+            ls.shadow_ray(sh.p, sh.ng, sh.offset_floor),
             lane.throughput * f * ls.value * (w / ls.pdf),
         ));
     }
@@ -216,6 +219,6 @@ pub(super) fn scatter(
     if tp_max <= 0.0 || !tp_max.is_finite() {
         return;
     }
-    lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo));
+    lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo), sh.offset_floor);
     lane.alive = true;
 }

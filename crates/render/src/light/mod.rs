@@ -36,12 +36,13 @@ pub struct LightSample {
 impl LightSample {
     /// The shadow ray testing this sample from surface point `p` (geometric normal `ng`):
     /// unbounded towards an infinite light, else stopping just short of the sampled point.
+    /// `floor`: the scene's [`Accel::offset_floor`].
     #[inline]
-    pub fn shadow_ray(&self, p: Vec3, ng: Vec3) -> Ray {
+    pub fn shadow_ray(&self, p: Vec3, ng: Vec3, floor: f32) -> Ray {
         if self.infinite {
-            spawn_ray(p, ng, self.wi)
+            spawn_ray(p, ng, self.wi, floor)
         } else {
-            spawn_ray_to(p, ng, self.point)
+            spawn_ray_to(p, ng, self.point, floor)
         }
     }
 }
