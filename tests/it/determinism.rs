@@ -97,7 +97,16 @@ fn cli_output_is_identical_for_one_and_two_threads() {
 /// covering meshes and analytic shapes, every BSDF, textures, area and environment lights.
 #[test]
 fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
-    use pathfarm_render::integrator::path;
+    use pathfarm_render::integrator::{path, specialised, Specialise};
+    use pathfarm_render::{geometry::Ray, rng::Rng};
+    /// `path::li` for a scene's features.
+    struct PathLi;
+    impl Specialise for PathLi {
+        type Output = fn(&Scene, Ray, &mut Rng) -> glam::Vec3;
+        fn call<const ENV: bool, const ANALYTIC: bool>(self) -> Self::Output {
+            path::li::<ENV, ANALYTIC>
+        }
+    }
     use pathfarm_render::{render_into, Film};
     for (name, file) in [
         ("cornell-box", shared_scene("cornell-box")),
@@ -109,15 +118,8 @@ fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
         let scene = Scene::build(&load_scene(&file, &defs).expect("load")).expect("build");
         let settings = RenderSettings::new(Some(5), None, 3);
         let batched = render(&scene, &settings, &|_| {}).0;
-        let one_path = |ray, rng: &mut _, _pixel| match (
-            scene.features.environment,
-            scene.features.analytic_shapes,
-        ) {
-            (false, false) => path::li::<false, false>(&scene, ray, rng),
-            (true, false) => path::li::<true, false>(&scene, ray, rng),
-            (false, true) => path::li::<false, true>(&scene, ray, rng),
-            (true, true) => path::li::<true, true>(&scene, ray, rng),
-        };
+        let li = specialised(&scene, PathLi);
+        let one_path = |ray, rng: &mut _, _pixel| li(&scene, ray, rng);
         let mut single = Film::new(scene.width, scene.height);
         render_into(&scene, &settings, &|_| {}, 0, &mut single, &one_path);
         assert_eq!(film_bits(&batched), film_bits(&single), "{name}");

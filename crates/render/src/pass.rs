@@ -236,6 +236,18 @@ fn guide_ctx<'a>(
     }
 }
 
+/// [`guided_path::li`] for a scene's features.
+struct GuidedLi;
+
+type GuidedLiFn = fn(&Scene, &GuideCtx, crate::geometry::Ray, &mut Rng, usize, bool) -> glam::Vec3;
+
+impl crate::integrator::Specialise for GuidedLi {
+    type Output = GuidedLiFn;
+    fn call<const ENV: bool, const ANALYTIC: bool>(self) -> GuidedLiFn {
+        guided_path::li::<ENV, ANALYTIC>
+    }
+}
+
 /// The guided integrator as an [`Estimator`], specialised for the scene's effects.
 struct GuidedEstimator<'a> {
     scene: &'a Scene,
@@ -245,12 +257,7 @@ struct GuidedEstimator<'a> {
 impl Estimator for GuidedEstimator<'_> {
     fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]) {
         let (scene, ctx) = (self.scene, &self.ctx);
-        let li = match (scene.features.environment, scene.features.analytic_shapes) {
-            (false, false) => guided_path::li::<false, false>,
-            (true, false) => guided_path::li::<true, false>,
-            (false, true) => guided_path::li::<false, true>,
-            (true, true) => guided_path::li::<true, true>,
-        };
+        let li = crate::integrator::specialised(scene, GuidedLi);
         for ((s, rng), o) in samples.iter().zip(rngs.iter_mut()).zip(out.iter_mut()) {
             *o = li(scene, ctx, s.ray, rng, s.pixel, s.owned);
         }

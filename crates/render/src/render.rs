@@ -152,12 +152,29 @@ pub struct PathEstimator<'a> {
 impl Estimator for PathEstimator<'_> {
     fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]) {
         let scene = self.scene;
-        match (scene.features.environment, scene.features.analytic_shapes) {
-            (false, false) => PathWavefront::<false, false> { scene }.estimate(samples, rngs, out),
-            (true, false) => PathWavefront::<true, false> { scene }.estimate(samples, rngs, out),
-            (false, true) => PathWavefront::<false, true> { scene }.estimate(samples, rngs, out),
-            (true, true) => PathWavefront::<true, true> { scene }.estimate(samples, rngs, out),
-        }
+        let run = Batch {
+            scene,
+            samples,
+            rngs,
+            out,
+        };
+        crate::integrator::specialised(scene, run);
+    }
+}
+
+/// One batch of the path wavefront, for [`crate::integrator::specialised`].
+struct Batch<'s, 'b> {
+    scene: &'s Scene,
+    samples: &'b [CameraSample],
+    rngs: &'b mut [Rng],
+    out: &'b mut [glam::Vec3],
+}
+
+impl crate::integrator::Specialise for Batch<'_, '_> {
+    type Output = ();
+    fn call<const ENV: bool, const ANALYTIC: bool>(self) {
+        let wavefront = PathWavefront::<ENV, ANALYTIC> { scene: self.scene };
+        wavefront.estimate(self.samples, self.rngs, self.out)
     }
 }
 

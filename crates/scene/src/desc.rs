@@ -226,13 +226,9 @@ pub struct GuidedParams {
     /// starts with, in [0, 1] (applied in 1/256ths). 0 in the 2017 and 2019 presets (each
     /// iteration learns from its own records alone, as in the papers), 0.5 in pathfarm's:
     /// the tree built after iteration k then learns from every earlier record with weight
-    /// 0.5^age. Records are unbiased whichever guide sampled them, only noisier when older.
-    /// Measured (2026-11-23, AMD EPYC Zen 3, pathfarm preset against `carry_over` 0, paired
-    /// single-threaded runs side by side): at 63 spp (4 seeds) relMSE 0.961 on veach-ajar and
-    /// 0.954 on door-ajar (3 of 4 better each) for the same time; at 30 CPU-s (8 seeds)
-    /// 0.933 on veach-ajar (7 of 8 better) and 0.966 on door-ajar (6 of 8). 0.25 and 1.0
-    /// gave 0.973 and 0.976 at 63 spp on veach-ajar. At 120 CPU-s on veach-ajar it was
-    /// neutral (benchmark seeds, 2 runs: 1.01). It adds about 30 % to the tree's memory.
+    /// 0.5^age. Records are unbiased whichever guide sampled them, only noisier when older;
+    /// 3-7 % lower relMSE at short budgets for 30 % more tree memory
+    /// (`docs/decisions/carry-over.md`).
     pub carry_over: f64,
     /// `nee`: "never" | "always" (default) | "kickstart".
     pub nee: GuidedNee,
@@ -241,10 +237,8 @@ pub struct GuidedParams {
     /// `spatial_filter`: "nearest" (default) | "stochastic" (2019) | "box".
     ///
     /// "box" splats every record into all the leaves a box of its leaf's size overlaps, the
-    /// noise-free form of "stochastic" (same expected deposit). It learns a better tree per
-    /// sample (veach-ajar, pathfarm preset, 64 spp, seed 1: relMSE 0.090 vs 0.108) but records
-    /// 3-4x slower, so at equal time it loses: 1.16-1.24x higher relMSE at 30 CPU-s (4 seeds,
-    /// 2026-11-23, AMD EPYC Zen 1), the time budget affording fewer training iterations.
+    /// noise-free form of "stochastic": a better tree per sample, but recording is 3-4x
+    /// slower and loses at equal time (`docs/decisions/spatial-filter-box.md`).
     pub spatial_filter: GuidedSpatialFilter,
     /// `directional_filter`: "nearest" (default) | "box" (2019).
     pub directional_filter: GuidedDirectionalFilter,
@@ -259,11 +253,7 @@ pub struct GuidedParams {
     /// vertices, with `russian_roulette` "guided" (3; `rr_depth` keeps its `path` meaning
     /// everywhere else). The guide's radiance estimate knows which paths are worth
     /// continuing long before Mitsuba's default `rr_depth` of 5, where a throughput-based
-    /// roulette does not. Measured (pathfarm preset, 30 CPU-s, relMSE, paired medians over
-    /// 6 seeds, 2026-11-23, AMD EPYC Zen 3): veach-ajar 0.86 (6 of 6 seeds better) at 3,
-    /// 0.88 at 4, 0.82 at 2; door-ajar 1.00 at 3 (12 seeds), 1.00 at 4, 1.08 at 2, 1.09 at 1.
-    /// At 120 CPU-s on veach-ajar 3 was neutral: 1.03 over 7 seeds (3 better), the gain is
-    /// at short budgets, where the early roulette saves the most time.
+    /// roulette does not (`docs/decisions/guided-rr-depth.md`).
     pub guided_rr_depth: u32,
     /// `splitting`: with guided Russian roulette, split paths whose expected contribution is
     /// well above the pixel's estimated value (the weight window's upper edge), in the passes
@@ -350,10 +340,7 @@ impl GuidedParams {
     ///
     /// Its spatial threshold is 2000 rather than 4000: at the benchmark resolution (320x180)
     /// a pass records 16x fewer paths than at the 1280x720 the paper's values were set for,
-    /// so 4000 left the spatial tree coarse. Measured (2026-11-22, 2 seeds each, relMSE):
-    /// veach-ajar at 30 CPU-s 0.0755/0.0767 (2000) vs 0.0782/0.0844 (4000), 0.0737/0.0773
-    /// (1000), 0.0917/0.0932 (8000); at 120 CPU-s 0.0213 vs 0.0219 (1000: 0.0219); door-ajar
-    /// at 30 CPU-s 0.00049/0.00049 vs 0.00054/0.00055.
+    /// so 4000 left the spatial tree coarse (`docs/decisions/s-tree-threshold.md`).
     pub fn preset_pathfarm() -> Self {
         Self {
             s_tree_threshold: 2000.0,

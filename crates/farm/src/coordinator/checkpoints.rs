@@ -126,7 +126,13 @@ impl Shared {
             return;
         };
         let current = job.active.as_ref().is_some_and(|a| a.checkpoint_seq == seq);
-        if !current {
+        // A part equal to a blob in the garbage may have been collected since it was written
+        // (collections run under the lock): such a checkpoint is not recorded.
+        let complete = parts.digests().all(|d| self.blobs.has(&d));
+        if !complete {
+            tracing::warn!(job = %job_name(n), "checkpoint not recorded: a part was collected");
+        }
+        if !current || !complete {
             st.garbage.extend(parts.digests());
             self.collect_garbage(&mut st);
             return;

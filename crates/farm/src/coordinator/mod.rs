@@ -632,16 +632,32 @@ impl Shared {
     /// a while) and marks it DONE, unless it was cancelled meanwhile. The session's blobs
     /// (`released`, and the checkpoint) become garbage once the results are durable.
     fn assemble(&self, n: u64, film: pathfarm_render::Film, tree: SdTree, released: Vec<Digest>) {
-        let stored = (|| -> Result<[Digest; 3], String> {
+        let encoded = (|| -> Result<[Vec<u8>; 3], String> {
             let exr =
                 pathfarm_render::output::encode_exr(&film, false).map_err(|e| e.to_string())?;
             let png = pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
-            let tree = tree.encode();
-            let put = |b: &[u8]| self.blobs.put(b).map_err(|e| e.to_string());
-            Ok([put(&exr)?, put(&png)?, put(&tree)?])
+            Ok([exr, png, tree.encode()])
         })();
+        let put = |b: &Vec<u8>| self.blobs.put(b).map_err(|e| e.to_string());
+        let written = encoded.and_then(|e| {
+            e.iter().map(put).collect::<Result<Vec<_>, _>>()?;
+            Ok(e)
+        });
         let mut st = self.lock();
         let st = &mut *st;
+        // A result may equal a blob already waiting in the garbage (the last preview is the
+        // final PNG of a one-iteration job; the final tree is the last one published), and a
+        // collection may have run between the write above and this lock: stored again if so.
+        // Collections run under the lock, so once recorded below the results are safe.
+        let stored = written.and_then(|e| {
+            let d = e.each_ref().map(|b| bundle::digest_of(b));
+            for (digest, bytes) in d.iter().zip(&e) {
+                if !self.blobs.has(digest) {
+                    put(bytes)?;
+                }
+            }
+            Ok(d)
+        });
         st.garbage.extend(released);
         let assembling = st
             .jobs

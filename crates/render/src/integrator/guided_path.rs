@@ -33,14 +33,9 @@
 //! All random numbers come from the sample's own [`Rng`]: the image and the
 //! recorded statistics are deterministic.
 //!
-//! Unlike `path`, the estimator runs one path at a time. A batched ("wavefront") form of
-//! the passes that record nothing, with split copies kept in their sample's lane so that
-//! it gave identical bits, was measured slower on veach-ajar (2026-11-22, Zen 2,
-//! `bench/ab.py --scenes veach-guided`, pathfarm preset): 0.94x with the 16-pixel tiles
-//! (a guided pass has 1 spp, so a batch is 16 paths that soon thin out), 0.965x with
-//! 128-pixel tiles, 0.98x with 512; 8, 24 or 64 lanes alike. Its profile showed no faster
-//! BVH or quadtree walks, and stalls on copying each lane's vertex (BSDF, frame, leaf: ~300
-//! bytes written and read back every bounce).
+//! Unlike `path`, the estimator runs one path at a time: a batched ("wavefront") form was
+//! measured slower, its lanes thinning out at 1 spp a pass
+//! (`docs/decisions/guided-one-path-at-a-time.md`).
 
 // `!(x > 0.0)` is used on purpose: it is also true for NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -50,7 +45,7 @@ use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::{Bsdf, BsdfFlags};
 use pathfarm_guide::{CellMask, CellWeights, LeafHandle, Record, Restriction, SLookup, SdTree};
 
-use super::{camera_hit, depth_limit, mitsuba_survival};
+use super::{camera_hit, depth_limit, emission_mis, light_mis, mitsuba_survival};
 use crate::counter::ShardedCounter;
 use crate::geometry::{spawn_ray, Ray};
 use crate::rng::Rng;
@@ -606,11 +601,7 @@ pub fn ppg_survival(guided_vertex: bool, built: bool, throughput_max: f32, eta: 
 /// contribution (throughput x the leaf's mean incident radiance) exceeds this multiple of the
 /// pixel's estimated value is split into `expected / (SPLIT_WINDOW x value)` copies
 /// (stochastically rounded, at most [`MAX_SPLIT`]), each sampling its own direction with
-/// `1 / copies` of the throughput. (veach-ajar 320x180, pathfarm preset, 30 CPU-s, relMSE
-/// over seeds 11-13: window 1: 0.169-0.187, 2: 0.144-0.156, 3: 0.152-0.182, 4: 0.168-0.207,
-/// no splitting: 0.172-0.212.) Splitting in the training passes too (each copy's vertices
-/// committed when the copy ends, the shared prefix learning the copies' mean) was neutral:
-/// median relMSE 0.0697 vs 0.0703 over 4 seeds, the early iterations slower (2026-11-22).
+/// `1 / copies` of the throughput. Window 2 measured best (`docs/decisions/splitting.md`).
 pub const SPLIT_WINDOW: f32 = 2.0;
 /// Most copies one split makes.
 pub const MAX_SPLIT: u32 = 4;
@@ -623,14 +614,8 @@ pub const MAX_PATHS_PER_SAMPLE: u32 = 16;
 /// over this multiple of the pixel's estimated value (stochastically rounded, at most
 /// [`MAX_LIGHT_SAMPLES`]); each sample counts `1 / n`, and MIS weighs them as one technique
 /// of pdf `n p_light` (also on the emitter-hit side). The deviation, not the mean, decides:
-/// a bright but certain light sample gains nothing from repeats. Measured (2026-11-23, AMD
-/// EPYC Zen 3, pathfarm preset, 30 CPU-s, single-threaded runs side by side, median relMSE
-/// ratio against `light_splitting` off over seeds 11-18): window 1 with at most 4 samples:
-/// veach-ajar 0.87 (7 of 8 better), door-ajar 0.99 (4 of 8); window 0.5 with at most 8:
-/// veach-ajar 0.84 (8 of 8), but door-ajar 1.09 (3 of 8), its extra light samples costing
-/// more time than they save. Deciding by the mean instead of the deviation (window 0.5, at
-/// most 8, also in training passes): veach-ajar 0.86, door-ajar 1.09-1.11 where it did not
-/// make the path fallback give up on guiding.
+/// a bright but certain light sample gains nothing from repeats. Window 1 with at most 4
+/// samples measured best (`docs/decisions/splitting.md`).
 pub const LIGHT_SPLIT_WINDOW: f32 = 1.0;
 /// Most light samples light splitting takes at one vertex.
 pub const MAX_LIGHT_SAMPLES: u32 = 4;
@@ -697,6 +682,10 @@ struct Vertex<'s> {
 
 /// Radiance along the camera ray `ray` of pixel `pixel` (index `y * width + x`), guided by
 /// `g.tree`.
+///
+/// The loop of [`GuidedPath`]'s steps: arrive at a surface (emission, next-event estimation,
+/// splitting), then bounce (mixture sampling, recording, roulette); a path that ends resumes
+/// the next split copy waiting at its vertex, until none is left.
 pub fn li<const ENV: bool, const ANALYTIC: bool>(
     scene: &Scene,
     g: &GuideCtx,
@@ -705,345 +694,454 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
     pixel: usize,
     owned: bool,
 ) -> Vec3 {
-    let params = &scene.path;
-    if params.max_depth == 0 {
+    if scene.path.max_depth == 0 {
         return Vec3::ZERO;
     }
-    let max_depth = depth_limit(params.max_depth);
-    let accel = &scene.accel;
-    let lights = &scene.lights;
-    let tree = g.tree;
-    let learn_fraction = tree.is_built();
-    let rec_weight = if g.kickstart { 0.5 } else { 1.0 };
-    // Splitting needs the pixel estimate of guided roulette, and is off while recording (a
-    // recorded path is one chain of vertices).
-    let split_value = match g.pixel_estimate {
-        Some(est) if g.split && !g.record => est.get(pixel).copied().filter(|v| *v > 0.0),
-        _ => None,
-    };
-    let light_split_value = match g.pixel_estimate {
-        Some(est) if g.light_split => est.get(pixel).copied().filter(|v| *v > 0.0),
-        _ => None,
-    };
-    let mut extra_light_samples = 0u64;
-    let mut pending: Vec<Vertex> = Vec::new();
-    let mut paths = 1u32;
-
-    let mut rec = PathRecorder::default();
-    let mut throughput = Vec3::ONE;
-    let mut result = Vec3::ZERO;
-    let mut eta = 1.0f32;
-    let mut depth = 0u32;
-    let mut prev_p = ray.o;
-    let mut prev_pdf = 1.0f32;
-    let mut prev_delta = true;
-    let mut prev_nee = false;
-    let mut prev_light_samples = 1.0f32;
-
-    let mut rays = 1u64;
+    let mut path = GuidedPath::new(scene, g, pixel, owned, ray.o);
     let Some(mut hit) = camera_hit::<ANALYTIC>(scene, &mut ray) else {
         if let (Some(c), true) = (g.rays, owned) {
-            c.add(rays);
+            c.add(path.rays);
         }
         return Vec3::ZERO;
     };
-
     // A split copy waiting to resume at its vertex's direction sampling.
     let mut resume: Option<Vertex> = None;
-    // The current path ends: resume the next pending split copy, or stop.
-    // (The loop label is an argument: macro hygiene hides labels defined outside.)
-    macro_rules! end_path {
-        ($paths:lifetime) => {
-            match pending.pop() {
-                Some(v) => {
-                    resume = Some(v);
-                    continue $paths;
-                }
-                None => break $paths,
+    // The vertex to bounce from, written in place (a vertex is a few hundred bytes: returned
+    // by value it went through memory twice a bounce, measurably slower).
+    let mut vertex: Option<Vertex> = None;
+    loop {
+        let ready = match resume.take() {
+            Some(v) => {
+                vertex = Some(v);
+                true
             }
+            None => path.arrive::<ENV, ANALYTIC>(&ray, hit, rng, &mut vertex),
         };
+        let goes_on = match (&vertex, ready) {
+            (Some(v), true) => path.bounce::<ANALYTIC>(v, rng, &mut ray, &mut hit),
+            _ => false,
+        };
+        if !goes_on {
+            // The current path ends: resume the next pending split copy, or stop.
+            match path.pending.pop() {
+                Some(v) => resume = Some(v),
+                None => break,
+            }
+        }
     }
-    'paths: loop {
-        let v = if let Some(v) = resume.take() {
-            v
-        } else {
-            let Some(h) = hit else {
-                if ENV {
-                    let le = lights.environment_radiance(ray.d);
-                    let w = if prev_delta || !prev_nee {
-                        1.0
-                    } else {
-                        mis_weight(prev_pdf, prev_light_samples * lights.environment_pdf(ray.d))
-                    };
-                    let c = throughput * le * w;
-                    result += c;
-                    if g.record {
-                        rec.add_emission(c, g.indirect_only, prev_nee);
-                    }
-                }
-                end_path!('paths)
-            };
-            let si = accel.interaction(&ray, &h);
+    path.finish(rng)
+}
 
-            if let Some(light) = scene.shape_light[si.shape as usize] {
-                let le = lights.area_radiance(light, si.ns, -ray.d);
-                if le != Vec3::ZERO {
-                    let w = if prev_delta || !prev_nee {
-                        1.0
-                    } else {
-                        mis_weight(
-                            prev_pdf,
-                            prev_light_samples * lights.area_pdf(light, prev_p, si.p, si.ns),
-                        )
-                    };
-                    let c = throughput * le * w;
-                    result += c;
-                    if g.record {
-                        rec.add_emission(c, g.indirect_only, prev_nee);
-                    }
-                }
-            }
+/// One camera sample's paths in flight (the path and the split copies waiting to resume),
+/// what they have found and what they record.
+struct GuidedPath<'a> {
+    scene: &'a Scene,
+    g: &'a GuideCtx<'a>,
+    tree: &'a SdTree,
+    pixel: usize,
+    /// The pixel is the sample's tile's own (a halo sample has no side effects).
+    owned: bool,
+    max_depth: u32,
+    rec_weight: f32,
+    /// The tree is built: records carry fraction gradients.
+    learn_fraction: bool,
+    /// The pixel's estimated value where splitting applies (None: no splitting).
+    split_value: Option<f32>,
+    /// The pixel's estimated value where light splitting applies.
+    light_split_value: Option<f32>,
+    extra_light_samples: u64,
+    pending: Vec<Vertex<'a>>,
+    paths: u32,
+    rec: PathRecorder,
+    throughput: Vec3,
+    result: Vec3,
+    eta: f32,
+    depth: u32,
+    prev_p: Vec3,
+    prev_pdf: f32,
+    prev_delta: bool,
+    prev_nee: bool,
+    prev_light_samples: f32,
+    rays: u64,
+}
 
-            if depth + 1 >= max_depth {
-                end_path!('paths)
-            }
-
-            let (bsdf, frame) = bsdf_at_outlined(scene, &si, ray.d);
-            let wi = frame.to_local(-ray.d);
-            let flags = bsdf.flags();
-            // The leaf's payload is requested now and read after the light sample, so that its
-            // cache misses overlap the light sampling.
-            let mut vg = if flags.smooth && g.guide {
-                VertexGuide::lookup(tree, si.p)
-            } else {
-                VertexGuide::unguided()
-            };
-            let region = if vg.guided {
-                guide_region(g.hemisphere, g.cosine, flags, &frame, wi)
-            } else {
-                CellWeights::ALL
-            };
-
-            // Next-event estimation, weighted against the mixture pdf.
-            let do_nee = g.nee && flags.smooth;
-            let mut light_samples = 1u32;
-            if do_nee {
-                let mut ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
-                vg.resolve(tree, region);
-                if let Some(value) = light_split_value.filter(|_| vg.guided) {
-                    let (_, std_dev) = tree.light_sample_stats_leaf(vg.leaf());
-                    let deviation = (throughput.x + throughput.y + throughput.z) / 3.0 * std_dev;
-                    light_samples = light_sample_count(deviation, value, rng.next_f32());
-                    extra_light_samples += u64::from(light_samples - 1);
-                }
-                let n = light_samples as f32;
-                for i in 0..light_samples {
-                    if i > 0 {
-                        ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
-                    }
-                    // The light sample's value per unit throughput, for the leaf's statistics.
-                    let mut value = 0.0f32;
-                    if let Some(ls) = ls {
-                        let wo = frame.to_local(ls.wi);
-                        let f = bsdf.eval(wi, wo);
-                        let mut w_light = 0.0;
-                        if f != Vec3::ZERO {
-                            let shadow = ls.shadow_ray(si.p, si.ng, accel.offset_floor());
-                            rays += 1;
-                            if accel.unoccluded::<ANALYTIC>(&shadow) {
-                                w_light = if ls.delta {
-                                    1.0
-                                } else {
-                                    mis_weight(n * ls.pdf, vg.pdf(tree, &bsdf, wi, wo, ls.wi).0)
-                                };
-                                let c = throughput * f * ls.value * (w_light / (n * ls.pdf));
-                                result += c;
-                                if g.record {
-                                    rec.add(c);
-                                    let v = f * ls.value * (w_light / ls.pdf);
-                                    value = (v.x + v.y + v.z) / 3.0;
-                                }
-                            }
-                        }
-                        if g.record && g.kickstart && !ls.delta {
-                            // Kick-start: the light sample is a training record of its own
-                            // (L = Le w_light, sampled with p_light, weight 0.5, no fraction
-                            // gradient).
-                            let l = ls.value * w_light;
-                            let r = Record::radiance_only(
-                                si.p,
-                                ls.wi,
-                                (l.x + l.y + l.z) / 3.0,
-                                ls.pdf,
-                                0.5,
-                            );
-                            if owned {
-                                tree.record(&r, &mut || rng.next_f32());
-                            } else {
-                                tree.skip_record(&r, &mut || rng.next_f32());
-                            }
-                        }
-                    }
-                    if g.record && g.guide && owned {
-                        tree.record_light_sample(vg.leaf(), value);
-                    }
-                }
-            } else {
-                vg.resolve(tree, region);
-                if g.nee {
-                    rng.next_f32();
-                    rng.next_2d();
-                }
-            }
-            let v = Vertex {
-                si,
-                bsdf,
-                frame,
-                wi,
-                smooth: flags.smooth,
-                vg,
-                nee: do_nee,
-                light_samples: light_samples as f32,
-                throughput,
-                eta,
-                depth,
-            };
-
-            // Splitting: decided from the throughput and the leaf's mean radiance, before any
-            // direction is sampled; the copies wait in `pending`.
-            // From the depth where roulette starts (splitting at the first vertices too was
-            // worse on veach-ajar: relMSE at 30 CPU-s 0.21-0.25 vs 0.14-0.16).
-            let n = match split_value {
-                Some(value)
-                    if vg.guided
-                        && depth + 1 >= params.rr_depth
-                        && paths < MAX_PATHS_PER_SAMPLE =>
-                {
-                    // The leaf's mean radiance: no direction is sampled yet.
-                    let e = expected_contribution(
-                        tree,
-                        &vg,
-                        throughput,
-                        1.0 / (4.0 * std::f32::consts::PI),
-                    );
-                    split_count(e, value, rng.next_f32()).min(MAX_PATHS_PER_SAMPLE - paths + 1)
-                }
-                _ => 1,
-            };
-            if n > 1 {
-                let copy = Vertex {
-                    throughput: throughput / n as f32,
-                    ..v
-                };
-                pending.extend(std::iter::repeat_n(copy, n as usize - 1));
-                paths += n - 1;
-                copy
-            } else {
-                v
-            }
+impl<'a> GuidedPath<'a> {
+    fn new(scene: &'a Scene, g: &'a GuideCtx<'a>, pixel: usize, owned: bool, origin: Vec3) -> Self {
+        // Splitting needs the pixel estimate of guided roulette, and is off while recording
+        // (a recorded path is one chain of vertices).
+        let split_value = match g.pixel_estimate {
+            Some(est) if g.split && !g.record => est.get(pixel).copied().filter(|v| *v > 0.0),
+            _ => None,
         };
-        throughput = v.throughput;
-        eta = v.eta;
-        depth = v.depth;
-        let (si, bsdf, frame, wi, vg) = (&v.si, &v.bsdf, &v.frame, v.wi, &v.vg);
-
-        // Direction sampling from the BSDF/guide mixture.
-        let mut ms = MixtureSample::default();
-        if !sample_mixture_into(tree, vg, bsdf, frame, wi, rng, &mut ms) {
-            end_path!('paths)
+        let light_split_value = match g.pixel_estimate {
+            Some(est) if g.light_split => est.get(pixel).copied().filter(|v| *v > 0.0),
+            _ => None,
+        };
+        Self {
+            scene,
+            g,
+            tree: g.tree,
+            pixel,
+            owned,
+            max_depth: depth_limit(scene.path.max_depth),
+            rec_weight: if g.kickstart { 0.5 } else { 1.0 },
+            learn_fraction: g.tree.is_built(),
+            split_value,
+            light_split_value,
+            extra_light_samples: 0,
+            pending: Vec::new(),
+            paths: 1,
+            rec: PathRecorder::default(),
+            throughput: Vec3::ONE,
+            result: Vec3::ZERO,
+            eta: 1.0,
+            depth: 0,
+            prev_p: origin,
+            prev_pdf: 1.0,
+            prev_delta: true,
+            prev_nee: false,
+            prev_light_samples: 1.0,
+            rays: 1,
         }
-        throughput *= ms.weight;
-        eta *= ms.eta;
-        if g.record {
-            let pushed = v.smooth
-                && !ms.delta
-                && (1.0 / ms.p_mix).is_finite()
-                && rec.push(RecVertex {
-                    position: si.p,
-                    at: vg.at,
-                    direction: ms.wo_world,
-                    throughput,
-                    fcos: ms.fcos,
-                    p_mix: ms.p_mix,
-                    p_bsdf: ms.p_bsdf,
-                    p_guide: ms.p_guide,
-                    weight: rec_weight,
-                    acc: Vec3::ZERO,
-                });
-            if !pushed {
-                rec.skip();
+    }
+
+    /// Emission `le` found by the last direction sample, MIS-weighted against the light
+    /// technique of the vertex it left (pdf `p_light` a sample).
+    #[inline(always)]
+    fn emitted(&mut self, le: Vec3, p_light: impl FnOnce() -> f32) {
+        let light_samples = if self.prev_nee {
+            self.prev_light_samples
+        } else {
+            0.0
+        };
+        let w = emission_mis(self.prev_pdf, self.prev_delta, light_samples, p_light);
+        let c = self.throughput * le * w;
+        self.result += c;
+        if self.g.record {
+            self.rec
+                .add_emission(c, self.g.indirect_only, self.prev_nee);
+        }
+    }
+
+    /// The path arrives along `ray` at `hit`: emission, then (unless it ends here: false) the
+    /// vertex to bounce from into `out`, after its light samples and splitting.
+    #[inline(always)]
+    fn arrive<const ENV: bool, const ANALYTIC: bool>(
+        &mut self,
+        ray: &Ray,
+        hit: Option<crate::geometry::Hit>,
+        rng: &mut Rng,
+        out: &mut Option<Vertex<'a>>,
+    ) -> bool {
+        let (scene, lights) = (self.scene, &self.scene.lights);
+        let Some(h) = hit else {
+            if ENV {
+                let le = lights.environment_radiance(ray.d);
+                self.emitted(le, || lights.environment_pdf(ray.d));
+            }
+            return false;
+        };
+        let si = scene.accel.interaction(ray, &h);
+        if let Some(light) = scene.shape_light[si.shape as usize] {
+            let le = lights.area_radiance(light, si.ns, -ray.d);
+            if le != Vec3::ZERO {
+                let prev_p = self.prev_p;
+                self.emitted(le, || lights.area_pdf(light, prev_p, si.p, si.ns));
             }
         }
-        prev_p = si.p;
-        prev_pdf = ms.p_mix;
-        prev_delta = ms.delta;
-        prev_nee = v.nee;
-        prev_light_samples = v.light_samples;
-        depth += 1;
+        if self.depth + 1 >= self.max_depth {
+            return false;
+        }
+        let (bsdf, frame) = bsdf_at_outlined(scene, &si, ray.d);
+        let wi = frame.to_local(-ray.d);
+        let flags = bsdf.flags();
+        // The leaf's payload is requested now and read after the light sample, so that its
+        // cache misses overlap the light sampling.
+        let mut vg = if flags.smooth && self.g.guide {
+            VertexGuide::lookup(self.tree, si.p)
+        } else {
+            VertexGuide::unguided()
+        };
+        let region = if vg.guided {
+            guide_region(self.g.hemisphere, self.g.cosine, flags, &frame, wi)
+        } else {
+            CellWeights::ALL
+        };
+        let do_nee = self.g.nee && flags.smooth;
+        let light_samples = if do_nee {
+            self.next_event::<ANALYTIC>(&si, &bsdf, &frame, wi, &mut vg, region, rng)
+        } else {
+            vg.resolve(self.tree, region);
+            if self.g.nee {
+                rng.next_f32();
+                rng.next_2d();
+            }
+            1
+        };
+        let v = out.insert(Vertex {
+            si,
+            bsdf,
+            frame,
+            wi,
+            smooth: flags.smooth,
+            vg,
+            nee: do_nee,
+            light_samples: light_samples as f32,
+            throughput: self.throughput,
+            eta: self.eta,
+            depth: self.depth,
+        });
+        self.split(v, rng);
+        true
+    }
 
-        // Russian roulette: the reference implementation's, guided (weight window, from
-        // `guided_rr_depth`) where the guide applies and pixel estimates exist, else as
-        // Mitsuba does it.
-        let tp_max = throughput.max_element();
+    /// Next-event estimation at a smooth vertex, weighted against the mixture pdf: one light
+    /// sample, or with light splitting as many as the leaf's light-sample deviation asks
+    /// for (one technique of `n p_light`). Resolves `vg` after the first light sample (its
+    /// cache misses overlap the sampling). Records the light samples' values in training
+    /// passes. Returns the number of light samples taken.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn next_event<const ANALYTIC: bool>(
+        &mut self,
+        si: &crate::geometry::SurfaceInteraction,
+        bsdf: &Bsdf,
+        frame: &Frame,
+        wi: Vec3,
+        vg: &mut VertexGuide,
+        region: CellWeights,
+        rng: &mut Rng,
+    ) -> u32 {
+        let (accel, lights, tree, g) = (&self.scene.accel, &self.scene.lights, self.tree, self.g);
+        let mut ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
+        vg.resolve(tree, region);
+        let mut light_samples = 1u32;
+        if let Some(value) = self.light_split_value.filter(|_| vg.guided) {
+            let (_, std_dev) = tree.light_sample_stats_leaf(vg.leaf());
+            let t = self.throughput;
+            let deviation = (t.x + t.y + t.z) / 3.0 * std_dev;
+            light_samples = light_sample_count(deviation, value, rng.next_f32());
+            self.extra_light_samples += u64::from(light_samples - 1);
+        }
+        let n = light_samples as f32;
+        for i in 0..light_samples {
+            if i > 0 {
+                ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
+            }
+            // The light sample's value per unit throughput, for the leaf's statistics.
+            let mut value = 0.0f32;
+            if let Some(ls) = ls {
+                let wo = frame.to_local(ls.wi);
+                let f = bsdf.eval(wi, wo);
+                let mut w_light = 0.0;
+                if f != Vec3::ZERO {
+                    let shadow = ls.shadow_ray(si.p, si.ng, accel.offset_floor());
+                    self.rays += 1;
+                    if accel.unoccluded::<ANALYTIC>(&shadow) {
+                        w_light =
+                            light_mis(ls.delta, n, ls.pdf, || vg.pdf(tree, bsdf, wi, wo, ls.wi).0);
+                        let c = self.throughput * f * ls.value * (w_light / (n * ls.pdf));
+                        self.result += c;
+                        if g.record {
+                            self.rec.add(c);
+                            let v = f * ls.value * (w_light / ls.pdf);
+                            value = (v.x + v.y + v.z) / 3.0;
+                        }
+                    }
+                }
+                if g.record && g.kickstart && !ls.delta {
+                    self.kickstart_record(si.p, &ls, w_light, rng);
+                }
+            }
+            if g.record && g.guide && self.owned {
+                tree.record_light_sample(vg.leaf(), value);
+            }
+        }
+        light_samples
+    }
+
+    /// Kick-start: a light sample is a training record of its own (L = Le w_light, sampled
+    /// with p_light, weight 0.5, no fraction gradient).
+    #[inline(always)]
+    fn kickstart_record(
+        &self,
+        p: Vec3,
+        ls: &crate::light::LightSample,
+        w_light: f32,
+        rng: &mut Rng,
+    ) {
+        let l = ls.value * w_light;
+        let r = Record::radiance_only(p, ls.wi, (l.x + l.y + l.z) / 3.0, ls.pdf, 0.5);
+        if self.owned {
+            self.tree.record(&r, &mut || rng.next_f32());
+        } else {
+            self.tree.skip_record(&r, &mut || rng.next_f32());
+        }
+    }
+
+    /// Splitting: decided from the throughput and the leaf's mean radiance, before any
+    /// direction is sampled; the copies wait in `pending`. From the depth where roulette
+    /// starts (splitting at the first vertices too was worse: `docs/decisions/splitting.md`).
+    #[inline(always)]
+    fn split(&mut self, v: &mut Vertex<'a>, rng: &mut Rng) {
+        let n = match self.split_value {
+            Some(value)
+                if v.vg.guided
+                    && self.depth + 1 >= self.scene.path.rr_depth
+                    && self.paths < MAX_PATHS_PER_SAMPLE =>
+            {
+                // The leaf's mean radiance: no direction is sampled yet.
+                let e = expected_contribution(
+                    self.tree,
+                    &v.vg,
+                    self.throughput,
+                    1.0 / (4.0 * std::f32::consts::PI),
+                );
+                split_count(e, value, rng.next_f32()).min(MAX_PATHS_PER_SAMPLE - self.paths + 1)
+            }
+            _ => 1,
+        };
+        if n <= 1 {
+            return;
+        }
+        v.throughput = self.throughput / n as f32;
+        self.pending.extend(std::iter::repeat_n(*v, n as usize - 1));
+        self.paths += n - 1;
+    }
+
+    /// From vertex `v`: a direction from the BSDF/guide mixture, the vertex recorded,
+    /// roulette, and the next ray traced into `ray` and `hit`. False: the path ends.
+    #[inline(always)]
+    fn bounce<const ANALYTIC: bool>(
+        &mut self,
+        v: &Vertex<'a>,
+        rng: &mut Rng,
+        ray: &mut Ray,
+        hit: &mut Option<crate::geometry::Hit>,
+    ) -> bool {
+        self.throughput = v.throughput;
+        self.eta = v.eta;
+        self.depth = v.depth;
+        let (si, vg) = (&v.si, &v.vg);
+        let mut ms = MixtureSample::default();
+        if !sample_mixture_into(self.tree, vg, &v.bsdf, &v.frame, v.wi, rng, &mut ms) {
+            return false;
+        }
+        self.throughput *= ms.weight;
+        self.eta *= ms.eta;
+        if self.g.record {
+            self.record_vertex(v, &ms);
+        }
+        self.prev_p = si.p;
+        self.prev_pdf = ms.p_mix;
+        self.prev_delta = ms.delta;
+        self.prev_nee = v.nee;
+        self.prev_light_samples = v.light_samples;
+        self.depth += 1;
+        let tp_max = self.throughput.max_element();
+        if !self.survives(v, &ms, tp_max, rng) {
+            return false;
+        }
+        if tp_max <= 0.0 || !tp_max.is_finite() {
+            return false;
+        }
+        let accel = &self.scene.accel;
+        *ray = spawn_ray(si.p, si.ng, ms.wo_world, accel.offset_floor());
+        *hit = accel.intersect::<ANALYTIC>(ray);
+        self.rays += 1;
+        true
+    }
+
+    /// Pushes the vertex `v` left by `ms` on the recorder (smooth, non-delta directions with a
+    /// usable pdf), else marks the chain broken there.
+    #[inline(always)]
+    fn record_vertex(&mut self, v: &Vertex, ms: &MixtureSample) {
+        let pushed = v.smooth
+            && !ms.delta
+            && (1.0 / ms.p_mix).is_finite()
+            && self.rec.push(RecVertex {
+                position: v.si.p,
+                at: v.vg.at,
+                direction: ms.wo_world,
+                throughput: self.throughput,
+                fcos: ms.fcos,
+                p_mix: ms.p_mix,
+                p_bsdf: ms.p_bsdf,
+                p_guide: ms.p_guide,
+                weight: self.rec_weight,
+                acc: Vec3::ZERO,
+            });
+        if !pushed {
+            self.rec.skip();
+        }
+    }
+
+    /// Russian roulette: the reference implementation's, guided (weight window, from
+    /// `guided_rr_depth`) where the guide applies and pixel estimates exist, else as
+    /// Mitsuba does it. False: the path ends (the survivor's throughput is divided by q).
+    #[inline(always)]
+    fn survives(&mut self, v: &Vertex, ms: &MixtureSample, tp_max: f32, rng: &mut Rng) -> bool {
+        let g = self.g;
         let guided_estimate = match g.pixel_estimate {
-            Some(est) if !g.ppg_roulette && vg.guided && !ms.delta => Some(est),
+            Some(est) if !g.ppg_roulette && v.vg.guided && !ms.delta => Some(est),
             _ => None,
         };
         let rr_from = if guided_estimate.is_some() {
             g.guided_rr_depth
         } else {
-            params.rr_depth
+            self.scene.path.rr_depth
         };
-        if depth >= rr_from {
-            let q = if g.ppg_roulette {
-                ppg_survival(v.smooth && !ms.delta, tree.is_built(), tp_max, eta)
-            } else if let Some(est) = guided_estimate {
-                let e = expected_contribution(
-                    tree,
-                    vg,
-                    throughput,
-                    // (the unrestricted guide's pdf: the radiance estimate is flux x pdf)
-                    ROULETTE_DIRECTIONAL * unrestricted_guide_pdf(&vg.region, &ms)
-                        + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
-                );
-                guided_survival(e, est.get(pixel).copied().unwrap_or(f32::NAN))
-            } else {
-                mitsuba_survival(tp_max, eta)
-            };
-            if rng.next_f32() >= q {
-                end_path!('paths)
-            }
-            throughput /= q;
+        if self.depth < rr_from {
+            return true;
         }
-        if tp_max <= 0.0 || !tp_max.is_finite() {
-            end_path!('paths)
+        let q = if g.ppg_roulette {
+            ppg_survival(
+                v.smooth && !ms.delta,
+                self.tree.is_built(),
+                tp_max,
+                self.eta,
+            )
+        } else if let Some(est) = guided_estimate {
+            let e = expected_contribution(
+                self.tree,
+                &v.vg,
+                self.throughput,
+                // (the unrestricted guide's pdf: the radiance estimate is flux x pdf)
+                ROULETTE_DIRECTIONAL * unrestricted_guide_pdf(&v.vg.region, ms)
+                    + (1.0 - ROULETTE_DIRECTIONAL) / (4.0 * std::f32::consts::PI),
+            );
+            guided_survival(e, est.get(self.pixel).copied().unwrap_or(f32::NAN))
+        } else {
+            mitsuba_survival(tp_max, self.eta)
+        };
+        if rng.next_f32() >= q {
+            return false;
         }
+        self.throughput /= q;
+        true
+    }
 
-        ray = spawn_ray(si.p, si.ng, ms.wo_world, accel.offset_floor());
-        hit = accel.intersect::<ANALYTIC>(&ray);
-        rays += 1;
-    }
-    // A halo sample (not `owned`) has no side effects: its owner's tile records and counts it.
-    if !owned {
-        return result;
-    }
-    if g.record {
-        rec.commit(tree, learn_fraction, rng);
-    }
-    if let Some(c) = g.rays {
-        c.add(rays);
-    }
-    if paths > 1 {
-        if let Some(c) = g.splits {
-            c.add(u64::from(paths - 1));
+    /// The sample's radiance, after its records are committed and its counts added (a halo
+    /// sample, not `owned`, has no side effects: its owner's tile records and counts it).
+    fn finish(self, rng: &mut Rng) -> Vec3 {
+        if !self.owned {
+            return self.result;
         }
-    }
-    if extra_light_samples > 0 {
-        if let Some(c) = g.light_splits {
-            c.add(extra_light_samples);
+        let g = self.g;
+        if g.record {
+            self.rec.commit(self.tree, self.learn_fraction, rng);
         }
+        if let Some(c) = g.rays {
+            c.add(self.rays);
+        }
+        if let (true, Some(c)) = (self.paths > 1, g.splits) {
+            c.add(u64::from(self.paths - 1));
+        }
+        if let (true, Some(c)) = (self.extra_light_samples > 0, g.light_splits) {
+            c.add(self.extra_light_samples);
+        }
+        self.result
     }
-    result
 }
 
 #[cfg(test)]

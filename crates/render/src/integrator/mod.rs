@@ -7,6 +7,25 @@ pub mod wavefront;
 use crate::geometry::{spawn_ray, Hit, Ray};
 use crate::scene::Scene;
 
+/// Code monomorphised over the scene's features, so a scene pays nothing for effects it
+/// does not contain: `ENV` (an environment light exists) and `ANALYTIC` (analytic shapes
+/// exist). [`specialised`] picks the instance for a scene.
+pub trait Specialise {
+    type Output;
+    fn call<const ENV: bool, const ANALYTIC: bool>(self) -> Self::Output;
+}
+
+/// `f` specialised for `scene`'s features: the one place the features choose an instance.
+#[inline]
+pub fn specialised<F: Specialise>(scene: &Scene, f: F) -> F::Output {
+    match (scene.features.environment, scene.features.analytic_shapes) {
+        (false, false) => f.call::<false, false>(),
+        (true, false) => f.call::<true, false>(),
+        (false, true) => f.call::<false, true>(),
+        (true, true) => f.call::<true, true>(),
+    }
+}
+
 /// The longest path depth from Mitsuba's `max_depth` (-1 = unbounded).
 #[inline]
 pub fn depth_limit(max_depth: i32) -> u32 {
@@ -14,6 +33,35 @@ pub fn depth_limit(max_depth: i32) -> u32 {
         u32::MAX
     } else {
         max_depth as u32
+    }
+}
+
+/// The MIS weight of emission found by a direction sample of pdf `prev_pdf`, against the
+/// light technique of the vertex it left: `light_samples` samples of pdf `p_light` each
+/// (one technique of pdf `light_samples x p_light`; 0: no light was sampled there). 1 after
+/// a delta lobe. Shared by `path` (one light sample) and `guided_path` (light splitting).
+#[inline(always)]
+pub fn emission_mis(
+    prev_pdf: f32,
+    prev_delta: bool,
+    light_samples: f32,
+    p_light: impl FnOnce() -> f32,
+) -> f32 {
+    if prev_delta || light_samples == 0.0 {
+        1.0
+    } else {
+        crate::sampling::power_heuristic(prev_pdf, light_samples * p_light())
+    }
+}
+
+/// The MIS weight of a light sample of pdf `p_light`, one of `n` taken at a vertex, against
+/// direction sampling there (pdf `p_scatter` of the light's direction). 1 for delta lights.
+#[inline(always)]
+pub fn light_mis(delta: bool, n: f32, p_light: f32, p_scatter: impl FnOnce() -> f32) -> f32 {
+    if delta {
+        1.0
+    } else {
+        crate::sampling::power_heuristic(n * p_light, p_scatter())
     }
 }
 

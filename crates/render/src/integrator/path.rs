@@ -12,11 +12,10 @@
 use glam::Vec3;
 use pathfarm_bsdf::{Bsdf, BsdfSample, Frame};
 
-use super::{camera_hit, depth_limit, mitsuba_survival};
+use super::{camera_hit, depth_limit, emission_mis, light_mis, mitsuba_survival};
 use crate::geometry::{spawn_ray, Hit, Ray};
 use crate::light::LightSample;
 use crate::rng::Rng;
-use crate::sampling::power_heuristic;
 use crate::scene::Scene;
 
 /// Radiance along the camera ray `ray`, one path at a time: each bounce's light
@@ -127,11 +126,9 @@ pub(super) fn surface<'a, const ENV: bool>(
     let Some(h) = lane.hit else {
         if ENV {
             let le = lights.environment_radiance(ray.d);
-            let w = if lane.prev_delta {
-                1.0
-            } else {
-                power_heuristic(lane.prev_bsdf_pdf, lights.environment_pdf(ray.d))
-            };
+            let w = emission_mis(lane.prev_bsdf_pdf, lane.prev_delta, 1.0, || {
+                lights.environment_pdf(ray.d)
+            });
             lane.result += lane.throughput * le * w;
         }
         return None;
@@ -142,14 +139,9 @@ pub(super) fn surface<'a, const ENV: bool>(
     if let Some(light) = scene.shape_light[si.shape as usize] {
         let le = lights.area_radiance(light, si.ns, -ray.d);
         if le != Vec3::ZERO {
-            let w = if lane.prev_delta {
-                1.0
-            } else {
-                power_heuristic(
-                    lane.prev_bsdf_pdf,
-                    lights.area_pdf(light, lane.prev_p, si.p, si.ns),
-                )
-            };
+            let w = emission_mis(lane.prev_bsdf_pdf, lane.prev_delta, 1.0, || {
+                lights.area_pdf(light, lane.prev_p, si.p, si.ns)
+            });
             lane.result += lane.throughput * le * w;
         }
     }
@@ -176,11 +168,7 @@ pub(super) fn next_event(lane: &mut Lane, sh: &Shading<'_>, ls: &LightSample) {
     let wo = sh.frame.to_local(ls.wi);
     let f = sh.bsdf.eval(sh.wi, wo);
     if f != Vec3::ZERO {
-        let w = if ls.delta {
-            1.0
-        } else {
-            power_heuristic(ls.pdf, sh.bsdf.pdf(sh.wi, wo))
-        };
+        let w = light_mis(ls.delta, 1.0, ls.pdf, || sh.bsdf.pdf(sh.wi, wo));
         lane.shadow = Some((
             ls.shadow_ray(sh.p, sh.ng, sh.offset_floor),
             lane.throughput * f * ls.value * (w / ls.pdf),
