@@ -288,9 +288,10 @@ fn time_to_error_table(o: &mut String, curves: &[Curve]) {
     }
     let _ = writeln!(
         o,
-        "\nSeconds to reach each level (path's medians), interpolated in log-log between measured \
-         points; `~` marks a time extrapolated as relMSE proportional to 1/time beyond the measured \
-         range. In brackets: the speed-up over path at that level."
+        "\nSeconds to reach each level (path's medians, or the first method's without path), \
+         interpolated in log-log between measured points; `~` marks a time extrapolated as \
+         relMSE proportional to 1/time beyond the measured range. In brackets: the speed-up \
+         over path at that level."
     );
 }
 
