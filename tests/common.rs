@@ -83,6 +83,13 @@ pub fn pathfarm_logging(args: &[&str], level: &str) -> Output {
         .expect("run pathfarm")
 }
 
+/// A one-sided diffuse plane (albedo 0.5, 0.25, 0.8) facing +z under a constant sky of
+/// radiance (2, 1, 0.5): it reflects albedo x sky at any depth.
+pub const PLANE_UNDER_SKY: &str = r#"
+        <emitter type="constant"><rgb name="radiance" value="2, 1, 0.5"/></emitter>
+        <shape type="rectangle"><transform name="to_world"><scale value="100"/></transform>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.25, 0.8"/></bsdf></shape>"#;
+
 /// A minimal scene: camera at (0,0,`cam_z`) looking down -z, given body.
 pub fn scene_xml(
     width: u32,

@@ -66,10 +66,7 @@ fn white_furnace_diffuse_and_glass_are_invisible() {
 fn diffuse_plane_under_uniform_sky_reflects_albedo_times_sky() {
     // Direct lighting only (max_depth 2): L = albedo * L_sky for a one-sided
     // diffuse plane facing up into a constant environment.
-    let body = r#"
-        <emitter type="constant"><rgb name="radiance" value="2, 1, 0.5"/></emitter>
-        <shape type="rectangle"><transform name="to_world"><scale value="100"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.25, 0.8"/></bsdf></shape>"#;
+    let body = PLANE_UNDER_SKY;
     let xml = scene_xml(
         12,
         12,

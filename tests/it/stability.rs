@@ -441,10 +441,7 @@ fn camera_a_hair_above_a_plane_at_grazing_angles_sees_albedo_times_sky() {
     // of the camera. The plane reflects L = albedo * sky whatever the depth (the light it
     // reflects escapes), so every pixel's expectation is known. Statistics of `check`
     // (seeds 1-3).
-    let body = r#"
-        <emitter type="constant"><rgb name="radiance" value="2, 1, 0.5"/></emitter>
-        <shape type="rectangle"><transform name="to_world"><scale value="100"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.5, 0.25, 0.8"/></bsdf></shape>"#;
+    let body = PLANE_UNDER_SKY;
     // (Mitsuba's default near_clip, 0.01, would clip every hit: 1e-6 here.)
     let cam = Cam {
         near: 1e-6,
@@ -488,8 +485,14 @@ fn near_specular_rough_mirror_and_glass_vanish_in_the_white_furnace() {
             r#"<bsdf type="roughdielectric"><string name="distribution" value="beckmann"/><float name="int_ior" value="1.5"/><float name="alpha" value="1e-4"/></bsdf>"#,
         ),
     ];
+    assert_invisible_in_the_furnace(&cases);
+}
+
+/// Each `(tag, bsdf)` on a sphere in the white furnace, with both integrators: every pixel
+/// must be 1 (statistics of `check`).
+fn assert_invisible_in_the_furnace(cases: &[(&str, &str)]) {
     let cam = Cam::new([0.0, -4.0, 0.0], [0.0; 3], 35.0, 16);
-    for (tag, bsdf) in cases {
+    for &(tag, bsdf) in cases {
         for method in METHODS {
             let xml = scene(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
             let r = render_xml_stats(tag, &xml, 64, *SEED);
@@ -570,14 +573,7 @@ const INDEX_MATCHED: [(&str, &str); 4] = [
 fn index_matched_dielectrics_vanish_in_the_white_furnace() {
     // Equal IORs: no reflection, no refraction, light passes straight through, so the
     // sphere is invisible: every pixel is 1. Statistics of `check` (seeds 1-3).
-    let cam = Cam::new([0.0, -4.0, 0.0], [0.0; 3], 35.0, 16);
-    for (tag, bsdf) in INDEX_MATCHED {
-        for method in METHODS {
-            let xml = scene(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
-            let r = render_xml_stats(tag, &xml, 64, *SEED);
-            assert_matches(&r, |_| [1.0; 3], &format!("{method:?}: {tag} furnace"));
-        }
-    }
+    assert_invisible_in_the_furnace(&INDEX_MATCHED);
 }
 
 #[test]

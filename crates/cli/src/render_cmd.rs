@@ -143,13 +143,7 @@ fn open_preview(args: &RenderArgs) -> Result<OutputFile> {
 
 pub fn render(args: RenderArgs) -> Result<()> {
     if let Some(n) = args.threads {
-        if n == 0 {
-            bail!("--threads must be at least 1");
-        }
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(n)
-            .build_global()
-            .context("configuring the thread pool")?;
+        use_threads(n)?;
     }
     let limits = Limits::default();
     check_budget_flags(args.spp, args.time, &limits)?;
@@ -269,6 +263,17 @@ pub fn render(args: RenderArgs) -> Result<()> {
         stats.nonfinite()
     );
     Ok(())
+}
+
+/// Renders with `n` threads (`--threads`).
+pub fn use_threads(n: usize) -> Result<()> {
+    if n == 0 {
+        bail!("--threads must be at least 1");
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(n)
+        .build_global()
+        .context("configuring the thread pool")
 }
 
 /// A render's budget as the command line gives it: `--spp`, `--time`, or neither (the

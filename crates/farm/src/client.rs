@@ -200,12 +200,8 @@ impl ClientError {
     }
 }
 
-/// How much to render.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Budget {
-    Spp(u32),
-    Seconds(f64),
-}
+/// How much to render (the guided training schedule's budget type).
+pub use pathfarm_render::guided::Budget;
 
 /// What `submit` sends besides the scene.
 #[derive(Clone, Debug, Default)]

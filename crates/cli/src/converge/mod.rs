@@ -23,7 +23,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use pathfarm_render::{output, Scene};
 use pathfarm_scene::{load_scene_with_limits, Limits};
 
-use crate::render_cmd::parse_defines;
+use crate::render_cmd::{parse_defines, use_threads};
 use method::{file_stem, variants, Method, Sweep, Variant};
 use metrics::{errors, Image};
 use run::{image_path, Budget, RunContext};
@@ -134,7 +134,7 @@ fn plan(args: &ConvergeArgs) -> Result<Plan> {
         }
         (b.into_iter().map(Budget::Seconds).collect::<Vec<_>>(), "s")
     };
-    let largest = budgets.iter().map(|b| b.value()).fold(0.0, f64::max);
+    let largest = budgets.iter().map(|b| run::value(*b)).fold(0.0, f64::max);
     let r = args.reference_budget.unwrap_or(8.0 * largest);
     if !(r > 0.0) {
         bail!("--reference-budget must be positive");
@@ -160,13 +160,7 @@ pub fn converge(args: ConvergeArgs) -> Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    if threads == 0 {
-        bail!("--threads must be at least 1");
-    }
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build_global()
-        .context("configuring the thread pool")?;
+    use_threads(threads)?;
     let defines = parse_defines(&args.defines)?;
     let desc = load_scene_with_limits(&args.scene, &defines, &Limits::default())?;
     let mut scene = Scene::build(&desc)?;
@@ -253,17 +247,18 @@ fn run_all(
                     "run {}/{total}: {} at {} {} (repeat {repeat})",
                     rows.len() + 1,
                     v.label,
-                    budget.value(),
+                    run::value(budget),
                     plan.unit
                 ));
                 let seed = args.seed + repeat as u64;
                 let exr = image_path(&args.output, &file_stem(&v.label), budget, repeat);
-                let (img, m) = run::run(ctx, v, budget, seed, &exr)
-                    .with_context(|| format!("{} at {} {}", v.label, budget.value(), plan.unit))?;
+                let (img, m) = run::run(ctx, v, budget, seed, &exr).with_context(|| {
+                    format!("{} at {} {}", v.label, run::value(budget), plan.unit)
+                })?;
                 let e = errors(&img, reference);
                 rows.push(Row {
                     method: v.label.clone(),
-                    budget: budget.value(),
+                    budget: run::value(budget),
                     repeat,
                     seed,
                     wall_s: m.wall_s,
@@ -309,7 +304,7 @@ fn write_outputs(
     });
     write("results.csv", csv.as_bytes())?;
     let labels: Vec<String> = plan.variants.iter().map(|v| v.label.clone()).collect();
-    let budgets: Vec<f64> = plan.budgets.iter().map(|b| b.value()).collect();
+    let budgets: Vec<f64> = plan.budgets.iter().map(|b| run::value(*b)).collect();
     let curves = summary::curves(rows, &labels, &budgets);
     let scene_name = scene_name(&args.scene);
     let (png, svg) = plot::error_vs_time(&scene_name, &curves, reference.floor)?;
@@ -358,7 +353,7 @@ fn largest(plan: &Plan) -> Budget {
     *plan
         .budgets
         .iter()
-        .max_by(|a, b| a.value().total_cmp(&b.value()))
+        .max_by(|a, b| run::value(**a).total_cmp(&run::value(**b)))
         .expect("at least one budget")
 }
 

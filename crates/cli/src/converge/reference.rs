@@ -8,7 +8,7 @@ use pathfarm_render::output;
 
 use super::method::{Method, Preset, Variant};
 use super::metrics::{reference_floor, Image};
-use super::run::{read_image, run, Budget, RunContext};
+use super::run::{self, read_image, Budget, RunContext};
 
 /// The reference and what is known of its own error.
 pub struct Reference {
@@ -45,7 +45,7 @@ pub fn rendered(
     let halves = [1, 2].map(|i| cache.join(format!("{key}-half{i}.exr")));
     let source = format!(
         "pathfarm guided_path (pathfarm preset), 2 x {} {}, cached as {}",
-        budget.value(),
+        run::value(budget),
         match budget {
             Budget::Seconds(_) => "s",
             Budget::Spp(_) => "spp",
@@ -71,7 +71,7 @@ pub fn rendered(
     let mut images = Vec::new();
     for (i, half) in halves.iter().enumerate() {
         let tmp = temp_beside(half);
-        let r = run(ctx, &variant, budget, 1_000_001 + i as u64, &tmp);
+        let r = run::run(ctx, &variant, budget, 1_000_001 + i as u64, &tmp);
         let r = r.and_then(|(img, _)| {
             std::fs::rename(&tmp, half).with_context(|| format!("writing {}", half.display()))?;
             Ok(img)

@@ -13,33 +13,27 @@ use crate::cpu_time::{children_cpu_time, process_cpu_time};
 use crate::render_cmd::{render_scene, RenderBudget};
 
 /// A run's budget: wall seconds (as `pathfarm render --time`) or samples per pixel.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Budget {
-    Seconds(f64),
-    Spp(u32),
+pub use pathfarm_render::guided::Budget;
+
+/// A budget as a number (the `budget` column).
+pub fn value(b: Budget) -> f64 {
+    match b {
+        Budget::Seconds(s) => s,
+        Budget::Spp(n) => n as f64,
+    }
 }
 
-impl Budget {
-    /// The value as a number (the `budget` column).
-    pub fn value(self) -> f64 {
-        match self {
-            Budget::Seconds(s) => s,
-            Budget::Spp(n) => n as f64,
-        }
-    }
-
-    /// The budget as `pathfarm render`'s flags take it.
-    pub fn render_budget(self) -> RenderBudget {
-        match self {
-            Budget::Seconds(s) => RenderBudget {
-                spp: None,
-                time: Some(s),
-            },
-            Budget::Spp(n) => RenderBudget {
-                spp: Some(n),
-                time: None,
-            },
-        }
+/// A budget as `pathfarm render`'s flags take it.
+fn render_budget(b: Budget) -> RenderBudget {
+    match b {
+        Budget::Seconds(s) => RenderBudget {
+            spp: None,
+            time: Some(s),
+        },
+        Budget::Spp(n) => RenderBudget {
+            spp: Some(n),
+            time: None,
+        },
     }
 }
 
@@ -91,7 +85,7 @@ pub fn run(
     };
     let progress = |p: pathfarm_render::Progress| (ctx.progress)(p.samples_done, p.samples_total);
     let (cpu0, t0) = (process_cpu_time(), Instant::now());
-    let r = render_scene(ctx.scene, budget.render_budget(), seed, &progress, &|_| {})?;
+    let r = render_scene(ctx.scene, render_budget(budget), seed, &progress, &|_| {})?;
     let wall_s = t0.elapsed().as_secs_f64();
     let cpu_s = (process_cpu_time() - cpu0).as_secs_f64();
     if r.stats.spp == 0 {
@@ -203,7 +197,7 @@ pub fn read_image(path: &Path) -> Result<Image> {
 /// `DIR/images/STEM-BUDGET-REPEAT.exr`.
 pub fn image_path(dir: &Path, stem: &str, budget: Budget, repeat: u32) -> PathBuf {
     dir.join("images")
-        .join(format!("{stem}-{}-{repeat}.exr", budget.value()))
+        .join(format!("{stem}-{}-{repeat}.exr", value(budget)))
 }
 
 #[cfg(test)]

@@ -737,14 +737,11 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(
 struct GuidedPath<'a> {
     scene: &'a Scene,
     g: &'a GuideCtx<'a>,
-    tree: &'a SdTree,
     pixel: usize,
     /// The pixel is the sample's tile's own (a halo sample has no side effects).
     owned: bool,
     max_depth: u32,
     rec_weight: f32,
-    /// The tree is built: records carry fraction gradients.
-    learn_fraction: bool,
     /// The pixel's estimated value where splitting applies (None: no splitting).
     split_value: Option<f32>,
     /// The pixel's estimated value where light splitting applies.
@@ -780,12 +777,10 @@ impl<'a> GuidedPath<'a> {
         Self {
             scene,
             g,
-            tree: g.tree,
             pixel,
             owned,
             max_depth: depth_limit(scene.path.max_depth),
             rec_weight: if g.kickstart { 0.5 } else { 1.0 },
-            learn_fraction: g.tree.is_built(),
             split_value,
             light_split_value,
             extra_light_samples: 0,
@@ -858,7 +853,7 @@ impl<'a> GuidedPath<'a> {
         // The leaf's payload is requested now and read after the light sample, so that its
         // cache misses overlap the light sampling.
         let mut vg = if flags.smooth && self.g.guide {
-            VertexGuide::lookup(self.tree, si.p)
+            VertexGuide::lookup(self.g.tree, si.p)
         } else {
             VertexGuide::unguided()
         };
@@ -871,7 +866,7 @@ impl<'a> GuidedPath<'a> {
         let light_samples = if do_nee {
             self.next_event::<ANALYTIC>(&si, &bsdf, &frame, wi, &mut vg, region, rng)
         } else {
-            vg.resolve(self.tree, region);
+            vg.resolve(self.g.tree, region);
             if self.g.nee {
                 rng.next_f32();
                 rng.next_2d();
@@ -912,7 +907,7 @@ impl<'a> GuidedPath<'a> {
         region: CellWeights,
         rng: &mut Rng,
     ) -> u32 {
-        let (accel, lights, tree, g) = (&self.scene.accel, &self.scene.lights, self.tree, self.g);
+        let (accel, lights, tree, g) = (&self.scene.accel, &self.scene.lights, self.g.tree, self.g);
         let mut ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
         vg.resolve(tree, region);
         let mut light_samples = 1u32;
@@ -973,9 +968,9 @@ impl<'a> GuidedPath<'a> {
         let l = ls.value * w_light;
         let r = Record::radiance_only(p, ls.wi, (l.x + l.y + l.z) / 3.0, ls.pdf, 0.5);
         if self.owned {
-            self.tree.record(&r, &mut || rng.next_f32());
+            self.g.tree.record(&r, &mut || rng.next_f32());
         } else {
-            self.tree.skip_record(&r, &mut || rng.next_f32());
+            self.g.tree.skip_record(&r, &mut || rng.next_f32());
         }
     }
 
@@ -992,7 +987,7 @@ impl<'a> GuidedPath<'a> {
             {
                 // The leaf's mean radiance: no direction is sampled yet.
                 let e = expected_contribution(
-                    self.tree,
+                    self.g.tree,
                     &v.vg,
                     self.throughput,
                     1.0 / (4.0 * std::f32::consts::PI),
@@ -1024,7 +1019,7 @@ impl<'a> GuidedPath<'a> {
         self.depth = v.depth;
         let (si, vg) = (&v.si, &v.vg);
         let mut ms = MixtureSample::default();
-        if !sample_mixture_into(self.tree, vg, &v.bsdf, &v.frame, v.wi, rng, &mut ms) {
+        if !sample_mixture_into(self.g.tree, vg, &v.bsdf, &v.frame, v.wi, rng, &mut ms) {
             return false;
         }
         self.throughput *= ms.weight;
@@ -1097,13 +1092,13 @@ impl<'a> GuidedPath<'a> {
         let q = if g.ppg_roulette {
             ppg_survival(
                 v.smooth && !ms.delta,
-                self.tree.is_built(),
+                self.g.tree.is_built(),
                 tp_max,
                 self.eta,
             )
         } else if let Some(est) = guided_estimate {
             let e = expected_contribution(
-                self.tree,
+                self.g.tree,
                 &v.vg,
                 self.throughput,
                 // (the unrestricted guide's pdf: the radiance estimate is flux x pdf)
@@ -1129,7 +1124,7 @@ impl<'a> GuidedPath<'a> {
         }
         let g = self.g;
         if g.record {
-            self.rec.commit(self.tree, self.learn_fraction, rng);
+            self.rec.commit(self.g.tree, self.g.tree.is_built(), rng);
         }
         if let Some(c) = g.rays {
             c.add(self.rays);
