@@ -778,25 +778,6 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
             ],
         )?;
         cluster.children.push(("the coordinator".into(), c));
-        for i in 0..args.workers {
-            let c = spawn(
-                "a worker",
-                vec![
-                    "worker".into(),
-                    "--coordinator".into(),
-                    url.clone(),
-                    "--threads".into(),
-                    threads.to_string(),
-                    "--name".into(),
-                    format!("cluster-{i}"),
-                    "--cache".into(),
-                    dir.join(format!("worker-{i}"))
-                        .to_string_lossy()
-                        .into_owned(),
-                ],
-            )?;
-            cluster.children.push((format!("worker {i}"), c));
-        }
         let work = async {
             // Wait until the coordinator answers.
             let start = Instant::now();
@@ -811,8 +792,29 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
                 if start.elapsed() > Duration::from_secs(60) {
                     bail!("the coordinator did not answer within 60 s");
                 }
-                tokio::time::sleep(Duration::from_millis(100)).await;
+                tokio::time::sleep(Duration::from_millis(20)).await;
             };
+            // Workers start once the coordinator answers: they connect at once instead of
+            // backing off (and warning) while it starts, and start while the bundle uploads.
+            for i in 0..args.workers {
+                let c = spawn(
+                    "a worker",
+                    vec![
+                        "worker".into(),
+                        "--coordinator".into(),
+                        url.clone(),
+                        "--threads".into(),
+                        threads.to_string(),
+                        "--name".into(),
+                        format!("cluster-{i}"),
+                        "--cache".into(),
+                        dir.join(format!("worker-{i}"))
+                            .to_string_lossy()
+                            .into_owned(),
+                    ],
+                )?;
+                cluster.children.push((format!("worker {i}"), c));
+            }
             let job = client.submit(&args.scene, &opts).await?;
             tracing::info!(
                 "submitted job {job} to a cluster of {} workers",

@@ -156,7 +156,14 @@ struct Caches {
     trees: HashMap<String, JobTree>,
     /// One estimate per job: its digest and values.
     estimates: HashMap<String, (Vec<u8>, Arc<Vec<f32>>)>,
+    /// The pass inputs (trees, fractions, estimates) fetched last, most recently used last
+    /// (at most [`INPUT_CACHE`]): kept in memory, not in the disk cache, since each is
+    /// decoded once and superseded within an iteration (writing a tree of tens of MB to
+    /// disk and reading it back cost a worker more than fetching it).
+    inputs: Vec<(Digest, Arc<Vec<u8>>)>,
 }
+
+const INPUT_CACHE: usize = 4;
 
 const SCENE_CACHE: usize = 2;
 
@@ -619,9 +626,9 @@ struct Prepared {
     lease: v1::Lease,
     manifest: Manifest,
     defines: Vec<(String, String)>,
-    tree_blob: Option<PathBuf>,
-    fractions_blob: Option<PathBuf>,
-    estimate_blob: Option<PathBuf>,
+    tree_blob: Option<Arc<Vec<u8>>>,
+    fractions_blob: Option<Arc<Vec<u8>>>,
+    estimate_blob: Option<Arc<Vec<u8>>>,
     /// Seconds spent fetching the blobs.
     fetch_seconds: f64,
 }
@@ -636,12 +643,8 @@ fn blob_path(cache: &Path, d: &Digest) -> PathBuf {
     cache.join("blobs").join(d.to_hex())
 }
 
-/// Fetches the blob `d` into the cache unless it is there; returns its path.
-async fn ensure_blob(shared: &Shared, api: &mut Api, d: &Digest) -> Result<PathBuf, Fail> {
-    let path = blob_path(&shared.cache_dir, d);
-    if path.is_file() {
-        return Ok(path);
-    }
+/// Fetches the blob `d` into memory, checking its digest.
+async fn fetch(api: &mut Api, d: &Digest) -> Result<Vec<u8>, Fail> {
     let mut stream = api
         .fetch_blob(v1::BlobRequest {
             digest: d.0.to_vec(),
@@ -655,6 +658,16 @@ async fn ensure_blob(shared: &Shared, api: &mut Api, d: &Digest) -> Result<PathB
     if blake3::hash(&data).as_bytes() != &d.0 {
         return Err(retryable(format!("blob {}: digest mismatch", d.to_hex())));
     }
+    Ok(data)
+}
+
+/// Fetches the blob `d` into the disk cache unless it is there; returns its path.
+async fn ensure_blob(shared: &Shared, api: &mut Api, d: &Digest) -> Result<PathBuf, Fail> {
+    let path = blob_path(&shared.cache_dir, d);
+    if path.is_file() {
+        return Ok(path);
+    }
+    let data = fetch(api, d).await?;
     let n = shared.tmp_counter.fetch_add(1, Ordering::Relaxed);
     let tmp = shared.cache_dir.join("blobs").join(format!(
         ".tmp-{}-{}-{n}",
@@ -670,18 +683,34 @@ async fn ensure_blob(shared: &Shared, api: &mut Api, d: &Digest) -> Result<PathB
     Ok(path)
 }
 
-/// The blob of an optional digest field (empty = none), fetched.
-async fn opt_blob(
+/// The pass input named by an optional digest field (empty = none), from memory or fetched.
+async fn pass_input(
     shared: &Shared,
     api: &mut Api,
     bytes: &[u8],
     what: &str,
-) -> Result<Option<PathBuf>, Fail> {
+) -> Result<Option<Arc<Vec<u8>>>, Fail> {
     if bytes.is_empty() {
         return Ok(None);
     }
     let d = digest_of_field(bytes, what)?;
-    Ok(Some(ensure_blob(shared, api, &d).await?))
+    let caches = || shared.caches.lock().expect("cache lock");
+    {
+        let mut c = caches();
+        if let Some(i) = c.inputs.iter().position(|(x, _)| x == &d) {
+            let e = c.inputs.remove(i);
+            let data = e.1.clone();
+            c.inputs.push(e);
+            return Ok(Some(data));
+        }
+    }
+    let data = Arc::new(fetch(api, &d).await?);
+    let mut c = caches();
+    c.inputs.push((d, data.clone()));
+    if c.inputs.len() > INPUT_CACHE {
+        c.inputs.remove(0);
+    }
+    Ok(Some(data))
 }
 
 async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Prepared, Fail> {
@@ -725,9 +754,10 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
         .pass
         .as_ref()
         .ok_or_else(|| fatal("the lease has no pass"))?;
-    let tree_blob = opt_blob(shared, api, &pass.tree_digest, "tree_digest").await?;
-    let fractions_blob = opt_blob(shared, api, &pass.fractions_digest, "fractions_digest").await?;
-    let estimate_blob = opt_blob(shared, api, &pass.estimate_digest, "estimate_digest").await?;
+    let tree_blob = pass_input(shared, api, &pass.tree_digest, "tree_digest").await?;
+    let fractions_blob =
+        pass_input(shared, api, &pass.fractions_digest, "fractions_digest").await?;
+    let estimate_blob = pass_input(shared, api, &pass.estimate_digest, "estimate_digest").await?;
     let defines = lease
         .settings
         .as_ref()
@@ -833,10 +863,6 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
     Ok(js)
 }
 
-fn read_blob(p: &Path) -> Result<Vec<u8>, Fail> {
-    std::fs::read(p).map_err(|e| retryable(format!("{}: {e}", p.display())))
-}
-
 /// The job's tree copy (from the cache), refreshed for the lease's tree version and
 /// fractions: a tree blob is read only when the cached copy is another version (a tree is
 /// tens of MB).
@@ -858,8 +884,9 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
         Some(t) if !stale => t,
         _ => {
             let tree = match &p.tree_blob {
-                Some(path) => SdTree::decode(&read_blob(path)?)
-                    .map_err(|e| fatal(format!("tree blob: {e}")))?,
+                Some(bytes) => {
+                    SdTree::decode(bytes).map_err(|e| fatal(format!("tree blob: {e}")))?
+                }
                 None => {
                     let (lo, hi) = js.scene.accel.bounds();
                     SdTree::new(lo, hi, guide_config(&js.params, &js.scene))
@@ -873,8 +900,8 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
         }
     };
     if jt.fractions_digest != pass.fractions_digest {
-        if let Some(path) = &p.fractions_blob {
-            let states = codec::decode_fractions(&read_blob(path)?)
+        if let Some(bytes) = &p.fractions_blob {
+            let states = codec::decode_fractions(bytes)
                 .map_err(|e| fatal(format!("fractions blob: {e}")))?;
             jt.tree
                 .set_fraction_states(&states)
@@ -887,7 +914,7 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
 
 /// The lease's pixel estimate (guided roulette), cached per job by digest.
 fn lease_estimate(shared: &Shared, p: &Prepared) -> Result<Arc<Vec<f32>>, Fail> {
-    let Some(path) = &p.estimate_blob else {
+    let Some(bytes) = &p.estimate_blob else {
         return Ok(Arc::new(Vec::new()));
     };
     let pass = p.lease.pass.as_ref().expect("checked in prepare");
@@ -901,8 +928,7 @@ fn lease_estimate(shared: &Shared, p: &Prepared) -> Result<Arc<Vec<f32>>, Fail> 
     if let Some(e) = cached {
         return Ok(e);
     }
-    let e = codec::decode_estimate(&read_blob(path)?)
-        .map_err(|e| fatal(format!("estimate blob: {e}")))?;
+    let e = codec::decode_estimate(bytes).map_err(|e| fatal(format!("estimate blob: {e}")))?;
     let e = Arc::new(e);
     caches()
         .estimates

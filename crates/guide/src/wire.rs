@@ -57,40 +57,21 @@ pub enum WireError {
 
 // ---------------------------------------------------------------- checksums
 
-const fn crc_table() -> [u32; 256] {
-    let mut t = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        t[i] = c;
-        i += 1;
-    }
-    t
-}
-static CRC_TABLE: [u32; 256] = crc_table();
-
-/// CRC-32 (IEEE) of `data`.
+/// CRC-32 (IEEE) of `data` (crc32fast: the hardware-assisted form; a byte-table loop cost a
+/// farm's coordinator as much CPU as decoding the statistics it checks).
 pub fn crc32(data: &[u8]) -> u32 {
-    let mut c = !0u32;
-    for &b in data {
-        c = CRC_TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
-    }
-    !c
+    crc32fast::hash(data)
 }
 
 // ---------------------------------------------------------------- byte io
 
+/// A frame under construction: the header's room first (filled in by [`frame`]), then the
+/// payload, so that framing does not copy the payload.
 struct W(Vec<u8>);
 impl W {
+    fn new() -> Self {
+        W(vec![0; HEADER])
+    }
     fn u8(&mut self, v: u8) {
         self.0.push(v);
     }
@@ -161,12 +142,12 @@ impl<'a> R<'a> {
 }
 
 fn frame(magic: [u8; 4], payload: W) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER + payload.0.len() + 4);
-    out.extend_from_slice(&magic);
-    out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&0u16.to_le_bytes());
-    out.extend_from_slice(&(payload.0.len() as u64).to_le_bytes());
-    out.extend_from_slice(&payload.0);
+    let mut out = payload.0;
+    let len = (out.len() - HEADER) as u64;
+    out[..4].copy_from_slice(&magic);
+    out[4..6].copy_from_slice(&VERSION.to_le_bytes());
+    out[6..8].copy_from_slice(&0u16.to_le_bytes());
+    out[8..16].copy_from_slice(&len.to_le_bytes());
     let c = crc32(&out);
     out.extend_from_slice(&c.to_le_bytes());
     out
@@ -412,7 +393,7 @@ impl SdTree {
     /// Serialises the whole tree (configuration, S-tree, both quadtrees of every leaf, fraction
     /// state, pending statistics) into a `PFSD` frame. `decode(encode(t)) == t` bit for bit.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = W(Vec::new());
+        let mut w = W::new();
         put_config(&mut w, &self.config);
         let s = &self.stree;
         w.f32(s.min.x);
@@ -589,7 +570,7 @@ impl SdTree {
 impl IterationStats {
     /// Serialises into a `PFIS` frame.
     pub fn encode(&self) -> Vec<u8> {
-        let mut w = W(Vec::new());
+        let mut w = W::new();
         w.u64(self.structure_hash);
         w.u64(self.overflow_events);
         w.u32(self.leaves.len() as u32);
