@@ -1,8 +1,12 @@
-//! Training schedule and combination of iteration images (pure functions, doc section 5).
+//! Training schedule, the weights that combine iteration images, and the path fallback's
+//! rule (pure functions, doc section 5).
 //!
 //! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel. The last iteration
 //! absorbs the remainder when the iteration after it could not get at least twice its passes
 //! (so the final iteration always has at least about half the budget).
+
+#[cfg(test)]
+mod tests;
 
 /// How iteration images become the final image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -152,7 +156,8 @@ pub fn extrapolated_final_variance(variance: f64, cost: f64, remaining_before: f
 /// One finished iteration, for [`automatic_should_stop`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IterationOutcome {
-    /// Estimated variance of the iteration's image ([`image_variance`]).
+    /// Estimated variance of the iteration's image (the renderer's estimate, e.g. the mean
+    /// over pixels of the variance of the pixel's mean).
     pub variance: f64,
     /// Cost of the iteration (passes or seconds).
     pub cost: f64,
@@ -328,59 +333,4 @@ pub fn inverse_variance_weights(variances: &[f64]) -> Vec<f64> {
         w[n - 1] = 1.0;
     }
     w
-}
-
-/// Combines images (equal-length slices, any channel layout) with the given weights.
-pub fn combine_images(images: &[&[f32]], weights: &[f64]) -> Vec<f32> {
-    let len = images.first().map(|i| i.len()).unwrap_or(0);
-    let mut out = vec![0.0f64; len];
-    for (img, &w) in images.iter().zip(weights) {
-        if w == 0.0 {
-            continue;
-        }
-        for (o, &x) in out.iter_mut().zip(img.iter()) {
-            *o += w * x as f64;
-        }
-    }
-    out.into_iter().map(|x| x as f32).collect()
-}
-
-/// Inverse-variance combination of the last (up to) 4 images.
-pub fn combine_inverse_variance(images: &[&[f32]], variances: &[f64]) -> Vec<f32> {
-    combine_images(images, &inverse_variance_weights(variances))
-}
-
-/// Per-image variance estimate of an iteration image (doc section 5, done properly).
-///
-/// Per pixel entry i (flatten channels as you like), with `weight_sum[i]` the sum of the
-/// sample (filter) weights, `sum[i]` the weighted sum of sample values, `sum_sq[i]` the weighted
-/// sum of squared values and `count[i]` the number of samples N: `m1 = sum / weight_sum`,
-/// `m2 = sum_sq / weight_sum`, and the variance of the pixel estimate is
-/// `max(m2 - m1^2, 0) / (N - 1)`. The image variance is the mean over entries with N >= 2.
-pub fn image_variance(weight_sum: &[f64], sum: &[f64], sum_sq: &[f64], count: &[f64]) -> f64 {
-    let mut acc = 0.0;
-    let mut n = 0usize;
-    for i in 0..weight_sum
-        .len()
-        .min(sum.len())
-        .min(sum_sq.len())
-        .min(count.len())
-    {
-        let (ws, c) = (weight_sum[i], count[i]);
-        if !(ws > 0.0) || !(c >= 2.0) {
-            continue;
-        }
-        let m1 = sum[i] / ws;
-        let m2 = sum_sq[i] / ws;
-        let v = (m2 - m1 * m1).max(0.0) / (c - 1.0);
-        if v.is_finite() {
-            acc += v;
-            n += 1;
-        }
-    }
-    if n == 0 {
-        0.0
-    } else {
-        acc / n as f64
-    }
 }
