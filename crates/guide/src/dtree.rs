@@ -420,11 +420,9 @@ impl DTree {
     /// Finally all sums and W are zero. An empty tree (S_total = 0) becomes the uniform depth-4
     /// tree (85 nodes, 256 cells). Call [`DTree::build`] first.
     ///
-    /// Zeroing is what the paper does. Keeping half of the old sums and W *in this tree* (an
-    /// early attempt) made veach-ajar at 30 CPU-s worse, relMSE 0.107 vs 0.077 (pathfarm
-    /// preset) and 0.138 vs 0.119 (2019), 4-6 seeds; there the old weight also counted towards
-    /// spatial splits. Carry-over ([`crate::carry`]) keeps the old statistics apart as a
-    /// prior, out of the split criterion, and measured 0.93x relMSE at 30 CPU-s.
+    /// Zeroing is what the paper does. Old statistics kept in this tree would also count
+    /// towards spatial splits, and measured worse; carry-over ([`crate::carry`]) keeps them
+    /// apart as a prior instead (`docs/decisions/carry-over.md`).
     pub fn reset(&mut self, rho: f64, max_depth: u32) {
         *self = self.refined(rho, max_depth);
     }
