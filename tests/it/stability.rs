@@ -4,7 +4,7 @@
 //! finite everywhere with no sample rejected as non-finite, and compares it with a
 //! closed-form value or a reference image by a per-pixel test (see [`check`] for the
 //! significance levels). Unit cases of the guide (zero-energy cells, poles and seam of
-//! the mapping, NaN/Inf records) live in `crates/guide/src/tests.rs`.
+//! the mapping, NaN/Inf records) live in `crates/guide/src/sdtree/tests/stability.rs`.
 
 use pathfarm_render::guided::{render_guided, Budget};
 use pathfarm_render::{render, Film, RenderSettings, Scene};

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use glam::{Vec2, Vec3};
-use pathfarm_guide::{mapping, viz, DTree, SdTree};
+use pathfarm_guide::{mapping, viz, SamplingDTree, SdTree};
 use pathfarm_render::guided::{self, Budget};
 use pathfarm_render::integrator::guided_path::{guide_region, sample_mixture, VertexGuide};
 use pathfarm_render::rng::Rng;
@@ -217,7 +217,7 @@ fn write_png(out: OutputFile, width: usize, height: usize, rgb: &[f32]) -> Resul
     out.commit(&png)
 }
 
-fn quadtree_image(tree: &DTree, width: usize) -> Vec<f32> {
+fn quadtree_image(tree: &SamplingDTree, width: usize) -> Vec<f32> {
     viz::rasterize_pdf(tree, width, width / 2, true)
 }
 
@@ -242,7 +242,7 @@ fn show(a: ShowArgs) -> Result<()> {
     let p = Vec3::from(parse_floats::<3>(&a.point, "--point")?);
     let leaf = tree.leaf(tree.leaf_index(p));
     write_png(out, w, w / 2, &quadtree_image(&leaf.sampling, w))?;
-    println!("quadtree at {p}: {} nodes; u (across) = (cos theta + 1) / 2 of the world z axis, v (down) = phi / 2pi", leaf.sampling.node_count());
+    println!("quadtree at {p}: {} nodes; u (across) = (cos theta + 1) / 2 of the world z axis, v (down) = phi / 2pi", leaf.sampling.tree().node_count());
     Ok(())
 }
 

@@ -26,6 +26,9 @@
 use crate::dtree::DTree;
 use std::sync::atomic::AtomicU64;
 
+#[cfg(test)]
+mod tests;
+
 /// The unit of the quantised carry-over fraction: `beta` is applied as `q / CARRY_ONE`.
 pub const CARRY_ONE: u32 = 256;
 

@@ -156,22 +156,6 @@ impl Default for GuideConfig {
 }
 
 impl GuideConfig {
-    /// The 2019 production preset: stochastic spatial filter, box directional filter, learned
-    /// fraction with KL loss, c = 4000, one sample per pixel per pass (combine iterations with
-    /// inverse-variance weights, see [`crate::schedule`]).
-    pub fn improvements_2019() -> Self {
-        Self {
-            s_tree_threshold: 4000.0,
-            spp_per_pass: 1,
-            spatial_filter: SpatialFilter::Stochastic,
-            directional_filter: DirectionalFilter::Box,
-            bsdf_sampling_fraction: FractionMode::Learned {
-                loss: FractionLoss::Kl,
-            },
-            ..Self::default()
-        }
-    }
-
     /// The S-tree split threshold after iteration `k`: `c * sqrt(2^k * spp_per_pass / 4)`.
     pub fn split_threshold(&self, k: u32) -> f64 {
         self.s_tree_threshold * ((2f64).powi(k as i32) * self.spp_per_pass as f64 / 4.0).sqrt()

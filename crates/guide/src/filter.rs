@@ -8,6 +8,9 @@
 use crate::stree::{SLookup, STree};
 use glam::Vec3;
 
+#[cfg(test)]
+mod tests;
+
 /// Stochastic spatial filter: the position jittered uniformly within +-1/2 of the extent of the
 /// leaf `at` (the leaf containing `p`), using three caller-supplied random numbers in `[0, 1)`
 /// (x, y, z in that order). The result may lie outside the domain; lookups clamp it onto the

@@ -29,6 +29,9 @@ use crate::config::{AdamConfig, FractionLoss};
 use crate::stats::{add_counted, from_fixed, to_fixed, Acc128};
 use std::sync::atomic::AtomicU64;
 
+#[cfg(test)]
+mod tests;
+
 /// Logistic function.
 #[inline]
 pub fn sigmoid(x: f64) -> f64 {

@@ -5,6 +5,9 @@
 use crate::fraction::GRID_LEN;
 use crate::stats::add_counted;
 
+#[cfg(test)]
+mod tests;
+
 /// Statistics of one spatial leaf for one iteration (fixed-point integers, see [`crate::stats`]).
 #[derive(Clone, Debug, PartialEq, Eq, Default)]
 pub struct LeafStats {

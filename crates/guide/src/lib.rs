@@ -5,14 +5,16 @@
 //! inverse-variance combination of iterations).
 //!
 //! * [`SdTree`]: spatial binary tree of double-buffered directional quadtrees. Sample and pdf
-//!   read the frozen `sampling` trees; [`SdTree::record`] (thread safe, `&self`) adds to the
-//!   `building` trees; [`SdTree::refine`] ends an iteration.
+//!   read the frozen `sampling` trees ([`SamplingDTree`]); [`SdTree::record`] (thread safe,
+//!   `&self`) adds to the `building` trees ([`DTree`]); [`SdTree::refine`] ends an iteration,
+//!   freezing each built tree ([`DTree::freeze`]).
 //! * Statistics are exact fixed-point integers ([`stats`]): recording is bit-identical for any
 //!   thread count and order, and worker statistics merge exactly ([`IterationStats`], in
 //!   [`iteration_stats`]); trees fingerprint their structure with [`hash::Hasher64`].
 //! * [`wire`]: versioned, CRC-checked binary forms of a tree and of one iteration's statistics.
 //!   It depends on the domain types; nothing else in the crate depends on it.
-//! * [`schedule`]: iteration schedule and the combination of iteration images.
+//! * [`schedule`]: iteration schedule, the weights that combine iteration images, and the
+//!   path fallback's rule.
 //! * [`viz`]: rasterise a quadtree's pdf into an RGB image.
 //!
 //! Typical renderer loop (iteration k, pass loop inside):
@@ -57,7 +59,7 @@ pub mod wire;
 pub use config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
 };
-pub use dtree::{Cell, DTree};
+pub use dtree::{Cell, DTree, SamplingDTree};
 pub use iteration_stats::{IterationStats, LeafStats, StatsError};
 pub use light::LightStats;
 pub use mapping::{dir_to_uv, uv_to_dir};
@@ -68,6 +70,4 @@ pub use stree::{SLookup, STree};
 pub use wire::WireError;
 
 #[cfg(test)]
-mod tests;
-#[cfg(test)]
-mod tests_stability;
+mod test_support;

@@ -17,6 +17,9 @@
 use crate::stats::{from_fixed, to_fixed, Acc128, FIXED_ONE};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 
+#[cfg(test)]
+mod tests;
+
 /// One leaf's light-sample statistics: this iteration's sums (building) and the mean and
 /// standard deviation frozen from the previous iteration's sums (read by the renderer).
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -106,6 +106,7 @@ pub fn pdf_uv_to_solid_angle(p_uv: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::seam_and_poles;
 
     #[test]
     fn atan2_f32_matches_libm_within_about_one_f32_ulp_of_pi() {
@@ -198,5 +199,38 @@ mod tests {
         assert_eq!(dir_to_uv(Vec3::new(f32::NAN, 0.0, 1.0)), Vec2::ZERO);
         assert_eq!(dir_to_uv(Vec3::new(f32::INFINITY, 0.0, 0.0)), Vec2::ZERO);
         assert!((JACOBIAN - 12.566371).abs() < 1e-5);
+    }
+
+    #[test]
+    fn mapping_is_finite_and_inverse_at_the_poles_and_on_the_seam() {
+        for d in seam_and_poles() {
+            let uv = dir_to_uv(d);
+            assert!(
+                (0.0..=1.0).contains(&uv.x) && (0.0..1.0).contains(&uv.y),
+                "{d} maps to {uv}"
+            );
+            let back = uv_to_dir(uv);
+            assert!(
+                back.is_finite() && (back - d.normalize()).length() < 1e-3,
+                "{d} -> {uv} -> {back}"
+            );
+        }
+        // The corners of the square: the poles for any v, the seam's two edges.
+        for (u, v) in [
+            (0.0, 0.0),
+            (1.0, 0.0),
+            (0.0, 1.0),
+            (1.0, 1.0),
+            (0.5, 0.0),
+            (0.5, 1.0),
+        ] {
+            let d = uv_to_dir(Vec2::new(u, v));
+            assert!((d.length() - 1.0).abs() < 1e-6, "({u}, {v}) -> {d}");
+        }
+        assert_eq!(
+            uv_to_dir(Vec2::new(1.0, 0.37)),
+            Vec3::Z,
+            "the pole has no phi"
+        );
     }
 }

@@ -22,6 +22,9 @@
 
 use glam::{Vec2, Vec3};
 
+#[cfg(test)]
+mod tests;
+
 /// Cells of the 4x4 grid over `(u, v)`, bit `iu + 4 iv` for the cell
 /// `[iu/4, (iu+1)/4) x [iv/4, (iv+1)/4)`. In directions: `iu` is a band of `z = cos(theta)`
 /// (`[-1, -0.5)`, `[-0.5, 0)`, `[0, 0.5)`, `[0.5, 1]`), `iv` a quarter of `phi`.
@@ -283,8 +286,8 @@ impl From<CellMask> for CellWeights {
 /// A quadtree's density restricted to the cells of `mask` and weighted per cell: the density
 /// is the tree's times the cell's `weight`, divided by `mass` (the weighted probability the
 /// tree gives those cells), inside them and 0 outside. Made by
-/// [`crate::DTree::restrict`], which falls back to no restriction (`ALL`, mass exactly 1) when
-/// the mask holds no probability.
+/// [`crate::SamplingDTree::restrict`], which falls back to no restriction (`ALL`, mass
+/// exactly 1) when the mask holds no probability.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Restriction {
     /// The cells sampled from.

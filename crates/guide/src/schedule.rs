@@ -1,8 +1,12 @@
-//! Training schedule and combination of iteration images (pure functions, doc section 5).
+//! Training schedule, the weights that combine iteration images, and the path fallback's
+//! rule (pure functions, doc section 5).
 //!
 //! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel. The last iteration
 //! absorbs the remainder when the iteration after it could not get at least twice its passes
 //! (so the final iteration always has at least about half the budget).
+
+#[cfg(test)]
+mod tests;
 
 /// How iteration images become the final image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -62,9 +66,8 @@ pub fn plan_spp(spp: u32, spp_per_pass: u32) -> Vec<u32> {
 /// previous iteration), should be the last one and run until the budget ends: true when the
 /// time left after it would be less than twice its duration.
 ///
-/// Also with inverse-variance combination, where training samples are kept: training until
-/// the rest would be less than *once* the iteration (one more doubling at 30 CPU-s on
-/// veach-ajar) gave the same relMSE, 0.0756 vs 0.0756 (pathfarm preset, 8 seeds).
+/// The same rule serves inverse-variance combination, where training samples are kept:
+/// training longer did not pay (`docs/decisions/time-budget-last-iteration.md`).
 pub fn time_iteration_is_last(remaining_seconds: f64, predicted_seconds: f64) -> bool {
     remaining_seconds - predicted_seconds < 2.0 * predicted_seconds
 }
@@ -152,7 +155,8 @@ pub fn extrapolated_final_variance(variance: f64, cost: f64, remaining_before: f
 /// One finished iteration, for [`automatic_should_stop`].
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IterationOutcome {
-    /// Estimated variance of the iteration's image ([`image_variance`]).
+    /// Estimated variance of the iteration's image (the renderer's estimate, e.g. the mean
+    /// over pixels of the variance of the pixel's mean).
     pub variance: f64,
     /// Cost of the iteration (passes or seconds).
     pub cost: f64,
@@ -210,35 +214,23 @@ pub enum GuidingVerdict {
 pub const GUIDING_KEEP_RATIO: f64 = 0.8;
 /// Path tracing takes over once guided sampling's efficiency cost is at least this multiple of
 /// path tracing's at two checks in a row (the guide still improves while it trains, so it
-/// gets the benefit of the doubt). Measured ratios (relative variance x seconds, 15 s at two
-/// threads, checks after iterations 1, 2, 3): cornell-box 2.71, 1.90, 1.69; veach-ajar 0.018
-/// (kept at once); door-ajar 0.96, 1.01, 0.95.
+/// gets the benefit of the doubt). The measurements behind this and the other thresholds:
+/// `docs/decisions/path-fallback.md`.
 pub const GUIDING_FALLBACK_RATIO: f64 = 1.25;
 /// Path tracing takes over at the first check already when guided sampling's efficiency cost
 /// is at least this multiple of path tracing's: a loss this clear is not made up by a tree
 /// trained on more samples, and on a short budget the second check's iteration alone costs a
 /// tenth of the budget. The first check judges a tree trained on one spp, so it separates
-/// scenes poorly and the threshold sits between them. Measured first-check ratios (pathfarm
-/// preset, 2 threads, 4-30 CPU-s, 2026-11-23, Xeon with AVX-512): cornell-box 2.74-3.62
-/// (11 seeds), 2.59-3.00 with `guide_cosine` (6 seeds; it falls back at the second check
-/// too, at 1.3-1.9); door-ajar 1.15-1.99 (9 seeds), 1.80-1.99 with `guide_cosine` (6 seeds;
-/// guiding wins from the second check on, at 0.5-0.8, and a benchmark run that fell back
-/// at the first check under the earlier threshold of 2.0 had 1.56x the relMSE of one that
-/// did not); materials 2.16-2.96; caustic 0.009 or 2.58 (its 1-spp path probe's variance is
-/// mostly one firefly or none). A door-ajar-like fallback costs far more than a
-/// cornell-box-like second check (about 4 % of a 7.5 CPU-s budget), hence the margin sits
-/// more on door-ajar's side.
+/// scenes poorly and the threshold sits between those guiding loses (cornell-box) and those
+/// it wins later (door-ajar), nearer the latter: falling back there costs far more than a
+/// second check costs the former.
 pub const GUIDING_FALLBACK_FIRST_RATIO: f64 = 2.4;
 /// Path tracing also takes over at the first check when a guided sample is this much noisier
 /// than a path sample (per-sample relative variance, guided over path) and guided sampling is
 /// less efficient by at least [`GUIDING_FALLBACK_RATIO`]. Unlike the efficiency cost, the
 /// variance ratio does not depend on the machine's speed (for a given seed it is the same
 /// everywhere), and it separates the scenes far better: a scene that guiding will win already
-/// has less noise per sample with the 1-spp tree. Measured first-check variance ratios (pathfarm
-/// preset, 2 threads, 7.5 CPU-s, seeds 1-10, 2026-11-23): cornell-box 1.74-1.94 (guided 2.04-3.03
-/// in cost, 3 of 4 Zen 1 runs fell back only at the second check); door-ajar 0.37-0.77 (it
-/// goes to 0.31-0.43 at the second check, where guiding is kept); veach-ajar 0.03-0.06;
-/// materials 1.37-1.74; caustic 1.36 or below 0.05 (one firefly in the 1-spp path probe or none).
+/// has less noise per sample with the 1-spp tree.
 pub const GUIDING_FALLBACK_FIRST_VARIANCE_RATIO: f64 = 1.2;
 /// After this many checked iterations the verdict is final either way.
 pub const GUIDING_LAST_DECISION: usize = 4;
@@ -328,59 +320,4 @@ pub fn inverse_variance_weights(variances: &[f64]) -> Vec<f64> {
         w[n - 1] = 1.0;
     }
     w
-}
-
-/// Combines images (equal-length slices, any channel layout) with the given weights.
-pub fn combine_images(images: &[&[f32]], weights: &[f64]) -> Vec<f32> {
-    let len = images.first().map(|i| i.len()).unwrap_or(0);
-    let mut out = vec![0.0f64; len];
-    for (img, &w) in images.iter().zip(weights) {
-        if w == 0.0 {
-            continue;
-        }
-        for (o, &x) in out.iter_mut().zip(img.iter()) {
-            *o += w * x as f64;
-        }
-    }
-    out.into_iter().map(|x| x as f32).collect()
-}
-
-/// Inverse-variance combination of the last (up to) 4 images.
-pub fn combine_inverse_variance(images: &[&[f32]], variances: &[f64]) -> Vec<f32> {
-    combine_images(images, &inverse_variance_weights(variances))
-}
-
-/// Per-image variance estimate of an iteration image (doc section 5, done properly).
-///
-/// Per pixel entry i (flatten channels as you like), with `weight_sum[i]` the sum of the
-/// sample (filter) weights, `sum[i]` the weighted sum of sample values, `sum_sq[i]` the weighted
-/// sum of squared values and `count[i]` the number of samples N: `m1 = sum / weight_sum`,
-/// `m2 = sum_sq / weight_sum`, and the variance of the pixel estimate is
-/// `max(m2 - m1^2, 0) / (N - 1)`. The image variance is the mean over entries with N >= 2.
-pub fn image_variance(weight_sum: &[f64], sum: &[f64], sum_sq: &[f64], count: &[f64]) -> f64 {
-    let mut acc = 0.0;
-    let mut n = 0usize;
-    for i in 0..weight_sum
-        .len()
-        .min(sum.len())
-        .min(sum_sq.len())
-        .min(count.len())
-    {
-        let (ws, c) = (weight_sum[i], count[i]);
-        if !(ws > 0.0) || !(c >= 2.0) {
-            continue;
-        }
-        let m1 = sum[i] / ws;
-        let m2 = sum_sq[i] / ws;
-        let v = (m2 - m1 * m1).max(0.0) / (c - 1.0);
-        if v.is_finite() {
-            acc += v;
-            n += 1;
-        }
-    }
-    if n == 0 {
-        0.0
-    } else {
-        acc / n as f64
-    }
 }

@@ -2,7 +2,7 @@
 //! quadtrees and the learned BSDF-sampling fraction.
 
 use crate::config::{DirectionalFilter, FractionMode, GuideConfig, SpatialFilter};
-use crate::dtree::{prefetch, prefetch_block, DTree};
+use crate::dtree::{prefetch, prefetch_block, DTree, SamplingDTree};
 use crate::filter::{spatial_box_overlaps, stochastic_jitter};
 use crate::fraction::{FractionState, GradAccum};
 use crate::hash::Hasher64;
@@ -16,6 +16,9 @@ use crate::stree::{SLookup, STree};
 use glam::Vec3;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::OnceLock;
+
+#[cfg(test)]
+mod tests;
 
 /// Deepest S-tree level (root = 0): 20 splits per axis, about the precision of the f32 lookup.
 pub const MAX_SPATIAL_DEPTH: u32 = 60;
@@ -37,7 +40,7 @@ pub struct Leaf {
     /// Quadtree receiving this iteration's records.
     pub building: DTree,
     /// Frozen quadtree of the previous iteration, read by sample and pdf.
-    pub sampling: DTree,
+    pub sampling: SamplingDTree,
     /// Learned-fraction state (logit and Adam moments).
     pub fraction: FractionState,
     /// Exactly accumulated fraction gradients not yet stepped.
@@ -75,7 +78,7 @@ impl Leaf {
         Self {
             // The state of a freshly reset empty tree (as [G] resets before iteration 0).
             building: DTree::uniform(4),
-            sampling: DTree::new(),
+            sampling: DTree::new().freeze(),
             fraction: FractionState::default(),
             grad: GradAccum::default(),
             flux: 0.0,
@@ -337,7 +340,7 @@ impl SdTree {
     pub fn prefetch_leaf(&self, h: LeafHandle) {
         if let Some(leaf) = self.leaves.get(h.0 as usize) {
             prefetch((&leaf.alpha as *const f32).cast());
-            prefetch((&leaf.sampling.frozen as *const Vec<_>).cast());
+            prefetch((&leaf.sampling.cache as *const Vec<_>).cast());
         }
     }
 
@@ -347,9 +350,7 @@ impl SdTree {
     #[inline]
     pub fn prefetch_sampling(&self, h: LeafHandle) {
         if let Some(leaf) = self.leaves.get(h.0 as usize) {
-            if !leaf.sampling.frozen.is_empty() {
-                prefetch_block(&leaf.sampling.frozen, 0);
-            }
+            prefetch_block(&leaf.sampling.cache, 0);
         }
     }
 
@@ -602,8 +603,7 @@ impl SdTree {
             } else {
                 0.0
             };
-            l.sampling = l.building.clone();
-            l.sampling.freeze();
+            l.sampling = l.building.clone().freeze();
             l.light.freeze();
         }
         self.built = true;
@@ -636,7 +636,8 @@ impl SdTree {
             {
                 let l = &mut self.leaves[li as usize];
                 l.building.set_weight_fixed(w0);
-                l.sampling.set_weight_fixed(l.sampling.weight_fixed() / 2);
+                l.sampling
+                    .set_weight_fixed(l.sampling.tree().weight_fixed() / 2);
             }
             child.building.set_weight_fixed(w1);
             if carry_q > 0 {
@@ -646,7 +647,7 @@ impl SdTree {
                 parent.prior.set_weight_fixed(carried / 2);
                 child.prior.set_weight_fixed(carried - carried / 2);
             }
-            let sw = child.sampling.weight_fixed();
+            let sw = child.sampling.tree().weight_fixed();
             child.sampling.set_weight_fixed(sw - sw / 2);
             self.leaves.push(child);
             let [c0, c1] = self.stree.split(node, li, new_li);
@@ -739,12 +740,13 @@ impl SdTree {
         for (i, l) in self.leaves.iter().enumerate() {
             let a = self.bsdf_sampling_fraction_leaf(LeafHandle(i as u32));
             s.fraction_histogram[((a * 10.0) as usize).min(9)] += 1;
-            s.sampling_dtree_nodes += l.sampling.node_count();
+            s.sampling_dtree_nodes += l.sampling.tree().node_count();
             s.building_dtree_nodes += l.building.node_count();
-            s.max_dtree_depth = s.max_dtree_depth.max(l.sampling.depth());
+            s.max_dtree_depth = s.max_dtree_depth.max(l.sampling.tree().depth());
             s.memory_bytes +=
                 l.sampling.memory_bytes() + l.building.memory_bytes() + l.prior.memory_bytes()
-                    - 3 * std::mem::size_of::<DTree>();
+                    - std::mem::size_of::<SamplingDTree>()
+                    - 2 * std::mem::size_of::<DTree>();
         }
         s
     }

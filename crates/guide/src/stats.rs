@@ -205,6 +205,7 @@ fn div_rem(a: u128, b: u128) -> (u128, u128) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::test_support::Pcg;
 
     #[test]
     fn acc128_carries_into_high_word_exactly_in_any_order() {
@@ -256,6 +257,64 @@ mod tests {
                 let total = out.iter().fold(0u128, |a, b| a.wrapping_add(*b));
                 assert_eq!(total, q);
                 assert!(out.iter().all(|&p| p <= q));
+            }
+        }
+    }
+
+    /// `split_exact` as first written (quantised weights in a Vec, 128-bit divisions).
+    fn split_exact_reference(q: u128, weights: &[f64]) -> Vec<u128> {
+        let max = weights.iter().cloned().fold(0.0f64, f64::max);
+        let mut out = vec![0u128; weights.len()];
+        if !(max > 0.0) || !max.is_finite() {
+            out[0] = q;
+            return out;
+        }
+        let wi: Vec<u128> = weights
+            .iter()
+            .map(|&w| {
+                if w > 0.0 {
+                    ((w / max) * 4294967295.0).round() as u128
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let t: u128 = wi.iter().sum();
+        let imax = (0..wi.len()).fold(0, |m, i| if wi[i] > wi[m] { i } else { m });
+        let mut acc = 0u128;
+        for i in 0..wi.len() {
+            out[i] = (q / t) * wi[i] + ((q % t) * wi[i]) / t;
+            acc += out[i];
+        }
+        out[imax] += q - acc;
+        out
+    }
+
+    #[test]
+    fn split_exact_equals_the_128_bit_reference_bit_for_bit() {
+        let mut rng = Pcg::new(8);
+        let mut out = Vec::new();
+        for n in 1..24 {
+            for _ in 0..300 {
+                let w: Vec<f64> = (0..n)
+                    .map(|_| match rng.next_u32() % 4 {
+                        0 => 0.0,
+                        1 => rng.f32() as f64 * 1e-9,
+                        _ => rng.f32() as f64,
+                    })
+                    .collect();
+                let big = ((rng.next_u32() as u128) << 96) | ((rng.next_u32() as u128) << 40);
+                for q in [
+                    0u128,
+                    1,
+                    3,
+                    (rng.next_u32() as u128) << 20,
+                    u64::MAX as u128,
+                    big,
+                ] {
+                    crate::stats::split_exact(q, &w, &mut out);
+                    assert_eq!(out, split_exact_reference(q, &w), "q {q} weights {w:?}");
+                }
             }
         }
     }

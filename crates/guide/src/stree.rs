@@ -6,6 +6,9 @@
 
 use glam::Vec3;
 
+#[cfg(test)]
+mod tests;
+
 /// One S-tree node.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct SNode {

@@ -1,6 +1,6 @@
 //! Visualisation: rasterise a quadtree's sampling pdf into an RGB image.
 
-use crate::dtree::DTree;
+use crate::dtree::SamplingDTree;
 use glam::Vec2;
 
 /// False-colour map of `t` in `[0, 1]`: black -> blue -> red -> yellow -> white.
@@ -32,7 +32,12 @@ pub fn heat(t: f32) -> [f32; 3] {
 /// 3 floats per pixel: column x covers `u` in `[x/width, (x+1)/width)`, row y covers `v` in
 /// `[y/height, (y+1)/height)` (pixel centres sampled). Values are `pdf / max pdf` through
 /// [`heat`]; `outlines` draws the leaf-cell borders in green.
-pub fn rasterize_pdf(tree: &DTree, width: usize, height: usize, outlines: bool) -> Vec<f32> {
+pub fn rasterize_pdf(
+    tree: &SamplingDTree,
+    width: usize,
+    height: usize,
+    outlines: bool,
+) -> Vec<f32> {
     let mut pdf = vec![0.0f32; width * height];
     let mut max = 0.0f32;
     for y in 0..height {
@@ -58,7 +63,7 @@ pub fn rasterize_pdf(tree: &DTree, width: usize, height: usize, outlines: bool) 
                 img[(y * width + x) * 3..(y * width + x) * 3 + 3].copy_from_slice(&green);
             }
         };
-        for c in tree.leaf_cells() {
+        for c in tree.tree().leaf_cells() {
             let x0 = (c.origin[0] * width as f64).floor() as usize;
             let y0 = (c.origin[1] * height as f64).floor() as usize;
             let x1 = ((c.origin[0] + c.size) * width as f64).ceil() as usize;
@@ -75,4 +80,44 @@ pub fn rasterize_pdf(tree: &DTree, width: usize, height: usize, outlines: bool) 
         }
     }
     img
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dtree::DTree;
+    use crate::stats::to_fixed;
+    use std::sync::atomic::AtomicU64;
+
+    #[test]
+    fn viz_rasterises_the_pdf_with_its_peak_brightest() {
+        let ov = AtomicU64::new(0);
+        let mut t = DTree::uniform(3); // 8 x 8 cells
+        t.deposit(Vec2::new(0.3, 0.8), to_fixed(10.0).0, &ov); // cell (2, 6)
+        t.deposit(Vec2::new(0.9, 0.1), to_fixed(1.0).0, &ov); // cell (7, 0)
+        t.build();
+        let t = t.freeze();
+        let img = crate::viz::rasterize_pdf(&t, 64, 32, false);
+        assert_eq!(img.len(), 64 * 32 * 3);
+        let px = |x: usize, y: usize| {
+            [
+                img[(y * 64 + x) * 3],
+                img[(y * 64 + x) * 3 + 1],
+                img[(y * 64 + x) * 3 + 2],
+            ]
+        };
+        assert_eq!(px(20, 25), [1.0, 1.0, 1.0], "peak cell must be white");
+        let dim = px(60, 2);
+        assert!(
+            dim.iter().sum::<f32>() > 0.0 && dim.iter().sum::<f32>() < 1.0,
+            "{dim:?}"
+        );
+        assert_eq!(px(5, 5), [0.0, 0.0, 0.0], "zero-pdf cell must be black");
+        let o = crate::viz::rasterize_pdf(&t, 64, 64, true);
+        assert_eq!(
+            &o[(8 * 64 + 8) * 3..(8 * 64 + 8) * 3 + 3],
+            &[0.0, 1.0, 0.0],
+            "cell corner outlined"
+        );
+    }
 }

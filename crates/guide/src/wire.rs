@@ -380,8 +380,6 @@ fn get_dtree(r: &mut R) -> Result<DTree, WireError> {
     let t = DTree {
         nodes,
         weight: Acc128::from_u128(weight),
-        frozen: Vec::new(),
-        frozen_cells: [0.0; 16],
     };
     if t.depth() > MAX_DEPTH {
         return Err(WireError::Malformed("quadtree too deep"));
@@ -429,7 +427,7 @@ impl SdTree {
             w.f32(l.light.mean);
             w.f32(l.light.std_dev);
             put_dtree(&mut w, &l.building);
-            put_dtree(&mut w, &l.sampling);
+            put_dtree(&mut w, l.sampling.tree());
             put_dtree(&mut w, &l.prior);
         }
         frame(MAGIC_TREE, w)
@@ -524,14 +522,15 @@ impl SdTree {
                 mean: r.f32()?,
                 std_dev: r.f32()?,
             };
-            if !(light.mean >= 0.0 && light.mean.is_finite())
-                || !(light.std_dev >= 0.0 && light.std_dev.is_finite())
+            if !(light.mean >= 0.0
+                && light.mean.is_finite()
+                && light.std_dev >= 0.0
+                && light.std_dev.is_finite())
             {
                 return Err(WireError::Malformed("leaf light statistics"));
             }
             let building = get_dtree(&mut r)?;
-            let mut sampling = get_dtree(&mut r)?;
-            sampling.freeze();
+            let sampling = get_dtree(&mut r)?.freeze();
             let prior = get_dtree(&mut r)?;
             // Carried statistics fit the building tree's structure, or there are none.
             if !crate::carry::fits(&prior, &building) {
@@ -637,12 +636,4 @@ impl IterationStats {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn crc32_matches_the_standard_check_value() {
-        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
-        assert_eq!(crc32(b""), 0);
-    }
-}
+mod tests;

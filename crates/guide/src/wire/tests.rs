@@ -1,0 +1,78 @@
+//! Tests of the binary forms: CRC-32, round trips and detection of corrupt input.
+
+use super::*;
+use crate::test_support::{
+    config_2019, det_records, random_dtree, record_all, warmed_tree, Pcg, TreeKind,
+};
+
+#[test]
+fn crc32_matches_the_standard_check_value() {
+    assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    assert_eq!(crc32(b""), 0);
+}
+
+#[test]
+fn wire_round_trips_and_detects_corruption() {
+    let cfg = GuideConfig {
+        carry_over: 0.5,
+        ..config_2019()
+    };
+    let t = warmed_tree(cfg, 71, 3000, 2);
+    assert!(t.leaves().iter().any(|l| l.prior.weight_fixed() > 0));
+    let mut t2 = t.clone();
+    record_all(&t2, &det_records(2000, 72));
+    let bytes = t2.encode();
+    let back = SdTree::decode(&bytes).unwrap();
+    assert!(back == t2);
+    assert_eq!(back.encode(), bytes);
+    // a tree with a depth-20 quadtree survives the trip
+    let mut deep = SdTree::new(Vec3::ZERO, Vec3::ONE, GuideConfig::default());
+    deep.leaves[0].building = random_dtree(5, TreeKind::Peak);
+    assert!(SdTree::decode(&deep.encode()).unwrap() == deep);
+
+    let stats = t2.take_stats();
+    let sbytes = stats.encode();
+    assert_eq!(IterationStats::decode(&sbytes).unwrap(), stats);
+
+    let mut rng = Pcg::new(73);
+    for (buf, is_tree) in [(&bytes, true), (&sbytes, false)] {
+        let decode = |b: &[u8]| -> Result<(), WireError> {
+            if is_tree {
+                SdTree::decode(b).map(|_| ())
+            } else {
+                IterationStats::decode(b).map(|_| ())
+            }
+        };
+        for _ in 0..300 {
+            let mut c = buf.clone();
+            let i = rng.below(c.len() as u32) as usize;
+            c[i] ^= 1 << rng.below(8);
+            assert!(decode(&c).is_err(), "flip at {i} undetected");
+        }
+        for _ in 0..50 {
+            let n = rng.below(buf.len() as u32) as usize;
+            let e = decode(&buf[..n]).unwrap_err();
+            assert!(
+                matches!(e, WireError::Truncated | WireError::BadMagic(_)),
+                "{e:?}"
+            );
+        }
+        let mut c = buf.clone();
+        c[0] = b'X';
+        assert!(matches!(decode(&c), Err(WireError::BadMagic(_))));
+        let mut c = buf.clone();
+        c[4] = 9;
+        assert!(matches!(decode(&c), Err(WireError::UnsupportedVersion(9))));
+        let mut c = buf.clone();
+        let mid = c.len() / 2;
+        c[mid] ^= 0x10;
+        assert!(matches!(
+            decode(&c),
+            Err(WireError::ChecksumMismatch { .. })
+        ));
+    }
+    assert!(matches!(
+        SdTree::decode(&sbytes),
+        Err(WireError::BadMagic(_))
+    ));
+}
