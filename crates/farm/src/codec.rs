@@ -8,7 +8,7 @@
 use pathfarm_guide::fraction::FractionState;
 use pathfarm_proto::v1;
 use pathfarm_render::film::PixelStats;
-use pathfarm_render::pass::{PassKind, PassSpec};
+use pathfarm_render::pass::{PassKind, PassSpec, TileOutput};
 use pathfarm_render::{Film, Region};
 
 /// A payload that does not decode.
@@ -136,6 +136,18 @@ pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
         *p = PixelStats::read_le(c.try_into().unwrap());
     }
     Ok(film)
+}
+
+/// A rendered tile's counters (the worker fills in its timings).
+pub fn tile_counters(out: &TileOutput) -> v1::TileCounters {
+    v1::TileCounters {
+        rays: out.rays,
+        invalid_samples: out.invalid_samples,
+        nonfinite_records: out.nonfinite_records,
+        split_paths: out.split_paths,
+        extra_light_samples: out.extra_light_samples,
+        ..Default::default()
+    }
 }
 
 fn kind_to_proto(k: PassKind) -> v1::PassKind {

@@ -1005,14 +1005,10 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         unit: pass.unit,
         tile: Some(rect.clone()),
         counters: Some(v1::TileCounters {
-            rays: out.rays,
-            invalid_samples: out.invalid_samples,
-            nonfinite_records: out.nonfinite_records,
-            split_paths: out.split_paths,
-            extra_light_samples: out.extra_light_samples,
             render_seconds: seconds,
             prepare_seconds,
             serialize_seconds,
+            ..codec::tile_counters(&out)
         }),
         pixels_size: pixels.len() as u64,
         stats_size: stats.len() as u64,

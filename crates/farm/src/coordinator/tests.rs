@@ -13,6 +13,15 @@ use tonic::{Code, Request};
 use super::*;
 use crate::bundle::digest_of;
 
+/// Every job the coordinator lists.
+async fn list_jobs(jobs: &mut JobsClient<Channel>) -> Vec<v1::JobStatus> {
+    jobs.list_jobs(v1::ListJobsRequest::default())
+        .await
+        .unwrap()
+        .into_inner()
+        .jobs
+}
+
 const SCENE: &str = r#"<scene version="3.0.0">
 	<integrator type="guided_path"/>
 	<sensor type="perspective">
@@ -200,11 +209,7 @@ async fn malformed_scene_is_invalid_argument_and_stores_nothing() {
         "{}",
         e.message()
     );
-    let listed = jobs
-        .list_jobs(v1::ListJobsRequest::default())
-        .await
-        .unwrap();
-    assert!(listed.into_inner().jobs.is_empty());
+    assert!(list_jobs(&mut jobs).await.is_empty());
     let tmp: Vec<_> = std::fs::read_dir(data.join("tmp")).unwrap().collect();
     assert!(tmp.is_empty(), "temporary files left: {tmp:?}");
     c.stop().await;
@@ -337,12 +342,7 @@ async fn submitted_job_is_queued_persisted_and_restarted() {
     // gets a fresh id.
     let c = Running::start(config(data.clone(), None)).await;
     let mut jobs = JobsClient::new(c.channel().await);
-    let listed = jobs
-        .list_jobs(v1::ListJobsRequest::default())
-        .await
-        .unwrap()
-        .into_inner()
-        .jobs;
+    let listed = list_jobs(&mut jobs).await;
     assert_eq!(listed.len(), 1);
     assert_eq!(listed[0].job_id, "job-1");
     assert_eq!(listed[0].state, v1::JobState::Queued as i32);
@@ -362,12 +362,7 @@ async fn submitted_job_is_queued_persisted_and_restarted() {
     c.stop().await;
     let c = Running::start(config(data.clone(), None)).await;
     let mut jobs = JobsClient::new(c.channel().await);
-    let listed = jobs
-        .list_jobs(v1::ListJobsRequest::default())
-        .await
-        .unwrap()
-        .into_inner()
-        .jobs;
+    let listed = list_jobs(&mut jobs).await;
     assert_eq!(listed[0].state, v1::JobState::Cancelled as i32);
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);
@@ -538,14 +533,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             job_id: lease.job_id.clone(),
             unit: pass.unit,
             tile: lease.tile,
-            counters: Some(v1::TileCounters {
-                rays: out.rays,
-                invalid_samples: out.invalid_samples,
-                nonfinite_records: out.nonfinite_records,
-                split_paths: out.split_paths,
-                extra_light_samples: out.extra_light_samples,
-                ..Default::default()
-            }),
+            counters: Some(codec::tile_counters(&out)),
             pixels_size: pixels.len() as u64,
             stats_size: stats.len() as u64,
             pixels_digest: digest_of(&pixels).0.to_vec(),
