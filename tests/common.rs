@@ -53,14 +53,27 @@ pub fn write_scene(tag: &str, xml: &str) -> PathBuf {
     p
 }
 
-/// Loads and renders a scene file in-process.
-pub fn render_file(path: &Path, defines: &[(&str, &str)], spp: u32, seed: u64) -> Film {
+/// The 1-based line of `xml` holding `needle` (the first one).
+pub fn line_of(xml: &str, needle: &str) -> usize {
+    xml.lines()
+        .position(|l| l.contains(needle))
+        .unwrap_or_else(|| panic!("{needle:?} not in the scene"))
+        + 1
+}
+
+/// Loads a scene file with `defines` (`-D name=value`) and builds it.
+pub fn build_scene(path: &Path, defines: &[(&str, &str)]) -> Scene {
     let defs: Vec<(String, String)> = defines
         .iter()
         .map(|(a, b)| (a.to_string(), b.to_string()))
         .collect();
     let desc = load_scene(path, &defs).unwrap_or_else(|e| panic!("{e}"));
-    let scene = Scene::build(&desc).expect("build");
+    Scene::build(&desc).expect("build")
+}
+
+/// Loads and renders a scene file in-process.
+pub fn render_file(path: &Path, defines: &[(&str, &str)], spp: u32, seed: u64) -> Film {
+    let scene = build_scene(path, defines);
     render(&scene, &RenderSettings::new(Some(spp), None, seed), &|_| {}).0
 }
 
@@ -81,6 +94,87 @@ pub fn pathfarm_logging(args: &[&str], level: &str) -> Output {
         .env("NO_COLOR", "1")
         .output()
         .expect("run pathfarm")
+}
+
+/// Runs `pathfarm render SCENE -o OUT EXTRA...` (warnings and errors logged).
+pub fn pathfarm_render(scene: &Path, out: &Path, extra: &[&str]) -> Output {
+    pathfarm_render_logging(scene, out, extra, "warn")
+}
+
+/// [`pathfarm_render`] with log level `level`.
+pub fn pathfarm_render_logging(scene: &Path, out: &Path, extra: &[&str], level: &str) -> Output {
+    pathfarm_logging(&render_args(scene, out, extra), level)
+}
+
+/// `render SCENE -o OUT EXTRA...`.
+pub fn render_args<'a>(scene: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut args = vec!["render", path_str(scene), "-o", path_str(out)];
+    args.extend_from_slice(extra);
+    args
+}
+
+/// `guide train SCENE -o TREE --spp SPP`: trains a guide tree and saves it.
+pub fn guide_train_args<'a>(scene: &'a Path, tree: &'a Path, spp: &'a str) -> Vec<&'a str> {
+    let (scene, tree) = (path_str(scene), path_str(tree));
+    vec!["guide", "train", scene, "-o", tree, "--spp", spp]
+}
+
+/// `guide show TREE --point POINT -o OUT --width WIDTH`: a picture of the directional
+/// distribution the tree holds at a point.
+pub fn guide_show_args<'a>(
+    tree: &'a Path,
+    point: &'a str,
+    out: &'a Path,
+    width: &'a str,
+) -> Vec<&'a str> {
+    let (tree, out) = (path_str(tree), path_str(out));
+    vec![
+        "guide", "show", tree, "--point", point, "-o", out, "--width", width,
+    ]
+}
+
+/// `guide scatter SCENE --tree TREE --pixel PIXEL -o OUT --width WIDTH --samples SAMPLES`:
+/// a picture of the directions sampled at a pixel's first hit.
+pub fn guide_scatter_args<'a>(
+    scene: &'a Path,
+    tree: &'a Path,
+    pixel: &'a str,
+    out: &'a Path,
+    width: &'a str,
+    samples: &'a str,
+) -> Vec<&'a str> {
+    let (scene, tree, out) = (path_str(scene), path_str(tree), path_str(out));
+    let mut args = vec!["guide", "scatter", scene, "--tree", tree, "--pixel", pixel];
+    args.extend(["-o", out, "--width", width, "--samples", samples]);
+    args
+}
+
+/// Asserts that a run succeeded (else fails showing its stderr); returns its stdout.
+pub fn assert_success(o: &Output) -> String {
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// Asserts that a run failed cleanly: a non-zero exit and no panic (`what` names the case in
+/// the failure message); returns its stderr.
+pub fn assert_clean_failure(o: &Output, what: &str) -> String {
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(
+        !o.status.success(),
+        "{what}: expected failure, got success; stderr: {err}"
+    );
+    assert!(!err.contains("panicked"), "{what}: panic: {err}");
+    err
+}
+
+/// `p` as a `&str` (the tests' paths are UTF-8).
+pub fn path_str(p: &Path) -> &str {
+    p.to_str().expect("UTF-8 path")
+}
+
+/// Owned arguments as the `&str`s [`pathfarm`] and [`Running::start`] take.
+pub fn as_strs(args: &[String]) -> Vec<&str> {
+    args.iter().map(String::as_str).collect()
 }
 
 /// A one-sided diffuse plane (albedo 0.5, 0.25, 0.8) facing +z under a constant sky of
@@ -117,6 +211,62 @@ pub fn scene_xml(
     )
 }
 
+/// A square perspective camera for [`cam_scene_xml`].
+#[derive(Clone, Copy)]
+pub struct Cam {
+    pub origin: [f32; 3],
+    pub target: [f32; 3],
+    pub up: [f32; 3],
+    pub fov: f32,
+    pub res: u32,
+    /// Mitsuba's `near_clip` and `far_clip` (lengths: scaled scenes scale them too).
+    pub near: f32,
+    pub far: f32,
+}
+
+impl Cam {
+    /// Up +z, and Mitsuba's default clip distances (1e-2, 1e4).
+    pub fn new(origin: [f32; 3], target: [f32; 3], fov: f32, res: u32) -> Self {
+        Cam {
+            origin,
+            target,
+            up: [0.0, 0.0, 1.0],
+            fov,
+            res,
+            near: 1e-2,
+            far: 1e4,
+        }
+    }
+}
+
+/// A scene document: `integrator`, the camera `cam` with a box filter (independent pixels,
+/// so per-pixel tests apply), and `body`.
+pub fn cam_scene_xml(integrator: &str, cam: Cam, body: &str) -> String {
+    let Cam {
+        origin: [ox, oy, oz],
+        target: [tx, ty, tz],
+        up: [ux, uy, uz],
+        fov,
+        res,
+        near,
+        far,
+    } = cam;
+    format!(
+        r#"<scene version="3.0.0">
+    {integrator}
+    <sensor type="perspective">
+        <float name="fov" value="{fov}"/>
+        <float name="near_clip" value="{near:e}"/>
+        <float name="far_clip" value="{far:e}"/>
+        <transform name="to_world"><lookat origin="{ox:e}, {oy:e}, {oz:e}" target="{tx:e}, {ty:e}, {tz:e}" up="{ux}, {uy}, {uz}"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/><rfilter type="box"/></film>
+    </sensor>
+    {body}
+</scene>"#
+    )
+}
+
 /// Two-sided normal quantile for significance `alpha`, for the few levels the
 /// tests use.
 pub fn z_two_sided(alpha: f64) -> f64 {
@@ -128,6 +278,170 @@ pub fn z_two_sided(alpha: f64) -> f64 {
         3.8906
     } else {
         panic!("no quantile tabulated for {alpha}")
+    }
+}
+
+/// One pixel's comparison for [`assert_pixels_agree`]: per channel the difference, its
+/// estimated variance and a tolerated known bias (0 but for documented deficits), and the
+/// pixel's magnitude.
+pub struct PixelDiff {
+    pub d: [f64; 3],
+    pub var: [f64; 3],
+    pub slack: [f64; 3],
+    pub scale: f64,
+}
+
+impl PixelDiff {
+    /// Each pixel of `film` against `expected(pixel index)`, tolerating a known relative
+    /// bias of up to `slack`.
+    pub fn against(film: &Film, expected: impl Fn(usize) -> [f32; 3], slack: f64) -> Vec<Self> {
+        let (m, v) = (film.mean_rgb(), film.variance_rgb());
+        (0..m.len())
+            .map(|i| {
+                let e = expected(i);
+                PixelDiff {
+                    d: [0, 1, 2].map(|c| (m[i][c] - e[c]) as f64),
+                    var: [0, 1, 2].map(|c| v[i][c] as f64),
+                    slack: e.map(|x| slack * x.abs() as f64),
+                    scale: e.iter().fold(0.0f32, |a, b| a.max(b.abs())) as f64,
+                }
+            })
+            .collect()
+    }
+
+    /// Two films of the same expected image, pixel by pixel (the variances add).
+    pub fn between(a: &Film, b: &Film) -> Vec<Self> {
+        let (ma, va, mb, vb) = (
+            a.mean_rgb(),
+            a.variance_rgb(),
+            b.mean_rgb(),
+            b.variance_rgb(),
+        );
+        assert_eq!(ma.len(), mb.len());
+        (0..ma.len())
+            .map(|i| PixelDiff {
+                d: [0, 1, 2].map(|c| (ma[i][c] - mb[i][c]) as f64),
+                var: [0, 1, 2].map(|c| (va[i][c] + vb[i][c]) as f64),
+                slack: [0.0; 3],
+                scale: ma[i]
+                    .iter()
+                    .chain(&mb[i])
+                    .fold(0.0f32, |x, y| x.max(y.abs())) as f64,
+            })
+            .collect()
+    }
+}
+
+/// How many pixels may fail the per-pixel test of [`assert_pixels_agree`].
+#[derive(Clone, Copy, Debug)]
+pub enum FailureCap {
+    /// 1 % of the pixels (about ten times the 0.3 % expected under the null hypothesis).
+    OnePercent,
+    /// [`binomial_failure_cap`]: the count itself tested at the 1e-4 level, never below 1 %.
+    Binomial,
+}
+
+impl FailureCap {
+    pub fn of(self, pixels: usize) -> usize {
+        match self {
+            FailureCap::OnePercent => pixels / 100,
+            FailureCap::Binomial => binomial_failure_cap(pixels),
+        }
+    }
+}
+
+/// Largest number of pixels that may fail the per-pixel test: the smallest `k` with
+/// P(X > k) < 1e-4 for X ~ Binomial(n, 0.003) (3 channels at the 0.001 level), so the count
+/// itself is tested at the 1e-4 level; never below 1 % of the pixels (low-spp variance
+/// estimates of heavy-tailed estimators run small).
+pub fn binomial_failure_cap(n: usize) -> usize {
+    let p = 0.003f64;
+    let mut pmf = (1.0 - p).powi(n as i32); // P(X = 0)
+    let mut cdf = pmf;
+    let mut k = 0usize;
+    while 1.0 - cdf >= 1e-4 {
+        pmf *= (n - k) as f64 / (k + 1) as f64 * p / (1.0 - p);
+        cdf += pmf;
+        k += 1;
+    }
+    k.max(n / 100)
+}
+
+/// Which image-mean tests [`assert_pixels_agree`] makes, each at 4 standard errors.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum MeanTest {
+    /// Each channel's mean difference (two-sided ~6.3e-5 per channel).
+    PerChannel,
+    /// Also the mean over all channels against the standard error of the sum, which treats
+    /// the channels as independent: where they are correlated (grey scenes) that test is
+    /// stricter (down to ~2.3 standard errors of one channel).
+    PerChannelAndPooled,
+}
+
+/// The per-pixel statistical test of an image against a known image or another render.
+///
+/// Significance levels: per pixel and channel, a difference `d` (less the tolerated bias)
+/// with estimated variance `v` fails when |d| / sqrt(v) exceeds the two-sided **0.001**
+/// quantile (differences at float-rounding level, 1e-5 relative to the pixel's magnitude or
+/// 1, pass; beyond that a zero variance cannot explain them, so zero-variance pixels must be
+/// exact). At most `cap` pixels may fail (1 % of them, or a count tested at the **1e-4**
+/// level, see [`FailureCap`]). The image mean of the differences must be within **4
+/// standard errors** (two-sided ~6.3e-5) plus the mean tolerated bias (and 1e-6 for
+/// rounding), per channel and, with [`MeanTest::PerChannelAndPooled`], over all channels.
+pub fn assert_pixels_agree(diffs: &[PixelDiff], cap: FailureCap, mean: MeanTest, what: &str) {
+    let z = z_two_sided(0.001);
+    let (mut fails, mut examples) = (0usize, Vec::new());
+    // Per channel: sums of the differences, variances and tolerated biases.
+    let (mut dsum, mut vsum, mut slack) = ([0.0f64; 3], [0.0f64; 3], [0.0f64; 3]);
+    for (i, p) in diffs.iter().enumerate() {
+        let mut bad = false;
+        for c in 0..3 {
+            let (v, s) = (p.var[c], p.slack[c]);
+            let d = p.d[c].signum() * (p.d[c].abs() - s).max(0.0);
+            dsum[c] += p.d[c];
+            vsum[c] += v;
+            slack[c] += s;
+            bad |= d.abs() > 1e-5 * p.scale.max(1.0) && (v <= 0.0 || d.abs() / v.sqrt() > z);
+        }
+        if bad && examples.len() < 8 {
+            examples.push(format!(
+                "pixel {i}: d {:?} sd {:?}",
+                p.d,
+                p.var.map(f64::sqrt)
+            ));
+        }
+        fails += bad as usize;
+    }
+    let k = cap.of(diffs.len());
+    assert!(
+        fails <= k,
+        "{what}: {fails} of {} pixels fail at the 0.001 level (at most {k}, {cap:?}): {examples:?}",
+        diffs.len()
+    );
+    let n = diffs.len() as f64;
+    let mut sums: Vec<(String, f64, f64, f64, f64)> = (0..3)
+        .map(|c| (format!("channel {c}"), dsum[c], vsum[c], slack[c], n))
+        .collect();
+    if mean == MeanTest::PerChannelAndPooled {
+        let total = |x: [f64; 3]| x.iter().sum::<f64>();
+        let all = (
+            "all channels".to_string(),
+            total(dsum),
+            total(vsum),
+            total(slack),
+            3.0 * n,
+        );
+        sums.push(all);
+    }
+    for (which, d, v, s, count) in sums {
+        let se = v.sqrt();
+        assert!(
+            d.abs() <= 4.0 * se + s + 1e-6 * count,
+            "{what}: {which}: mean difference {} (se {}, tolerated bias {})",
+            d / count,
+            se / count,
+            s / count
+        );
     }
 }
 
@@ -288,16 +602,13 @@ impl Running {
 
 /// The shipped door-ajar scene with `guided_path` (its pathfarm preset) at `res`.
 pub fn door_ajar(res: (u32, u32)) -> Scene {
-    let defs: Vec<(String, String)> = [
-        ("integrator", "guided_path".to_string()),
-        ("resx", res.0.to_string()),
-        ("resy", res.1.to_string()),
-    ]
-    .into_iter()
-    .map(|(a, b)| (a.to_string(), b))
-    .collect();
-    let desc = load_scene(&project_scene("door-ajar"), &defs).unwrap_or_else(|e| panic!("{e}"));
-    Scene::build(&desc).expect("build")
+    let (resx, resy) = (res.0.to_string(), res.1.to_string());
+    let defines = [
+        ("integrator", "guided_path"),
+        ("resx", resx.as_str()),
+        ("resy", resy.as_str()),
+    ];
+    build_scene(&project_scene("door-ajar"), &defines)
 }
 
 /// A small seeded generator (splitmix64) for test schedules.
@@ -320,5 +631,12 @@ impl TestRng {
     /// True with probability `percent` / 100.
     pub fn chance(&mut self, percent: u64) -> bool {
         self.below(100) < percent
+    }
+
+    /// Puts `items` in a random order (Fisher-Yates).
+    pub fn shuffle<T>(&mut self, items: &mut [T]) {
+        for i in (1..items.len()).rev() {
+            items.swap(i, self.below(i as u64 + 1) as usize);
+        }
     }
 }

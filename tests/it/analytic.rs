@@ -2,47 +2,44 @@
 
 use crate::common::*;
 
-/// Per-pixel test of an image against a known value: a pixel fails when its
-/// |Z| exceeds the two-sided 0.001 quantile. Under the null hypothesis about
-/// 0.1 % of pixels fail; we allow 1 % (and require zero-variance pixels to be
-/// exact), and the image mean must sit within 4 standard errors.
+/// Per-pixel test of an image against a known value: [`assert_pixels_agree`] (0.001 per
+/// pixel and channel, zero-variance pixels exact, image mean within 4 standard errors) with
+/// at most 1 % of the pixels failing (about 0.3 % fail under the null hypothesis).
 fn assert_matches_constant(film: &pathfarm_render::Film, expected: [f32; 3], what: &str) {
-    let z_crit = z_two_sided(0.001);
-    let mean = film.mean_rgb();
-    let var = film.variance_rgb();
-    let mut fails = 0;
-    let mut examples = Vec::new();
-    let (mut sum, mut sum_var) = ([0.0f64; 3], [0.0f64; 3]);
-    for (m, v) in mean.iter().zip(&var) {
-        let mut bad = false;
-        for c in 0..3 {
-            sum[c] += m[c] as f64;
-            sum_var[c] += v[c] as f64;
-            // Differences at float-rounding level pass; beyond that a pixel
-            // needs a variance that explains them.
-            let d = (m[c] - expected[c]) as f64;
-            let rounding = 1e-5 * expected[c].max(1.0) as f64;
-            bad |= d.abs() > rounding && (v[c] <= 0.0 || d.abs() / (v[c] as f64).sqrt() > z_crit);
-        }
-        if bad && examples.len() < 8 {
-            examples.push(format!("{m:?}±{:?}", v.map(f32::sqrt)));
-        }
-        fails += bad as usize;
-    }
-    let n = mean.len() as f64;
-    assert!(
-        fails as f64 <= 0.01 * n,
-        "{what}: {fails} of {n} pixels differ from {expected:?} at the 0.001 level: {examples:?}"
-    );
-    for c in 0..3 {
-        let m = sum[c] / n;
-        let se = (sum_var[c]).sqrt() / n;
-        assert!(
-            (m - expected[c] as f64).abs() <= 4.0 * se + 1e-6,
-            "{what}: image mean {m} vs {} (se {se})",
-            expected[c]
-        );
-    }
+    let diffs = PixelDiff::against(film, |_| expected, 0.0);
+    assert_pixels_agree(&diffs, FailureCap::OnePercent, MeanTest::PerChannel, what);
+}
+
+/// A one-sided diffuse plane of albedo `albedo` (20 x 20, facing +z at z = 0) lit by
+/// `light`.
+fn lit_plane(light: &str, albedo: f32) -> String {
+    format!(
+        r#"
+        {light}
+        <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
+            <bsdf type="diffuse"><rgb name="reflectance" value="{albedo}"/></bsdf></shape>"#
+    )
+}
+
+/// Renders `body` seen from (0, 0, `cam_z`) on a `res` x `res` film with direct lighting
+/// only (`path`, max_depth 2).
+fn render_direct(
+    tag: &str,
+    res: u32,
+    fov: f32,
+    cam_z: f32,
+    body: &str,
+    spp: u32,
+    seed: u64,
+) -> pathfarm_render::Film {
+    let integrator =
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#;
+    render_xml(
+        tag,
+        &scene_xml(res, res, fov, cam_z, integrator, body),
+        spp,
+        seed,
+    )
 }
 
 #[test]
@@ -66,16 +63,7 @@ fn white_furnace_diffuse_and_glass_are_invisible() {
 fn diffuse_plane_under_uniform_sky_reflects_albedo_times_sky() {
     // Direct lighting only (max_depth 2): L = albedo * L_sky for a one-sided
     // diffuse plane facing up into a constant environment.
-    let body = PLANE_UNDER_SKY;
-    let xml = scene_xml(
-        12,
-        12,
-        20.0,
-        3.0,
-        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
-        body,
-    );
-    let film = render_xml("sky-plane", &xml, 64, 3);
+    let film = render_direct("sky-plane", 12, 20.0, 3.0, PLANE_UNDER_SKY, 64, 3);
     assert_matches_constant(&film, [1.0, 0.25, 0.4], "plane under sky");
 }
 
@@ -83,19 +71,11 @@ fn diffuse_plane_under_uniform_sky_reflects_albedo_times_sky() {
 fn point_light_over_diffuse_plane_matches_inverse_square_law() {
     // Centre pixel of a narrow view straight down the light's axis:
     // L = albedo / pi * I / h^2 (footprint effects below 1e-4).
-    let body = r#"
-        <emitter type="point"><point name="position" x="0" y="0" z="2"/><rgb name="intensity" value="10"/></emitter>
-        <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"#;
-    let xml = scene_xml(
-        5,
-        5,
+    let body = lit_plane(
+        r#"<emitter type="point"><point name="position" x="0" y="0" z="2"/><rgb name="intensity" value="10"/></emitter>"#,
         0.5,
-        10.0,
-        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
-        body,
     );
-    let film = render_xml("point", &xml, 16, 1);
+    let film = render_direct("point", 5, 0.5, 10.0, &body, 16, 1);
     let c = film.mean_rgb()[2 * 5 + 2];
     let expected = 0.5 / std::f32::consts::PI * 10.0 / 4.0;
     for v in c {
@@ -143,19 +123,11 @@ fn max_depth_one_shows_only_emitters_and_hide_emitters_hides_them() {
 #[test]
 fn directional_light_on_diffuse_plane_gives_lambert_cosine_law() {
     // L = albedo / pi * E * cos(theta) for a plane lit by a sun at 60 degrees.
-    let body = r#"
-        <emitter type="directional"><vector name="direction" x="0.8660254" y="0" z="-0.5"/><rgb name="irradiance" value="4"/></emitter>
-        <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"#;
-    let xml = scene_xml(
-        5,
-        5,
-        10.0,
-        5.0,
-        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
-        body,
+    let body = lit_plane(
+        r#"<emitter type="directional"><vector name="direction" x="0.8660254" y="0" z="-0.5"/><rgb name="irradiance" value="4"/></emitter>"#,
+        0.6,
     );
-    let film = render_xml("sun", &xml, 4, 1);
+    let film = render_direct("sun", 5, 10.0, 5.0, &body, 4, 1);
     let expected = 0.6 / std::f32::consts::PI * 4.0 * 0.5;
     for p in film.mean_rgb() {
         for v in p {
@@ -169,23 +141,16 @@ fn disk_light_over_diffuse_plane_matches_the_closed_form() {
     // Centre of a plane below a facing disk emitter of radius R at height h:
     // E = L pi R^2 / (h^2 + R^2), so L_o = albedo L R^2 / (h^2 + R^2). The disk
     // is hit both by NEE (area sampling) and by BSDF sampling (MIS).
-    let body = r#"
-        <shape type="disk"><transform name="to_world"><rotate x="1" angle="180"/><scale value="0.5"/><translate z="1"/></transform>
-            <emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>
-        <shape type="rectangle"><transform name="to_world"><scale value="10"/></transform>
-            <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"#;
+    let body = lit_plane(
+        r#"<shape type="disk"><transform name="to_world"><rotate x="1" angle="180"/><scale value="0.5"/><translate z="1"/></transform>
+            <emitter type="area"><rgb name="radiance" value="5"/></emitter></shape>"#,
+        0.5,
+    );
     // The camera looks at the plane's centre from the side, below the disk.
-    let xml = format!(
-        r#"<scene version="3.0.0">
-    <integrator type="path"><integer name="max_depth" value="2"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="0.5"/>
-        <transform name="to_world"><lookat origin="3, 0, 0.6" target="0, 0, 0" up="0, 0, 1"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="3"/><integer name="height" value="3"/><rfilter type="box"/></film>
-    </sensor>
-    {body}
-</scene>"#
+    let xml = cam_scene_xml(
+        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
+        Cam::new([3.0, 0.0, 0.6], [0.0; 3], 0.5, 3),
+        &body,
     );
     let film = render_xml("disk", &xml, 4096, 5);
     let expected = 0.5 * 5.0 * 0.25 / (1.0 + 0.25);
@@ -213,16 +178,6 @@ fn envmap_of_constant_radiance_lights_like_a_constant_sky() {
             <bsdf type="diffuse"><rgb name="reflectance" value="0.8"/></bsdf></shape>"#,
         env.display()
     );
-    let xml = scene_xml(
-        8,
-        8,
-        20.0,
-        3.0,
-        r#"<integrator type="path"><integer name="max_depth" value="2"/></integrator>"#,
-        &body,
-    );
-    let path = dir.join("scene.xml");
-    std::fs::write(&path, xml).unwrap();
-    let film = render_file(&path, &[], 64, 9);
+    let film = render_direct("envmap-scene", 8, 20.0, 3.0, &body, 64, 9);
     assert_matches_constant(&film, [0.4, 0.2, 0.8], "envmap sky");
 }

@@ -7,26 +7,20 @@ use crate::common::*;
 /// without a panic and without an output file.
 fn render_fails(scene: &std::path::Path) -> String {
     let out = scene.with_file_name("out.exr");
-    let o = pathfarm(&[
-        "render",
-        scene.to_str().unwrap(),
-        "-o",
-        out.to_str().unwrap(),
-        "--spp",
-        "1",
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr).to_string();
-    assert!(
-        !o.status.success(),
-        "expected failure, got success; stderr: {err}"
-    );
-    assert!(!err.contains("panicked"), "panic: {err}");
+    let err = assert_clean_failure(&pathfarm_render(scene, &out, &["--spp", "1"]), "render");
     assert!(!out.exists(), "an output file was written");
     err
 }
 
 fn minimal(body: &str) -> String {
     scene_xml(8, 8, 40.0, 4.0, r#"<integrator type="path"/>"#, body)
+}
+
+/// [`render_fails`] on a [`minimal`] scene with `body`: its stderr, and the line of the
+/// scene file holding `needle`.
+fn minimal_fails(tag: &str, body: &str, needle: &str) -> (String, usize) {
+    let xml = minimal(body);
+    (render_fails(&write_scene(tag, &xml)), line_of(&xml, needle))
 }
 
 #[test]
@@ -41,9 +35,7 @@ fn malformed_xml_names_file_and_line() {
 
 #[test]
 fn unknown_plugin_is_rejected_by_name_and_line() {
-    let xml = minimal(r#"<shape type="teapot"/>"#);
-    let line = xml.lines().position(|l| l.contains("teapot")).unwrap() + 1;
-    let err = render_fails(&write_scene("plugin", &xml));
+    let (err, line) = minimal_fails("plugin", r#"<shape type="teapot"/>"#, "teapot");
     assert!(
         err.contains("teapot") && err.contains(&format!("scene.xml:{line}")),
         "{err}"
@@ -52,11 +44,8 @@ fn unknown_plugin_is_rejected_by_name_and_line() {
 
 #[test]
 fn unknown_parameter_is_rejected_by_name() {
-    let xml = minimal(
-        r#"<shape type="sphere"><bsdf type="roughconductor"><float name="alpah" value="0.1"/></bsdf></shape>"#,
-    );
-    let line = xml.lines().position(|l| l.contains("alpah")).unwrap() + 1;
-    let err = render_fails(&write_scene("param", &xml));
+    let body = r#"<shape type="sphere"><bsdf type="roughconductor"><float name="alpah" value="0.1"/></bsdf></shape>"#;
+    let (err, line) = minimal_fails("param", body, "alpah");
     assert!(
         err.contains("alpah") && err.contains(&format!(":{line}")),
         "{err}"
@@ -95,44 +84,15 @@ fn bad_command_line_values_are_rejected() {
     let scene = shared_scene("cornell-box");
     let dir = temp_dir("cli-bad");
     let out = dir.join("x.exr");
-    for args in [
-        vec![
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "--spp",
-            "0",
-        ],
-        vec![
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "--time",
-            "-1",
-        ],
-        vec![
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            dir.join("x.png").to_str().unwrap(),
-        ],
-        vec![
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "-D",
-            "novalue",
-        ],
+    let png = dir.join("x.png");
+    for (out, extra) in [
+        (&out, &["--spp", "0"][..]),
+        (&out, &["--time", "-1"]),
+        (&png, &[]),
+        (&out, &["-D", "novalue"]),
     ] {
-        let o = pathfarm(&args);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(
-            !o.status.success() && !err.contains("panicked"),
-            "{args:?}: {err}"
-        );
+        let o = pathfarm_render(&scene, out, extra);
+        assert_clean_failure(&o, &format!("-o {} {extra:?}", out.display()));
     }
     assert!(!out.exists());
 }

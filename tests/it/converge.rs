@@ -100,7 +100,7 @@ fn converge_writes_every_run_its_image_and_an_error_that_matches_the_image() {
             "2",
         ],
     );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&o);
     let rows = read_csv(&out.join("results.csv"));
     // 2 methods + 2 swept values of guided, 2 budgets, 2 repeats.
     assert_eq!(rows.len(), 16);
@@ -195,7 +195,7 @@ fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
         converge(&dir.join(out), &cache, (32, 18), &args)
     };
     let o = run("a", &[]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&o);
     let cached: Vec<_> = std::fs::read_dir(&cache)
         .unwrap()
         .map(|e| e.unwrap().path())
@@ -206,7 +206,7 @@ fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
         .map(|p| p.metadata().unwrap().modified().unwrap())
         .collect();
     let o = run("b", &[]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&o);
     let again: Vec<_> = cached
         .iter()
         .map(|p| p.metadata().unwrap().modified().unwrap())
@@ -218,7 +218,7 @@ fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
     );
     // Another override is another scene: a new reference.
     let o = run("c", &["-D", "max_depth=3"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&o);
     assert_eq!(std::fs::read_dir(&cache).unwrap().count(), 4);
     for (extra, needle) in [
         (&["--methods", "mlt"][..], "unknown method"),
@@ -229,11 +229,7 @@ fn converge_reuses_its_cached_reference_and_refuses_bad_arguments() {
             "/nonexistent/ref.exr",
         ),
     ] {
-        let o = run("bad", extra);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(
-            !o.status.success() && err.contains(needle),
-            "{extra:?}: {err}"
-        );
+        let err = assert_clean_failure(&run("bad", extra), &format!("{extra:?}"));
+        assert!(err.contains(needle), "{extra:?}: {err}");
     }
 }

@@ -1,21 +1,15 @@
 //! The same job and seed give the same bits however the work is split.
 
 use pathfarm_render::{render, RenderSettings, Scene};
-use pathfarm_scene::load_scene;
 
 use crate::common::*;
 
-fn cornell(defines: &[(&str, &str)]) -> Scene {
-    let defs: Vec<(String, String)> = defines
-        .iter()
-        .map(|(a, b)| (a.to_string(), b.to_string()))
-        .collect();
-    Scene::build(&load_scene(&shared_scene("cornell-box"), &defs).expect("load")).expect("build")
-}
-
 #[test]
 fn image_is_bit_identical_across_threads_and_work_splits() {
-    let scene = cornell(&[("resx", "40"), ("resy", "30")]);
+    let scene = build_scene(
+        &shared_scene("cornell-box"),
+        &[("resx", "40"), ("resy", "30")],
+    );
     let base = RenderSettings::new(Some(6), None, 11);
     let pool = |n| {
         rayon::ThreadPoolBuilder::new()
@@ -65,11 +59,7 @@ fn cli_output_is_identical_for_one_and_two_threads() {
     let mut outs = Vec::new();
     for t in ["1", "2"] {
         let out = dir.join(format!("t{t}.exr"));
-        let o = pathfarm(&[
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
+        let extra = [
             "--spp",
             "4",
             "--threads",
@@ -79,9 +69,8 @@ fn cli_output_is_identical_for_one_and_two_threads() {
             "-D",
             "resy=32",
             "--aovs",
-        ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let stdout = String::from_utf8_lossy(&o.stdout);
+        ];
+        let stdout = assert_success(&pathfarm_render(&scene, &out, &extra));
         assert!(
             stdout.contains("summary: resolution=32x32 spp=4"),
             "{stdout}"
@@ -114,8 +103,7 @@ fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
         ("caustic", project_scene("caustic")),
         ("white-furnace", project_scene("white-furnace")),
     ] {
-        let defs = [("resx", "24"), ("resy", "18")].map(|(a, b)| (a.to_string(), b.to_string()));
-        let scene = Scene::build(&load_scene(&file, &defs).expect("load")).expect("build");
+        let scene = build_scene(&file, &[("resx", "24"), ("resy", "18")]);
         let settings = RenderSettings::new(Some(5), None, 3);
         let batched = render(&scene, &settings, &|_| {}).0;
         let li = specialised(&scene, PathLi);

@@ -98,10 +98,21 @@ impl Farm {
     fn start_coordinator_with(&mut self, extra: &[&str]) {
         let listen = format!("127.0.0.1:{}", self.port);
         let data = self.data.join("coordinator");
-        let mut args = vec!["coordinator", "--listen", &listen, "--data", s(&data)];
+        let mut args = vec![
+            "coordinator",
+            "--listen",
+            &listen,
+            "--data",
+            path_str(&data),
+        ];
         args.extend_from_slice(extra);
         if let Some(t) = &self.tls {
-            args.extend(["--tls-cert", s(&t.cert), "--tls-key", s(&t.key)]);
+            args.extend([
+                "--tls-cert",
+                path_str(&t.cert),
+                "--tls-key",
+                path_str(&t.key),
+            ]);
         }
         self.coordinator = Some(Running::start(&args, &[("PATHFARM_TOKEN", TOKEN)]));
         self.wait_listening();
@@ -112,7 +123,7 @@ impl Farm {
     fn client_env(&self) -> Vec<(&'static str, String)> {
         let mut env = vec![("PATHFARM_TOKEN", TOKEN.to_string())];
         if let Some(t) = &self.tls {
-            env.push(("PATHFARM_TLS_CA", s(&t.ca).to_string()));
+            env.push(("PATHFARM_TLS_CA", path_str(&t.ca).to_string()));
         }
         env
     }
@@ -139,7 +150,7 @@ impl Farm {
             "--threads",
             "1",
             "--cache",
-            s(&cache),
+            path_str(&cache),
         ];
         let worker = self.start_client(&args, &[]);
         self.workers.push(worker);
@@ -189,10 +200,6 @@ impl Drop for Farm {
     }
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
-
 /// The job the tests render: the shipped door-ajar scene (gaussian filter: tiles need their
 /// halo) with guided_path's pathfarm preset, small, an spp budget.
 fn job_args(spp: u32) -> Vec<String> {
@@ -226,11 +233,17 @@ fn render_reference_seeded(dir: &Path, spp: u32, seed: u64) -> Vec<u8> {
     let out = dir.join(format!("render-{seed}.exr"));
     let mut args: Vec<String> = vec!["render".into()];
     args.extend(job_args_seeded(spp, seed));
-    args.extend(["--no-png".into(), "-o".into(), s(&out).to_string()]);
-    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+    args.extend(["--no-png".into(), "-o".into(), path_str(&out).to_string()]);
+    let argv = as_strs(&args);
     let r = Running::start(&argv, &[]).wait(Duration::from_secs(300));
     assert!(r.status.success(), "render: {}", r.describe());
     fs::read(&out).expect("reference EXR")
+}
+
+/// Runs `pathfarm ARGS` (at most 60 s) with the farm's token and nothing else from the farm's
+/// client environment (no TLS CA certificate).
+fn with_token(args: &[&str]) -> Ended {
+    Running::start(args, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60))
 }
 
 fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Running {
@@ -254,9 +267,9 @@ fn submit_seeded(
         "8".into(),
         "--wait".into(),
         "-o".into(),
-        s(out).to_string(),
+        path_str(out).to_string(),
     ]);
-    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+    let argv = as_strs(&args);
     farm.start_client(&argv, extra_env)
 }
 
@@ -294,9 +307,40 @@ fn wait_for_job(mut run: Running, farm: &Farm) {
         assert!(!late, "job did not finish\n{}", farm.logs());
         std::thread::sleep(Duration::from_millis(50));
     }
-    let ended = run.wait(Duration::from_secs(1));
+    assert_submitted(&run.wait(Duration::from_secs(1)), farm, "submit");
+}
+
+/// Checks that a `pathfarm submit` run (`what`) succeeded, showing the farm's logs if not.
+fn assert_submitted(ended: &Ended, farm: &Farm, what: &str) {
     let ok = ended.status.success();
-    assert!(ok, "submit: {}\n{}", ended.describe(), farm.logs());
+    assert!(ok, "{what}: {}\n{}", ended.describe(), farm.logs());
+}
+
+/// Submits the job (at `spp`, into `out`), waits for it (at most 300 s) and checks that it
+/// succeeded.
+fn submit_ok(farm: &Farm, spp: u32, out: &Path, what: &str) -> Ended {
+    let ended = submit(farm, spp, out, &[]).wait(Duration::from_secs(300));
+    assert_submitted(&ended, farm, what);
+    ended
+}
+
+/// Renders the job's reference (`spp`), submits the job to `farm` into `out_name` in the
+/// farm's directory, and waits until worker 0 has had `tiles` more tiles accepted (`what`:
+/// the fault about to be injected). Returns the reference's bytes, the output path and the
+/// running `submit`.
+fn job_under_way(
+    farm: &Farm,
+    spp: u32,
+    out_name: &str,
+    tiles: usize,
+    what: &str,
+) -> (Vec<u8>, PathBuf, Running) {
+    let reference = render_reference(&farm.data, spp);
+    let out = farm.data.join(out_name);
+    let mut run = submit(farm, spp, &out, &[]);
+    let before = tiles_accepted(farm, 0);
+    wait_for_tiles(farm, &mut run, before + tiles, what);
+    (reference, out, run)
 }
 
 fn assert_same_exr(got: &Path, reference: &[u8], farm: &Farm) {
@@ -315,13 +359,7 @@ fn three_worker_cluster_renders_bit_identical_to_render() {
     let mut farm = Farm::start("three", 3);
     let reference = render_reference(&farm.data, 24);
     let out = farm.data.join("farm.exr");
-    let run = submit(&farm, 24, &out, &[]).wait(Duration::from_secs(300));
-    assert!(
-        run.status.success(),
-        "submit: {}\n{}",
-        run.describe(),
-        farm.logs()
-    );
+    submit_ok(&farm, 24, &out, "submit");
     assert_same_exr(&out, &reference, &farm);
     assert!(
         out.with_extension("png").exists(),
@@ -336,13 +374,10 @@ fn three_worker_cluster_renders_bit_identical_to_render() {
 #[test]
 fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     let mut farm = Farm::start("kill", 2);
-    let reference = render_reference(&farm.data, 64);
-    let out = farm.data.join("farm.exr");
-    let mut run = submit(&farm, 64, &out, &[]);
     // Kill one worker in the middle of the job, once it has delivered tiles (its leases in
     // flight must go to the others).
-    let before = tiles_accepted(&farm, 0);
-    wait_for_tiles(&farm, &mut run, before + 5, "a worker could be killed");
+    let (reference, out, mut run) =
+        job_under_way(&farm, 64, "farm.exr", 5, "a worker could be killed");
     assert!(
         run.poll().is_none(),
         "the job must still be running when the worker dies"
@@ -369,8 +404,8 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_stor
         "<scene version=\"3.0.0\"><shape type=\"obj\">",
     );
     let url = farm.url.clone();
-    let argv = ["submit", s(&bad), "--coordinator", &url];
-    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    let argv = ["submit", path_str(&bad), "--coordinator", &url];
+    let r = with_token(&argv);
     assert!(!r.status.success(), "a malformed scene must fail");
     assert!(
         r.stderr
@@ -388,13 +423,7 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
     // A job finished before the kill.
     let small = render_reference(&farm.data, 24);
     let first = farm.data.join("first.exr");
-    let run = submit(&farm, 24, &first, &[]).wait(Duration::from_secs(300));
-    assert!(
-        run.status.success(),
-        "submit: {}\n{}",
-        run.describe(),
-        farm.logs()
-    );
+    let run = submit_ok(&farm, 24, &first, "submit");
     let first_id = run
         .stdout
         .split_whitespace()
@@ -403,16 +432,8 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
         .unwrap_or_else(|| panic!("a job id in: {}", run.stdout))
         .to_string();
     // A job in flight when the coordinator is killed, after its first iterations.
-    let reference = render_reference(&farm.data, 128);
-    let out = farm.data.join("resumed.exr");
-    let mut run = submit(&farm, 128, &out, &[]);
-    let before = tiles_accepted(&farm, 0);
-    wait_for_tiles(
-        &farm,
-        &mut run,
-        before + 20,
-        "the coordinator could be killed",
-    );
+    let what = "the coordinator could be killed";
+    let (reference, out, mut run) = job_under_way(&farm, 128, "resumed.exr", 20, what);
     assert!(
         run.poll().is_none(),
         "the job must still be running at the kill"
@@ -435,8 +456,15 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
     // The result finished before the kill is still there.
     let fetched = farm.data.join("fetched.exr");
     let url = farm.url.clone();
-    let argv = ["fetch", &first_id, "--coordinator", &url, "-o", s(&fetched)];
-    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    let argv = [
+        "fetch",
+        &first_id,
+        "--coordinator",
+        &url,
+        "-o",
+        path_str(&fetched),
+    ];
+    let r = with_token(&argv);
     assert!(r.status.success(), "fetch: {}", r.describe());
     assert_same_exr(&fetched, &small, &farm);
 }
@@ -447,13 +475,7 @@ fn tls_farm_renders_bit_identical_and_refuses_plain_text() {
     let mut farm = Farm::start_with("tls", 1, Security::Tls);
     let reference = render_reference(&farm.data, 8);
     let out = farm.data.join("farm.exr");
-    let run = submit(&farm, 8, &out, &[]).wait(Duration::from_secs(300));
-    assert!(
-        run.status.success(),
-        "submit over TLS: {}\n{}",
-        run.describe(),
-        farm.logs()
-    );
+    submit_ok(&farm, 8, &out, "submit over TLS");
     assert_same_exr(&out, &reference, &farm);
     assert!(
         farm.workers[0].poll().is_none(),
@@ -462,7 +484,7 @@ fn tls_farm_renders_bit_identical_and_refuses_plain_text() {
     // a plain-text client cannot talk to the TLS port
     let plain = format!("http://127.0.0.1:{}", farm.port);
     let argv = ["status", "--coordinator", &plain];
-    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    let r = with_token(&argv);
     assert!(
         !r.status.success(),
         "plain text against TLS must fail: {}",
@@ -470,7 +492,7 @@ fn tls_farm_renders_bit_identical_and_refuses_plain_text() {
     );
     // https without the CA certificate is refused before connecting, with the reason
     let argv = ["status", "--coordinator", &farm.url];
-    let r = Running::start(&argv, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60));
+    let r = with_token(&argv);
     assert!(!r.status.success());
     assert!(
         r.stderr.contains("--tls-ca"),
@@ -519,6 +541,40 @@ fn bundle_over_the_size_limit_is_refused_before_anything_is_uploaded() {
     assert!(!out.exists());
 }
 
+/// Registers a worker named `worker_name` of `protocol_version` and build "another-build" with
+/// the coordinator at `channel`, which must refuse it; returns the reason given.
+async fn refused_registration(
+    channel: tonic::transport::Channel,
+    protocol_version: u32,
+    worker_name: &str,
+) -> String {
+    use pathfarm_proto::v1;
+    let mut workers = v1::workers_client::WorkersClient::new(channel);
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(v1::WorkerMessage {
+        msg: Some(v1::worker_message::Msg::Register(v1::Register {
+            protocol_version,
+            build_id: "another-build".into(),
+            threads: 1,
+            host_name: "test".into(),
+            worker_name: worker_name.into(),
+        })),
+    })
+    .await
+    .unwrap();
+    let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+    req.metadata_mut()
+        .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
+    let mut inbound = workers.control(req).await.unwrap().into_inner();
+    // `tx` stays open until the answer, as a live worker's stream would.
+    let first = inbound.message().await.unwrap().unwrap();
+    drop(tx);
+    match first.msg {
+        Some(v1::coordinator_message::Msg::Refused(r)) => r.reason,
+        other => panic!("{worker_name}: expected Refused, got {other:?}"),
+    }
+}
+
 #[test]
 fn a_client_or_worker_of_another_protocol_version_or_build_is_refused_and_nothing_is_stored() {
     use pathfarm_proto::v1;
@@ -552,55 +608,14 @@ fn a_client_or_worker_of_another_protocol_version_or_build_is_refused_and_nothin
             err.message()
         );
         // a worker of another protocol version is refused on Register, with the reason
-        let mut workers = v1::workers_client::WorkersClient::new(channel);
-        let (tx, rx) = tokio::sync::mpsc::channel(4);
-        tx.send(v1::WorkerMessage {
-            msg: Some(v1::worker_message::Msg::Register(v1::Register {
-                protocol_version: 999,
-                build_id: "another-build".into(),
-                threads: 1,
-                host_name: "test".into(),
-                worker_name: "old".into(),
-            })),
-        })
-        .await
-        .unwrap();
-        let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
-        req.metadata_mut()
-            .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
-        let mut inbound = workers.clone().control(req).await.unwrap().into_inner();
-        let first = inbound.message().await.unwrap().unwrap();
-        match first.msg {
-            Some(v1::coordinator_message::Msg::Refused(r)) => {
-                assert!(r.reason.contains("worker protocol 999"), "{}", r.reason)
-            }
-            other => panic!("expected Refused, got {other:?}"),
-        }
+        let reason = refused_registration(channel.clone(), 999, "old").await;
+        assert!(reason.contains("worker protocol 999"), "{reason}");
         // the right protocol but another build: refused, saying so
-        let (tx, rx) = tokio::sync::mpsc::channel(4);
-        tx.send(v1::WorkerMessage {
-            msg: Some(v1::worker_message::Msg::Register(v1::Register {
-                protocol_version: pathfarm_proto::PROTOCOL_VERSION,
-                build_id: "another-build".into(),
-                threads: 1,
-                host_name: "test".into(),
-                worker_name: "other".into(),
-            })),
-        })
-        .await
-        .unwrap();
-        let mut req = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
-        req.metadata_mut()
-            .insert("authorization", format!("Bearer {TOKEN}").parse().unwrap());
-        let mut inbound = workers.control(req).await.unwrap().into_inner();
-        match inbound.message().await.unwrap().unwrap().msg {
-            Some(v1::coordinator_message::Msg::Refused(r)) => assert!(
-                r.reason.contains("build mismatch") && r.reason.contains("another-build"),
-                "{}",
-                r.reason
-            ),
-            other => panic!("expected Refused, got {other:?}"),
-        }
+        let reason = refused_registration(channel, pathfarm_proto::PROTOCOL_VERSION, "other").await;
+        assert!(
+            reason.contains("build mismatch") && reason.contains("another-build"),
+            "{reason}"
+        );
     });
     assert!(
         stored_files(&farm).is_empty(),
@@ -612,11 +627,8 @@ fn a_client_or_worker_of_another_protocol_version_or_build_is_refused_and_nothin
 #[test]
 fn worker_on_sigterm_hands_back_its_leases_and_the_job_completes_bit_identical() {
     let mut farm = Farm::start("drain", 2);
-    let reference = render_reference(&farm.data, 64);
-    let out = farm.data.join("farm.exr");
-    let mut run = submit(&farm, 64, &out, &[]);
-    let before = tiles_accepted(&farm, 0);
-    wait_for_tiles(&farm, &mut run, before + 3, "the worker could be stopped");
+    let (reference, out, run) =
+        job_under_way(&farm, 64, "farm.exr", 3, "the worker could be stopped");
     farm.workers[0].signal(libc::SIGTERM);
     let t0 = Instant::now();
     while farm.workers[0].poll().is_none() {
@@ -675,13 +687,7 @@ fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted
     }
     assert!(kills >= 3, "the soak killed {kills} workers");
     for (run, out, spp, seed) in runs {
-        let ended = run.wait(Duration::from_secs(5));
-        assert!(
-            ended.status.success(),
-            "submit: {}\n{}",
-            ended.describe(),
-            farm.logs()
-        );
+        assert_submitted(&run.wait(Duration::from_secs(5)), &farm, "submit");
         // the reference: pathfarm render of the same job
         let reference = render_reference_seeded(&farm.data, spp, seed);
         assert_same_exr(&out, &reference, &farm);
@@ -695,11 +701,11 @@ fn cluster_leaves_no_process_or_directory_behind_on_success_and_on_interrupt() {
     let mut args: Vec<String> = vec!["cluster".into(), "--workers".into(), "2".into()];
     args.extend(["--threads-per-worker".into(), "1".into()]);
     args.extend(job_args(8));
-    args.extend(["-o".into(), s(&out).to_string()]);
-    let argv: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+    args.extend(["-o".into(), path_str(&out).to_string()]);
+    let argv = as_strs(&args);
     let tmp = dir.join("tmp");
     fs::create_dir_all(&tmp).unwrap();
-    let env = [("TMPDIR", s(&tmp))];
+    let env = [("TMPDIR", path_str(&tmp))];
     let run = Running::start(&argv, &env);
     let pid = run.pid().expect("running");
     let r = run.wait(Duration::from_secs(300));
@@ -719,7 +725,7 @@ fn cluster_leaves_no_process_or_directory_behind_on_success_and_on_interrupt() {
     let out2 = dir.join("interrupted.exr");
     let n = argv.len();
     let mut argv2 = argv.clone();
-    argv2[n - 1] = s(&out2);
+    argv2[n - 1] = path_str(&out2);
     let mut run = Running::start(&argv2, &env);
     let pid = run.pid().expect("running");
     let t0 = Instant::now();

@@ -19,22 +19,11 @@ fn png_size(path: &std::path::Path) -> (u32, u32) {
 fn guide_train_stats_show_and_scatter_produce_a_tree_and_pictures() {
     let dir = temp_dir("guide-cli");
     let scene = project_scene("door-ajar");
-    let scene = scene.to_str().unwrap();
     let tree = dir.join("door.sdt");
     let res = ["-D", "resx=48", "-D", "resy=27"];
-    let mut args = vec![
-        "guide",
-        "train",
-        scene,
-        "-o",
-        tree.to_str().unwrap(),
-        "--spp",
-        "12",
-    ];
+    let mut args = guide_train_args(&scene, &tree, "12");
     args.extend(res);
-    let o = pathfarm(&args);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let out = String::from_utf8_lossy(&o.stdout);
+    let out = assert_success(&pathfarm(&args));
     let leaves: usize = out
         .lines()
         .find_map(|l| l.strip_prefix("spatial leaves: "))
@@ -42,46 +31,20 @@ fn guide_train_stats_show_and_scatter_produce_a_tree_and_pictures() {
         .expect("leaves line");
     assert!(leaves > 1, "training refined the spatial tree: {out}");
 
-    let o = pathfarm(&["guide", "stats", tree.to_str().unwrap()]);
+    let stats = assert_success(&pathfarm(&["guide", "stats", path_str(&tree)]));
     assert!(
-        o.status.success()
-            && String::from_utf8_lossy(&o.stdout).contains(&format!("spatial leaves: {leaves}"))
+        stats.contains(&format!("spatial leaves: {leaves}")),
+        "{stats}"
     );
 
     let quad = dir.join("quad.png");
-    let o = pathfarm(&[
-        "guide",
-        "show",
-        tree.to_str().unwrap(),
-        "--point",
-        "0,1,0",
-        "-o",
-        quad.to_str().unwrap(),
-        "--width",
-        "128",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&pathfarm(&guide_show_args(&tree, "0,1,0", &quad, "128")));
     assert_eq!(png_size(&quad), (128, 64));
 
     let scatter = dir.join("scatter.png");
-    let mut args = vec![
-        "guide",
-        "scatter",
-        scene,
-        "--tree",
-        tree.to_str().unwrap(),
-        "--pixel",
-        "20,20",
-        "-o",
-        scatter.to_str().unwrap(),
-        "--width",
-        "64",
-        "--samples",
-        "2000",
-    ];
+    let mut args = guide_scatter_args(&scene, &tree, "20,20", &scatter, "64", "2000");
     args.extend(res);
-    let o = pathfarm(&args);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&pathfarm(&args));
     assert_eq!(png_size(&scatter), (3 * 64 + 8, 32));
 }
 
@@ -90,10 +53,7 @@ fn corrupted_tree_file_is_rejected_naming_the_file() {
     let dir = temp_dir("guide-bad");
     let tree = dir.join("bad.sdt");
     std::fs::write(&tree, b"not a tree at all").unwrap();
-    let o = pathfarm(&["guide", "stats", tree.to_str().unwrap()]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !o.status.success() && err.contains("bad.sdt") && !err.contains("panicked"),
-        "{err}"
-    );
+    let o = pathfarm(&["guide", "stats", path_str(&tree)]);
+    let err = assert_clean_failure(&o, "guide stats on a corrupted tree");
+    assert!(err.contains("bad.sdt"), "{err}");
 }

@@ -13,14 +13,6 @@ use pathfarm_scene::{
 
 use crate::common::*;
 
-fn load(path: &std::path::Path, defines: &[(&str, &str)]) -> Scene {
-    let defs: Vec<(String, String)> = defines
-        .iter()
-        .map(|(a, b)| (a.to_string(), b.to_string()))
-        .collect();
-    Scene::build(&load_scene(path, &defs).unwrap_or_else(|e| panic!("{e}"))).expect("build")
-}
-
 fn guided(scene: &Scene, spp: u32, seed: u64) -> (Film, GuidedStats, SdTree) {
     let params = scene.guided.clone().expect("a guided_path scene");
     render_guided(
@@ -110,7 +102,7 @@ fn white_furnace_stays_one_with_fixed_and_learned_guiding_fractions() {
         ),
     ];
     for (tag, integ, spp) in cases {
-        let scene = load(&write_scene(tag, &furnace(integ)), &[]);
+        let scene = build_scene(&write_scene(tag, &furnace(integ)), &[]);
         let (film, stats, tree) = guided(&scene, spp, 5);
         assert!(
             stats.iterations.len() >= 3 && tree.is_built(),
@@ -133,7 +125,7 @@ fn guided_roulette_keeps_the_white_furnace_mean_at_one_across_seeds() {
     // light samples from the constant sky at a vertex, MIS against n p_light) is part of it.
     const SEED_BASE: u64 = 1000;
     let integ = r#"<integrator type="guided_path"><string name="preset" value="pathfarm"/><string name="sample_combination" value="discard"/><integer name="rr_depth" value="1"/><boolean name="path_fallback" value="false"/></integrator>"#;
-    let scene = load(&write_scene("furnace-seeds", &furnace(integ)), &[]);
+    let scene = build_scene(&write_scene("furnace-seeds", &furnace(integ)), &[]);
     let means: Vec<f64> = (0..10u64)
         .map(|k| {
             let (film, stats, _) = guided(&scene, 256, SEED_BASE + k);
@@ -179,10 +171,10 @@ fn cornell_box_filter(integrator: &str) -> std::path::PathBuf {
 /// the temp files of different tests apart.
 fn cornell_box_pair(tag: &str) -> (Scene, Scene) {
     let defs = [("resx", "32"), ("resy", "32")];
-    let path_scene = load(&cornell_box_filter(&format!("path{tag}")), &defs);
+    let path_scene = build_scene(&cornell_box_filter(&format!("path{tag}")), &defs);
     let mut gdefs = defs.to_vec();
     gdefs.push(("integrator", "guided_path"));
-    let guided_scene = load(&cornell_box_filter(&format!("guided{tag}")), &gdefs);
+    let guided_scene = build_scene(&cornell_box_filter(&format!("guided{tag}")), &gdefs);
     (path_scene, guided_scene)
 }
 
@@ -264,10 +256,10 @@ fn door_ajar_pair(tag: &str) -> (Scene, Scene) {
     )
     .expect("copy the scene's mesh");
     let defs = [("resx", "48"), ("resy", "27")];
-    let path_scene = load(&path, &defs);
+    let path_scene = build_scene(&path, &defs);
     let mut gdefs = defs.to_vec();
     gdefs.push(("integrator", "guided_path"));
-    let mut guided_scene = load(&path, &gdefs);
+    let mut guided_scene = build_scene(&path, &gdefs);
     guided_scene.guided.as_mut().unwrap().path_fallback = false;
     (path_scene, guided_scene)
 }
@@ -436,7 +428,7 @@ fn guided_image_and_tree_are_bit_identical_on_one_and_two_threads() {
     let xml = std::fs::read_to_string(project_scene("cornell-box"))
         .unwrap()
         .replace(r#"<integer name="max_depth" value="$max_depth" />"#, r#"<integer name="max_depth" value="$max_depth" /><string name="preset" value="2019"/><string name="nee" value="kickstart"/><float name="s_tree_threshold" value="300"/><boolean name="guide_hemisphere" value="true"/><boolean name="guide_cosine" value="true"/>"#);
-    let scene = load(
+    let scene = build_scene(
         &write_scene("det", &xml),
         &[
             ("integrator", "guided_path"),
@@ -522,29 +514,19 @@ fn cli_renders_the_shared_scene_guided_and_reports_iterations() {
     let dir = temp_dir("guided-cli");
     let out = dir.join("v.exr");
     let scene = shared_scene("veach-ajar");
-    let o = pathfarm_logging(
-        &[
-            "render",
-            scene.to_str().unwrap(),
-            "-o",
-            out.to_str().unwrap(),
-            "--spp",
-            "16",
-            "-D",
-            "integrator=guided_path",
-            "-D",
-            "resx=32",
-            "-D",
-            "resy=18",
-        ],
-        "info",
-    );
-    let (stdout, stderr) = (
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr),
-    );
-    assert!(o.status.success(), "{stderr}");
-    let logs = format!("{stdout}{stderr}");
+    let extra = [
+        "--spp",
+        "16",
+        "-D",
+        "integrator=guided_path",
+        "-D",
+        "resx=32",
+        "-D",
+        "resy=18",
+    ];
+    let o = pathfarm_render_logging(&scene, &out, &extra, "info");
+    let stdout = assert_success(&o);
+    let logs = format!("{stdout}{}", String::from_utf8_lossy(&o.stderr));
     assert!(
         logs.contains("iteration 0: spp=1 nodes=1 leaves=1 variance="),
         "{logs}"

@@ -203,6 +203,13 @@ impl Case {
         Self::new(name, args, watch, Some(out))
     }
 
+    /// [`Case::render`] of `xml`, written to a fresh scene directory. The directory's name
+    /// holds no part of the case's name, so the expected message pieces cannot be found in
+    /// the scene's path instead of the message.
+    fn render_xml(name: &str, xml: &str, flags: &[&str]) -> Self {
+        Self::render(name, &write_scene("hostile-case", xml), flags)
+    }
+
     /// `pathfarm info SCENE FLAGS`.
     fn info(name: &str, scene: &Path, flags: &[&str]) -> Self {
         let mut args = strings(&["info", path_str(scene)]);
@@ -249,10 +256,6 @@ fn is_test_dir(d: &Path) -> bool {
         && d.file_name()
             .and_then(|n| n.to_str())
             .is_some_and(|n| n.starts_with("pathfarm-it-"))
-}
-
-fn path_str(p: &Path) -> &str {
-    p.to_str().expect("UTF-8 path")
 }
 
 /// Every file and directory under `dir`, relative, sorted (directories end in '/').
@@ -474,14 +477,6 @@ fn swap(xml: &str, from: &str, to: &str) -> String {
     xml.replacen(from, to, 1)
 }
 
-/// The 1-based line of `xml` holding `needle` (the first one).
-fn line_of(xml: &str, needle: &str) -> usize {
-    xml.lines()
-        .position(|l| l.contains(needle))
-        .unwrap_or_else(|| panic!("{needle:?} not in the scene"))
-        + 1
-}
-
 /// The location prefix of an error at line `line` of a scene file named scene.xml.
 fn at_line(line: usize) -> String {
     format!("scene.xml:{line}:")
@@ -575,9 +570,8 @@ fn hostile_expansion_and_nesting_are_refused_at_their_line_naming_the_limit() {
             &format!("{LIGHT}\n    {body}"),
         );
         let line = line_of(&xml, &format!("name=\"d{over}\""));
-        let scene = write_scene(name, &xml);
         cases.push(
-            Case::render(name, &scene, &["--spp", "1"])
+            Case::render_xml(name, &xml, &["--spp", "1"])
                 .refused_with(vec![at_line(line), "max_substituted_bytes".into()]),
         );
     }
@@ -590,18 +584,16 @@ fn hostile_expansion_and_nesting_are_refused_at_their_line_naming_the_limit() {
     );
     let xml = tiny(&nested);
     let line = line_of(&xml, "twosided");
-    let scene = write_scene("nested-twosided", &xml);
     cases.push(
-        Case::render("nested-twosided-8000", &scene, &["--spp", "1"])
+        Case::render_xml("nested-twosided-8000", &xml, &["--spp", "1"])
             .refused_with(vec![at_line(line), "max_xml_depth".into()]),
     );
 
     // 20,000 nested plain elements.
     let xml = tiny(&format!("{}{}", "<a>".repeat(20000), "</a>".repeat(20000)));
     let line = line_of(&xml, "<a><a>");
-    let scene = write_scene("nested-plain", &xml);
     cases.push(
-        Case::render("nested-plain-20000", &scene, &["--spp", "1"])
+        Case::render_xml("nested-plain-20000", &xml, &["--spp", "1"])
             .refused_with(vec![at_line(line), "max_xml_depth".into()]),
     );
 
@@ -613,39 +605,31 @@ fn hostile_budgets_are_refused_naming_the_flag_or_parameter_and_the_limit() {
     let mut cases = Vec::new();
     let guided = ["-D", "integrator=guided_path"];
 
-    let scene = write_scene("time-1e20-path", &tiny(""));
     cases.push(
-        Case::render("time-1e20-path", &scene, &["--time", "1e20"]).refused(&["--time", "604800"]),
+        Case::render_xml("time-1e20-path", &tiny(""), &["--time", "1e20"])
+            .refused(&["--time", "604800"]),
     );
-    let scene = write_scene("time-1e20-guided", &tiny(""));
-    cases.push(
-        Case::render(
+    // The small scene with guided_path: each case's flags and what its message must name.
+    for (name, flags, pieces) in [
+        (
             "time-1e20-guided",
-            &scene,
-            &[&guided[..], &["--time", "1e20"]].concat(),
-        )
-        .refused(&["--time", "604800"]),
-    );
-
-    let scene = write_scene("spp-per-pass", &tiny(""));
-    cases.push(
-        Case::render(
+            &["--time", "1e20"][..],
+            &["--time", "604800"][..],
+        ),
+        (
             "spp-per-pass-1024-over-spp-4",
-            &scene,
-            &[&guided[..], &["--spp", "4", "-D", "spp_per_pass=1024"]].concat(),
-        )
-        .refused(&["spp_per_pass", "1024", "4"]),
-    );
-
-    let scene = write_scene("budget-1e300", &tiny(""));
-    cases.push(
-        Case::render(
+            &["--spp", "4", "-D", "spp_per_pass=1024"],
+            &["spp_per_pass", "1024", "4"],
+        ),
+        (
             "budget-1e300",
-            &scene,
-            &[&guided[..], &["-D", "budget=1e300"]].concat(),
-        )
-        .refused(&["budget", "16777216"]),
-    );
+            &["-D", "budget=1e300"],
+            &["budget", "16777216"],
+        ),
+    ] {
+        let flags = [&guided[..], flags].concat();
+        cases.push(Case::render_xml(name, &tiny(""), &flags).refused(pieces));
+    }
 
     // A threshold of 0 (or nearly) refines the quadtrees without bound: at 32x32 and 64 spp
     // the renderer of old builds asks for gigabytes after the first iteration.
@@ -714,9 +698,8 @@ fn hostile_sizes_are_refused_naming_the_value_and_the_limit() {
         let xml = swap(&tiny(""), BOX_FILTER, &filter);
         let line = line_of(&xml, "rfilter");
         let name = format!("tent-radius-{r}");
-        let scene = write_scene(&name, &xml);
         cases.push(
-            Case::render(&name, &scene, &["--spp", "1"]).refused_with(vec![
+            Case::render_xml(&name, &xml, &["--spp", "1"]).refused_with(vec![
                 "radius".into(),
                 "16".into(),
                 "max_filter_radius".into(),
@@ -743,8 +726,7 @@ fn hostile_sizes_are_refused_naming_the_value_and_the_limit() {
 fn hostile_values_are_refused_naming_the_parameter() {
     let mut cases = Vec::new();
     let mut add = |name: &str, xml: String, pieces: Vec<String>| {
-        let scene = write_scene(name, &xml);
-        cases.push(Case::render(name, &scene, &["--spp", "1"]).refused_with(pieces));
+        cases.push(Case::render_xml(name, &xml, &["--spp", "1"]).refused_with(pieces));
     };
     let s = |v: &[&str]| strings(v);
 
@@ -827,14 +809,17 @@ fn hostile_files_are_refused_with_one_clear_message() {
         Case::render("obj-is-a-directory", &scene, &["--spp", "1"]).refused(&["is a directory"]),
     );
 
-    let scene = write_scene("mesh-missing", &tiny(&obj_shape("nowhere.obj")));
     cases.push(
-        Case::render("mesh-missing", &scene, &["--spp", "1"])
-            .refused(&["nowhere.obj", "os error 2"])
-            .check(|r| {
-                let n = r.stderr.matches("os error 2").count();
-                (n > 1).then(|| format!("\"os error 2\" appears {n} times (at most once)"))
-            }),
+        Case::render_xml(
+            "mesh-missing",
+            &tiny(&obj_shape("nowhere.obj")),
+            &["--spp", "1"],
+        )
+        .refused(&["nowhere.obj", "os error 2"])
+        .check(|r| {
+            let n = r.stderr.matches("os error 2").count();
+            (n > 1).then(|| format!("\"os error 2\" appears {n} times (at most once)"))
+        }),
     );
 
     // The scene file itself missing: the OS error once, not once per layer of context.
@@ -870,8 +855,14 @@ fn large_but_legitimate_inputs_load_within_the_limits() {
     let mut cases = Vec::new();
 
     // The small scene itself renders: the limits leave room for a normal run.
-    let scene = write_scene("control", &tiny(&sphere_with("")));
-    cases.push(Case::render("control-tiny-scene", &scene, &["--spp", "1"]).succeeds(&["summary:"]));
+    cases.push(
+        Case::render_xml(
+            "control-tiny-scene",
+            &tiny(&sphere_with("")),
+            &["--spp", "1"],
+        )
+        .succeeds(&["summary:"]),
+    );
 
     // The smallest allowed threshold, with the guide's memory capped, fits in 2 GiB.
     cases.push(

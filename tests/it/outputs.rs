@@ -20,8 +20,10 @@ fn run(args: &[&str], timeout: Duration) -> Ended {
     Running::start(args, &[]).wait(timeout)
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
+/// [`run`] within [`QUICK`], asserting that it succeeded.
+fn run_ok(args: &[&str]) {
+    let r = run(args, QUICK);
+    assert!(r.status.success(), "{args:?}: {}", r.describe());
 }
 
 /// Everything under `dir`: relative paths, sorted, with each file's bytes (None for
@@ -49,19 +51,20 @@ fn names(dir: &Path) -> Vec<String> {
     snapshot(dir).into_iter().map(|(n, _)| n).collect()
 }
 
-/// A small scene (furnace objects in a constant environment) in a fresh directory.
-fn scene(tag: &str, size: u32) -> PathBuf {
-    write_scene(
-        tag,
-        &scene_xml(
-            size,
-            size,
-            40.0,
-            4.0,
-            r#"<integrator type="path"/>"#,
-            FURNACE_BODY,
-        ),
-    )
+/// A small scene (furnace objects in a constant environment) in a fresh directory: the
+/// scene file and the directory.
+fn scene_in_dir(tag: &str, size: u32) -> (PathBuf, PathBuf) {
+    let xml = scene_xml(
+        size,
+        size,
+        40.0,
+        4.0,
+        r#"<integrator type="path"/>"#,
+        FURNACE_BODY,
+    );
+    let scene = write_scene(tag, &xml);
+    let dir = scene.parent().unwrap().to_path_buf();
+    (scene, dir)
 }
 
 /// A real PNG that pathfarm did not write (no `Software` = `pathfarm` chunk).
@@ -89,7 +92,7 @@ fn assert_refused_early(run: &Ended, path: &Path) {
         "it read the scene before refusing: {what}"
     );
     assert!(
-        run.stderr.contains(s(path)),
+        run.stderr.contains(path_str(path)),
         "the message names {path:?}: {what}"
     );
     assert!(
@@ -105,8 +108,7 @@ const LONG: Duration = Duration::from_secs(120);
 
 #[test]
 fn preview_never_replaces_a_png_that_pathfarm_did_not_write() {
-    let scene = scene("outputs-foreign", 16);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-foreign", 16);
     // The scene's own texture.png (a real PNG) and a junk.png that is no PNG at all.
     fs::write(dir.join("texture.png"), foreign_png()).unwrap();
     fs::write(dir.join("junk.png"), b"not a png, and not pathfarm's").unwrap();
@@ -114,7 +116,7 @@ fn preview_never_replaces_a_png_that_pathfarm_did_not_write() {
         let before = snapshot(&dir);
         let exr = dir.join(format!("{stem}.exr"));
         let png = dir.join(format!("{stem}.png"));
-        let r = run(&["render", s(&scene), "-o", s(&exr), "--time", "20"], LONG);
+        let r = run(&render_args(&scene, &exr, &["--time", "20"]), LONG);
         assert_refused_early(&r, &png);
         assert!(
             r.stderr.contains("--preview") && r.stderr.contains("--no-png"),
@@ -126,35 +128,18 @@ fn preview_never_replaces_a_png_that_pathfarm_did_not_write() {
     // Named elsewhere, or not written at all, the preview leaves texture.png alone.
     let exr = dir.join("texture.exr");
     let other = dir.join("preview.png");
-    let r = run(
-        &[
-            "render",
-            s(&scene),
-            "-o",
-            s(&exr),
-            "--spp",
-            "1",
-            "--preview",
-            s(&other),
-        ],
-        QUICK,
-    );
-    assert!(r.status.success(), "{}", r.describe());
+    run_ok(&render_args(
+        &scene,
+        &exr,
+        &["--spp", "1", "--preview", path_str(&other)],
+    ));
     assert!(is_pathfarm_preview(&other));
     assert_eq!(fs::read(dir.join("texture.png")).unwrap(), foreign_png());
-    let r = run(
-        &[
-            "render",
-            s(&scene),
-            "-o",
-            s(&dir.join("junk.exr")),
-            "--spp",
-            "1",
-            "--no-png",
-        ],
-        QUICK,
-    );
-    assert!(r.status.success(), "{}", r.describe());
+    run_ok(&render_args(
+        &scene,
+        &dir.join("junk.exr"),
+        &["--spp", "1", "--no-png"],
+    ));
     assert_eq!(
         fs::read(dir.join("junk.png")).unwrap(),
         b"not a png, and not pathfarm's"
@@ -174,26 +159,12 @@ fn preview_never_replaces_a_png_that_pathfarm_did_not_write() {
 
 #[test]
 fn preview_written_by_pathfarm_is_replaced_on_rerender() {
-    let scene = scene("outputs-rerender", 16);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-rerender", 16);
     let exr = dir.join("out.exr");
     let png = dir.join("out.png");
     let mut previews = Vec::new();
     for seed in ["1", "2"] {
-        let r = run(
-            &[
-                "render",
-                s(&scene),
-                "-o",
-                s(&exr),
-                "--spp",
-                "1",
-                "--seed",
-                seed,
-            ],
-            QUICK,
-        );
-        assert!(r.status.success(), "{}", r.describe());
+        run_ok(&render_args(&scene, &exr, &["--spp", "1", "--seed", seed]));
         assert!(
             is_pathfarm_preview(&png),
             "the preview carries pathfarm's mark"
@@ -211,8 +182,7 @@ fn preview_written_by_pathfarm_is_replaced_on_rerender() {
 
 #[test]
 fn guide_outputs_leave_unrelated_tmp_files_alone() {
-    let scene = scene("outputs-guide", 16);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-guide", 16);
     let unrelated = [
         ("tree.tmp", b"someone's tree.tmp".as_slice()),
         ("quad.tmp.png", b"someone's quad.tmp.png".as_slice()),
@@ -222,47 +192,13 @@ fn guide_outputs_leave_unrelated_tmp_files_alone() {
         fs::write(dir.join(n), b).unwrap();
     }
     let tree = dir.join("tree.sdt");
-    let r = run(
-        &["guide", "train", s(&scene), "-o", s(&tree), "--spp", "4"],
-        QUICK,
-    );
-    assert!(r.status.success(), "{}", r.describe());
+    run_ok(&guide_train_args(&scene, &tree, "4"));
     let quad = dir.join("quad.png");
-    let r = run(
-        &[
-            "guide",
-            "show",
-            s(&tree),
-            "--point",
-            "0,0,0",
-            "-o",
-            s(&quad),
-            "--width",
-            "32",
-        ],
-        QUICK,
-    );
-    assert!(r.status.success(), "{}", r.describe());
+    run_ok(&guide_show_args(&tree, "0,0,0", &quad, "32"));
     let scatter = dir.join("scatter.png");
-    let r = run(
-        &[
-            "guide",
-            "scatter",
-            s(&scene),
-            "--pixel",
-            "8,8",
-            "--tree",
-            s(&tree),
-            "-o",
-            s(&scatter),
-            "--samples",
-            "1000",
-            "--width",
-            "32",
-        ],
-        QUICK,
-    );
-    assert!(r.status.success(), "{}", r.describe());
+    run_ok(&guide_scatter_args(
+        &scene, &tree, "8,8", &scatter, "32", "1000",
+    ));
     for (n, b) in unrelated {
         assert_eq!(
             fs::read(dir.join(n)).ok().as_deref(),
@@ -286,8 +222,7 @@ fn guide_outputs_leave_unrelated_tmp_files_alone() {
 
 #[test]
 fn outputs_that_cannot_be_written_are_refused_before_rendering() {
-    let scene = scene("outputs-unwritable", 16);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-unwritable", 16);
     fs::create_dir(dir.join("folder.exr")).unwrap();
     fs::write(dir.join("file.txt"), b"a regular file").unwrap();
     fs::create_dir(dir.join("blocked.png")).unwrap();
@@ -298,31 +233,20 @@ fn outputs_that_cannot_be_written_are_refused_before_rendering() {
     let tree_under_file = dir.join("file.txt/tree.sdt");
     let cases: Vec<(Vec<&str>, &Path)> = vec![
         // -o is a directory.
-        (
-            vec!["render", s(&scene), "-o", s(&folder), "--time", "20"],
-            &folder,
-        ),
+        (render_args(&scene, &folder, &["--time", "20"]), &folder),
         // -o is under a regular file.
         (
-            vec!["render", s(&scene), "-o", s(&under_file), "--time", "20"],
+            render_args(&scene, &under_file, &["--time", "20"]),
             Path::new("file.txt"),
         ),
         // The preview (blocked.png) is a directory: no EXR may be left either.
         (
-            vec!["render", s(&scene), "-o", s(&blocked), "--time", "20"],
+            render_args(&scene, &blocked, &["--time", "20"]),
             Path::new("blocked.png"),
         ),
         // guide train -o under a regular file.
         (
-            vec![
-                "guide",
-                "train",
-                s(&scene),
-                "-o",
-                s(&tree_under_file),
-                "--spp",
-                "100000",
-            ],
+            guide_train_args(&scene, &tree_under_file, "100000"),
             Path::new("file.txt"),
         ),
     ];
@@ -336,7 +260,7 @@ fn outputs_that_cannot_be_written_are_refused_before_rendering() {
 /// Whether `dir`'s file system has O_TMPFILE (else a kill -9 can leave the named
 /// temporary behind, which nothing can prevent).
 fn has_o_tmpfile(dir: &Path) -> bool {
-    let c = std::ffi::CString::new(s(dir)).unwrap();
+    let c = std::ffi::CString::new(path_str(dir)).unwrap();
     // SAFETY: a valid path; the descriptor is closed at once.
     unsafe {
         let fd = libc::open(c.as_ptr(), libc::O_TMPFILE | libc::O_WRONLY, 0o600);
@@ -351,16 +275,7 @@ fn has_o_tmpfile(dir: &Path) -> bool {
 /// and returns how it ended.
 fn interrupt_render(scene: &Path, out: &Path, sig: libc::c_int, env: &[(&str, &str)]) -> Ended {
     let mut child = Running::start(
-        &[
-            "render",
-            s(scene),
-            "-o",
-            s(out),
-            "--time",
-            "30",
-            "--threads",
-            "1",
-        ],
+        &render_args(scene, out, &["--time", "30", "--threads", "1"]),
         env,
     );
     std::thread::sleep(Duration::from_secs(1));
@@ -373,13 +288,9 @@ fn interrupt_render(scene: &Path, out: &Path, sig: libc::c_int, env: &[(&str, &s
 /// new entry shows up in the scene's directory, and checks that no temporary or
 /// partial file is left: at most the complete outputs. Returns the names left.
 fn signal_while_writing(tag: &str, sig: libc::c_int) -> Vec<String> {
-    let scene = scene(tag, 1024);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir(tag, 1024);
     let exr = dir.join("out.exr");
-    let mut child = Running::start(
-        &["render", s(&scene), "-o", s(&exr), "--spp", "1", "--aovs"],
-        &[],
-    );
+    let mut child = Running::start(&render_args(&scene, &exr, &["--spp", "1", "--aovs"]), &[]);
     let t0 = Instant::now();
     loop {
         if child.poll().is_some() {
@@ -416,8 +327,7 @@ fn signal_while_writing(tag: &str, sig: libc::c_int) -> Vec<String> {
 
 #[test]
 fn interrupting_a_render_leaves_no_temporary_or_partial_file() {
-    let scene = scene("outputs-sigint", 8);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-sigint", 8);
     // With O_TMPFILE and with the named fallback; into directories the output creates;
     // and over outputs of an earlier run, which stay as they were.
     for env in [&[][..], &[("PATHFARM_NO_O_TMPFILE", "1")][..]] {
@@ -428,8 +338,7 @@ fn interrupting_a_render_leaves_no_temporary_or_partial_file() {
             assert_eq!(snapshot(&dir), before, "{env:?} {out}: {}", r.describe());
         }
         if !dir.join("out.exr").exists() {
-            let r = run(&["render", s(&scene), "-o", s(&dir.join("out.exr"))], QUICK);
-            assert!(r.status.success(), "{}", r.describe());
+            run_ok(&render_args(&scene, &dir.join("out.exr"), &[]));
         }
     }
     // Interrupted while writing, the outputs are written together or not at all.
@@ -442,8 +351,7 @@ fn interrupting_a_render_leaves_no_temporary_or_partial_file() {
 
 #[test]
 fn killing_a_render_leaves_no_temporary_file() {
-    let scene = scene("outputs-sigkill", 8);
-    let dir = scene.parent().unwrap().to_path_buf();
+    let (scene, dir) = scene_in_dir("outputs-sigkill", 8);
     if has_o_tmpfile(&dir) {
         let before = snapshot(&dir);
         let r = interrupt_render(&scene, &dir.join("out.exr"), libc::SIGKILL, &[]);

@@ -58,12 +58,9 @@ fn render_tiled(
     policy: FallbackPolicy,
     restarts: Restarts,
 ) -> (Film, SdTree, Vec<PassKind>) {
-    let (lo, hi) = scene.accel.bounds();
-    let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
-    let tiles = Region::tiles(w, h, tile.max(1));
     let budget = Budget::Spp(spp);
-    let mut session = Session::new(params, budget, tree, w, h, tiles.clone(), policy);
+    let (mut session, _) = new_session(scene, params, spp, tile.max(1), policy);
     let mut restored = 0;
     let mut worker = WorkerTree {
         version: None,
@@ -79,13 +76,7 @@ fn render_tiled(
         }
         let tiles = session.tiles().to_vec();
         let mut order: Vec<usize> = (0..tiles.len()).collect();
-        let mut x = order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-        for i in (1..order.len()).rev() {
-            x = x
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            order.swap(i, (x >> 33) as usize % (i + 1));
-        }
+        TestRng(order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15)).shuffle(&mut order);
         for index in order {
             let version = (spec.tree_version, spec.fraction_version);
             let estimate = session.estimate().to_vec();
@@ -126,6 +117,23 @@ fn render_tiled(
     }
     let (film, _, tree) = session.finish();
     (film, tree, kinds)
+}
+
+/// A fresh session of `scene` with `params` (an untrained tree of the scene's bounds) over
+/// `tile`-pixel tiles, and those tiles.
+fn new_session(
+    scene: &Scene,
+    params: &GuidedParams,
+    spp: u32,
+    tile: u32,
+    policy: FallbackPolicy,
+) -> (Session, Vec<Region>) {
+    let (lo, hi) = scene.accel.bounds();
+    let tree = SdTree::new(lo, hi, guide_config(params, scene));
+    let (w, h) = (scene.width, scene.height);
+    let tiles = Region::tiles(w, h, tile);
+    let session = Session::new(params, Budget::Spp(spp), tree, w, h, tiles.clone(), policy);
+    (session, tiles)
 }
 
 fn one_process(
@@ -239,18 +247,7 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
 fn damaged_checkpoints_are_refused() {
     let scene = door_ajar((8, 8));
     let params = scene.guided.clone().expect("guided");
-    let (lo, hi) = scene.accel.bounds();
-    let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
-    let tiles = Region::tiles(8, 8, 8);
-    let s = Session::new(
-        &params,
-        Budget::Spp(8),
-        tree,
-        8,
-        8,
-        tiles.clone(),
-        FallbackPolicy::Rule,
-    );
+    let (s, tiles) = new_session(&scene, &params, 8, 8, FallbackPolicy::Rule);
     let cp = s.checkpoint().expect("a fresh session can be checkpointed");
     let bytes = cp.to_bytes(&s.tree().encode());
     let restore = |b: &[u8]| {
@@ -277,18 +274,7 @@ fn damaged_checkpoints_are_refused() {
 fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
     let scene = door_ajar((16, 16));
     let params = scene.guided.clone().expect("guided");
-    let (lo, hi) = scene.accel.bounds();
-    let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
-    let tiles = Region::tiles(16, 16, 8);
-    let mut s = Session::new(
-        &params,
-        Budget::Spp(8),
-        tree,
-        16,
-        16,
-        tiles.clone(),
-        FallbackPolicy::Rule,
-    );
+    let (mut s, tiles) = new_session(&scene, &params, 8, 8, FallbackPolicy::Rule);
     let Next::Render(spec) = s.next(0.0) else {
         panic!("a first unit")
     };

@@ -2,9 +2,10 @@
 //!
 //! Every case renders with both `path` and `guided_path`, asserts that the image is
 //! finite everywhere with no sample rejected as non-finite, and compares it with a
-//! closed-form value or a reference image by a per-pixel test (see [`check`] for the
-//! significance levels). Unit cases of the guide (zero-energy cells, poles and seam of
-//! the mapping, NaN/Inf records) live in `crates/guide/src/sdtree/tests/stability.rs`.
+//! closed-form value or a reference image by a per-pixel test (see [`assert_pixels_agree`]
+//! in tests/common.rs for the significance levels). Unit cases of the guide (zero-energy
+//! cells, poles and seam of the mapping, NaN/Inf records) live in
+//! `crates/guide/src/sdtree/tests/stability.rs`.
 
 use pathfarm_render::guided::{render_guided, Budget};
 use pathfarm_render::{render, Film, RenderSettings, Scene};
@@ -35,61 +36,6 @@ impl Method {
                 r#"<integrator type="guided_path"><integer name="max_depth" value="{max_depth}"/>
                    <boolean name="path_fallback" value="false"/><string name="sample_combination" value="discard"/>{extra}</integrator>"#
             ),
-        }
-    }
-}
-
-/// A scene document: `integrator`, a perspective camera at `origin` looking at `target`
-/// (up `up`) with a box filter (independent pixels, so per-pixel tests apply), and `body`.
-fn scene(integrator: &str, cam: Cam, body: &str) -> String {
-    let Cam {
-        origin: [ox, oy, oz],
-        target: [tx, ty, tz],
-        up: [ux, uy, uz],
-        fov,
-        res,
-        near,
-        far,
-    } = cam;
-    format!(
-        r#"<scene version="3.0.0">
-    {integrator}
-    <sensor type="perspective">
-        <float name="fov" value="{fov}"/>
-        <float name="near_clip" value="{near:e}"/>
-        <float name="far_clip" value="{far:e}"/>
-        <transform name="to_world"><lookat origin="{ox:e}, {oy:e}, {oz:e}" target="{tx:e}, {ty:e}, {tz:e}" up="{ux}, {uy}, {uz}"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/><rfilter type="box"/></film>
-    </sensor>
-    {body}
-</scene>"#
-    )
-}
-
-/// A square camera.
-#[derive(Clone, Copy)]
-struct Cam {
-    origin: [f32; 3],
-    target: [f32; 3],
-    up: [f32; 3],
-    fov: f32,
-    res: u32,
-    /// Mitsuba's `near_clip` and `far_clip` (lengths: scaled scenes scale them too).
-    near: f32,
-    far: f32,
-}
-
-impl Cam {
-    fn new(origin: [f32; 3], target: [f32; 3], fov: f32, res: u32) -> Self {
-        Cam {
-            origin,
-            target,
-            up: [0.0, 0.0, 1.0],
-            fov,
-            res,
-            near: 1e-2,
-            far: 1e4,
         }
     }
 }
@@ -153,84 +99,13 @@ fn assert_finite(r: &Rendered, what: &str) {
     }
 }
 
-/// Largest number of pixels that may fail the per-pixel test: the smallest `k` with
-/// P(X > k) < 1e-4 for X ~ Binomial(n, 0.003) (3 channels at the 0.001 level), so the count
-/// itself is tested at the 1e-4 level; never below 1 % of the pixels (as the other suites
-/// allow: low-spp variance estimates of heavy-tailed estimators run small).
-fn allowed_failures(n: usize) -> usize {
-    let p = 0.003f64;
-    let mut pmf = (1.0 - p).powi(n as i32); // P(X = 0)
-    let mut cdf = pmf;
-    let mut k = 0usize;
-    while 1.0 - cdf >= 1e-4 {
-        pmf *= (n - k) as f64 / (k + 1) as f64 * p / (1.0 - p);
-        cdf += pmf;
-        k += 1;
-    }
-    k.max(n / 100)
-}
-
-/// One pixel's comparison: per channel the difference, its estimated variance and a
-/// tolerated known bias (0 but for documented deficits), and the pixel's magnitude.
-struct PixelDiff {
-    d: [f64; 3],
-    var: [f64; 3],
-    slack: [f64; 3],
-    scale: f64,
-}
-
-/// The statistical test every comparison uses. Per pixel and channel, a difference `d`
-/// (less the tolerated bias) with estimated variance `v` fails when |d| / sqrt(v) exceeds
-/// the two-sided 0.001 quantile (differences at float-rounding level, 1e-5 relative, pass;
-/// beyond that a zero variance cannot explain them). At most [`allowed_failures`] pixels
-/// may fail. The image mean of the differences must be within 4 standard errors
-/// (two-sided ~6e-5) plus the mean tolerated bias.
-fn check(diffs: &[PixelDiff], what: &str) {
-    let z = z_two_sided(0.001);
-    let (mut fails, mut examples) = (0usize, Vec::new());
-    let (mut dsum, mut vsum, mut slack) = (0.0f64, 0.0f64, 0.0f64);
-    for (i, p) in diffs.iter().enumerate() {
-        let mut bad = false;
-        for c in 0..3 {
-            let (v, s) = (p.var[c], p.slack[c]);
-            let d = p.d[c].signum() * (p.d[c].abs() - s).max(0.0);
-            dsum += p.d[c];
-            vsum += v;
-            slack += s;
-            bad |= d.abs() > 1e-5 * p.scale.max(1.0) && (v <= 0.0 || d.abs() / v.sqrt() > z);
-        }
-        if bad && examples.len() < 6 {
-            examples.push(format!(
-                "pixel {i}: d {:?} sd {:?}",
-                p.d,
-                p.var.map(f64::sqrt)
-            ));
-        }
-        fails += bad as usize;
-    }
-    let k = allowed_failures(diffs.len());
-    assert!(
-        fails <= k,
-        "{what}: {fails} of {} pixels fail at the 0.001 level (at most {k}): {examples:?}",
-        diffs.len()
-    );
-    let se = vsum.sqrt();
-    let n = (3 * diffs.len()) as f64;
-    assert!(
-        dsum.abs() <= 4.0 * se + slack + 1e-6 * n,
-        "{what}: mean difference {} (se {}, tolerated bias {})",
-        dsum / n,
-        se / n,
-        slack / n
-    );
-}
-
-/// Each pixel of `r` against `expected(pixel index)`.
+/// Each pixel of `r` against `expected(pixel index)` ([`assert_pixels_agree`] with the
+/// binomial failure cap).
 fn assert_matches(r: &Rendered, expected: impl Fn(usize) -> [f32; 3], what: &str) {
     assert_matches_within(r, expected, 0.0, what)
 }
 
-/// [`assert_matches`] tolerating a known relative bias of up to `slack` (see [`check`]).
+/// [`assert_matches`] tolerating a known relative bias of up to `slack`.
 fn assert_matches_within(
     r: &Rendered,
     expected: impl Fn(usize) -> [f32; 3],
@@ -238,48 +113,27 @@ fn assert_matches_within(
     what: &str,
 ) {
     assert_finite(r, what);
-    let (m, v) = (r.film.mean_rgb(), r.film.variance_rgb());
-    let diffs: Vec<_> = (0..m.len())
-        .map(|i| {
-            let e = expected(i);
-            let scale = e.iter().fold(0.0f32, |a, b| a.max(b.abs())) as f64;
-            PixelDiff {
-                d: [0, 1, 2].map(|c| (m[i][c] - e[c]) as f64),
-                var: [0, 1, 2].map(|c| v[i][c] as f64),
-                slack: e.map(|x| slack * x.abs() as f64),
-                scale,
-            }
-        })
-        .collect();
-    check(&diffs, what);
+    let diffs = PixelDiff::against(&r.film, expected, slack);
+    assert_pixels_agree(
+        &diffs,
+        FailureCap::Binomial,
+        MeanTest::PerChannelAndPooled,
+        what,
+    );
 }
 
-/// Two renders of the same expected image agree pixel by pixel.
+/// Two renders of the same expected image agree pixel by pixel ([`assert_pixels_agree`]
+/// with the binomial failure cap).
 fn assert_agree(a: &Rendered, b: &Rendered, what: &str) {
     assert_finite(a, what);
     assert_finite(b, what);
-    let (ma, va, mb, vb) = (
-        a.film.mean_rgb(),
-        a.film.variance_rgb(),
-        b.film.mean_rgb(),
-        b.film.variance_rgb(),
+    let diffs = PixelDiff::between(&a.film, &b.film);
+    assert_pixels_agree(
+        &diffs,
+        FailureCap::Binomial,
+        MeanTest::PerChannelAndPooled,
+        what,
     );
-    assert_eq!(ma.len(), mb.len());
-    let diffs: Vec<_> = (0..ma.len())
-        .map(|i| {
-            let scale = ma[i]
-                .iter()
-                .chain(&mb[i])
-                .fold(0.0f32, |x, y| x.max(y.abs())) as f64;
-            PixelDiff {
-                d: [0, 1, 2].map(|c| (ma[i][c] - mb[i][c]) as f64),
-                var: [0, 1, 2].map(|c| (va[i][c] + vb[i][c]) as f64),
-                slack: [0.0; 3],
-                scale,
-            }
-        })
-        .collect();
-    check(&diffs, what);
 }
 
 /// The seed of every render (renders in one test use it and the seeds just above it): 1, or
@@ -294,8 +148,8 @@ static SEED: std::sync::LazyLock<u64> = std::sync::LazyLock::new(|| {
 #[test]
 fn allowed_failures_is_the_binomial_tail_quantile() {
     // n = 256: P(X >= 7) = 1.8e-5 < 1e-4 <= P(X >= 6) = 1.3e-4 for Binomial(256, 0.003).
-    assert_eq!(allowed_failures(256), 6);
-    assert_eq!(allowed_failures(10_000), 100, "1 % floor");
+    assert_eq!(binomial_failure_cap(256), 6);
+    assert_eq!(binomial_failure_cap(10_000), 100, "1 % floor");
 }
 
 // ---- 1. lights hidden inside fixtures -------------------------------------------------
@@ -312,7 +166,7 @@ fn light_sealed_inside_a_closed_box_leaves_the_outside_exactly_black() {
     // is 0 with zero variance (seeds 1-3).
     let cam = Cam::new([3.0, -4.0, 2.5], [0.0; 3], 40.0, 16);
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), cam, SEALED_LAMP);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), cam, SEALED_LAMP);
         let r = render_xml_stats("sealed", &xml, 32, *SEED);
         assert_finite(&r, &format!("{method:?}"));
         for (i, p) in r.film.pixels.iter().enumerate() {
@@ -328,11 +182,11 @@ fn light_sealed_inside_a_closed_box_leaves_the_outside_exactly_black() {
 #[test]
 fn camera_inside_the_sealed_box_sees_its_lit_interior_as_both_estimators_agree() {
     // The same box seen from inside: the interior is lit (direct light on the walls and
-    // inter-reflections). Path and guided must agree (statistics of `check`: 0.001 per
+    // inter-reflections). Path and guided must agree (statistics of `assert_pixels_agree`: 0.001 per
     // pixel, binomial count at 1e-4, image mean within 4 se; seeds 1-3).
     let cam = Cam::new([0.5, -0.9, 0.6], [0.0, 1.0, -0.5], 90.0, 16);
     let [path, guided] = METHODS.map(|m| {
-        let xml = scene(&m.integrator(-1, ""), cam, SEALED_LAMP);
+        let xml = cam_scene_xml(&m.integrator(-1, ""), cam, SEALED_LAMP);
         render_xml_stats("sealed-inside", &xml, 256, *SEED + m as u64)
     });
     let lit = path.film.mean_rgb().iter().filter(|p| p[0] > 0.1).count();
@@ -379,11 +233,11 @@ fn fixture_with_hole() -> String {
 #[test]
 fn light_escaping_a_fixture_through_a_small_hole_renders_the_same_with_both_estimators() {
     // Light reaches the ground only through the hole (a bright spot below it, the rest
-    // lit by inter-reflection). Path and guided must agree (statistics of `check`;
+    // lit by inter-reflection). Path and guided must agree (statistics of `assert_pixels_agree`;
     // seeds 1-3).
     let cam = Cam::new([0.0, -5.0, -0.8], [0.0, 0.0, -1.5], 45.0, 16);
     let [path, guided] = METHODS.map(|m| {
-        let xml = scene(&m.integrator(-1, ""), cam, &fixture_with_hole());
+        let xml = cam_scene_xml(&m.integrator(-1, ""), cam, &fixture_with_hole());
         render_xml_stats("fixture", &xml, 256, *SEED + m as u64)
     });
     let spot = path.film.mean_rgb().iter().fold(0.0f32, |a, p| a.max(p[0]));
@@ -417,13 +271,13 @@ fn tiny_bright_light_renders_the_image_of_a_large_one_of_the_same_power() {
     // of radius 0.1 and radiance 10 does. The only difference in expectation is the large
     // lamp's silhouette occluding inter-reflected light (< 0.03 sr of the hemisphere, under
     // 0.1 % of the image, far below the test's resolution). The camera passes through
-    // emitters (`hide_emitters`), so neither lamp is seen directly. Statistics of `check`
+    // emitters (`hide_emitters`), so neither lamp is seen directly. Statistics of `assert_pixels_agree`
     // (seeds 1-3).
     let cam = Cam::new([0.0, -4.0, 2.0], [0.0, 0.0, 0.4], 50.0, 16);
     for method in METHODS {
         let integrator = method.integrator(4, r#"<boolean name="hide_emitters" value="true"/>"#);
         let render_lamp = |r: f32, l: f32, seed: u64| {
-            let xml = scene(&integrator, cam, &sphere_lamp_room(r, l));
+            let xml = cam_scene_xml(&integrator, cam, &sphere_lamp_room(r, l));
             render_xml_stats("lamp", &xml, 128, seed)
         };
         let large = render_lamp(0.1, 10.0, *SEED);
@@ -439,7 +293,7 @@ fn camera_a_hair_above_a_plane_at_grazing_angles_sees_albedo_times_sky() {
     // The camera 1e-4 above a one-sided diffuse plane under a constant sky, looking 1 to 5
     // degrees below the horizon: every ray hits the plane at a grazing angle, within 7e-3
     // of the camera. The plane reflects L = albedo * sky whatever the depth (the light it
-    // reflects escapes), so every pixel's expectation is known. Statistics of `check`
+    // reflects escapes), so every pixel's expectation is known. Statistics of `assert_pixels_agree`
     // (seeds 1-3).
     let body = PLANE_UNDER_SKY;
     // (Mitsuba's default near_clip, 0.01, would clip every hit: 1e-6 here.)
@@ -448,7 +302,7 @@ fn camera_a_hair_above_a_plane_at_grazing_angles_sees_albedo_times_sky() {
         ..Cam::new([0.0, 0.0, 1e-4], [1.0, 0.0, -0.05], 4.0, 16)
     };
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), cam, body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), cam, body);
         let r = render_xml_stats("grazing", &xml, 64, *SEED);
         assert_matches(&r, |_| [1.0, 0.25, 0.4], &format!("{method:?}: grazing"));
     }
@@ -470,7 +324,7 @@ fn near_specular_rough_mirror_and_glass_vanish_in_the_white_furnace() {
     // evaluations away from the mirror direction underflow. A lossless mirror
     // (`material` none) and glass are invisible in a furnace: every pixel is 1 (the energy
     // a single-scattering microfacet model loses at this roughness is below 1e-6).
-    // Statistics of `check` (seeds 1-3).
+    // Statistics of `assert_pixels_agree` (seeds 1-3).
     let cases = [
         (
             "roughconductor",
@@ -489,12 +343,12 @@ fn near_specular_rough_mirror_and_glass_vanish_in_the_white_furnace() {
 }
 
 /// Each `(tag, bsdf)` on a sphere in the white furnace, with both integrators: every pixel
-/// must be 1 (statistics of `check`).
+/// must be 1 (statistics of `assert_pixels_agree`).
 fn assert_invisible_in_the_furnace(cases: &[(&str, &str)]) {
     let cam = Cam::new([0.0, -4.0, 0.0], [0.0; 3], 35.0, 16);
     for &(tag, bsdf) in cases {
         for method in METHODS {
-            let xml = scene(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
+            let xml = cam_scene_xml(&method.integrator(-1, ""), cam, &furnace_sphere(bsdf));
             let r = render_xml_stats(tag, &xml, 64, *SEED);
             assert_matches(&r, |_| [1.0; 3], &format!("{method:?}: {tag} furnace"));
         }
@@ -532,11 +386,11 @@ fn three_spheres(rough: bool) -> String {
 #[test]
 fn near_specular_conductor_plastic_and_glass_render_like_their_smooth_versions() {
     // alpha 1e-4 is a mirror to within far less than a pixel's footprint here, so each
-    // rough BSDF must render the smooth one's image. Statistics of `check` (seeds 1-3).
+    // rough BSDF must render the smooth one's image. Statistics of `assert_pixels_agree` (seeds 1-3).
     let cam = Cam::new([0.0, -5.0, 1.5], [0.0, 0.0, 0.4], 40.0, 24);
     for method in METHODS {
         let [smooth, rough] = [false, true].map(|rough| {
-            let xml = scene(&method.integrator(-1, ""), cam, &three_spheres(rough));
+            let xml = cam_scene_xml(&method.integrator(-1, ""), cam, &three_spheres(rough));
             render_xml_stats("near-specular", &xml, 128, *SEED + rough as u64)
         });
         assert_agree(
@@ -572,7 +426,7 @@ const INDEX_MATCHED: [(&str, &str); 4] = [
 #[test]
 fn index_matched_dielectrics_vanish_in_the_white_furnace() {
     // Equal IORs: no reflection, no refraction, light passes straight through, so the
-    // sphere is invisible: every pixel is 1. Statistics of `check` (seeds 1-3).
+    // sphere is invisible: every pixel is 1. Statistics of `assert_pixels_agree` (seeds 1-3).
     assert_invisible_in_the_furnace(&INDEX_MATCHED);
 }
 
@@ -582,7 +436,7 @@ fn index_matched_dielectrics_in_a_lit_scene_leave_its_image_unchanged() {
     // sphere between them and the camera: the images must agree. The sphere's surface is
     // a delta (or, rough, a near-delta) interface, so light through it is found only by
     // BSDF sampling: the sky and a large lamp keep that estimator's tails light enough for
-    // per-pixel variance estimates. Statistics of `check` (seeds 1-3).
+    // per-pixel variance estimates. Statistics of `assert_pixels_agree` (seeds 1-3).
     let lit = r#"<emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
         <bsdf type="diffuse" id="grey"><rgb name="reflectance" value="0.6, 0.5, 0.4"/></bsdf>
         <shape type="rectangle"><transform name="to_world"><scale value="4"/></transform><ref id="grey"/></shape>
@@ -592,12 +446,17 @@ fn index_matched_dielectrics_in_a_lit_scene_leave_its_image_unchanged() {
     let cam = Cam::new([0.0, -4.0, 2.0], [0.0, 0.0, 0.4], 50.0, 16);
     for method in METHODS {
         let integrator = method.integrator(-1, "");
-        let empty = render_xml_stats("matched-empty", &scene(&integrator, cam, lit), 128, *SEED);
+        let empty = render_xml_stats(
+            "matched-empty",
+            &cam_scene_xml(&integrator, cam, lit),
+            128,
+            *SEED,
+        );
         for (tag, bsdf) in INDEX_MATCHED {
             let body = format!(
                 r#"{lit}<shape type="sphere"><point name="center" x="0.2" y="-0.8" z="0.8"/><float name="radius" value="0.6"/>{bsdf}</shape>"#
             );
-            let r = render_xml_stats(tag, &scene(&integrator, cam, &body), 128, *SEED + 1);
+            let r = render_xml_stats(tag, &cam_scene_xml(&integrator, cam, &body), 128, *SEED + 1);
             assert_agree(&r, &empty, &format!("{method:?}: {tag} in the lit scene"));
         }
     }
@@ -630,7 +489,7 @@ fn degenerate_triangles_in_a_mesh_are_never_hit_and_change_nothing() {
     // A diffuse quad under a sky, with and without zero-area triangles in the same mesh
     // file (the loader keeps them; they must be invisible, never intersected). The quad's
     // pixels must match: the plane reflects albedo * sky (0.5) and the sky shows around
-    // it (1). Statistics of `check` (seeds 1-3).
+    // it (1). Statistics of `assert_pixels_agree` (seeds 1-3).
     let body = r#"<emitter type="constant"><rgb name="radiance" value="1"/></emitter>
         <shape type="obj"><string name="filename" value="mesh.obj"/>
             <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>"#;
@@ -640,7 +499,7 @@ fn degenerate_triangles_in_a_mesh_are_never_hit_and_change_nothing() {
         ..cam
     };
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), cam, body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), cam, body);
         let clean = render_with_obj("quad", &xml, &quad_obj(0.0, ""), 64, *SEED);
         let degenerate = render_with_obj("degenerate", &xml, &quad_obj(0.0, DEGENERATE), 64, *SEED);
         let (mc, md) = (clean.film.mean_rgb(), degenerate.film.mean_rgb());
@@ -660,7 +519,7 @@ fn emitting_mesh_with_zero_area_triangles_lights_like_the_clean_mesh() {
     // An area light whose OBJ mixes the lamp quad with zero-area triangles: light
     // sampling picks triangles by area, so a zero-area one must never be picked (its
     // solid-angle pdf would be infinite). Floor below, lit only by the lamp; the image
-    // must agree with the clean lamp's. Statistics of `check` (seeds 1-3).
+    // must agree with the clean lamp's. Statistics of `assert_pixels_agree` (seeds 1-3).
     let body = r#"<shape type="obj"><string name="filename" value="mesh.obj"/>
             <transform name="to_world"><scale value="0.5"/><rotate x="1" angle="180"/><translate z="2"/></transform>
             <emitter type="area"><rgb name="radiance" value="4"/></emitter></shape>
@@ -668,7 +527,7 @@ fn emitting_mesh_with_zero_area_triangles_lights_like_the_clean_mesh() {
             <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>"#;
     let cam = Cam::new([0.0, -4.0, 3.0], [0.0; 3], 45.0, 16);
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), cam, body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), cam, body);
         let clean = render_with_obj("lamp-clean", &xml, &quad_obj(0.0, ""), 64, *SEED);
         let degenerate = render_with_obj(
             "lamp-degenerate",
@@ -697,7 +556,7 @@ fn mesh_of_only_zero_area_triangles_loads_and_renders_nothing() {
     assert_eq!(obj.matches("\nf ").count(), 5, "only the degenerate faces");
     let cam = Cam::new([0.0, -4.0, 3.0], [0.0; 3], 45.0, 16);
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), cam, body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), cam, body);
         let path = write_scene("only-degenerate", &xml);
         std::fs::write(path.with_file_name("mesh.obj"), &obj).unwrap();
         let scene = match load_scene(&path, &[]) {
@@ -768,11 +627,11 @@ fn camera_inside_a_closed_glowing_sphere_sees_emission_over_one_minus_albedo() {
     // it, paths inside the sphere survive depth 5 with probability a^5 = 8 %, and at 64
     // spp the pixels where few survived have both a low mean and a low variance estimate,
     // which fails per-pixel tests without any bias (the roulette's unbiasedness is tested
-    // in analytic.rs and guided.rs). Statistics of `check` (seeds 1-3).
+    // in analytic.rs and guided.rs). Statistics of `assert_pixels_agree` (seeds 1-3).
     let (le, a) = (0.5f32, 0.6f32);
     for method in METHODS {
         let integrator = method.integrator(60, no_roulette(method));
-        let xml = scene(&integrator, inside_cam(16), &glowing_sphere_interior(le, a));
+        let xml = cam_scene_xml(&integrator, inside_cam(16), &glowing_sphere_interior(le, a));
         let r = render_xml_stats("inside-sphere", &xml, 64, *SEED);
         let what = format!("{method:?}: inside the sphere");
         assert_matches_within(&r, |_| [le / (1.0 - a); 3], SPHERE_DEFICIT, &what);
@@ -788,7 +647,7 @@ fn camera_inside_a_closed_sphere_facing_away_from_its_light_sees_black() {
         <emitter type="area"><rgb name="radiance" value="1"/></emitter></shape>
         <emitter type="constant"><rgb name="radiance" value="1"/></emitter>"#;
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), inside_cam(16), body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), inside_cam(16), body);
         let r = render_xml_stats("inside-outward", &xml, 16, *SEED);
         assert_finite(&r, &format!("{method:?}"));
         assert!(
@@ -803,13 +662,13 @@ fn camera_inside_a_glass_sphere_in_the_furnace_sees_eta_squared() {
     // A lossless glass sphere (IOR 1.5) in a furnace of radiance 1: at equilibrium the
     // radiance inside a medium of index n is n^2 times that outside (radiance / n^2 is
     // conserved across the interface), so a camera inside sees 2.25 in every pixel.
-    // Statistics of `check` (seeds 1-3).
+    // Statistics of `assert_pixels_agree` (seeds 1-3).
     // (ext_ior 1: Mitsuba's default exterior is air, 1.000277, which makes it 2.24875.)
     let body = furnace_sphere(
         r#"<bsdf type="dielectric"><float name="int_ior" value="1.5"/><float name="ext_ior" value="1"/></bsdf>"#,
     );
     for method in METHODS {
-        let xml = scene(&method.integrator(-1, ""), inside_cam(16), &body);
+        let xml = cam_scene_xml(&method.integrator(-1, ""), inside_cam(16), &body);
         let r = render_xml_stats("inside-glass", &xml, 64, *SEED);
         assert_matches(&r, |_| [2.25; 3], &format!("{method:?}: inside glass"));
     }
@@ -824,7 +683,7 @@ fn thousand_bounce_paths_stay_finite_on_a_small_stack_and_sum_the_geometric_seri
     // and emission found after k bounces counts for k < 1000, so every pixel's expectation
     // is Le (1 - a^1000) / (1 - a). The render runs on threads with 256 KiB stacks (the
     // caller and the rayon workers): per-bounce stack growth would overflow them.
-    // Statistics of `check` (seeds 1-3).
+    // Statistics of `assert_pixels_agree` (seeds 1-3).
     let (le, a, depth) = (0.01f32, 0.999f32, 1000);
     let expected = (le as f64 * (1.0 - (a as f64).powi(depth)) / (1.0 - a as f64)) as f32;
     for method in METHODS {
@@ -841,7 +700,7 @@ fn thousand_bounce_paths_stay_finite_on_a_small_stack_and_sum_the_geometric_seri
             ),
         };
         let integrator = method.integrator(depth, &extra);
-        let xml = scene(&integrator, inside_cam(8), &glowing_sphere_interior(le, a));
+        let xml = cam_scene_xml(&integrator, inside_cam(8), &glowing_sphere_interior(le, a));
         let scene = build("deep", &xml);
         let r = std::thread::Builder::new()
             .stack_size(256 << 10)
@@ -924,11 +783,11 @@ fn scaled_cam(s: f32) -> Cam {
 fn uniformly_scaled_scenes_from_1e_minus_4_to_1e4_render_the_unscaled_image() {
     // Radiance does not depend on the unit of length: scaling geometry, camera and lamp by
     // s leaves the image's expectation unchanged. Scales 1e-4 and 1e4 against 1, for both
-    // estimators. Statistics of `check` (seeds 1-3).
+    // estimators. Statistics of `assert_pixels_agree` (seeds 1-3).
     for method in METHODS {
         let integrator = method.integrator(-1, "");
         let at = |s: f32, seed: u64| {
-            let xml = scene(&integrator, scaled_cam(s), &scaled_room(s));
+            let xml = cam_scene_xml(&integrator, scaled_cam(s), &scaled_room(s));
             let path = write_scene("scaled", &xml);
             std::fs::write(path.with_file_name("rug.obj"), rug_obj()).unwrap();
             let desc = load_scene(&path, &[]).unwrap_or_else(|e| panic!("{e}"));
