@@ -14,16 +14,7 @@ use crate::xml::{invalid, Category, Value};
 
 /// Build (or fetch from cache) the BSDF `r`, returning its arena index.
 pub(crate) fn bsdf(ctx: &mut Ctx, r: &Resolved) -> Result<usize, SceneError> {
-    if r.node.category != Category::Bsdf {
-        return Err(invalid(
-            &r.loc,
-            format!(
-                "expected a bsdf, got a {} {}",
-                r.node.plugin,
-                r.node.category.tag()
-            ),
-        ));
-    }
+    r.expect(Category::Bsdf, "a bsdf")?;
     let key = Rc::as_ptr(&r.node);
     if let Some(&i) = ctx.bsdf_cache.get(&key) {
         return Ok(i);
@@ -41,11 +32,17 @@ pub(crate) fn bsdf(ctx: &mut Ctx, r: &Resolved) -> Result<usize, SceneError> {
 fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
     let p = ctx.props(&r.node)?;
     let desc = match p.plugin() {
-        "diffuse" => BsdfDesc::Diffuse { reflectance: texref(ctx, &p, "reflectance", 0.5)? },
+        "diffuse" => BsdfDesc::Diffuse {
+            reflectance: texref(ctx, &p, "reflectance", 0.5)?,
+        },
         "twosided" => twosided(ctx, &p)?,
         "conductor" => {
             let (eta, k) = conductor_ior(&p)?;
-            BsdfDesc::Conductor { eta, k, specular_reflectance: texref(ctx, &p, "specular_reflectance", 1.0)? }
+            BsdfDesc::Conductor {
+                eta,
+                k,
+                specular_reflectance: texref(ctx, &p, "specular_reflectance", 1.0)?,
+            }
         }
         "roughconductor" => {
             let roughness = roughness(&p, true)?;
@@ -63,10 +60,18 @@ fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
             let specular_reflectance = texref(ctx, &p, "specular_reflectance", 1.0)?;
             let specular_transmittance = texref(ctx, &p, "specular_transmittance", 1.0)?;
             match p.plugin() {
-                "dielectric" => BsdfDesc::Dielectric { int_ior, ext_ior, specular_reflectance, specular_transmittance },
-                "thindielectric" => {
-                    BsdfDesc::ThinDielectric { int_ior, ext_ior, specular_reflectance, specular_transmittance }
-                }
+                "dielectric" => BsdfDesc::Dielectric {
+                    int_ior,
+                    ext_ior,
+                    specular_reflectance,
+                    specular_transmittance,
+                },
+                "thindielectric" => BsdfDesc::ThinDielectric {
+                    int_ior,
+                    ext_ior,
+                    specular_reflectance,
+                    specular_transmittance,
+                },
                 _ => BsdfDesc::RoughDielectric {
                     roughness: roughness(&p, true)?,
                     int_ior,
@@ -83,7 +88,13 @@ fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
             let specular_reflectance = texref(ctx, &p, "specular_reflectance", 1.0)?;
             let nonlinear = p.bool("nonlinear", false)?;
             if p.plugin() == "plastic" {
-                BsdfDesc::Plastic { int_ior, ext_ior, diffuse_reflectance, specular_reflectance, nonlinear }
+                BsdfDesc::Plastic {
+                    int_ior,
+                    ext_ior,
+                    diffuse_reflectance,
+                    specular_reflectance,
+                    nonlinear,
+                }
             } else {
                 BsdfDesc::RoughPlastic {
                     roughness: roughness(&p, false)?,
@@ -95,13 +106,11 @@ fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
                 }
             }
         }
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!(
-                    "unsupported bsdf type '{other}' (supported: diffuse, twosided, conductor, roughconductor, \
-                     dielectric, thindielectric, roughdielectric, plastic, roughplastic)"
-                ),
+        _ => {
+            return Err(p.unsupported(
+                "bsdf",
+                "diffuse, twosided, conductor, roughconductor, dielectric, thindielectric, \
+                 roughdielectric, plastic, roughplastic",
             ))
         }
     };
@@ -176,19 +185,17 @@ fn ior(p: &Props, name: &str, default: &str) -> Result<f32, SceneError> {
 /// `distribution`, `alpha` (or `alpha_u`/`alpha_v` when `anisotropic`),
 /// `sample_visible`, with Mitsuba's defaults (beckmann, 0.1, true).
 fn roughness(p: &Props, anisotropic: bool) -> Result<Roughness, SceneError> {
-    let distribution = match p.string_opt("distribution")? {
-        None => MicrofacetDistribution::Beckmann,
-        Some((s, loc)) => match s.to_ascii_lowercase().as_str() {
-            "beckmann" => MicrofacetDistribution::Beckmann,
-            "ggx" => MicrofacetDistribution::Ggx,
-            _ => {
-                return Err(invalid(
-                    &loc,
-                    format!("unknown microfacet distribution \"{s}\" (expected beckmann or ggx)"),
-                ))
-            }
-        },
-    };
+    // (Mitsuba reads the distribution's name in any case.)
+    let distribution = p.keyword(
+        "distribution",
+        "microfacet distribution",
+        MicrofacetDistribution::Beckmann,
+        &[
+            ("beckmann", MicrofacetDistribution::Beckmann),
+            ("ggx", MicrofacetDistribution::Ggx),
+        ],
+        true,
+    )?;
     let sample_visible = p.bool("sample_visible", true)?;
     let (alpha_u, alpha_v) = if anisotropic && (p.has("alpha_u") || p.has("alpha_v")) {
         if !(p.has("alpha_u") && p.has("alpha_v")) {

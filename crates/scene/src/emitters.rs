@@ -13,23 +13,9 @@ use crate::props::Resolved;
 use crate::textures::const_color;
 use crate::xml::{invalid, Category};
 
-fn expect_emitter(r: &Resolved) -> Result<(), SceneError> {
-    if r.node.category != Category::Emitter {
-        return Err(invalid(
-            &r.loc,
-            format!(
-                "expected an emitter, got a {} {}",
-                r.node.plugin,
-                r.node.category.tag()
-            ),
-        ));
-    }
-    Ok(())
-}
-
 /// An `area` emitter nested in a shape: `radiance` (default 1).
 pub(crate) fn area_emitter(ctx: &Ctx, r: &Resolved) -> Result<AreaEmitterDesc, SceneError> {
-    expect_emitter(r)?;
+    r.expect(Category::Emitter, "an emitter")?;
     let p = ctx.props(&r.node)?;
     if p.plugin() != "area" {
         return Err(invalid(
@@ -47,41 +33,56 @@ pub(crate) fn area_emitter(ctx: &Ctx, r: &Resolved) -> Result<AreaEmitterDesc, S
 
 /// A scene-level emitter.
 pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneError> {
-    expect_emitter(r)?;
+    r.expect(Category::Emitter, "an emitter")?;
     let p = ctx.props(&r.node)?;
     let desc = match p.plugin() {
-        "area" => return Err(invalid(p.loc(), "an area emitter must be nested inside a <shape>")),
+        "area" => {
+            return Err(invalid(
+                p.loc(),
+                "an area emitter must be nested inside a <shape>",
+            ))
+        }
         "point" => {
             let to_world = p.transform_opt("to_world")?;
             let position = p.point_opt("position")?;
             let position = match (position, to_world) {
                 (Some(_), Some(_)) => {
-                    return Err(invalid(p.loc(), "point emitter: specify either 'position' or 'to_world', not both"))
+                    return Err(invalid(
+                        p.loc(),
+                        "point emitter: specify either 'position' or 'to_world', not both",
+                    ))
                 }
                 (Some(pos), None) => pos,
                 (None, Some(m)) => m.transform_point3(DVec3::ZERO).as_vec3(),
                 (None, None) => Vec3::ZERO,
             };
-            EmitterDesc::Point { position, intensity: const_color(&p, "intensity", Vec3::ONE)? }
+            EmitterDesc::Point {
+                position,
+                intensity: const_color(&p, "intensity", Vec3::ONE)?,
+            }
         }
-        "constant" => EmitterDesc::Constant { radiance: const_color(&p, "radiance", Vec3::ONE)? },
+        "constant" => EmitterDesc::Constant {
+            radiance: const_color(&p, "radiance", Vec3::ONE)?,
+        },
         "directional" => {
             let to_world = p.transform_opt("to_world")?;
             let dir = p.point_opt("direction")?;
-            let direction = match (dir, to_world) {
-                (Some(_), Some(_)) => {
-                    return Err(invalid(
+            let direction =
+                match (dir, to_world) {
+                    (Some(_), Some(_)) => return Err(invalid(
                         p.loc(),
                         "directional emitter: specify either 'direction' or 'to_world', not both",
-                    ))
-                }
-                (Some(d), None) => d.as_dvec3(),
-                (None, Some(m)) => m.transform_vector3(DVec3::Z),
-                (None, None) => DVec3::Z,
-            };
+                    )),
+                    (Some(d), None) => d.as_dvec3(),
+                    (None, Some(m)) => m.transform_vector3(DVec3::Z),
+                    (None, None) => DVec3::Z,
+                };
             let len = direction.length();
             if !(len > 0.0) || !len.is_finite() {
-                return Err(invalid(p.loc(), "directional emitter: direction must be non-zero"));
+                return Err(invalid(
+                    p.loc(),
+                    "directional emitter: direction must be non-zero",
+                ));
             }
             EmitterDesc::Directional {
                 direction: (direction / len).as_vec3(),
@@ -96,14 +97,15 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
             let to_world = p.transform("to_world")?.as_mat4();
             let path = ctx.resolve_path(&name, &loc)?;
             let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
-            EmitterDesc::EnvMap { width: img.width, height: img.height, texels: Arc::new(img.texels.iter().collect()), scale, to_world }
+            EmitterDesc::EnvMap {
+                width: img.width,
+                height: img.height,
+                texels: Arc::new(img.texels.iter().collect()),
+                scale,
+                to_world,
+            }
         }
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!("unsupported emitter type '{other}' (supported: area, point, constant, envmap, directional)"),
-            ))
-        }
+        _ => return Err(p.unsupported("emitter", "area, point, constant, envmap, directional")),
     };
     p.finish()?;
     Ok(desc)

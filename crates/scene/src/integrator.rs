@@ -18,12 +18,7 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
     let desc = match p.plugin() {
         "path" => IntegratorDesc::Path(path_params(&p)?),
         "guided_path" => IntegratorDesc::GuidedPath(guided_params(&p, &ctx.limits)?),
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!("unsupported integrator type '{other}' (supported: path, guided_path)"),
-            ))
-        }
+        _ => return Err(p.unsupported("integrator", "path, guided_path")),
     };
     p.finish()?;
     Ok(desc)
@@ -70,21 +65,9 @@ fn choice<T: Clone>(
 
 /// A float parameter that must be finite and within `[min, max]` (checked before rounding).
 fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f64, SceneError> {
-    match p.f64_opt(name)? {
-        None => Ok(default),
-        Some((v, loc)) if v < min || v > max => Err(invalid(
-            &loc,
-            format!(
-                "parameter '{name}' of {} must be in [{}, {}] (got {})",
-                p.what(),
-                format_number(min),
-                format_number(max),
-                format_number(v)
-            ),
-        )),
-        // Read as a 32-bit float, as every float parameter is (the images depend on it).
-        Some((v, _)) => Ok(v as f32 as f64),
-    }
+    let v = p.in_range(name, p.f64_opt(name)?, min, max, format_number)?;
+    // Read as a 32-bit float, as every float parameter is (the images depend on it).
+    Ok(v.map_or(default, |v| v as f32 as f64))
 }
 
 /// The smallest `d_tree_threshold` (the papers use 0.01): about 2 million nodes per quadtree.

@@ -177,62 +177,60 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
         if i >= bsdfs.len() || std::mem::replace(&mut seen[i], true) {
             continue;
         }
-        match &bsdfs[i] {
-            BsdfDesc::Diffuse { reflectance } => f.textures |= tex(reflectance),
-            BsdfDesc::TwoSided { front, back } => stack.extend([*front, *back]),
+        let bsdf = &bsdfs[i];
+        // Its colour parameters (any may be a texture), and whether it transmits.
+        let (colours, transmits) = match bsdf {
+            BsdfDesc::Diffuse { reflectance } => ([Some(reflectance), None], false),
+            BsdfDesc::TwoSided { front, back } => {
+                stack.extend([*front, *back]);
+                continue;
+            }
             BsdfDesc::Conductor {
-                specular_reflectance,
+                specular_reflectance: r,
                 ..
-            } => {
-                f.delta_bsdfs = true;
-                f.textures |= tex(specular_reflectance);
             }
-            BsdfDesc::RoughConductor {
-                specular_reflectance,
+            | BsdfDesc::RoughConductor {
+                specular_reflectance: r,
                 ..
-            } => {
-                f.microfacets = true;
-                f.textures |= tex(specular_reflectance);
-            }
+            } => ([Some(r), None], false),
             BsdfDesc::Dielectric {
-                specular_reflectance,
-                specular_transmittance,
+                specular_reflectance: r,
+                specular_transmittance: t,
                 ..
             }
             | BsdfDesc::ThinDielectric {
-                specular_reflectance,
-                specular_transmittance,
+                specular_reflectance: r,
+                specular_transmittance: t,
                 ..
-            } => {
-                f.delta_bsdfs = true;
-                f.transmission = true;
-                f.textures |= tex(specular_reflectance) || tex(specular_transmittance);
             }
-            BsdfDesc::RoughDielectric {
-                specular_reflectance,
-                specular_transmittance,
+            | BsdfDesc::RoughDielectric {
+                specular_reflectance: r,
+                specular_transmittance: t,
                 ..
-            } => {
-                f.microfacets = true;
-                f.transmission = true;
-                f.textures |= tex(specular_reflectance) || tex(specular_transmittance);
-            }
+            } => ([Some(r), Some(t)], true),
             BsdfDesc::Plastic {
-                diffuse_reflectance,
-                specular_reflectance,
+                diffuse_reflectance: d,
+                specular_reflectance: r,
                 ..
-            } => {
-                f.delta_bsdfs = true;
-                f.textures |= tex(diffuse_reflectance) || tex(specular_reflectance);
             }
-            BsdfDesc::RoughPlastic {
-                diffuse_reflectance,
-                specular_reflectance,
+            | BsdfDesc::RoughPlastic {
+                diffuse_reflectance: d,
+                specular_reflectance: r,
                 ..
-            } => {
-                f.microfacets = true;
-                f.textures |= tex(diffuse_reflectance) || tex(specular_reflectance);
-            }
+            } => ([Some(d), Some(r)], false),
+        };
+        f.textures |= colours.into_iter().flatten().any(tex);
+        f.transmission |= transmits;
+        // The specular lobe: a microfacet one in the rough variants, a delta one otherwise.
+        match bsdf {
+            BsdfDesc::Diffuse { .. } | BsdfDesc::TwoSided { .. } => {}
+            BsdfDesc::RoughConductor { .. }
+            | BsdfDesc::RoughDielectric { .. }
+            | BsdfDesc::RoughPlastic { .. } => f.microfacets = true,
+            BsdfDesc::Conductor { .. }
+            | BsdfDesc::Dielectric { .. }
+            | BsdfDesc::ThinDielectric { .. }
+            | BsdfDesc::Plastic { .. } => f.delta_bsdfs = true,
         }
     }
     for s in shapes {

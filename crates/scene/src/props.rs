@@ -43,6 +43,24 @@ pub(crate) fn resolve(
     }
 }
 
+impl Resolved {
+    /// Check that the object is of `category`, else an error at its element saying what was
+    /// `expected` ("a bsdf") and what it is.
+    pub(crate) fn expect(&self, category: Category, expected: &str) -> Result<(), SceneError> {
+        if self.node.category == category {
+            return Ok(());
+        }
+        Err(invalid(
+            &self.loc,
+            format!(
+                "expected {expected}, got a {} {}",
+                self.node.plugin,
+                self.node.category.tag()
+            ),
+        ))
+    }
+}
+
 /// A plugin's properties and nested objects, tracking which were consumed.
 pub(crate) struct Props {
     node: Rc<Node>,
@@ -73,6 +91,19 @@ impl Props {
 
     pub(crate) fn plugin(&self) -> &str {
         &self.node.plugin
+    }
+
+    /// The error for a plugin type this loader does not implement, at its element: "unsupported
+    /// {kind} type '{plugin}' (supported: {supported})". (`kind` is given, not taken from the
+    /// element's category: a `<sampler>` where the film belongs is an unsupported film.)
+    pub(crate) fn unsupported(&self, kind: &str, supported: &str) -> SceneError {
+        invalid(
+            self.loc(),
+            format!(
+                "unsupported {kind} type '{}' (supported: {supported})",
+                self.plugin()
+            ),
+        )
     }
 
     /// "roughconductor bsdf" etc., for messages.
@@ -184,16 +215,34 @@ impl Props {
         min: i64,
         max: i64,
     ) -> Result<i64, SceneError> {
-        match self.int_opt(name)? {
-            None => Ok(default),
+        let v = self.in_range(name, self.int_opt(name)?, min, max, |v| v.to_string())?;
+        Ok(v.unwrap_or(default))
+    }
+
+    /// The `value` of the parameter `name`, as read by [`Props::int_opt`] or
+    /// [`Props::f64_opt`], checked to be in `[min, max]`: outside, an error at its line
+    /// "parameter '{name}' of {plugin} must be in [min, max] (got v)", `show` writing the
+    /// numbers.
+    pub(crate) fn in_range<T: PartialOrd + Copy>(
+        &self,
+        name: &str,
+        value: Option<(T, Location)>,
+        min: T,
+        max: T,
+        show: impl Fn(T) -> String,
+    ) -> Result<Option<T>, SceneError> {
+        match value {
             Some((v, loc)) if v < min || v > max => Err(invalid(
                 &loc,
                 format!(
-                    "parameter '{name}' of {} must be in [{min}, {max}] (got {v})",
-                    self.what()
+                    "parameter '{name}' of {} must be in [{}, {}] (got {})",
+                    self.what(),
+                    show(min),
+                    show(max),
+                    show(v)
                 ),
             )),
-            Some((v, _)) => Ok(v),
+            v => Ok(v.map(|(v, _)| v)),
         }
     }
 
@@ -239,6 +288,39 @@ impl Props {
             },
             _ => Err(self.type_error(p, "<boolean>")),
         }
+    }
+
+    /// A keyword parameter `name`: `default` when absent, else the value `choices` pairs with
+    /// the word (compared in lower case when `fold_case`); any other word is an error at its
+    /// line, "unknown {what} \"{word}\" (expected a, b or c)".
+    pub(crate) fn keyword<T: Copy>(
+        &self,
+        name: &str,
+        what: &str,
+        default: T,
+        choices: &[(&str, T)],
+        fold_case: bool,
+    ) -> Result<T, SceneError> {
+        let Some((word, loc)) = self.string_opt(name)? else {
+            return Ok(default);
+        };
+        let key = if fold_case {
+            word.to_ascii_lowercase()
+        } else {
+            word.clone()
+        };
+        if let Some((_, v)) = choices.iter().find(|(n, _)| *n == key) {
+            return Ok(*v);
+        }
+        let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+        let expected = match names.split_last() {
+            Some((last, rest)) if !rest.is_empty() => format!("{} or {last}", rest.join(", ")),
+            _ => names.concat(),
+        };
+        Err(invalid(
+            &loc,
+            format!("unknown {what} \"{word}\" (expected {expected})"),
+        ))
     }
 
     pub(crate) fn string_opt(&self, name: &str) -> Result<Option<(String, Location)>, SceneError> {
@@ -332,6 +414,24 @@ impl Props {
             }
         }
         out
+    }
+
+    /// The nested object of `category`, if there is one, consumed as by
+    /// [`Props::children_of`]; a second is an error at its element, "{owner} has more than one
+    /// {category}".
+    pub(crate) fn at_most_one(
+        &self,
+        category: Category,
+        owner: &str,
+    ) -> Result<Option<Resolved>, SceneError> {
+        match self.children_of(category).as_slice() {
+            [] => Ok(None),
+            [one] => Ok(Some(one.clone())),
+            [_, second, ..] => Err(invalid(
+                &second.loc,
+                format!("{owner} has more than one {}", category.tag()),
+            )),
+        }
     }
 
     /// Error on the first property or nested object that no one consumed.

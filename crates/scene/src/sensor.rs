@@ -11,13 +11,7 @@ use crate::xml::{invalid, Category};
 pub(crate) fn sensor(ctx: &mut Ctx, r: &Resolved) -> Result<SensorDesc, SceneError> {
     let p = ctx.props(&r.node)?;
     if p.plugin() != "perspective" {
-        return Err(invalid(
-            p.loc(),
-            format!(
-                "unsupported sensor type '{}' (supported: perspective)",
-                p.plugin()
-            ),
-        ));
+        return Err(p.unsupported("sensor", "perspective"));
     }
     let (fov, fov_axis) = fov(&p)?;
     let to_world_d = p.transform("to_world")?;
@@ -51,21 +45,17 @@ pub(crate) fn sensor(ctx: &mut Ctx, r: &Resolved) -> Result<SensorDesc, SceneErr
         }
     }
 
-    let films = p.children_of(Category::Film);
-    let film = match films.as_slice() {
-        [] => FilmDesc {
+    let film = match p.at_most_one(Category::Film, "sensor")? {
+        None => FilmDesc {
             width: 768,
             height: 576,
             rfilter: RFilter::Gaussian { stddev: 0.5 },
         },
-        [f] => film(ctx, f)?,
-        [_, second, ..] => return Err(invalid(&second.loc, "sensor has more than one film")),
+        Some(f) => film(ctx, &f)?,
     };
-    let samplers = p.children_of(Category::Sampler);
-    let (sample_count, seed) = match samplers.as_slice() {
-        [] => (4, 0),
-        [s] => sampler(ctx, s)?,
-        [_, second, ..] => return Err(invalid(&second.loc, "sensor has more than one sampler")),
+    let (sample_count, seed) = match p.at_most_one(Category::Sampler, "sensor")? {
+        None => (4, 0),
+        Some(s) => sampler(ctx, &s)?,
     };
     p.finish()?;
     Ok(SensorDesc {
@@ -143,13 +133,7 @@ fn fov(p: &Props) -> Result<(f32, FovAxis), SceneError> {
 fn film(ctx: &Ctx, r: &Resolved) -> Result<FilmDesc, SceneError> {
     let p = ctx.props(&r.node)?;
     if p.plugin() != "hdrfilm" {
-        return Err(invalid(
-            p.loc(),
-            format!(
-                "unsupported film type '{}' (supported: hdrfilm)",
-                p.plugin()
-            ),
-        ));
+        return Err(p.unsupported("film", "hdrfilm"));
     }
     let limits = &ctx.limits;
     let side = limits.max_film_side as i64;
@@ -172,11 +156,9 @@ fn film(ctx: &Ctx, r: &Resolved) -> Result<FilmDesc, SceneError> {
     }
     let _ = p.bool("banner", true)?;
     let _ = p.bool("high_quality_edges", false)?;
-    let filters = p.children_of(Category::RFilter);
-    let rfilter = match filters.as_slice() {
-        [] => RFilter::Gaussian { stddev: 0.5 },
-        [f] => rfilter(ctx, f)?,
-        [_, second, ..] => return Err(invalid(&second.loc, "film has more than one rfilter")),
+    let rfilter = match p.at_most_one(Category::RFilter, "film")? {
+        None => RFilter::Gaussian { stddev: 0.5 },
+        Some(f) => rfilter(ctx, &f)?,
     };
     p.finish()?;
     Ok(FilmDesc {
@@ -217,12 +199,7 @@ fn rfilter(ctx: &Ctx, r: &Resolved) -> Result<RFilter, SceneError> {
         "gaussian" => RFilter::Gaussian {
             stddev: checked(p.float("stddev", 0.5)?, "stddev", 4.0)?,
         },
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!("unsupported rfilter type '{other}' (supported: box, tent, gaussian)"),
-            ))
-        }
+        _ => return Err(p.unsupported("rfilter", "box, tent, gaussian")),
     };
     p.finish()?;
     Ok(f)
@@ -247,12 +224,10 @@ fn sampler(ctx: &mut Ctx, r: &Resolved) -> Result<(u32, u64), SceneError> {
                 p.plugin()
             ));
         }
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!("unsupported sampler type '{other}' (supported: independent; stratified, multijitter, ldsampler, orthogonal treated as independent)"),
-            ))
-        }
+        _ => return Err(p.unsupported(
+            "sampler",
+            "independent; stratified, multijitter, ldsampler, orthogonal treated as independent",
+        )),
     }
     let max_spp = ctx.limits.max_spp.min(u32::MAX as u64) as i64;
     let sample_count = p.int_limited("sample_count", 4, 1, max_spp, "Limits::max_spp")? as u32;

@@ -52,30 +52,29 @@ pub(crate) fn const_color(p: &Props, name: &str, default: Vec3) -> Result<Vec3, 
     if let Some(c) = p.color_opt(name)? {
         return Ok(c);
     }
-    if let Some(child) = p.named_child(name) {
-        return Err(invalid(
-            &child.loc,
-            format!(
-                "parameter '{name}' of {}: a textured value is not supported, use <rgb>",
-                p.what()
-            ),
-        ));
-    }
+    refuse_texture(p, name, "<rgb>")?;
     Ok(default)
 }
 
 /// A scalar that must be constant (roughness); textured values are rejected.
 pub(crate) fn const_float(p: &Props, name: &str, default: f32) -> Result<f32, SceneError> {
-    if let Some(child) = p.named_child(name) {
-        return Err(invalid(
+    refuse_texture(p, name, "<float>")?;
+    p.float(name, default)
+}
+
+/// An error at the nested or referenced texture given as parameter `name`, if there is one:
+/// the parameter must be a constant, written as `constant` ("<rgb>").
+fn refuse_texture(p: &Props, name: &str, constant: &str) -> Result<(), SceneError> {
+    match p.named_child(name) {
+        Some(child) => Err(invalid(
             &child.loc,
             format!(
-                "parameter '{name}' of {}: a textured value is not supported, use <float>",
+                "parameter '{name}' of {}: a textured value is not supported, use {constant}",
                 p.what()
             ),
-        ));
+        )),
+        None => Ok(()),
     }
-    p.float(name, default)
 }
 
 /// Mitsuba's conversion of a 4x4 `to_uv` to a 2D affine map: upper-left 2x2
@@ -101,12 +100,7 @@ pub(crate) fn texture(ctx: &mut Ctx, r: &Resolved) -> Result<usize, SceneError> 
     let desc = match p.plugin() {
         "bitmap" => bitmap(ctx, &p)?,
         "checkerboard" => checkerboard(&p)?,
-        other => {
-            return Err(invalid(
-                p.loc(),
-                format!("unsupported texture type '{other}' (supported: bitmap, checkerboard)"),
-            ))
-        }
+        _ => return Err(p.unsupported("texture", "bitmap, checkerboard")),
     };
     p.finish()?;
     ctx.textures.push(desc);
@@ -131,33 +125,27 @@ fn bitmap(ctx: &mut Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     let (name, loc) = p
         .string_opt("filename")?
         .ok_or_else(|| invalid(p.loc(), "bitmap texture requires a 'filename' parameter"))?;
-    let filter = match p.string_opt("filter_type")? {
-        None => TexFilter::Bilinear,
-        Some((s, l)) => match s.as_str() {
-            "bilinear" => TexFilter::Bilinear,
-            "nearest" => TexFilter::Nearest,
-            _ => {
-                return Err(invalid(
-                    &l,
-                    format!("unknown filter_type \"{s}\" (expected bilinear or nearest)"),
-                ))
-            }
-        },
-    };
-    let wrap = match p.string_opt("wrap_mode")? {
-        None => WrapMode::Repeat,
-        Some((s, l)) => match s.as_str() {
-            "repeat" => WrapMode::Repeat,
-            "mirror" => WrapMode::Mirror,
-            "clamp" => WrapMode::Clamp,
-            _ => {
-                return Err(invalid(
-                    &l,
-                    format!("unknown wrap_mode \"{s}\" (expected repeat, mirror or clamp)"),
-                ))
-            }
-        },
-    };
+    let filter = p.keyword(
+        "filter_type",
+        "filter_type",
+        TexFilter::Bilinear,
+        &[
+            ("bilinear", TexFilter::Bilinear),
+            ("nearest", TexFilter::Nearest),
+        ],
+        false,
+    )?;
+    let wrap = p.keyword(
+        "wrap_mode",
+        "wrap_mode",
+        WrapMode::Repeat,
+        &[
+            ("repeat", WrapMode::Repeat),
+            ("mirror", WrapMode::Mirror),
+            ("clamp", WrapMode::Clamp),
+        ],
+        false,
+    )?;
     let raw = p.bool("raw", false)?;
     let to_uv = uv_transform(p.transform("to_uv")?);
     // `accel` only selects Mitsuba's hardware texture path: no effect here.

@@ -6,166 +6,149 @@ use common::*;
 use pathfarm_scene::*;
 use std::path::PathBuf;
 
-#[test]
-fn malformed_xml_reports_the_line_of_the_syntax_error() {
-    let xml = "<scene version=\"3.0.0\">\n<sensor type=\"perspective\">\n<float name=\"fov\" value=\"45\">\n</sensor>\n</scene>\n";
-    let p = write_scene("malformed", xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, 4, &["malformed XML"]);
+/// Where a case's error must be reported: a line number, or the first line containing a text.
+enum At {
+    Line(u32),
+    First(&'static str),
 }
 
 #[test]
-fn unknown_plugin_type_is_reported_at_its_element() {
-    let xml = scene("<shape type=\"rectangle\"/>\n<shape type=\"torus\"/>");
-    let p = write_scene("unknown-plugin", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "torus"), &["torus"]);
-}
-
-#[test]
-fn unknown_integrator_type_is_rejected() {
-    let xml = scene("<integrator type=\"bdpt\"/>");
-    let p = write_scene("unknown-integrator", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "bdpt"), &["bdpt", "integrator"]);
-}
-
-#[test]
-fn misspelt_parameter_is_reported_at_its_line() {
-    let xml = scene(
-        "<bsdf type=\"roughconductor\" id=\"m\">\n  <float name=\"alpha\" value=\"0.2\"/>\n  <float name=\"alpah\" value=\"0.3\"/>\n</bsdf>",
+fn bad_scenes_are_reported_at_the_line_at_fault() {
+    // (case and scene directory name, scene text, where the error is, what its message says)
+    let cases: Vec<(&str, String, At, &[&str])> = vec![
+        (
+            "malformed",
+            "<scene version=\"3.0.0\">\n<sensor type=\"perspective\">\n<float name=\"fov\" value=\"45\">\n</sensor>\n</scene>\n".into(),
+            At::Line(4),
+            &["malformed XML"],
+        ),
+        (
+            "unknown-plugin",
+            scene("<shape type=\"rectangle\"/>\n<shape type=\"torus\"/>"),
+            At::First("torus"),
+            &["torus"],
+        ),
+        (
+            "unknown-integrator",
+            scene("<integrator type=\"bdpt\"/>"),
+            At::First("bdpt"),
+            &["bdpt", "integrator"],
+        ),
+        (
+            "unknown-param",
+            scene("<bsdf type=\"roughconductor\" id=\"m\">\n  <float name=\"alpha\" value=\"0.2\"/>\n  <float name=\"alpah\" value=\"0.3\"/>\n</bsdf>"),
+            At::First("alpah"),
+            &["alpah", "roughconductor"],
+        ),
+        (
+            "missing-mesh",
+            scene(&mesh_shape("obj", "nothere.obj")),
+            At::First("nothere.obj"),
+            &["nothere.obj"],
+        ),
+        (
+            "missing-texture",
+            scene("<shape type=\"cube\"><bsdf type=\"diffuse\">\n<texture type=\"bitmap\" name=\"reflectance\">\n  <string name=\"filename\" value=\"gone.png\"/>\n</texture></bsdf></shape>"),
+            At::First("gone.png"),
+            &["gone.png"],
+        ),
+        (
+            "undefined-ref",
+            scene("<shape type=\"cube\">\n  <ref id=\"NoSuchBSDF\"/>\n</shape>"),
+            At::First("NoSuchBSDF"),
+            &["NoSuchBSDF"],
+        ),
+        (
+            "wrong-type",
+            scene("<shape type=\"sphere\">\n  <string name=\"radius\" value=\"1\"/>\n</shape>"),
+            At::First("radius"),
+            &["radius", "string", "float"],
+        ),
+        (
+            "bad-number",
+            "<scene version=\"3.0.0\">\n<sensor type=\"perspective\">\n  <float name=\"fov\" value=\"4x5\"/>\n</sensor>\n</scene>\n".into(),
+            At::Line(3),
+            &["4x5"],
+        ),
+        (
+            // A sphere's transform must be a similarity.
+            "ellipsoid",
+            scene("<shape type=\"sphere\">\n<transform name=\"to_world\"><scale x=\"1\" y=\"2\" z=\"1\"/></transform>\n</shape>"),
+            At::First("<shape"),
+            &["similarity"],
+        ),
+        (
+            "textured-alpha",
+            scene("<bsdf type=\"roughconductor\">\n<texture type=\"checkerboard\" name=\"alpha\"/>\n</bsdf>"),
+            At::First("checkerboard"),
+            &["alpha", "not supported"],
+        ),
+        (
+            "spectral-list",
+            scene("<bsdf type=\"diffuse\">\n<spectrum name=\"reflectance\" value=\"400:0.1, 700:0.5\"/>\n</bsdf>"),
+            At::First("spectrum"),
+            &["not supported"],
+        ),
+        (
+            "no-sensor",
+            "<scene version=\"3.0.0\">\n<shape type=\"cube\"/>\n</scene>\n".into(),
+            At::Line(1),
+            &["no sensor"],
+        ),
+        (
+            // A reference cycle is an error, not a stack overflow.
+            "cycle",
+            scene("<bsdf type=\"twosided\" id=\"a\">\n  <ref id=\"a\"/>\n</bsdf>"),
+            At::First("<ref"),
+            &["cycle"],
+        ),
+        (
+            "unknown-element",
+            scene("<shape type=\"cube\">\n  <colour name=\"x\" value=\"1\"/>\n</shape>"),
+            At::First("colour"),
+            &["colour"],
+        ),
+        (
+            "include",
+            scene("<include filename=\"other.xml\"/>"),
+            At::First("include"),
+            &["not supported"],
+        ),
+    ];
+    check_cases(
+        cases,
+        |case| case.0.to_string(),
+        |(name, xml, at, needles)| {
+            let p = write_scene(name, &xml);
+            let line = match at {
+                At::Line(l) => l,
+                At::First(text) => line_of(&xml, text),
+            };
+            assert_invalid_at(&load_scene(&p, &[]).unwrap_err(), &p, line, needles);
+        },
     );
-    let p = write_scene("unknown-param", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
-        &p,
-        line_of(&xml, "alpah"),
-        &["alpah", "roughconductor"],
-    );
-}
-
-#[test]
-fn missing_mesh_file_names_the_mesh_and_the_referencing_line() {
-    let xml = scene(
-        "<shape type=\"obj\">\n  <string name=\"filename\" value=\"nothere.obj\"/>\n</shape>",
-    );
-    let p = write_scene("missing-mesh", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "nothere.obj"), &["nothere.obj"]);
-}
-
-#[test]
-fn missing_texture_file_names_the_image_and_the_referencing_line() {
-    let xml = scene(
-        "<shape type=\"cube\"><bsdf type=\"diffuse\">\n<texture type=\"bitmap\" name=\"reflectance\">\n  <string name=\"filename\" value=\"gone.png\"/>\n</texture></bsdf></shape>",
-    );
-    let p = write_scene("missing-texture", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "gone.png"), &["gone.png"]);
 }
 
 #[test]
 fn nan_vertex_in_obj_is_rejected_naming_the_mesh_file() {
-    let d = temp_dir("nan-obj");
-    std::fs::write(d.join("bad.obj"), "v 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n").unwrap();
-    let xml =
-        scene("<shape type=\"obj\">\n  <string name=\"filename\" value=\"bad.obj\"/>\n</shape>");
-    let p = d.join("scene.xml");
-    std::fs::write(&p, &xml).unwrap();
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
-        &p,
-        line_of(&xml, "bad.obj"),
-        &["bad.obj", "non-finite"],
+    let (p, xml, _) = mesh_scene(
+        "nan-obj",
+        "obj",
+        "bad.obj",
+        b"v 0 0 0\nv 1 nan 0\nv 0 1 0\nf 1 2 3\n",
     );
+    assert_load_fails_at(&p, &xml, "bad.obj", &["bad.obj", "non-finite"]);
 }
 
 #[test]
 fn out_of_range_index_in_ply_is_rejected() {
-    let d = temp_dir("bad-ply");
-    std::fs::write(
-        d.join("bad.ply"),
-        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
-    )
-    .unwrap();
-    let xml =
-        scene("<shape type=\"ply\">\n  <string name=\"filename\" value=\"bad.ply\"/>\n</shape>");
-    let p = d.join("scene.xml");
-    std::fs::write(&p, &xml).unwrap();
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
-        &p,
-        line_of(&xml, "bad.ply"),
-        &["bad.ply", "out of range"],
+    let (p, xml, _) = mesh_scene(
+        "bad-ply",
+        "ply",
+        "bad.ply",
+        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
     );
-}
-
-#[test]
-fn undefined_ref_id_is_reported_at_the_ref() {
-    let xml = scene("<shape type=\"cube\">\n  <ref id=\"NoSuchBSDF\"/>\n</shape>");
-    let p = write_scene("undefined-ref", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "NoSuchBSDF"), &["NoSuchBSDF"]);
-}
-
-#[test]
-fn wrong_property_type_is_reported_at_the_property() {
-    let xml = scene("<shape type=\"sphere\">\n  <string name=\"radius\" value=\"1\"/>\n</shape>");
-    let p = write_scene("wrong-type", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
-        &p,
-        line_of(&xml, "radius"),
-        &["radius", "string", "float"],
-    );
-}
-
-#[test]
-fn malformed_number_is_reported_at_its_line() {
-    let xml = "<scene version=\"3.0.0\">\n<sensor type=\"perspective\">\n  <float name=\"fov\" value=\"4x5\"/>\n</sensor>\n</scene>\n";
-    let p = write_scene("bad-number", xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, 3, &["4x5"]);
-}
-
-#[test]
-fn non_uniform_sphere_transform_is_rejected() {
-    let xml = scene("<shape type=\"sphere\">\n<transform name=\"to_world\"><scale x=\"1\" y=\"2\" z=\"1\"/></transform>\n</shape>");
-    let p = write_scene("ellipsoid", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "<shape"), &["similarity"]);
-}
-
-#[test]
-fn textured_roughness_and_spectral_lists_are_unsupported() {
-    let xml = scene(
-        "<bsdf type=\"roughconductor\">\n<texture type=\"checkerboard\" name=\"alpha\"/>\n</bsdf>",
-    );
-    let p = write_scene("textured-alpha", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
-        &p,
-        line_of(&xml, "checkerboard"),
-        &["alpha", "not supported"],
-    );
-
-    let xml = scene("<bsdf type=\"diffuse\">\n<spectrum name=\"reflectance\" value=\"400:0.1, 700:0.5\"/>\n</bsdf>");
-    let p = write_scene("spectral-list", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "spectrum"), &["not supported"]);
-}
-
-#[test]
-fn scene_without_sensor_is_an_error() {
-    let xml = "<scene version=\"3.0.0\">\n<shape type=\"cube\"/>\n</scene>\n";
-    let p = write_scene("no-sensor", xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, 1, &["no sensor"]);
+    assert_load_fails_at(&p, &xml, "bad.ply", &["bad.ply", "out of range"]);
 }
 
 #[test]
@@ -175,34 +158,6 @@ fn missing_scene_file_is_an_io_error_naming_it() {
         SceneError::Io { file, .. } => assert_eq!(file, p),
         e => panic!("{e:?}"),
     }
-}
-
-#[test]
-fn reference_cycle_is_an_error_not_a_stack_overflow() {
-    let xml = scene("<bsdf type=\"twosided\" id=\"a\">\n  <ref id=\"a\"/>\n</bsdf>");
-    let p = write_scene("cycle", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "<ref"), &["cycle"]);
-}
-
-#[test]
-fn unknown_element_and_include_are_rejected() {
-    let xml = scene("<shape type=\"cube\">\n  <colour name=\"x\" value=\"1\"/>\n</shape>");
-    let p = write_scene("unknown-element", &xml);
-    assert_invalid_at(
-        &load_scene(&p, &[]).unwrap_err(),
-        &p,
-        line_of(&xml, "colour"),
-        &["colour"],
-    );
-    let xml = scene("<include filename=\"other.xml\"/>");
-    let p = write_scene("include", &xml);
-    assert_invalid_at(
-        &load_scene(&p, &[]).unwrap_err(),
-        &p,
-        line_of(&xml, "include"),
-        &["not supported"],
-    );
 }
 
 #[test]
@@ -244,13 +199,7 @@ fn mesh_error(
     mesh: &[u8],
     shape_body: &str,
 ) -> (SceneError, PathBuf, String) {
-    let d = temp_dir(tag);
-    std::fs::write(d.join(name), mesh).unwrap();
-    let xml = scene(&format!(
-        "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{name}\"/>{shape_body}\n</shape>"
-    ));
-    let p = d.join("scene.xml");
-    std::fs::write(&p, &xml).unwrap();
+    let (p, xml, _) = mesh_scene_with(tag, kind, name, mesh, shape_body);
     let err = load_scene(&p, &[]).expect_err(tag);
     (err, p, xml)
 }

@@ -50,21 +50,17 @@ fn write_png(path: &Path) {
         .unwrap();
 }
 
-/// A shape of plugin `kind` (obj or ply) loading `file`.
-fn mesh_shape(kind: &str, file: &str) -> String {
-    format!("<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{file}\"/>\n</shape>")
-}
-
-/// `scene(body)` written as `dir/scene.xml`; returns its path and text.
-fn write_scene_in(dir: &Path, body: &str) -> (PathBuf, String) {
-    let xml = scene(body);
-    let p = dir.join("scene.xml");
-    write(&p, xml.as_bytes());
-    (p, xml)
-}
-
 fn load_confined(p: &Path) -> Result<SceneDesc, SceneError> {
     load_scene_with_limits(p, &[], &confined())
+}
+
+/// `scene(body)` written in `dir`: loading it with confinement fails at the line of its
+/// `filename` with every string of `needles` in the message. Returns the scene's path.
+fn assert_confined_fails(dir: &Path, body: &str, needles: &[&str]) -> PathBuf {
+    let (p, xml) = write_scene_in(dir, body);
+    let err = load_confined(&p).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "filename"), needles);
+    p
 }
 
 #[test]
@@ -128,12 +124,9 @@ fn confinement_refuses_absolute_paths() {
     let outside = d.join("outside/abs.obj");
     write(&outside, TRI_OBJ.as_bytes());
     for name in ["/etc/passwd", outside.to_str().unwrap()] {
-        let (p, xml) = write_scene_in(&d.join("scene"), &mesh_shape("obj", name));
-        let err = load_confined(&p).unwrap_err();
-        assert_invalid_at(
-            &err,
-            &p,
-            line_of(&xml, "filename"),
+        assert_confined_fails(
+            &d.join("scene"),
+            &mesh_shape("obj", name),
             &[name, "absolute", "confine_files"],
         );
     }
@@ -152,12 +145,9 @@ fn confinement_refuses_parent_components_even_when_they_stay_inside() {
     write(&d.join("scene/x.obj"), TRI_OBJ.as_bytes());
     write(&d.join("scene/sub/y.obj"), TRI_OBJ.as_bytes());
     for name in ["../x.obj", "sub/../x.obj", "sub/../../x.obj", ".."] {
-        let (p, xml) = write_scene_in(&d.join("scene"), &mesh_shape("obj", name));
-        let err = load_confined(&p).unwrap_err();
-        assert_invalid_at(
-            &err,
-            &p,
-            line_of(&xml, "filename"),
+        assert_confined_fails(
+            &d.join("scene"),
+            &mesh_shape("obj", name),
             &[&format!("'{name}'"), "'..'", "confine_files"],
         );
     }
@@ -183,13 +173,10 @@ fn confinement_refuses_symlinks_that_lead_outside_and_accepts_those_that_stay_in
         mesh_shape("obj", "ext/x.obj"),
         texture.to_string(),
     ] {
-        let (p, xml) = write_scene_in(&d.join("scene"), &body);
-        let err = load_confined(&p).unwrap_err();
         let outside = std::fs::canonicalize(d.join("outside")).unwrap();
-        assert_invalid_at(
-            &err,
-            &p,
-            line_of(&xml, "filename"),
+        let p = assert_confined_fails(
+            &d.join("scene"),
+            &body,
             &[
                 "symbolic link",
                 &outside.display().to_string(),
@@ -238,13 +225,7 @@ fn confinement_accepts_subdirectories_and_applies_to_textures_and_envmaps() {
             sky.display().to_string(),
         ),
     ] {
-        let (p, xml) = write_scene_in(&d.join("scene"), &body);
-        assert_invalid_at(
-            &load_confined(&p).unwrap_err(),
-            &p,
-            line_of(&xml, "filename"),
-            &[&name, "confine_files"],
-        );
+        let p = assert_confined_fails(&d.join("scene"), &body, &[&name, "confine_files"]);
         load_scene(&p, &[]).unwrap();
     }
 }
@@ -252,11 +233,9 @@ fn confinement_accepts_subdirectories_and_applies_to_textures_and_envmaps() {
 #[test]
 fn confinement_reports_a_missing_file_by_name_and_line() {
     let (d, _cleanup) = test_dir("confine-missing");
-    let (p, xml) = write_scene_in(&d, &mesh_shape("obj", "models/gone.obj"));
-    assert_invalid_at(
-        &load_confined(&p).unwrap_err(),
-        &p,
-        line_of(&xml, "filename"),
+    assert_confined_fails(
+        &d,
+        &mesh_shape("obj", "models/gone.obj"),
         &["models/gone.obj", "No such file"],
     );
 }

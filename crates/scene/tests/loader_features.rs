@@ -263,12 +263,11 @@ fn obj_v_is_flipped_but_ply_v_is_not() {
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty float u\nproperty float v\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 0.25 0.1\n1 0 0 0.5 0.2\n0 1 0 0.75 0.3\n3 0 1 2\n",
     )
     .unwrap();
-    let xml = scene(
+    let (p, _) = write_scene_in(
+        &d,
         r#"<shape type="obj"><string name="filename" value="tri.obj"/></shape>
 <shape type="ply"><string name="filename" value="tri.ply"/></shape>"#,
     );
-    let p = d.join("scene.xml");
-    std::fs::write(&p, xml).unwrap();
     let s = load_scene(&p, &[]).unwrap();
     let uv_at = |i: usize, pos: Vec3| {
         let Geometry::Mesh(m) = &s.shapes[i].geometry else {
@@ -300,13 +299,12 @@ fn png_bytes_are_linearised_with_the_srgb_curve_unless_raw() {
     let img16 =
         image::ImageBuffer::<image::Luma<u16>, _>::from_pixel(1, 1, image::Luma([32896u16]));
     img16.save(d.join("g16.png")).unwrap();
-    let xml = scene(
+    let (p, _) = write_scene_in(
+        &d,
         r#"<texture type="bitmap" id="t"><string name="filename" value="c.png"/><string name="filter_type" value="nearest"/><string name="wrap_mode" value="clamp"/></texture>
 <texture type="bitmap" id="raw"><string name="filename" value="c.png"/><boolean name="raw" value="true"/></texture>
 <texture type="bitmap" id="g"><string name="filename" value="g16.png"/></texture>"#,
     );
-    let p = d.join("scene.xml");
-    std::fs::write(&p, xml).unwrap();
     let s = load_scene(&p, &[]).unwrap();
     let TextureDesc::Bitmap(b) = &s.textures[0] else {
         panic!()
@@ -438,12 +436,11 @@ fn envmap_loads_linear_exr_with_scale_and_transform() {
     let d = temp_dir("envmap");
     exr::prelude::write_rgb_file(d.join("sky.exr"), 4, 2, |x, y| (x as f32, y as f32, 2.5))
         .unwrap();
-    let xml = scene(
+    let (p, _) = write_scene_in(
+        &d,
         r#"<emitter type="envmap"><string name="filename" value="sky.exr"/><float name="scale" value="3"/>
 <transform name="to_world"><rotate y="1" angle="90"/></transform></emitter>"#,
     );
-    let p = d.join("scene.xml");
-    std::fs::write(&p, xml).unwrap();
     let s = load_scene(&p, &[]).unwrap();
     let EmitterDesc::EnvMap {
         width,

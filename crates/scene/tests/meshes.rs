@@ -5,22 +5,10 @@
 mod common;
 
 use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use common::*;
 use pathfarm_scene::{load_scene, load_scene_with_limits, Geometry, Limits, SceneDesc, SceneError};
-
-/// A scene in a fresh directory `name` with one `type` shape loading `file` (written with
-/// `contents`); returns the scene path, its text and the mesh path.
-fn mesh_scene(name: &str, kind: &str, file: &str, contents: &[u8]) -> (PathBuf, String, PathBuf) {
-    let xml = scene(&format!(
-        "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{file}\"/>\n</shape>"
-    ));
-    let p = write_scene(name, &xml);
-    let mesh = p.parent().unwrap().join(file);
-    std::fs::write(&mesh, contents).unwrap();
-    (p, xml, mesh)
-}
 
 fn cleanup(scene: &Path) {
     let _ = std::fs::remove_dir_all(scene.parent().unwrap());
@@ -52,29 +40,26 @@ fn polygon_obj(n: usize, negative: bool) -> String {
     s
 }
 
+/// The scene of one [`polygon_obj`]`(n, negative)`, loaded from a fresh directory `name`
+/// (removed again).
+fn load_polygon(name: &str, n: usize, negative: bool) -> SceneDesc {
+    let obj = polygon_obj(n, negative);
+    let (p, _, _) = mesh_scene(name, "obj", "poly.obj", obj.as_bytes());
+    let s = load_scene(&p, &[]).unwrap();
+    cleanup(&p);
+    s
+}
+
 #[test]
 fn obj_polygon_of_30000_vertices_loads_as_29998_triangles() {
-    let (p, _, _) = mesh_scene(
-        "poly30k",
-        "obj",
-        "poly.obj",
-        polygon_obj(30_000, false).as_bytes(),
-    );
-    let s = load_scene(&p, &[]).unwrap();
+    let s = load_polygon("poly30k", 30_000, false);
     assert_eq!(triangles(&s), 29_998);
-    cleanup(&p);
 }
 
 #[test]
 fn obj_polygon_of_600000_indices_loads() {
     // Relative indices, for good measure.
-    let (p, _, _) = mesh_scene(
-        "poly600k",
-        "obj",
-        "poly.obj",
-        polygon_obj(600_000, true).as_bytes(),
-    );
-    let s = load_scene(&p, &[]).unwrap();
+    let s = load_polygon("poly600k", 600_000, true);
     assert_eq!(triangles(&s), 599_998);
     match &s.shapes[0].geometry {
         Geometry::Mesh(m) => {
@@ -86,16 +71,14 @@ fn obj_polygon_of_600000_indices_loads() {
         }
         _ => unreachable!(),
     }
-    cleanup(&p);
 }
 
 /// The error loading `contents` as an OBJ: at the filename's scene line, naming the file and
 /// containing `needle`.
 fn obj_error(name: &str, contents: &[u8], needle: &str) -> String {
     let (p, xml, mesh) = mesh_scene(name, "obj", "x.obj", contents);
-    let err = load_scene(&p, &[]).unwrap_err();
     let prefix = format!("mesh file '{}': ", mesh.display());
-    assert_invalid_at(&err, &p, line_of(&xml, "x.obj"), &[&prefix, needle]);
+    let err = assert_load_fails_at(&p, &xml, "x.obj", &[&prefix, needle]);
     cleanup(&p);
     err.to_string()
 }
@@ -232,11 +215,10 @@ fn ply_header_announcing_2_pow_31_vertices_in_a_tiny_file_is_refused() {
     let n = 1u64 << 31;
     let bytes = ply_bytes("binary_little_endian", n, 1, &binary_triangle());
     let (p, xml, _) = mesh_scene("ply-huge-bin", "ply", "x.ply", &bytes);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
+    assert_load_fails_at(
         &p,
-        line_of(&xml, "x.ply"),
+        &xml,
+        "x.ply",
         &[
             "x.ply",
             "PLY header line 3: element 'vertex' announces 2147483648 elements of at least \
@@ -248,11 +230,10 @@ fn ply_header_announcing_2_pow_31_vertices_in_a_tiny_file_is_refused() {
 
     let bytes = ply_bytes("ascii", n, 1, b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
     let (p, xml, _) = mesh_scene("ply-huge-ascii", "ply", "x.ply", &bytes);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(
-        &err,
+    assert_load_fails_at(
         &p,
-        line_of(&xml, "x.ply"),
+        &xml,
+        "x.ply",
         &["element 'vertex' announces 2147483648 elements of at least 2 bytes each"],
     );
     cleanup(&p);
@@ -373,16 +354,13 @@ fn mesh_counts_above_the_limits_are_refused() {
 #[test]
 fn a_directory_given_as_a_mesh_is_reported_as_a_directory() {
     for kind in ["obj", "ply"] {
-        let xml = scene(&format!(
-            "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"meshes\"/>\n</shape>"
-        ));
+        let xml = scene(&mesh_shape(kind, "meshes"));
         let p = write_scene(&format!("dir-mesh-{kind}"), &xml);
         std::fs::create_dir(p.parent().unwrap().join("meshes")).unwrap();
-        let err = load_scene(&p, &[]).unwrap_err();
-        assert_invalid_at(
-            &err,
+        let err = assert_load_fails_at(
             &p,
-            line_of(&xml, "meshes"),
+            &xml,
+            "meshes",
             &["meshes': is a directory, not a mesh file"],
         );
         assert!(!err.to_string().contains("read error"), "{err}");
@@ -404,12 +382,9 @@ fn chain(err: &SceneError) -> String {
 #[test]
 fn a_missing_mesh_file_prints_its_os_error_once() {
     for kind in ["obj", "ply"] {
-        let xml = scene(&format!(
-            "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"gone.{kind}\"/>\n</shape>"
-        ));
+        let xml = scene(&mesh_shape(kind, &format!("gone.{kind}")));
         let p = write_scene(&format!("gone-{kind}"), &xml);
-        let err = load_scene(&p, &[]).unwrap_err();
-        assert_invalid_at(&err, &p, line_of(&xml, "gone."), &["cannot read: "]);
+        let err = assert_load_fails_at(&p, &xml, "gone.", &["cannot read: "]);
         let shown = chain(&err);
         assert_eq!(shown.matches("os error 2").count(), 1, "{shown}");
         cleanup(&p);
@@ -435,18 +410,14 @@ fn world_coordinates_beyond_1e18_are_refused_at_the_shape() {
         ("disk", ""),
     ] {
         // 1e17 is fine.
-        let ok = scene(&shape(kind, inner, "1e17"));
-        std::fs::write(d.join("scene.xml"), &ok).unwrap();
-        load_scene(&d.join("scene.xml"), &[]).unwrap_or_else(|e| panic!("{kind}: {e}"));
+        let (ok, _) = write_scene_in(&d, &shape(kind, inner, "1e17"));
+        load_scene(&ok, &[]).unwrap_or_else(|e| panic!("{kind}: {e}"));
 
-        let xml = scene(&shape(kind, inner, "1e20"));
-        let p = d.join("scene.xml");
-        std::fs::write(&p, &xml).unwrap();
-        let err = load_scene(&p, &[]).unwrap_err();
-        assert_invalid_at(
-            &err,
+        let (p, xml) = write_scene_in(&d, &shape(kind, inner, "1e20"));
+        assert_load_fails_at(
             &p,
-            line_of(&xml, "<shape"),
+            &xml,
+            "<shape",
             &[kind, "beyond the bound of 1e18", "32-bit floats"],
         );
     }
@@ -460,11 +431,10 @@ fn sphere_radius_must_be_positive() {
             "<shape type=\"sphere\">\n<float name=\"radius\" value=\"{r}\"/>\n</shape>"
         ));
         let p = write_scene(&format!("radius{r}"), &xml);
-        let err = load_scene(&p, &[]).unwrap_err();
-        assert_invalid_at(
-            &err,
+        let err = assert_load_fails_at(
             &p,
-            line_of(&xml, "radius"),
+            &xml,
+            "radius",
             &[&format!("sphere: radius must be positive, {shown}")],
         );
         assert!(!err.to_string().contains("similarity"), "{err}");
@@ -476,7 +446,6 @@ fn sphere_radius_must_be_positive() {
          <matrix value=\"1 0.5 0 0  0 1 0 0  0 0 1 0  0 0 0 1\"/>\n</transform>\n</shape>",
     );
     let p = write_scene("sheared-sphere", &xml);
-    let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "<shape"), &["similarity"]);
+    assert_load_fails_at(&p, &xml, "<shape", &["similarity"]);
     cleanup(&p);
 }

@@ -390,6 +390,36 @@ pub(crate) fn triangulate(corners: &[u32], out: &mut Vec<[u32; 3]>) {
     }
 }
 
+/// A mesh loader ([`super::obj::load_obj`], [`super::ply::load_ply`]) run on `path` as a
+/// scene's shape would run it, in a context of its own under `limits`: for the loaders' unit
+/// tests, which call it without a scene.
+#[cfg(test)]
+pub(crate) fn load_alone(
+    load: fn(&MeshInput, &mut Budget) -> Result<TriangleMesh, SceneError>,
+    path: &Path,
+    flip_tex_coords: bool,
+    limits: Limits,
+) -> Result<TriangleMesh, SceneError> {
+    let mut ctx = Ctx::new(
+        std::collections::HashMap::new(),
+        std::path::PathBuf::new(),
+        limits,
+    );
+    // (a made-up scene file line for the errors to name)
+    let loc = Location {
+        file: std::path::PathBuf::from("scene.xml"),
+        line: 1,
+    };
+    let input = MeshInput {
+        path,
+        source: format!("mesh file '{}'", path.display()),
+        loc: loc.clone(),
+        flip_tex_coords,
+    };
+    let mut budget = Budget::new(&mut ctx, &loc);
+    load(&input, &mut budget)
+}
+
 #[cfg(test)]
 mod triangulate_tests {
     use super::*;

@@ -24,27 +24,13 @@ pub(crate) fn shape(ctx: &mut Ctx, r: &Resolved) -> Result<ShapeDesc, SceneError
     let p = ctx.props(&r.node)?;
     let geometry = geometry(ctx, &p)?;
 
-    let bsdfs = p.children_of(Category::Bsdf);
-    let bsdf_index = match bsdfs.as_slice() {
-        [] => ctx.default_bsdf(),
-        [b] => bsdf(ctx, b)?,
-        [_, second, ..] => {
-            return Err(invalid(
-                &second.loc,
-                format!("{} has more than one bsdf", p.what()),
-            ))
-        }
+    let bsdf_index = match p.at_most_one(Category::Bsdf, &p.what())? {
+        None => ctx.default_bsdf(),
+        Some(b) => bsdf(ctx, &b)?,
     };
-    let emitters = p.children_of(Category::Emitter);
-    let emitter = match emitters.as_slice() {
-        [] => None,
-        [e] => Some(area_emitter(ctx, e)?),
-        [_, second, ..] => {
-            return Err(invalid(
-                &second.loc,
-                format!("{} has more than one emitter", p.what()),
-            ))
-        }
+    let emitter = match p.at_most_one(Category::Emitter, &p.what())? {
+        None => None,
+        Some(e) => Some(area_emitter(ctx, &e)?),
     };
     p.finish()?;
     Ok(ShapeDesc {
@@ -63,9 +49,12 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
     match p.plugin() {
         "obj" | "ply" => {
             let is_obj = p.plugin() == "obj";
-            let (name, name_loc) = p
-                .string_opt("filename")?
-                .ok_or_else(|| invalid(&loc, format!("{} requires a 'filename' parameter", p.what())))?;
+            let (name, name_loc) = p.string_opt("filename")?.ok_or_else(|| {
+                invalid(
+                    &loc,
+                    format!("{} requires a 'filename' parameter", p.what()),
+                )
+            })?;
             let face_normals = p.bool("face_normals", false)?;
             // Mitsuba: OBJ flips v by default, PLY does not.
             let flip_tex_coords = p.bool("flip_tex_coords", is_obj)?;
@@ -101,8 +90,20 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
         }
         "rectangle" | "cube" => {
             let face_normals = p.bool("face_normals", false)?;
-            let local = if p.plugin() == "rectangle" { primitives::rectangle() } else { primitives::cube() };
-            let m = mesh::finalize(local, to_world, face_normals, flip_normals, p.plugin(), &loc, &loc)?;
+            let local = if p.plugin() == "rectangle" {
+                primitives::rectangle()
+            } else {
+                primitives::cube()
+            };
+            let m = mesh::finalize(
+                local,
+                to_world,
+                face_normals,
+                flip_normals,
+                p.plugin(),
+                &loc,
+                &loc,
+            )?;
             Ok(Geometry::Mesh(Arc::new(m)))
         }
         "sphere" => {
@@ -157,7 +158,10 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
         "disk" => {
             let m = to_world.as_mat4();
             if !m.is_finite() || glam::DMat3::from_mat4(to_world).determinant() == 0.0 {
-                return Err(invalid(&loc, "disk: to_world must be finite and invertible"));
+                return Err(invalid(
+                    &loc,
+                    "disk: to_world must be finite and invertible",
+                ));
             }
             // The unit disk's points are t + a x + b y with a^2 + b^2 <= 1.
             let extent = to_world.w_axis.truncate().abs()
@@ -166,14 +170,17 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
             if !(extent.max_element() <= mesh::MAX_WORLD_COORDINATE) {
                 return Err(invalid(
                     &loc,
-                    format!("disk: in world space it reaches {}", mesh::beyond_bound_message()),
+                    format!(
+                        "disk: in world space it reaches {}",
+                        mesh::beyond_bound_message()
+                    ),
                 ));
             }
-            Ok(Geometry::Disk { to_world: m, flip_normals })
+            Ok(Geometry::Disk {
+                to_world: m,
+                flip_normals,
+            })
         }
-        other => Err(invalid(
-            &loc,
-            format!("unsupported shape type '{other}' (supported: obj, ply, rectangle, cube, sphere, disk)"),
-        )),
+        _ => Err(p.unsupported("shape", "obj, ply, rectangle, cube, sphere, disk")),
     }
 }

@@ -273,15 +273,10 @@ impl<'a> Parser<'a> {
         let mut words = text.split_whitespace();
         match words.next() {
             Some("v") => {
-                let mut p = [0.0f32; 3];
-                for (i, c) in p.iter_mut().enumerate() {
-                    let Some(w) = words.next() else {
-                        return Err(err(format!(
-                            "vertex has {i} coordinates, expected 3 (x y z)"
-                        )));
-                    };
-                    *c = number(w, "vertex coordinate").map_err(err)?;
-                }
+                let mut p = numbers::<3>(&mut words, "vertex coordinate", |i| {
+                    format!("vertex has {i} coordinates, expected 3 (x y z)")
+                })
+                .map_err(err)?;
                 let rest: Vec<&str> = words.by_ref().take(4).collect();
                 match rest.len() {
                     0 | 3 => {} // x y z, or x y z r g b (the colour is ignored)
@@ -301,40 +296,24 @@ impl<'a> Parser<'a> {
                         )));
                     }
                 }
-                if self.pos.len() as u64 >= self.counts.positions {
-                    return Err(err(CHANGED.into()));
-                }
-                self.pos.push(Vec3::from_array(p));
+                push_counted(&mut self.pos, self.counts.positions, Vec3::from_array(p))
+                    .map_err(err)?;
             }
             Some("vt") => {
-                let mut t = [0.0f32; 2];
-                for (i, c) in t.iter_mut().enumerate() {
-                    let Some(w) = words.next() else {
-                        return Err(err(format!(
-                            "texture coordinate has {i} values, expected 2 (u v)"
-                        )));
-                    };
-                    *c = number(w, "texture coordinate").map_err(err)?;
-                }
-                if self.tex.len() as u64 >= self.counts.texcoords {
-                    return Err(err(CHANGED.into()));
-                }
-                self.tex.push(Vec2::from_array(t));
+                let t = numbers::<2>(&mut words, "texture coordinate", |i| {
+                    format!("texture coordinate has {i} values, expected 2 (u v)")
+                })
+                .map_err(err)?;
+                push_counted(&mut self.tex, self.counts.texcoords, Vec2::from_array(t))
+                    .map_err(err)?;
             }
             Some("vn") => {
-                let mut n = [0.0f32; 3];
-                for (i, c) in n.iter_mut().enumerate() {
-                    let Some(w) = words.next() else {
-                        return Err(err(format!(
-                            "normal has {i} components, expected 3 (x y z)"
-                        )));
-                    };
-                    *c = number(w, "normal component").map_err(err)?;
-                }
-                if self.nrm.len() as u64 >= self.counts.normals {
-                    return Err(err(CHANGED.into()));
-                }
-                self.nrm.push(Vec3::from_array(n));
+                let n = numbers::<3>(&mut words, "normal component", |i| {
+                    format!("normal has {i} components, expected 3 (x y z)")
+                })
+                .map_err(err)?;
+                push_counted(&mut self.nrm, self.counts.normals, Vec3::from_array(n))
+                    .map_err(err)?;
             }
             Some("f") => self.face(line, words, budget, what)?,
             Some("o") | Some("g") => self.end_object(),
@@ -490,36 +469,35 @@ impl<'a> Parser<'a> {
             return Err(format!("face corner \"{}\" has no vertex index", shown(w)));
         }
         let v = resolve(parse(v)?, self.pos.len(), "face index", "vertices")?;
-        let t = if t.is_empty() {
-            NONE
-        } else if self.counts.texcoords == 0 {
-            // No `vt` lines: tobj ignores the index, but it still tells corners apart.
-            let x = parse(t)?;
-            if x < 0 {
-                x
-            } else {
-                x - 1
-            }
-        } else {
-            resolve(
-                parse(t)?,
-                self.tex.len(),
-                "texture coordinate index",
-                "texture coordinates",
-            )? as i64
-        };
-        let n = if n.is_empty() {
-            NONE
-        } else if self.counts.normals == 0 {
-            let x = parse(n)?;
-            if x < 0 {
-                x
-            } else {
-                x - 1
-            }
-        } else {
-            resolve(parse(n)?, self.nrm.len(), "normal index", "normals")? as i64
-        };
+        // The texture coordinate or normal index `s`, of a list that has `len` items so far
+        // and `counted` in the whole file.
+        let attribute =
+            |s: &str, counted: u64, len: usize, what: &str, items: &str| -> Result<i64, String> {
+                if s.is_empty() {
+                    Ok(NONE)
+                } else if counted == 0 {
+                    // No `vt` (`vn`) lines: tobj ignores the index, but it still tells corners
+                    // apart.
+                    let x = parse(s)?;
+                    Ok(if x < 0 { x } else { x - 1 })
+                } else {
+                    Ok(resolve(parse(s)?, len, what, items)? as i64)
+                }
+            };
+        let t = attribute(
+            t,
+            self.counts.texcoords,
+            self.tex.len(),
+            "texture coordinate index",
+            "texture coordinates",
+        )?;
+        let n = attribute(
+            n,
+            self.counts.normals,
+            self.nrm.len(),
+            "normal index",
+            "normals",
+        )?;
         Ok((v, t, n))
     }
 
@@ -533,27 +511,41 @@ impl<'a> Parser<'a> {
         if mesh.positions.is_empty() {
             return Ok(mesh);
         }
-        if self.counts.texcoords > 0 && self.all_objects_uv {
-            if let Some((line, corner)) = self.first_without_uv {
-                return Err(format!(
-                    "line {line}: face corner \"{corner}\" has no texture coordinate index, \
-                     but other faces have texture coordinates (give every face texture \
-                     coordinates, or none)"
-                ));
-            }
-            mesh.uvs = Some(self.uvs);
-        }
-        if self.counts.normals > 0 && self.all_objects_normal {
-            if let Some((line, corner)) = self.first_without_normal {
-                return Err(format!(
-                    "line {line}: face corner \"{corner}\" has no normal index, but other \
-                     faces have normals (give every face normals, or none)"
-                ));
-            }
-            mesh.normals = Some(self.normals);
-        }
+        mesh.uvs = kept_attribute(
+            self.uvs,
+            self.counts.texcoords > 0 && self.all_objects_uv,
+            self.first_without_uv,
+            "texture coordinate",
+        )?;
+        mesh.normals = kept_attribute(
+            self.normals,
+            self.counts.normals > 0 && self.all_objects_normal,
+            self.first_without_normal,
+            "normal",
+        )?;
         Ok(mesh)
     }
+}
+
+/// The finished mesh's texture coordinates or normals (`what`): `values` when `kept` (the file
+/// has them and every object with faces used them), and then an error if a corner of such an
+/// object, `first_without` (line, corner), had none.
+fn kept_attribute<T>(
+    values: Vec<T>,
+    kept: bool,
+    first_without: Option<(u64, String)>,
+    what: &str,
+) -> Result<Option<Vec<T>>, String> {
+    if !kept {
+        return Ok(None);
+    }
+    if let Some((line, corner)) = first_without {
+        return Err(format!(
+            "line {line}: face corner \"{corner}\" has no {what} index, but other faces have \
+             {what}s (give every face {what}s, or none)"
+        ));
+    }
+    Ok(Some(values))
 }
 
 /// The position, texture and normal index strings of the face corner `w` (empty if absent).
@@ -587,6 +579,31 @@ fn number(w: &str, what: &str) -> Result<f32, String> {
         .map_err(|_| format!("could not parse {what} \"{}\"", shown(w)))
 }
 
+/// The next `N` words of a `v`, `vt` or `vn` line as numbers, each a `what` in its parse
+/// error; `missing(i)` is the error when the line ends after `i` of them.
+fn numbers<const N: usize>(
+    words: &mut std::str::SplitWhitespace,
+    what: &str,
+    missing: impl Fn(usize) -> String,
+) -> Result<[f32; N], String> {
+    let mut out = [0.0f32; N];
+    for (i, c) in out.iter_mut().enumerate() {
+        let w = words.next().ok_or_else(|| missing(i))?;
+        *c = number(w, what)?;
+    }
+    Ok(out)
+}
+
+/// Append `x` to `list`, of which the counting pass found `counted`: finding more now means
+/// the file changed between the two passes (the vectors were sized by the count).
+fn push_counted<T>(list: &mut Vec<T>, counted: u64, x: T) -> Result<(), String> {
+    if list.len() as u64 >= counted {
+        return Err(CHANGED.into());
+    }
+    list.push(x);
+    Ok(())
+}
+
 /// The 0-based index of the 1-based or negative (relative) OBJ index `x` into a list of
 /// `len` items so far.
 fn resolve(x: i64, len: usize, what: &str, items: &str) -> Result<u32, String> {
@@ -607,14 +624,11 @@ fn resolve(x: i64, len: usize, what: &str, items: &str) -> Result<u32, String> {
 mod tests {
     //! Equivalence with the tobj-based loader this one replaces.
 
-    use std::collections::HashMap;
     use std::path::{Path, PathBuf};
 
     use glam::{Vec2, Vec3};
 
     use super::*;
-    use crate::context::Ctx;
-    use crate::desc::Location;
     use crate::Limits;
 
     /// The loader pathfarm had before, verbatim but for the error type: the oracle.
@@ -690,19 +704,7 @@ mod tests {
     }
 
     fn load_new(path: &Path, flip: bool, limits: Limits) -> Result<TriangleMesh, SceneError> {
-        let mut ctx = Ctx::new(HashMap::new(), PathBuf::new(), limits);
-        let loc = Location {
-            file: PathBuf::from("scene.xml"),
-            line: 7,
-        };
-        let input = MeshInput {
-            path,
-            source: format!("mesh file '{}'", path.display()),
-            loc: loc.clone(),
-            flip_tex_coords: flip,
-        };
-        let mut budget = Budget::new(&mut ctx, &loc);
-        load_obj(&input, &mut budget)
+        crate::shapes::mesh::load_alone(load_obj, path, flip, limits)
     }
 
     fn bits3(v: Vec3) -> [u32; 3] {

@@ -303,6 +303,15 @@ impl<R: BufRead> Elements<'_, R> {
     }
 }
 
+/// The vertex property pairs that hold texture coordinates, the first pair present winning
+/// (Mitsuba's names).
+const UV_PROPERTIES: [(&str, &str); 4] = [
+    ("u", "v"),
+    ("s", "t"),
+    ("texture_u", "texture_v"),
+    ("texture_s", "texture_t"),
+];
+
 /// Read the `vertex` (x y z, optional nx ny nz, optional u v / s t /
 /// texture_u texture_v / texture_s texture_t) and `face` (`vertex_indices`
 /// or `vertex_index` lists, fan-triangulated) elements. Mitsuba does not flip
@@ -348,14 +357,7 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
     let nv = vertices.count;
     let has = |n: &str| nv > 0 && vertices.has(n);
     let has_normals = has("nx") && has("ny") && has("nz");
-    let uv_names = [
-        ("u", "v"),
-        ("s", "t"),
-        ("texture_u", "texture_v"),
-        ("texture_s", "texture_t"),
-    ]
-    .into_iter()
-    .find(|(a, b)| has(a) && has(b));
+    let uv_names = UV_PROPERTIES.into_iter().find(|(u, v)| has(u) && has(v));
 
     // Reserve for the vertices and one triangle per face; polygons reserve more as they come.
     let what = format!("{} ({} vertices, {} faces)", input.source, nv, faces.count);
@@ -483,12 +485,9 @@ mod tests {
     //! Equivalence with the loader this one replaces (the whole file through
     //! `Parser::read_ply`), and the header checks.
 
-    use std::collections::HashMap;
     use std::path::{Path, PathBuf};
 
     use super::*;
-    use crate::context::Ctx;
-    use crate::desc::Location;
     use crate::Limits;
 
     /// The loader pathfarm had before: the oracle.
@@ -505,14 +504,7 @@ mod tests {
         let first = vertices.first();
         let has = |n: &str| first.is_some_and(|e| e.contains_key(n));
         let has_normals = has("nx") && has("ny") && has("nz");
-        let uv_names = [
-            ("u", "v"),
-            ("s", "t"),
-            ("texture_u", "texture_v"),
-            ("texture_s", "texture_t"),
-        ]
-        .into_iter()
-        .find(|(a, b)| has(a) && has(b));
+        let uv_names = UV_PROPERTIES.into_iter().find(|(u, v)| has(u) && has(v));
         let mut normals = Vec::new();
         let mut uvs = Vec::new();
         for e in vertices {
@@ -556,19 +548,7 @@ mod tests {
     }
 
     fn load_new(path: &Path, flip: bool, limits: Limits) -> Result<TriangleMesh, SceneError> {
-        let mut ctx = Ctx::new(HashMap::new(), PathBuf::new(), limits);
-        let loc = Location {
-            file: PathBuf::from("scene.xml"),
-            line: 3,
-        };
-        let input = MeshInput {
-            path,
-            source: format!("mesh file '{}'", path.display()),
-            loc: loc.clone(),
-            flip_tex_coords: flip,
-        };
-        let mut budget = Budget::new(&mut ctx, &loc);
-        load_ply(&input, &mut budget)
+        crate::shapes::mesh::load_alone(load_ply, path, flip, limits)
     }
 
     /// A PLY file: a `material` element before the vertices, the vertices (x y z, optionally

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use pathfarm_scene::SceneError;
+use pathfarm_scene::{load_scene, SceneError};
 
 /// A fresh directory unique to this process and `name`.
 pub fn temp_dir(name: &str) -> PathBuf {
@@ -15,10 +15,59 @@ pub fn temp_dir(name: &str) -> PathBuf {
 
 /// Write `xml` as `scene.xml` in a fresh directory; returns its path.
 pub fn write_scene(name: &str, xml: &str) -> PathBuf {
-    let d = temp_dir(name);
-    let p = d.join("scene.xml");
+    write_xml_in(&temp_dir(name), xml)
+}
+
+/// Write `xml` as `dir/scene.xml` (creating `dir`); returns its path.
+pub fn write_xml_in(dir: &Path, xml: &str) -> PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let p = dir.join("scene.xml");
     std::fs::write(&p, xml).unwrap();
     p
+}
+
+/// `scene(body)` written as `dir/scene.xml` (creating `dir`); returns its path and text.
+pub fn write_scene_in(dir: &Path, body: &str) -> (PathBuf, String) {
+    let xml = scene(body);
+    (write_xml_in(dir, &xml), xml)
+}
+
+/// A shape of plugin `kind` (obj or ply) loading `file`.
+pub fn mesh_shape(kind: &str, file: &str) -> String {
+    mesh_shape_with(kind, file, "")
+}
+
+/// [`mesh_shape`] with `extra` (e.g. a transform) after the filename.
+pub fn mesh_shape_with(kind: &str, file: &str, extra: &str) -> String {
+    format!(
+        "<shape type=\"{kind}\">\n  <string name=\"filename\" value=\"{file}\"/>{extra}\n</shape>"
+    )
+}
+
+/// A scene in a fresh directory `name` with one `kind` shape loading `file` (written with
+/// `contents`); returns the scene path, its text and the mesh path.
+pub fn mesh_scene(
+    name: &str,
+    kind: &str,
+    file: &str,
+    contents: &[u8],
+) -> (PathBuf, String, PathBuf) {
+    mesh_scene_with(name, kind, file, contents, "")
+}
+
+/// [`mesh_scene`] with `extra` inside the shape after the filename.
+pub fn mesh_scene_with(
+    name: &str,
+    kind: &str,
+    file: &str,
+    contents: &[u8],
+    extra: &str,
+) -> (PathBuf, String, PathBuf) {
+    let xml = scene(&mesh_shape_with(kind, file, extra));
+    let p = write_scene(name, &xml);
+    let mesh = p.parent().unwrap().join(file);
+    std::fs::write(&mesh, contents).unwrap();
+    (p, xml, mesh)
 }
 
 /// 1-based line of the first line of `text` containing `needle`.
@@ -56,4 +105,33 @@ pub fn assert_invalid_at(err: &SceneError, file: &Path, line: u32, needles: &[&s
         shown.contains(&format!("{}:{line}", file.display())),
         "{shown}"
     );
+}
+
+/// Load `p` (whose text is `xml`) expecting an `Invalid` error at the first line of `xml`
+/// containing `at` whose message contains every string in `needles` ([`assert_invalid_at`]);
+/// returns the error for further checks.
+pub fn assert_load_fails_at(p: &Path, xml: &str, at: &str, needles: &[&str]) -> SceneError {
+    let err = load_scene(p, &[]).unwrap_err();
+    assert_invalid_at(&err, p, line_of(xml, at), needles);
+    err
+}
+
+/// Run `check` on each case of a table-driven test, `name` naming it. Every case runs even
+/// when an earlier one fails (its panic message is printed as it happens, followed by the
+/// case's name); the test then fails naming all the cases that failed.
+pub fn check_cases<C>(
+    cases: impl IntoIterator<Item = C>,
+    name: impl Fn(&C) -> String,
+    check: impl Fn(C),
+) {
+    let mut failed = Vec::new();
+    for case in cases {
+        let case_name = name(&case);
+        let run = std::panic::AssertUnwindSafe(|| check(case));
+        if std::panic::catch_unwind(run).is_err() {
+            eprintln!("(that was case {case_name:?})");
+            failed.push(case_name);
+        }
+    }
+    assert!(failed.is_empty(), "failed cases: {failed:?}");
 }
