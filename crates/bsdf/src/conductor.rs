@@ -23,11 +23,7 @@ impl Conductor {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags {
-            smooth: false,
-            delta: true,
-            transmission: false,
-        }
+        BsdfFlags::DELTA_REFLECTION
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, _u: Vec2) -> Option<BsdfSample> {

@@ -2,7 +2,7 @@
 //! refraction, chosen by Fresnel with `u_lobe`.
 
 use crate::fresnel::{fresnel_dielectric, reflect, refract};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -23,11 +23,7 @@ impl Dielectric {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags {
-            smooth: false,
-            delta: true,
-            transmission: true,
-        }
+        BsdfFlags::DELTA_TRANSMISSION
     }
 
     /// Works from both sides (`wi.z < 0` is inside). Transmitted samples carry
@@ -38,28 +34,14 @@ impl Dielectric {
             return None;
         }
         let (r, cos_theta_t, eta_it, eta_ti) = fresnel_dielectric(cos_theta_i, self.eta);
-        let t = 1.0 - r;
-        if r > 0.0 && u_lobe <= r {
-            Some(BsdfSample::specular_reflection(
-                reflect(wi),
-                r,
-                self.specular_reflectance,
-            ))
-        } else {
-            if !(t > 0.0) {
-                return None;
-            }
-            Some(BsdfSample {
-                wo: refract(wi, cos_theta_t, eta_ti),
-                pdf: t,
-                weight: self.specular_transmittance * (eta_ti * eta_ti),
-                eta: eta_it,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: true,
-                },
-            })
-        }
+        sample_delta_lobes(wi, u_lobe, r, self.specular_reflectance, |t| {
+            BsdfSample::specular_transmission(
+                refract(wi, cos_theta_t, eta_ti),
+                t,
+                self.specular_transmittance * (eta_ti * eta_ti),
+                eta_it,
+            )
+        })
     }
 
     pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {
@@ -68,5 +50,33 @@ impl Dielectric {
 
     pub fn pdf(&self, _wi: Vec3, _wo: Vec3) -> f32 {
         0.0
+    }
+}
+
+/// The lobe choice of the smooth and the thin dielectric: the mirror reflection
+/// (weight `specular_reflectance`) with probability `r`, picked by `u_lobe` as
+/// Mitsuba does, else the delta transmission `transmitted` builds from its
+/// probability `1 - r` (built only when picked, so the refraction is not computed
+/// for reflected samples). `None` when the picked lobe has probability 0.
+#[inline]
+pub(crate) fn sample_delta_lobes(
+    wi: Vec3,
+    u_lobe: f32,
+    r: f32,
+    specular_reflectance: Vec3,
+    transmitted: impl FnOnce(f32) -> BsdfSample,
+) -> Option<BsdfSample> {
+    let t = 1.0 - r;
+    if r > 0.0 && u_lobe <= r {
+        Some(BsdfSample::specular_reflection(
+            reflect(wi),
+            r,
+            specular_reflectance,
+        ))
+    } else {
+        if !(t > 0.0) {
+            return None;
+        }
+        Some(transmitted(t))
     }
 }

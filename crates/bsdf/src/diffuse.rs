@@ -17,11 +17,7 @@ impl Diffuse {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags {
-            smooth: true,
-            delta: false,
-            transmission: false,
-        }
+        BsdfFlags::GLOSSY_REFLECTION
     }
 
     pub fn sample(&self, wi: Vec3, _u_lobe: f32, u: Vec2) -> Option<BsdfSample> {

@@ -73,6 +73,22 @@ impl BsdfSample {
         Self::reflection(wo, pdf, weight, true)
     }
 
+    /// An undeviated or refracted direction of a delta lobe picked with probability
+    /// `pdf`, crossing into relative IOR `eta`.
+    #[inline]
+    pub fn specular_transmission(wo: Vec3, pdf: f32, weight: Vec3, eta: f32) -> Self {
+        Self {
+            wo,
+            pdf,
+            weight,
+            eta,
+            lobe: Lobe {
+                delta: true,
+                transmission: true,
+            },
+        }
+    }
+
     #[inline]
     fn reflection(wo: Vec3, pdf: f32, weight: Vec3, delta: bool) -> Self {
         Self {
@@ -97,6 +113,28 @@ pub struct BsdfFlags {
     pub delta: bool,
     /// Can transmit.
     pub transmission: bool,
+}
+
+// The flag sets several models share, named once.
+impl BsdfFlags {
+    /// Only smooth reflection (diffuse, rough conductor, rough plastic).
+    pub const GLOSSY_REFLECTION: Self = Self {
+        smooth: true,
+        delta: false,
+        transmission: false,
+    };
+    /// Only a delta reflection (smooth conductor).
+    pub const DELTA_REFLECTION: Self = Self {
+        smooth: false,
+        delta: true,
+        transmission: false,
+    };
+    /// Delta reflection and delta transmission (smooth and thin dielectric).
+    pub const DELTA_TRANSMISSION: Self = Self {
+        smooth: false,
+        delta: true,
+        transmission: true,
+    };
 }
 
 pub mod conductor;

@@ -3,7 +3,7 @@
 
 use crate::fresnel::{fresnel_dielectric, fresnel_diffuse_reflectance, reflect};
 use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
-use crate::{BsdfFlags, BsdfSample};
+use crate::{finite_or_zero, BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 /// Mitsuba's `specular_sampling_weight = s_mean / (d_mean + s_mean)`, where
@@ -118,11 +118,7 @@ impl Plastic {
         let f_o = fresnel_dielectric(wo.z, self.eta).0;
         let v = self.substrate()
             * (square_to_cosine_hemisphere_pdf(wo) * self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o));
-        if v.is_finite() {
-            v
-        } else {
-            Vec3::ZERO
-        }
+        finite_or_zero(v)
     }
 
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {

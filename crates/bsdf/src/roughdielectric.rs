@@ -2,7 +2,7 @@
 
 use crate::fresnel::{fresnel_dielectric, reflect_about, refract_about};
 use crate::microfacet::{Microfacet, MicrofacetType};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::{finite_or_zero, BsdfFlags, BsdfSample, Lobe};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -86,16 +86,12 @@ impl RoughDielectric {
             return None;
         }
         if self.index_matched() {
-            return Some(BsdfSample {
-                wo: -wi,
-                pdf: 1.0,
-                weight: self.specular_transmittance,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: true,
-                },
-            });
+            return Some(BsdfSample::specular_transmission(
+                -wi,
+                1.0,
+                self.specular_transmittance,
+                1.0,
+            ));
         }
         let distr = self.distr();
         let sdistr = self.sample_distr(cos_theta_i);
@@ -202,11 +198,7 @@ impl RoughDielectric {
                 / (cos_theta_i * sq(wi.dot(m) + eta * wo.dot(m)));
             self.specular_transmittance * val.abs()
         };
-        if v.is_finite() {
-            v
-        } else {
-            Vec3::ZERO
-        }
+        finite_or_zero(v)
     }
 
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {

@@ -6,7 +6,7 @@
 use crate::fresnel::{fresnel_dielectric, reflect_about, refract_about};
 use crate::microfacet::{Microfacet, MicrofacetType};
 use crate::warp::{square_to_cosine_hemisphere, square_to_cosine_hemisphere_pdf};
-use crate::{BsdfFlags, BsdfSample};
+use crate::{finite_or_zero, BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 use std::f32::consts::FRAC_1_PI;
 
@@ -170,44 +170,57 @@ impl GaussLegendre {
     }
 }
 
-/// Mitsuba's `eval_transmittance`: fraction of light refracted into the
-/// coating (and not shadowed) for incident direction `wi`.
-fn eval_transmittance(distr: &Microfacet, q: &GaussLegendre, wi: Vec3, eta: f32) -> f32 {
+/// Mitsuba's quadrature over the visible normals `m` of `wi`: the sum of
+/// `integrand(m)` at the Gauss–Legendre nodes mapped to [0, 1]^2, each weighted
+/// by its node weights / 4 (the Jacobian of that map). Both coating integrals
+/// below are this sum; one loop keeps their node order (and so their rounding)
+/// the same as Mitsuba's.
+#[inline]
+fn sum_over_visible_normals(
+    distr: &Microfacet,
+    q: &GaussLegendre,
+    wi: Vec3,
+    integrand: impl Fn(Vec3) -> f32,
+) -> f32 {
     let mut result = 0.0f32;
     // Mitsuba's meshgrid: x varies fastest.
     for (ny, wy) in q.nodes.iter().zip(&q.weights) {
         for (nx, wx) in q.nodes.iter().zip(&q.weights) {
             let node = Vec2::new(nx * 0.5 + 0.5, ny * 0.5 + 0.5);
             let m = distr.sample_visible_normal(wi, node);
-            let (f, cos_theta_t, _eta_it, eta_ti) = fresnel_dielectric(wi.dot(m), eta);
-            let wo = refract_about(wi, m, cos_theta_t, eta_ti);
-            let mut smith = distr.smith_g1(wo, m) * (1.0 - f);
-            if wo.z * wi.z >= 0.0 || !smith.is_finite() {
-                smith = 0.0;
-            }
-            result += smith * (wx * wy) * 0.25;
+            result += integrand(m) * (wx * wy) * 0.25;
         }
     }
     result
 }
 
+/// Mitsuba's `eval_transmittance`: fraction of light refracted into the
+/// coating (and not shadowed) for incident direction `wi`.
+fn eval_transmittance(distr: &Microfacet, q: &GaussLegendre, wi: Vec3, eta: f32) -> f32 {
+    sum_over_visible_normals(distr, q, wi, |m| {
+        let (f, cos_theta_t, _eta_it, eta_ti) = fresnel_dielectric(wi.dot(m), eta);
+        let wo = refract_about(wi, m, cos_theta_t, eta_ti);
+        let smith = distr.smith_g1(wo, m) * (1.0 - f);
+        if wo.z * wi.z >= 0.0 || !smith.is_finite() {
+            0.0
+        } else {
+            smith
+        }
+    })
+}
+
 /// Mitsuba's `eval_reflectance`: fraction of light reflected by the coating.
 fn eval_reflectance(distr: &Microfacet, q: &GaussLegendre, wi: Vec3, eta: f32) -> f32 {
-    let mut result = 0.0f32;
-    for (ny, wy) in q.nodes.iter().zip(&q.weights) {
-        for (nx, wx) in q.nodes.iter().zip(&q.weights) {
-            let node = Vec2::new(nx * 0.5 + 0.5, ny * 0.5 + 0.5);
-            let m = distr.sample_visible_normal(wi, node);
-            let wo = reflect_about(wi, m);
-            let f = fresnel_dielectric(wi.dot(m), eta).0;
-            let mut smith = distr.smith_g1(wo, m) * f;
-            if wo.z <= 0.0 || wi.z <= 0.0 || !smith.is_finite() {
-                smith = 0.0;
-            }
-            result += smith * (wx * wy) * 0.25;
+    sum_over_visible_normals(distr, q, wi, |m| {
+        let wo = reflect_about(wi, m);
+        let f = fresnel_dielectric(wi.dot(m), eta).0;
+        let smith = distr.smith_g1(wo, m) * f;
+        if wo.z <= 0.0 || wi.z <= 0.0 || !smith.is_finite() {
+            0.0
+        } else {
+            smith
         }
-    }
-    result
+    })
 }
 
 /// Per-hit rough plastic, borrowing its material's table.
@@ -253,11 +266,7 @@ impl<'a> RoughPlastic<'a> {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags {
-            smooth: true,
-            delta: false,
-            transmission: false,
-        }
+        BsdfFlags::GLOSSY_REFLECTION
     }
 
     #[inline]
@@ -316,11 +325,7 @@ impl<'a> RoughPlastic<'a> {
         };
         let eta = self.table.eta;
         let v = spec + diff / denom * (FRAC_1_PI / (eta * eta) * wo.z * t_i * t_o);
-        if v.is_finite() {
-            v
-        } else {
-            Vec3::ZERO
-        }
+        finite_or_zero(v)
     }
 
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {

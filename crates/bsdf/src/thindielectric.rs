@@ -2,8 +2,9 @@
 //! undeviated transmission, with the reflectance of a slab including all
 //! internal bounces, R' = R + T^2 R / (1 - R^2) = 2R / (1 + R).
 
-use crate::fresnel::{fresnel_dielectric, reflect};
-use crate::{BsdfFlags, BsdfSample, Lobe};
+use crate::dielectric::sample_delta_lobes;
+use crate::fresnel::fresnel_dielectric;
+use crate::{BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -23,11 +24,7 @@ impl ThinDielectric {
     }
 
     pub fn flags(&self) -> BsdfFlags {
-        BsdfFlags {
-            smooth: false,
-            delta: true,
-            transmission: true,
-        }
+        BsdfFlags::DELTA_TRANSMISSION
     }
 
     /// Slab reflectance 2R/(1+R) at |cos theta_i|.
@@ -44,28 +41,9 @@ impl ThinDielectric {
             return None;
         }
         let r = self.reflectance(wi.z);
-        let t = 1.0 - r;
-        if r > 0.0 && u_lobe <= r {
-            Some(BsdfSample::specular_reflection(
-                reflect(wi),
-                r,
-                self.specular_reflectance,
-            ))
-        } else {
-            if !(t > 0.0) {
-                return None;
-            }
-            Some(BsdfSample {
-                wo: -wi,
-                pdf: t,
-                weight: self.specular_transmittance,
-                eta: 1.0,
-                lobe: Lobe {
-                    delta: true,
-                    transmission: true,
-                },
-            })
-        }
+        sample_delta_lobes(wi, u_lobe, r, self.specular_reflectance, |t| {
+            BsdfSample::specular_transmission(-wi, t, self.specular_transmittance, 1.0)
+        })
     }
 
     pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {

@@ -2,6 +2,7 @@
 //! numerical hygiene.
 
 use super::stats::{sph, Pcg32};
+use super::{rough_conductor, rough_dielectric};
 use crate::*;
 use glam::{Vec2, Vec3};
 
@@ -48,28 +49,19 @@ fn smooth_models(tables: &[RoughPlasticTable]) -> Vec<(String, Bsdf<'_>)> {
             for vis in [true, false] {
                 v.push((
                     format!("roughconductor {kind:?} {au}/{av} vis {vis}"),
-                    Bsdf::RoughConductor(RoughConductor::new(
-                        kind,
-                        au,
-                        av,
-                        vis,
-                        AU,
-                        AU_K,
-                        Vec3::ONE,
-                    )),
+                    rough_conductor(kind, (au, av), vis, AU, AU_K),
                 ));
                 for eta in [1.5f32, 1.0 / 1.33] {
                     v.push((
                         format!("roughdielectric {kind:?} {au}/{av} vis {vis} eta {eta}"),
-                        Bsdf::RoughDielectric(RoughDielectric::new(
+                        rough_dielectric(
                             kind,
-                            au,
-                            av,
+                            (au, av),
                             vis,
                             eta,
                             Vec3::splat(0.9),
                             Vec3::splat(0.8),
-                        )),
+                        ),
                     ));
                 }
             }
@@ -203,19 +195,11 @@ fn white_models_do_not_create_energy() {
         for a in [0.05f32, 0.3, 1.0] {
             models.push((
                 format!("roughconductor {kind:?} {a}"),
-                Bsdf::RoughConductor(RoughConductor::new(kind, a, a, true, w_eta, w_k, Vec3::ONE)),
+                rough_conductor(kind, (a, a), true, w_eta, w_k),
             ));
             models.push((
                 format!("roughdielectric {kind:?} {a}"),
-                Bsdf::RoughDielectric(RoughDielectric::new(
-                    kind,
-                    a,
-                    a,
-                    true,
-                    1.5,
-                    Vec3::ONE,
-                    Vec3::ONE,
-                )),
+                rough_dielectric(kind, (a, a), true, 1.5, Vec3::ONE, Vec3::ONE),
             ));
         }
     }
@@ -260,15 +244,7 @@ fn white_models_do_not_create_energy() {
 #[test]
 fn smooth_white_rough_conductor_reflects_almost_everything() {
     for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
-        let b = Bsdf::RoughConductor(RoughConductor::new(
-            kind,
-            0.02,
-            0.02,
-            true,
-            Vec3::ZERO,
-            Vec3::ONE,
-            Vec3::ONE,
-        ));
+        let b = rough_conductor(kind, (0.02, 0.02), true, Vec3::ZERO, Vec3::ONE);
         for theta in [0.0f32, 45.0, 70.0] {
             let a = albedo(&b, sph(theta, 10.0), 100_000, true);
             assert!(
@@ -284,33 +260,16 @@ fn diffuse_and_rough_reflection_are_reciprocal() {
     let mut rng = Pcg32::new(5, 5);
     let models = [
         Bsdf::Diffuse(Diffuse::new(Vec3::new(0.3, 0.6, 0.9))),
-        Bsdf::RoughConductor(RoughConductor::new(
+        rough_conductor(MicrofacetType::Ggx, (0.3, 0.3), true, AU, AU_K),
+        rough_conductor(MicrofacetType::Beckmann, (0.1, 0.4), true, AU, AU_K),
+        rough_dielectric(
             MicrofacetType::Ggx,
-            0.3,
-            0.3,
-            true,
-            AU,
-            AU_K,
-            Vec3::ONE,
-        )),
-        Bsdf::RoughConductor(RoughConductor::new(
-            MicrofacetType::Beckmann,
-            0.1,
-            0.4,
-            true,
-            AU,
-            AU_K,
-            Vec3::ONE,
-        )),
-        Bsdf::RoughDielectric(RoughDielectric::new(
-            MicrofacetType::Ggx,
-            0.3,
-            0.3,
+            (0.3, 0.3),
             true,
             1.5,
             Vec3::ONE,
             Vec3::ONE,
-        )),
+        ),
     ];
     for b in &models {
         for _ in 0..2000 {
@@ -367,24 +326,15 @@ fn no_model_produces_nan_or_infinity_anywhere() {
         for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
             for (au, av) in [(0.0f32, 0.0f32), (1e-4, 1e-4), (1.0, 1.0), (1e-4, 1.0)] {
                 for vis in [true, false] {
-                    models.push(Bsdf::RoughConductor(RoughConductor::new(
+                    models.push(rough_conductor(kind, (au, av), vis, AU, AU_K));
+                    models.push(rough_dielectric(
                         kind,
-                        au,
-                        av,
-                        vis,
-                        AU,
-                        AU_K,
-                        Vec3::ONE,
-                    )));
-                    models.push(Bsdf::RoughDielectric(RoughDielectric::new(
-                        kind,
-                        au,
-                        av,
+                        (au, av),
                         vis,
                         eta,
                         Vec3::ONE,
                         Vec3::ONE,
-                    )));
+                    ));
                 }
             }
         }
@@ -485,15 +435,7 @@ fn index_matched_rough_dielectric_passes_light_straight_through() {
     let mut rng = Pcg32::new(9, 9);
     for kind in [MicrofacetType::Ggx, MicrofacetType::Beckmann] {
         for alpha in [1e-4f32, 0.3, 1.0] {
-            let b = Bsdf::RoughDielectric(RoughDielectric::new(
-                kind,
-                alpha,
-                alpha,
-                true,
-                1.0,
-                Vec3::ONE,
-                Vec3::splat(0.8),
-            ));
+            let b = rough_dielectric(kind, (alpha, alpha), true, 1.0, Vec3::ONE, Vec3::splat(0.8));
             let flags = b.flags();
             assert!(flags.delta && !flags.smooth, "{kind:?} {alpha}: {flags:?}");
             for _ in 0..100 {

@@ -2,6 +2,7 @@
 //! model (and the smooth part of mixed delta + smooth models).
 
 use super::stats::{chi2_quantile, chi2_test, sidak, sph};
+use super::{rough_conductor, rough_dielectric};
 use crate::*;
 use glam::Vec3;
 
@@ -80,15 +81,7 @@ fn rough_conductor_sampling_matches_its_pdf() {
                     if !wanted {
                         continue;
                     }
-                    let b = Bsdf::RoughConductor(RoughConductor::new(
-                        kind,
-                        au,
-                        av,
-                        visible,
-                        eta,
-                        k,
-                        Vec3::ONE,
-                    ));
+                    let b = rough_conductor(kind, (au, av), visible, eta, k);
                     cases.push((
                         format!("{kind:?} alpha {au}/{av} visible {visible} theta {t}"),
                         b,
@@ -116,15 +109,7 @@ fn rough_dielectric_sampling_matches_its_pdf_on_both_sides() {
                     if kind == MicrofacetType::Beckmann && eta == 1.33 && !visible {
                         continue;
                     }
-                    let b = Bsdf::RoughDielectric(RoughDielectric::new(
-                        kind,
-                        au,
-                        av,
-                        visible,
-                        eta,
-                        Vec3::ONE,
-                        Vec3::ONE,
-                    ));
+                    let b = rough_dielectric(kind, (au, av), visible, eta, Vec3::ONE, Vec3::ONE);
                     cases.push((
                         format!("{kind:?} alpha {au}/{av} eta {eta} visible {visible} theta {t}"),
                         b,
@@ -134,15 +119,7 @@ fn rough_dielectric_sampling_matches_its_pdf_on_both_sides() {
             }
             if kind == MicrofacetType::Ggx && au == 0.2 {
                 for t in [45.0f32, 135.0] {
-                    let b = Bsdf::RoughDielectric(RoughDielectric::new(
-                        kind,
-                        au,
-                        av,
-                        false,
-                        1.5,
-                        Vec3::ONE,
-                        Vec3::ONE,
-                    ));
+                    let b = rough_dielectric(kind, (au, av), false, 1.5, Vec3::ONE, Vec3::ONE);
                     cases.push((
                         format!("{kind:?} alpha {au}/{av} eta 1.5 visible false theta {t}"),
                         b,

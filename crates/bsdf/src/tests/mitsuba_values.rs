@@ -7,6 +7,7 @@
 
 #![allow(clippy::excessive_precision)]
 
+use super::{rough_conductor, rough_dielectric};
 use crate::*;
 use glam::{Vec2, Vec3};
 
@@ -55,23 +56,77 @@ fn check(name: &str, bsdf: &Bsdf, expected: &[([f32; 3], f32)], rel: f32) {
 
 const Z: ([f32; 3], f32) = ([0.0; 3], 0.0);
 
-#[test]
-fn rough_conductor_ggx_gold_matches_mitsuba() {
-    // {'type':'roughconductor','distribution':'ggx','alpha':0.3,
-    //  'eta':rgb[0.143,0.374,1.442],'k':rgb[3.983,2.385,1.603]}
-    let b = Bsdf::RoughConductor(RoughConductor::new(
-        MicrofacetType::Ggx,
-        0.3,
-        0.3,
-        true,
+/// The rough plastics' coating tables: `rp_ggx`'s, then `rp_beck`'s.
+fn rough_plastic_tables() -> [RoughPlasticTable; 2] {
+    [
+        RoughPlasticTable::new(MicrofacetType::Ggx, 0.2, 1.5 / AIR),
+        RoughPlasticTable::new(MicrofacetType::Beckmann, 0.4, 1.33 / AIR),
+    ]
+}
+
+/// The models the values below were recorded for, by the names the tables use,
+/// each with its Mitsuba dict. The rough plastics borrow `tables`
+/// ([`rough_plastic_tables`]).
+fn model<'t>(name: &str, tables: &'t [RoughPlasticTable; 2]) -> Bsdf<'t> {
+    use MicrofacetType::{Beckmann, Ggx};
+    let gold = (
         Vec3::new(0.143, 0.374, 1.442),
         Vec3::new(3.983, 2.385, 1.603),
-        Vec3::ONE,
-    ));
-    check(
+    );
+    let (eta, k) = (Vec3::new(0.2, 0.9, 1.1), Vec3::new(3.9, 2.4, 2.2));
+    match name {
+        // {'type':'roughconductor','distribution':'ggx','alpha':0.3,
+        //  'eta':rgb[0.143,0.374,1.442],'k':rgb[3.983,2.385,1.603]}
+        "rc_ggx" => rough_conductor(Ggx, (0.3, 0.3), true, gold.0, gold.1),
+        // {'type':'roughconductor','distribution':'beckmann','alpha_u':0.1,'alpha_v':0.4,
+        //  'eta':rgb[0.2,0.9,1.1],'k':rgb[3.9,2.4,2.2]}
+        "rc_beck_aniso" => rough_conductor(Beckmann, (0.1, 0.4), true, eta, k),
+        // {'type':'roughconductor','distribution':'ggx','alpha_u':0.3,'alpha_v':0.15,
+        //  'sample_visible':False, eta/k as rc_beck_aniso}
+        "rc_ggx_nv" => rough_conductor(Ggx, (0.3, 0.15), false, eta, k),
+        // {'type':'roughplastic','distribution':'ggx','alpha':0.2,'int_ior':1.5,
+        //  'diffuse_reflectance':rgb[0.8,0.3,0.1]}  (specular weight 1/(1+0.4))
+        "rp_ggx" => Bsdf::RoughPlastic(RoughPlastic::new(
+            &tables[0],
+            Vec3::new(0.8, 0.3, 0.1),
+            Vec3::ONE,
+            false,
+            specular_sampling_weight(0.4, 1.0),
+            true,
+        )),
+        // {'type':'roughplastic','distribution':'beckmann','alpha':0.4,'int_ior':1.33,
+        //  'diffuse_reflectance':rgb[0.5,0.5,0.5],'nonlinear':True}
+        "rp_beck" => Bsdf::RoughPlastic(RoughPlastic::new(
+            &tables[1],
+            Vec3::splat(0.5),
+            Vec3::ONE,
+            true,
+            specular_sampling_weight(0.5, 1.0),
+            true,
+        )),
+        // {'type':'plastic','int_ior':1.5,'diffuse_reflectance':rgb[0.8,0.3,0.1]}
+        "plastic" => Bsdf::Plastic(Plastic::new(
+            1.5 / AIR,
+            Vec3::new(0.8, 0.3, 0.1),
+            Vec3::ONE,
+            false,
+            specular_sampling_weight(0.4, 1.0),
+        )),
+        // {'type':'roughdielectric','distribution':'ggx','alpha':0.3,'int_ior':1.5}
+        "rd_ggx" => rough_dielectric(Ggx, (0.3, 0.3), true, 1.5 / AIR, Vec3::ONE, Vec3::ONE),
+        // {'type':'roughdielectric','distribution':'beckmann','alpha':0.2,'int_ior':1.33}
+        "rd_beck" => rough_dielectric(Beckmann, (0.2, 0.2), true, 1.33 / AIR, Vec3::ONE, Vec3::ONE),
+        _ => panic!("no recorded model {name}"),
+    }
+}
+
+/// Mitsuba's eval and pdf at the five [`PAIRS`], per model of [`model`] (the
+/// dielectrics' pairs cover both sides), with the relative tolerance.
+#[allow(clippy::type_complexity)]
+const EVALS: [(&str, [([f32; 3], f32); 5], f32); 7] = [
+    (
         "rc_ggx",
-        &b,
-        &[
+        [
             (
                 [0.831503689289093, 0.6901191473007202, 0.28225505352020264],
                 0.8740200996398926,
@@ -85,26 +140,10 @@ fn rough_conductor_ggx_gold_matches_mitsuba() {
             Z,
         ],
         1e-4,
-    );
-}
-
-#[test]
-fn rough_conductor_beckmann_anisotropic_matches_mitsuba() {
-    // {'type':'roughconductor','distribution':'beckmann','alpha_u':0.1,'alpha_v':0.4,
-    //  'eta':rgb[0.2,0.9,1.1],'k':rgb[3.9,2.4,2.2]}
-    let b = Bsdf::RoughConductor(RoughConductor::new(
-        MicrofacetType::Beckmann,
-        0.1,
-        0.4,
-        true,
-        Vec3::new(0.2, 0.9, 1.1),
-        Vec3::new(3.9, 2.4, 2.2),
-        Vec3::ONE,
-    ));
-    check(
-        "rc_beck",
-        &b,
-        &[
+    ),
+    (
+        "rc_beck_aniso",
+        [
             (
                 [1.0320624113082886, 0.6679179668426514, 0.5698191523551941],
                 1.084930658340454,
@@ -122,26 +161,10 @@ fn rough_conductor_beckmann_anisotropic_matches_mitsuba() {
             Z,
         ],
         2e-3,
-    );
-}
-
-#[test]
-fn rough_plastic_ggx_matches_mitsuba() {
-    // {'type':'roughplastic','distribution':'ggx','alpha':0.2,'int_ior':1.5,
-    //  'diffuse_reflectance':rgb[0.8,0.3,0.1]}  (specular weight 1/(1+0.4))
-    let t = RoughPlasticTable::new(MicrofacetType::Ggx, 0.2, 1.5 / AIR);
-    let b = Bsdf::RoughPlastic(RoughPlastic::new(
-        &t,
-        Vec3::new(0.8, 0.3, 0.1),
-        Vec3::ONE,
-        false,
-        specular_sampling_weight(0.4, 1.0),
-        true,
-    ));
-    check(
+    ),
+    (
         "rp_ggx",
-        &b,
-        &[
+        [
             (
                 [0.22181914746761322, 0.1268993765115738, 0.08893146365880966],
                 0.39918625354766846,
@@ -159,26 +182,10 @@ fn rough_plastic_ggx_matches_mitsuba() {
             Z,
         ],
         1e-3,
-    );
-}
-
-#[test]
-fn rough_plastic_beckmann_nonlinear_matches_mitsuba() {
-    // {'type':'roughplastic','distribution':'beckmann','alpha':0.4,'int_ior':1.33,
-    //  'diffuse_reflectance':rgb[0.5,0.5,0.5],'nonlinear':True}
-    let t = RoughPlasticTable::new(MicrofacetType::Beckmann, 0.4, 1.33 / AIR);
-    let b = Bsdf::RoughPlastic(RoughPlastic::new(
-        &t,
-        Vec3::splat(0.5),
-        Vec3::ONE,
-        true,
-        specular_sampling_weight(0.5, 1.0),
-        true,
-    ));
-    check(
+    ),
+    (
         "rp_beck",
-        &b,
-        &[
+        [
             ([0.09168869256973267; 3], 0.2588920295238495),
             ([0.10473747551441193; 3], 0.3214828670024872),
             Z,
@@ -186,23 +193,10 @@ fn rough_plastic_beckmann_nonlinear_matches_mitsuba() {
             Z,
         ],
         1e-3,
-    );
-}
-
-#[test]
-fn plastic_matches_mitsuba() {
-    // {'type':'plastic','int_ior':1.5,'diffuse_reflectance':rgb[0.8,0.3,0.1]}
-    let b = Bsdf::Plastic(Plastic::new(
-        1.5 / AIR,
-        Vec3::new(0.8, 0.3, 0.1),
-        Vec3::ONE,
-        false,
-        specular_sampling_weight(0.4, 1.0),
-    ));
-    check(
+    ),
+    (
         "plastic",
-        &b,
-        &[
+        [
             (
                 [
                     0.19668716192245483,
@@ -224,25 +218,10 @@ fn plastic_matches_mitsuba() {
             Z,
         ],
         1e-4,
-    );
-}
-
-#[test]
-fn rough_dielectric_ggx_matches_mitsuba_on_both_sides() {
-    // {'type':'roughdielectric','distribution':'ggx','alpha':0.3,'int_ior':1.5}
-    let b = Bsdf::RoughDielectric(RoughDielectric::new(
-        MicrofacetType::Ggx,
-        0.3,
-        0.3,
-        true,
-        1.5 / AIR,
-        Vec3::ONE,
-        Vec3::ONE,
-    ));
-    check(
+    ),
+    (
         "rd_ggx",
-        &b,
-        &[
+        [
             ([0.037008292973041534; 3], 0.03758557513356209),
             ([0.012161227874457836; 3], 0.012197368778288364),
             ([0.05206621438264847; 3], 0.1179557517170906),
@@ -250,25 +229,10 @@ fn rough_dielectric_ggx_matches_mitsuba_on_both_sides() {
             ([0.02667049504816532; 3], 0.027257658541202545),
         ],
         1e-3,
-    );
-}
-
-#[test]
-fn rough_dielectric_beckmann_matches_mitsuba_on_both_sides() {
-    // {'type':'roughdielectric','distribution':'beckmann','alpha':0.2,'int_ior':1.33}
-    let b = Bsdf::RoughDielectric(RoughDielectric::new(
-        MicrofacetType::Beckmann,
-        0.2,
-        0.2,
-        true,
-        1.33 / AIR,
-        Vec3::ONE,
-        Vec3::ONE,
-    ));
-    check(
+    ),
+    (
         "rd_beck",
-        &b,
-        &[
+        [
             ([0.042693473398685455; 3], 0.042693473398685455),
             ([0.0017978816758841276; 3], 0.001797881443053484),
             Z,
@@ -276,7 +240,15 @@ fn rough_dielectric_beckmann_matches_mitsuba_on_both_sides() {
             ([0.017834492027759552; 3], 0.0178344938904047),
         ],
         2e-3,
-    );
+    ),
+];
+
+#[test]
+fn eval_and_pdf_match_mitsuba() {
+    let tables = rough_plastic_tables();
+    for (name, expected, rel) in &EVALS {
+        check(name, &model(name, &tables), expected, *rel);
+    }
 }
 
 #[test]
@@ -432,48 +404,9 @@ const SAMPLES: [(&str, (f64, f64), (f32, f32, f32), [f32; 3], f32, [f32; 3]); 12
 
 #[test]
 fn sampling_routines_reproduce_mitsuba_samples_for_the_same_random_numbers() {
-    // {'type':'roughconductor','distribution':'ggx','alpha_u':0.3,'alpha_v':0.15,
-    //  'sample_visible':False, eta/k as rc_beck_aniso}; others as the tests above.
-    let t = RoughPlasticTable::new(MicrofacetType::Beckmann, 0.4, 1.33 / AIR);
-    let (eta, k) = (Vec3::new(0.2, 0.9, 1.1), Vec3::new(3.9, 2.4, 2.2));
+    let tables = rough_plastic_tables();
     for (name, (ti, pi), (u1, u2, u3), wo, pdf, w) in SAMPLES {
-        let b = match name {
-            "rc_beck_aniso" => Bsdf::RoughConductor(RoughConductor::new(
-                MicrofacetType::Beckmann,
-                0.1,
-                0.4,
-                true,
-                eta,
-                k,
-                Vec3::ONE,
-            )),
-            "rc_ggx_nv" => Bsdf::RoughConductor(RoughConductor::new(
-                MicrofacetType::Ggx,
-                0.3,
-                0.15,
-                false,
-                eta,
-                k,
-                Vec3::ONE,
-            )),
-            "rd_ggx" => Bsdf::RoughDielectric(RoughDielectric::new(
-                MicrofacetType::Ggx,
-                0.3,
-                0.3,
-                true,
-                1.5 / AIR,
-                Vec3::ONE,
-                Vec3::ONE,
-            )),
-            _ => Bsdf::RoughPlastic(RoughPlastic::new(
-                &t,
-                Vec3::splat(0.5),
-                Vec3::ONE,
-                true,
-                specular_sampling_weight(0.5, 1.0),
-                true,
-            )),
-        };
+        let b = model(name, &tables);
         let s = b.sample(d(ti, pi), u1, Vec2::new(u2, u3));
         if pdf == 0.0 {
             assert!(
