@@ -46,6 +46,8 @@ pub fn x_fov_degrees(fov: f32, axis: FovAxis, aspect: f32) -> f32 {
 }
 
 impl Camera {
+    /// The camera of `desc`: its `to_world` placement, its field of view converted to the
+    /// horizontal one, its film's aspect ratio and its near and far clip distances.
     pub fn new(desc: &SensorDesc) -> Self {
         let (w, h) = (desc.film.width as f32, desc.film.height as f32);
         let aspect = w / h;

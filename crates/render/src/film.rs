@@ -8,12 +8,19 @@
 
 use glam::Vec3;
 
+/// The running sums of one pixel: everything needed for its filter-weighted mean and the variance
+/// of that mean, in f64 so that long renders do not lose precision.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PixelStats {
+    /// Sum of the filter weights w of the samples splatted into the pixel.
     pub sum_w: f64,
+    /// Sum of w L per RGB channel (L: the sample's radiance).
     pub sum_wl: [f64; 3],
+    /// Sum of w^2.
     pub sum_w2: f64,
+    /// Sum of w^2 L per RGB channel.
     pub sum_w2l: [f64; 3],
+    /// Sum of w^2 L^2 per RGB channel.
     pub sum_w2l2: [f64; 3],
     /// Camera samples generated in this pixel.
     pub count: u32,
@@ -35,6 +42,8 @@ impl PixelStats {
         }
     }
 
+    /// The pixel value: the weighted mean sum w L / sum w per channel; black when no weight reached
+    /// the pixel.
     pub fn mean(&self) -> [f32; 3] {
         if self.sum_w <= 0.0 {
             return [0.0; 3];
@@ -93,12 +102,17 @@ impl PixelStats {
 /// The image being rendered.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Film {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// The pixels' sums, row-major, `width * height` of them: pixel (x, y) is at `y * width + x`
+    /// (for a region's film, relative to the region's corner).
     pub pixels: Vec<PixelStats>,
 }
 
 impl Film {
+    /// An empty (all-zero) film of `width x height` pixels.
     pub fn new(width: u32, height: u32) -> Self {
         Self {
             width,
@@ -107,10 +121,12 @@ impl Film {
         }
     }
 
+    /// Every pixel's value ([`PixelStats::mean`]), row-major.
     pub fn mean_rgb(&self) -> Vec<[f32; 3]> {
         self.pixels.iter().map(|p| p.mean()).collect()
     }
 
+    /// Every pixel's variance of the mean ([`PixelStats::variance_of_mean`]), row-major.
     pub fn variance_rgb(&self) -> Vec<[f32; 3]> {
         self.pixels.iter().map(|p| p.variance_of_mean()).collect()
     }

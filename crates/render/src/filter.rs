@@ -9,21 +9,30 @@
 
 use pathfarm_scene::RFilter;
 
+/// A separable reconstruction filter: a sample at offset (dx, dy) from a pixel centre weighs
+/// `eval(dx) * eval(dy)`. Weights need not integrate to 1 (pixels divide by their weight sum).
 #[derive(Clone, Copy, Debug)]
 pub enum Filter {
+    /// Constant weight 1 within `radius` of the centre.
     Box {
+        /// Half-width of the support, in pixels (Mitsuba's default 0.5 keeps samples in their
+        /// pixel).
         radius: f32,
     },
+    /// Weight falling linearly from 1 at the centre to 0 at `radius`.
     Tent {
+        /// Radius of the support, in pixels.
         radius: f32,
     },
     /// Mitsuba's windowed gaussian: support 4 standard deviations.
     Gaussian {
+        /// Standard deviation, in pixels.
         stddev: f32,
     },
 }
 
 impl Filter {
+    /// The filter the scene's film asks for.
     pub fn new(desc: RFilter) -> Self {
         match desc {
             RFilter::Box { radius } => Filter::Box { radius },

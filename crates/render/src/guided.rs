@@ -49,6 +49,7 @@ pub struct GuidedIteration {
     pub spp: u32,
     /// Spatial nodes and leaves of the tree the iteration sampled from.
     pub nodes: usize,
+    /// Spatial leaves of that tree (the part of `nodes` that hold a directional quadtree).
     pub leaves: usize,
     /// Image variance of the iteration's film (mean over pixels and channels of the
     /// per-pixel variance of the mean).
@@ -65,6 +66,7 @@ pub struct GuidedIteration {
 /// Statistics of a guided render.
 #[derive(Clone, Debug)]
 pub struct GuidedStats {
+    /// Every iteration rendered, in order (training and final).
     pub iterations: Vec<GuidedIteration>,
     /// Total samples per pixel (training + final).
     pub spp: u32,
@@ -74,6 +76,7 @@ pub struct GuidedStats {
     pub tree_memory_bytes: usize,
     /// Weights of the iteration films in the final image (inversevar), else 1 for the kept one.
     pub weights: Vec<f64>,
+    /// Wall-clock time from the job's start to its end, training included.
     pub wall: Duration,
     /// Camera samples that produced a non-finite value (counted as zero).
     pub invalid_samples: u64,

@@ -10,6 +10,8 @@
 //!   image is bit-identical for any tile size, thread count or pass split.
 //! - This crate does no network I/O.
 
+#![warn(missing_docs)]
+
 pub mod camera;
 pub mod checkpoint;
 pub mod counter;
@@ -39,14 +41,19 @@ pub use scene::Scene;
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
+    /// Something the renderer cannot handle (the message says what): an unsupported scene
+    /// feature, geometry the BVH builder failed on, or an image the encoder refused.
     #[error("unsupported: {0}")]
     Unsupported(String),
     /// The render would exceed a resource limit (the message names it).
     #[error("{0}")]
     TooLarge(String),
+    /// An image file could not be written.
     #[error("{path}: cannot write image: {message}")]
     Output {
+        /// The file being written.
         path: std::path::PathBuf,
+        /// What went wrong (the encoder's or the file system's error).
         message: String,
     },
 }

@@ -16,60 +16,121 @@ use crate::texture;
 
 /// One side of a material.
 pub enum Side {
+    /// Lambertian reflector (Mitsuba `diffuse`).
     Diffuse {
+        /// Albedo (linear RGB), constant or textured.
         reflectance: TexRef,
     },
+    /// Smooth conductor: a perfect mirror with complex-IOR Fresnel (Mitsuba `conductor`).
     Conductor {
+        /// Real part of the complex index of refraction per RGB channel, relative to the exterior.
         eta: Vec3,
+        /// Imaginary part of the complex index of refraction (absorption coefficient) per RGB
+        /// channel.
         k: Vec3,
+        /// Factor on the Fresnel reflectance (Mitsuba `specular_reflectance`); not physically
+        /// based, 1 by default.
         specular: TexRef,
     },
+    /// Microfacet conductor (Mitsuba `roughconductor`).
     RoughConductor {
+        /// Microfacet distribution (Beckmann or GGX).
         kind: MicrofacetType,
+        /// Roughness along the shading frame's first tangent axis. The frame is built from the
+        /// shading normal alone, so for anisotropic roughness this axis is not the surface's `u`
+        /// direction.
         alpha_u: f32,
+        /// Roughness along the shading frame's second tangent axis; equal to `alpha_u` when
+        /// isotropic.
         alpha_v: f32,
+        /// Sample only the microfacet normals visible from the incident direction (Mitsuba's
+        /// default).
         sample_visible: bool,
+        /// Real part of the complex index of refraction per RGB channel, relative to the exterior.
         eta: Vec3,
+        /// Imaginary part of the complex index of refraction (absorption coefficient) per RGB
+        /// channel.
         k: Vec3,
+        /// Factor on the Fresnel reflectance (Mitsuba `specular_reflectance`).
         specular: TexRef,
     },
+    /// Smooth dielectric interface: delta reflection and refraction (Mitsuba `dielectric`).
     Dielectric {
+        /// Relative index of refraction, `int_ior / ext_ior`; the normal points to the exterior.
         eta: f32,
+        /// Factor on the reflected lobe (Mitsuba `specular_reflectance`).
         reflect: TexRef,
+        /// Factor on the transmitted lobe (Mitsuba `specular_transmittance`).
         transmit: TexRef,
     },
+    /// Microfacet dielectric interface with rough reflection and refraction (Mitsuba
+    /// `roughdielectric`).
     RoughDielectric {
+        /// Microfacet distribution (Beckmann or GGX).
         kind: MicrofacetType,
+        /// Roughness along the shading frame's first tangent axis (see [`Side::RoughConductor`]).
         alpha_u: f32,
+        /// Roughness along the shading frame's second tangent axis; equal to `alpha_u` when
+        /// isotropic.
         alpha_v: f32,
+        /// Sample only the microfacet normals visible from the incident direction.
         sample_visible: bool,
+        /// Relative index of refraction, `int_ior / ext_ior`.
         eta: f32,
+        /// Factor on the reflected lobe (Mitsuba `specular_reflectance`).
         reflect: TexRef,
+        /// Factor on the transmitted lobe (Mitsuba `specular_transmittance`).
         transmit: TexRef,
     },
+    /// Thin dielectric sheet: delta reflection with the slab's multiple internal bounces, and
+    /// undeviated transmission (Mitsuba `thindielectric`).
     ThinDielectric {
+        /// Relative index of refraction of the sheet, `int_ior / ext_ior`.
         eta: f32,
+        /// Factor on the reflected lobe (Mitsuba `specular_reflectance`).
         reflect: TexRef,
+        /// Factor on the transmitted lobe (Mitsuba `specular_transmittance`).
         transmit: TexRef,
     },
+    /// Diffuse base under a smooth dielectric coating (Mitsuba `plastic`).
     Plastic {
+        /// Relative index of refraction of the coating, `int_ior / ext_ior`.
         eta: f32,
+        /// Albedo of the diffuse base (Mitsuba `diffuse_reflectance`).
         diffuse: TexRef,
+        /// Factor on the coating's specular reflection (Mitsuba `specular_reflectance`).
         specular: TexRef,
+        /// Mitsuba's `nonlinear`: account for the colour shift of light scattered repeatedly
+        /// between the base and the coating (divide by `1 - diffuse * Fdr` instead of `1 - Fdr`).
         nonlinear: bool,
+        /// Probability of sampling the specular lobe rather than the diffuse one, computed once
+        /// from the textures' means by [`specular_sampling_weight`].
         ssw: f32,
     },
+    /// Diffuse base under a rough dielectric coating (Mitsuba `roughplastic`); isotropic roughness
+    /// only.
     RoughPlastic {
+        /// Precomputed coating transmittance and internal reflectance; also holds the distribution,
+        /// the roughness and the relative IOR.
         table: Box<RoughPlasticTable>,
+        /// Albedo of the diffuse base (Mitsuba `diffuse_reflectance`).
         diffuse: TexRef,
+        /// Factor on the coating's specular reflection (Mitsuba `specular_reflectance`).
         specular: TexRef,
+        /// Mitsuba's `nonlinear`, as in [`Side::Plastic`].
         nonlinear: bool,
+        /// Probability of sampling the specular lobe, computed once from the textures' means by
+        /// [`specular_sampling_weight`].
         ssw: f32,
+        /// Sample only the microfacet normals visible from the incident direction.
         sample_visible: bool,
     },
 }
 
+/// A surface material: a single BSDF, or Mitsuba's `twosided` pair of a front and a back BSDF.
 pub enum Material {
+    /// A plain BSDF, always evaluated in the unflipped frame of the shading normal: the reflective
+    /// models are black seen from the back, the dielectrics handle both sides themselves.
     OneSided(Side),
     /// Mitsuba `twosided`: the back side is seen through a flipped frame.
     TwoSided(Side, Side),
@@ -288,6 +349,8 @@ impl Side {
 }
 
 impl Material {
+    /// Builds the material for `desc`; `all` is the scene's BSDF list, which the indices of a
+    /// `twosided` desc refer to, and `textures` is used for the plastic sampling weights.
     pub fn new(desc: &BsdfDesc, all: &[BsdfDesc], textures: &[TextureDesc]) -> Self {
         match desc {
             BsdfDesc::TwoSided { front, back } => Material::TwoSided(

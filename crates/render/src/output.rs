@@ -28,6 +28,7 @@ use crate::RenderError;
 
 /// The `tEXt` keyword and text that mark a PNG written by pathfarm.
 pub const SOFTWARE_KEY: &str = "Software";
+/// The text stored under [`SOFTWARE_KEY`] in the PNGs pathfarm writes.
 pub const SOFTWARE_VALUE: &str = "pathfarm";
 
 fn err(path: &Path, e: impl std::fmt::Display) -> RenderError {

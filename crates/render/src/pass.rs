@@ -46,6 +46,7 @@ pub struct PassSpec {
     pub unit: u64,
     /// The training iteration it belongs to.
     pub iteration: u32,
+    /// What the unit renders: training, guided final, the fallback's probe, or plain path tracing.
     pub kind: PassKind,
     /// Random stream of the unit's first sample: sample `s` of pass `p` of every pixel uses
     /// stream `first_sample + p * spp + s`.
@@ -87,6 +88,7 @@ impl PassSpec {
 /// was rendered with; a worker takes them out with [`SdTree::take_stats`].)
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileOutput {
+    /// The region of the image the tile covers, in whole-image pixel coordinates.
     pub region: Region,
     /// `region`-sized film.
     pub film: Film,
@@ -104,13 +106,17 @@ pub struct TileOutput {
 
 /// Everything a unit is rendered with besides its [`PassSpec`].
 pub struct UnitInputs<'a> {
+    /// The scene being rendered.
     pub scene: &'a Scene,
+    /// The job's `guided_path` parameters.
     pub params: &'a GuidedParams,
     /// The tree of `spec.tree_version` with the fractions of `spec.fraction_version`;
     /// records of a [`PassKind::Record`] unit go into its building statistics.
     pub tree: &'a SdTree,
     /// Per-pixel value estimate of the whole image for guided roulette (empty: none).
     pub estimate: &'a [f32],
+    /// The job's seed: the same for every unit and tile of the job, so that every pixel's random
+    /// streams do not depend on who renders it.
     pub seed: u64,
     /// Pixels per parallel work item (does not change the image).
     pub tile_size: u32,

@@ -35,6 +35,7 @@ pub struct RenderSettings {
 }
 
 impl RenderSettings {
+    /// Settings with the given budget and seed, the default tile size and no `pass_spp`.
     pub fn new(spp: Option<u32>, time_limit: Option<Duration>, seed: u64) -> Self {
         Self {
             spp,
@@ -49,14 +50,20 @@ impl RenderSettings {
 /// Reported as the render advances.
 #[derive(Clone, Copy, Debug)]
 pub struct Progress {
-    /// Samples done / expected (the expectation grows with time budgets).
+    /// Camera samples finished so far, counting the region's own pixels only (not its halo).
     pub samples_done: u64,
+    /// Samples expected in all, for a progress bar; under a time budget an estimate from the
+    /// rate so far, which changes as the render advances.
     pub samples_total: u64,
 }
 
+/// Summary of a finished render: what was done and what was dropped.
 #[derive(Clone, Copy, Debug)]
 pub struct RenderStats {
+    /// Samples per pixel actually rendered: fewer than asked for when a time limit stopped
+    /// the render.
     pub spp: u32,
+    /// Wall-clock time of the whole render call.
     pub wall: Duration,
     /// Camera samples that produced a non-finite value (counted as zero).
     pub invalid_samples: u64,
@@ -111,7 +118,9 @@ pub fn render(
 /// its pixel.
 #[derive(Clone, Copy, Debug)]
 pub struct CameraSample {
+    /// The primary ray, in world space, through the sample's film position.
     pub ray: Ray,
+    /// Index `y * width + x` of the sample's pixel in the whole image (not in the region).
     pub pixel: usize,
     /// The sample's pixel belongs to the region being rendered (not only to its filter
     /// halo): only owned samples may have side effects such as guide records or counters.
@@ -124,6 +133,8 @@ pub struct CameraSample {
 /// that images do not depend on how the work is split. Any
 /// `Fn(Ray, &mut Rng, pixel) -> Vec3` is an estimator taking one sample at a time.
 pub trait Estimator: Sync {
+    /// Writes to `out[k]` the radiance estimate of `samples[k]`, drawing from `rngs[k]` only. All
+    /// three slices have the same length.
     fn estimate(&self, samples: &[CameraSample], rngs: &mut [Rng], out: &mut [glam::Vec3]);
 }
 
@@ -234,9 +245,13 @@ where
 /// A rectangle of pixels `[x0, x1) x [y0, y1)` of the image: a tile.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Region {
+    /// First column (inclusive).
     pub x0: u32,
+    /// First row (inclusive).
     pub y0: u32,
+    /// End column (exclusive).
     pub x1: u32,
+    /// End row (exclusive).
     pub y1: u32,
 }
 
@@ -251,14 +266,17 @@ impl Region {
         }
     }
 
+    /// Number of columns; 0 if the region is inverted.
     pub fn width(&self) -> u32 {
         self.x1.saturating_sub(self.x0)
     }
 
+    /// Number of rows; 0 if the region is inverted.
     pub fn height(&self) -> u32 {
         self.y1.saturating_sub(self.y0)
     }
 
+    /// Number of pixels, `width * height`.
     pub fn pixels(&self) -> usize {
         self.width() as usize * self.height() as usize
     }

@@ -31,6 +31,8 @@ impl Rng {
         Self::new(s, mix64(s ^ 0x5851_f42d_4c95_7f2d))
     }
 
+    /// The PCG32 generator seeded with `init_state` on stream `init_seq` (O'Neill's
+    /// `pcg32_srandom`); different `init_seq` values give independent sequences.
     #[inline]
     pub fn new(init_state: u64, init_seq: u64) -> Self {
         let mut r = Rng {
@@ -43,6 +45,7 @@ impl Rng {
         r
     }
 
+    /// The next uniformly distributed 32-bit integer.
     #[inline]
     pub fn next_u32(&mut self) -> u32 {
         let old = self.state;
@@ -58,6 +61,7 @@ impl Rng {
         (self.next_u32() >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
     }
 
+    /// Two uniform numbers in [0, 1): x is drawn first, then y.
     #[inline]
     pub fn next_2d(&mut self) -> glam::Vec2 {
         let x = self.next_f32();

@@ -17,6 +17,8 @@ pub struct Distribution1D {
 }
 
 impl Distribution1D {
+    /// The distribution proportional to `weights`; negative and non-finite weights count as zero.
+    /// If every weight is zero, the last bin gets all the probability.
     pub fn new(weights: &[f32]) -> Self {
         let mut cdf = Vec::with_capacity(weights.len() + 1);
         let mut acc = 0.0f64;
@@ -40,14 +42,17 @@ impl Distribution1D {
         Self { cdf, total: acc }
     }
 
+    /// Number of bins.
     pub fn len(&self) -> usize {
         self.cdf.len().saturating_sub(1)
     }
 
+    /// Whether there are no bins (the default distribution); such a distribution cannot be sampled.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
+    /// Sum of the valid weights (before normalisation), in f64.
     pub fn total(&self) -> f64 {
         self.total
     }
@@ -90,6 +95,7 @@ pub fn uniform_triangle(u: Vec2) -> Vec2 {
     Vec2::new(1.0 - s, u.y * s)
 }
 
+/// Uniform direction on the unit sphere from `u` in [0, 1)^2 (pdf 1 / (4 pi) per steradian).
 #[inline]
 pub fn uniform_sphere(u: Vec2) -> Vec3 {
     let z = 1.0 - 2.0 * u.x;

@@ -15,8 +15,12 @@ use crate::material::Material;
 use crate::RenderError;
 use pathfarm_scene::limits::{format_bytes, Limits};
 
+/// Everything a render reads, immutable once built: geometry, lights, materials and textures,
+/// camera, filter and the integrator's parameters.
 pub struct Scene {
+    /// All shapes' geometry, in world space, with the ray-query structure over them.
     pub accel: Accel,
+    /// Every emitter, for next-event estimation and for emission found by paths.
     pub lights: Lights,
     /// Area light index of each shape (None for non-emitters).
     pub shape_light: Vec<Option<u32>>,
@@ -24,18 +28,28 @@ pub struct Scene {
     shape_material: Vec<u32>,
     materials: Vec<Material>,
     textures: Vec<TextureDesc>,
+    /// The sensor's camera, generating primary rays.
     pub camera: Camera,
+    /// The film's reconstruction filter.
     pub filter: Filter,
+    /// `max_depth`, `rr_depth` and `hide_emitters` of the scene's integrator (`path` or
+    /// `guided_path`).
     pub path: PathParams,
     /// The `guided_path` parameters when the scene asks for that integrator
     /// (render it with [`crate::guided::render_guided`]).
     pub guided: Option<GuidedParams>,
+    /// The effects the scene calls for; [`crate::integrator::specialised`] picks code paths by
+    /// them.
     pub features: Features,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
     /// Samples per pixel the scene asks for (`sampler.sample_count`).
     pub sample_count: u32,
+    /// The sampler's seed from the scene file; drivers use it when no seed is given.
     pub seed: u64,
+    /// Number of triangles over all meshes (for reports and memory estimates).
     pub triangle_count: usize,
     /// The resource limits the scene was loaded with (the renderer checks its own
     /// allocations against them).
@@ -43,6 +57,9 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// Builds the render-ready scene from a loaded description: the BVH, the lights, the materials.
+    /// Fails when the estimated memory exceeds the scene's limits, when the BVH cannot be built, or
+    /// with more than one environment emitter.
     pub fn build(desc: &SceneDesc) -> Result<Self, RenderError> {
         let geoms: Vec<ShapeGeom> = desc
             .shapes

@@ -61,24 +61,44 @@ pub enum Next {
 /// Why a tile was not accepted.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum TileError {
+    /// The tile is for another unit than the one in flight (a late or stray result).
     #[error("unit {got} is not the unit being rendered ({expected:?})")]
-    WrongUnit { got: u64, expected: Option<u64> },
+    WrongUnit {
+        /// The unit the tile says it belongs to.
+        got: u64,
+        /// The unit in flight; `None` when there is none.
+        expected: Option<u64>,
+    },
+    /// The tile index is out of range of the unit's tiling.
     #[error("tile {0} does not exist")]
     NoSuchTile(usize),
+    /// The tile was already accepted (a repeated result).
     #[error("tile {0} was already accepted")]
     Duplicate(usize),
+    /// The output's region, or its film's pixel count, does not match the tile's region.
     #[error("tile {index}: region {got:?} is not the tile's {expected:?}")]
     WrongRegion {
+        /// The tile's index in the unit's tiling.
         index: usize,
+        /// The region of the output.
         got: Region,
+        /// The region of tile `index`.
         expected: Region,
     },
+    /// [`Session::retile`] refused: the message says why.
     #[error("the unit cannot be re-tiled: {0}")]
     NotRetilable(&'static str),
+    /// Guide statistics came with a tile of a unit that does not record into the tree.
     #[error("tile {0}: guide statistics for a unit that records nothing")]
     UnexpectedStats(usize),
+    /// The tile's guide statistics do not match the session's tree.
     #[error("tile {index}: guide statistics do not fit the tree: {source}")]
-    Stats { index: usize, source: StatsError },
+    Stats {
+        /// The tile's index in the unit's tiling.
+        index: usize,
+        /// Why [`SdTree::apply_stats`] refused them.
+        source: StatsError,
+    },
 }
 
 /// Bookkeeping of the path fallback (`path_fallback`): while `enabled`, every training

@@ -21,6 +21,8 @@ fn eval_texture_in_register(t: &TextureDesc, uv: Vec2) -> glam::Vec3A {
     eval_texture(t, uv).into()
 }
 
+/// The linear RGB value of texture `t` at surface coordinates `uv`, after the texture's own uv
+/// transform (bitmap lookup with its filter and wrap mode, or checkerboard).
 pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
     match t {
         TextureDesc::Bitmap(b) => eval_bitmap(b, b.to_uv.apply(uv)),

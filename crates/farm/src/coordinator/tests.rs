@@ -13,6 +13,25 @@ use tonic::{Code, Request};
 use super::*;
 use crate::bundle::digest_of;
 
+/// Job `id`'s EXR, downloaded.
+async fn download_exr(jobs: &mut JobsClient<Channel>, id: &str) -> Vec<u8> {
+    let mut s = jobs
+        .download_result(v1::DownloadResultRequest {
+            job_id: id.to_string(),
+            kind: v1::ResultKind::Exr as i32,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let mut bytes = Vec::new();
+    while let Some(c) = s.message().await.unwrap() {
+        if let Some(v1::data_chunk::Part::Data(d)) = c.part {
+            bytes.extend_from_slice(&d);
+        }
+    }
+    bytes
+}
+
 /// Every job the coordinator lists.
 async fn list_jobs(jobs: &mut JobsClient<Channel>) -> Vec<v1::JobStatus> {
     jobs.list_jobs(v1::ListJobsRequest::default())
@@ -589,20 +608,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     }
     assert_eq!(last.state, v1::JobState::Done as i32);
 
-    let mut s = jobs
-        .download_result(v1::DownloadResultRequest {
-            job_id: id.clone(),
-            kind: v1::ResultKind::Exr as i32,
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    let mut exr = Vec::new();
-    while let Some(c) = s.message().await.unwrap() {
-        if let Some(v1::data_chunk::Part::Data(d)) = c.part {
-            exr.extend_from_slice(&d);
-        }
-    }
+    let exr = download_exr(&mut jobs, &id).await;
     let scene = scene.unwrap();
     let params = scene.guided.clone().unwrap();
     let settings = pathfarm_render::RenderSettings::new(Some(4), None, scene.seed);
@@ -625,20 +631,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     // a finished job's results survive a restart
     let c = Running::start(config(data.clone(), None)).await;
     let mut jobs = JobsClient::new(c.channel().await);
-    let mut s = jobs
-        .download_result(v1::DownloadResultRequest {
-            job_id: id.clone(),
-            kind: v1::ResultKind::Exr as i32,
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    let mut again = Vec::new();
-    while let Some(c) = s.message().await.unwrap() {
-        if let Some(v1::data_chunk::Part::Data(d)) = c.part {
-            again.extend_from_slice(&d);
-        }
-    }
+    let again = download_exr(&mut jobs, &id).await;
     assert!(again == expected);
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);

@@ -18,10 +18,14 @@ use super::{Analytic, Hit, Ray, SurfaceInteraction};
 /// Geometry of one shape, as the renderer keeps it.
 #[derive(Clone, Debug)]
 pub enum ShapeGeom {
+    /// A triangle mesh (shared with the scene description), in world space.
     Mesh(Arc<TriangleMesh>),
+    /// A sphere or disk, intersected in closed form.
     Analytic(Analytic),
 }
 
+/// The scene's geometry, ready for ray queries: every mesh triangle in one BVH, the analytic
+/// shapes beside it, and each shape's geometry by shape index.
 pub struct Accel {
     /// The CWBVH's nodes, decoded for traversal.
     nodes: Vec<Node>,
@@ -50,6 +54,8 @@ const FLAT_MAX: usize = 64;
 const STREAM: usize = 16;
 
 impl Accel {
+    /// Builds the BVH over every triangle of `shapes` and keeps the shapes, indexed as given (the
+    /// scene description's shape order).
     pub fn build(shapes: Vec<ShapeGeom>) -> Self {
         let mut tris = Vec::new();
         let mut refs = Vec::new();
@@ -140,6 +146,7 @@ impl Accel {
         self.offset_floor
     }
 
+    /// The geometry of shape `i` (its index in the scene description).
     pub fn shape(&self, i: u32) -> &ShapeGeom {
         &self.shapes[i as usize]
     }
@@ -196,6 +203,9 @@ impl Accel {
         }
     }
 
+    /// Whether nothing blocks the ray between `tmin` and `tmax`: an any-hit query, for shadow
+    /// rays.
+    /// `ANALYTIC` is false for scenes without analytic shapes, as in [`Accel::intersect`].
     #[inline]
     pub fn unoccluded<const ANALYTIC: bool>(&self, ray: &Ray) -> bool {
         if !self.tris.is_empty()

@@ -6,22 +6,35 @@ use glam::{Mat4, Vec2, Vec3};
 
 use super::Ray;
 
+/// A shape intersected in closed form rather than through the triangle BVH.
 #[derive(Clone, Debug)]
 pub enum Analytic {
+    /// A sphere (Mitsuba `sphere`), in world space.
     Sphere {
+        /// Centre, in world space.
         center: Vec3,
+        /// Radius, in world units.
         radius: f32,
+        /// Normals point inwards (Mitsuba `flip_normals`).
         flip: bool,
     },
+    /// The unit disk of the local xy plane, placed by a transform (Mitsuba `disk`); build it with
+    /// [`Analytic::disk`], which derives the other fields from `to_world`.
     Disk {
+        /// Object-to-world transform of the unit disk (may scale it into an ellipse).
         to_world: Mat4,
+        /// Inverse of `to_world`.
         to_local: Mat4,
+        /// Unit world-space normal of the disk's +z side, before `flip` (the inverse transpose of
+        /// `to_world` applied to +z).
         normal: Vec3,
+        /// Normals point to local -z (Mitsuba `flip_normals`).
         flip: bool,
     },
 }
 
 impl Analytic {
+    /// The disk placed by `to_world`, with its inverse and world normal precomputed.
     pub fn disk(to_world: Mat4, flip: bool) -> Self {
         let normal = to_world
             .inverse()
@@ -113,6 +126,8 @@ impl Analytic {
         }
     }
 
+    /// World-space axis-aligned bounding box `(min, max)`; conservative for a disk (the transformed
+    /// square around it).
     pub fn bounds(&self) -> (Vec3, Vec3) {
         match self {
             Analytic::Sphere { center, radius, .. } => (

@@ -10,17 +10,23 @@ pub use analytic::Analytic;
 
 use glam::{Vec2, Vec3};
 
+/// A ray segment `o + t d` for t between `tmin` and `tmax`, in world space.
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
+    /// Origin.
     pub o: Vec3,
+    /// Direction; unit length (the sphere test and the `t` distances rely on it).
     pub d: Vec3,
+    /// Start of the segment: nearer hits are ignored (the near clip of camera rays, else 0).
     pub tmin: f32,
+    /// End of the segment: farther hits are ignored (infinity for an unbounded ray).
     pub tmax: f32,
 }
 
 /// What a closest-hit query found, before shading data is computed.
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
+    /// Ray parameter of the hit: its distance from the origin along the (unit) direction.
     pub t: f32,
     /// Index of the shape in the scene description.
     pub shape: u32,
@@ -37,13 +43,18 @@ pub struct Hit {
 /// Local geometry at a hit point.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfaceInteraction {
+    /// The hit point, in world space.
     pub p: Vec3,
+    /// Ray parameter (distance along the unit direction) of the hit.
     pub t: f32,
     /// Geometric normal (unit; `flip_normals` applied).
     pub ng: Vec3,
     /// Shading normal (unit; interpolated vertex normals or `ng`).
     pub ns: Vec3,
+    /// Surface coordinates at the hit (interpolated mesh uvs, or the sphere's or disk's
+    /// parameterisation), used for texture lookups.
     pub uv: Vec2,
+    /// Index of the hit shape in the scene description.
     pub shape: u32,
 }
 

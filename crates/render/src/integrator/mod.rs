@@ -11,7 +11,10 @@ use crate::scene::Scene;
 /// does not contain: `ENV` (an environment light exists) and `ANALYTIC` (analytic shapes
 /// exist). [`specialised`] picks the instance for a scene.
 pub trait Specialise {
+    /// What the specialised code returns.
     type Output;
+    /// Runs the code instantiated for these feature flags; [`specialised`] calls the instance that
+    /// matches the scene.
     fn call<const ENV: bool, const ANALYTIC: bool>(self) -> Self::Output;
 }
 

@@ -35,6 +35,8 @@ const LANES: usize = 64;
 /// `path` over batches of samples, specialised like [`super::path::li`] for
 /// an environment light (`ENV`) and analytic shapes (`ANALYTIC`).
 pub struct PathWavefront<'a, const ENV: bool, const ANALYTIC: bool> {
+    /// The scene the paths are traced in; its features must match `ENV` and `ANALYTIC` (see
+    /// [`super::specialised`]).
     pub scene: &'a Scene,
 }
 

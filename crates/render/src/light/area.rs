@@ -34,7 +34,10 @@ impl EmitterTri {
     }
 }
 
+/// An emitting shape, sampled uniformly by area; it emits constant radiance from the front side
+/// of its shading normal only.
 pub struct AreaLight {
+    /// Index of the emitting shape in the scene's [`Accel`].
     pub shape: u32,
     /// Prepared triangles (meshes only).
     tri_data: Vec<EmitterTri>,
@@ -47,6 +50,8 @@ pub struct AreaLight {
 }
 
 impl AreaLight {
+    /// Prepares shape `shape` of `accel` for sampling; `radiance` is its emitted radiance (linear
+    /// RGB).
     pub fn new(accel: &Accel, shape: u32, radiance: Vec3) -> Self {
         let (tris, area) = match accel.shape(shape) {
             ShapeGeom::Mesh(m) => {
@@ -210,6 +215,7 @@ impl AreaLight {
         }
     }
 
+    /// Total surface area of the shape, in world units squared.
     pub fn area(&self) -> f32 {
         self.area
     }

@@ -9,6 +9,8 @@ use std::sync::Arc;
 use super::LightSample;
 use crate::sampling::Distribution1D;
 
+/// An environment light from a latitude-longitude RGB image, importance sampled by luminance
+/// times sin(theta).
 pub struct EnvMap {
     width: u32,
     height: u32,
@@ -27,6 +29,9 @@ fn luminance(c: Vec3) -> f32 {
 }
 
 impl EnvMap {
+    /// Builds the map from `width x height` linear RGB texels (row-major, row 0 at the top, i.e. at
+    /// +y of the emitter's frame), scaled by `scale`, oriented by `to_world`, and precomputes its
+    /// sampling distributions.
     pub fn new(
         width: u32,
         height: u32,
@@ -99,6 +104,9 @@ impl EnvMap {
         self.lookup(self.to_uv(d))
     }
 
+    /// Samples a direction towards the map by `u`; the sample's `pdf` is per solid angle and does
+    /// not include the light-selection probability. `None` at the poles or where the density is
+    /// zero.
     pub fn sample(&self, u: Vec2) -> Option<LightSample> {
         let (y, uy) = self.rows.sample(u.y);
         let (x, ux) = self.cols[y].sample(u.x);
@@ -129,6 +137,8 @@ impl EnvMap {
         })
     }
 
+    /// Solid-angle density with which [`EnvMap::sample`] produces world direction `d` (without the
+    /// light-selection probability).
     pub fn pdf(&self, d: Vec3) -> f32 {
         let uv = self.to_uv(d);
         let x = ((uv.x * self.width as f32) as usize).min(self.width as usize - 1);

@@ -30,6 +30,8 @@ pub struct LightSample {
     /// Solid-angle pdf including the selection probability; for delta lights
     /// the selection probability alone.
     pub pdf: f32,
+    /// From a delta light (point or directional): no BSDF-sampled path can hit it, so the
+    /// sample takes the full weight (MIS weight 1).
     pub delta: bool,
 }
 
@@ -47,16 +49,37 @@ impl LightSample {
     }
 }
 
+/// One emitter of the scene.
 pub enum Light {
+    /// An emitting shape.
     Area(AreaLight),
-    Point { position: Vec3, intensity: Vec3 },
-    Directional { direction: Vec3, irradiance: Vec3 },
-    Constant { radiance: Vec3 },
+    /// An isotropic point light.
+    Point {
+        /// Position in world space.
+        position: Vec3,
+        /// Radiant intensity (linear RGB, per steradian): the irradiance at distance d is
+        /// `intensity / d^2`.
+        intensity: Vec3,
+    },
+    /// A light at infinity from a single direction.
+    Directional {
+        /// Normalised world-space direction the light travels (from the light into the scene).
+        direction: Vec3,
+        /// Irradiance (linear RGB) on a surface perpendicular to `direction`.
+        irradiance: Vec3,
+    },
+    /// Uniform radiance from every direction at infinity.
+    Constant {
+        /// Radiance (linear RGB) arriving from every direction.
+        radiance: Vec3,
+    },
+    /// An environment map at infinity.
     EnvMap(EnvMap),
 }
 
 /// All the scene's lights and the maps from shapes to their area lights.
 pub struct Lights {
+    /// Every light: the shapes' area lights first, in shape order, then the other emitters.
     pub lights: Vec<Light>,
     /// The environment light (constant or envmap), if any.
     pub environment: Option<usize>,
@@ -65,6 +88,8 @@ pub struct Lights {
 }
 
 impl Lights {
+    /// Wraps `lights`, finding the environment light and each light's selection probability
+    /// (one over the number of lights).
     pub fn new(lights: Vec<Light>) -> Self {
         let environment = lights
             .iter()
@@ -81,6 +106,7 @@ impl Lights {
         }
     }
 
+    /// Whether the scene has no light at all.
     pub fn is_empty(&self) -> bool {
         self.lights.is_empty()
     }

@@ -74,7 +74,11 @@ pub fn mis_weight(a: f32, b: f32) -> f32 {
 pub struct VertexGuide {
     /// The spatial leaf of the vertex (with its box, which recording reuses).
     pub at: SLookup,
+    /// Guiding applies here: the tree is built and the BSDF has a smooth component. False: the
+    /// BSDF alone is sampled and `alpha` is 1.
     pub guided: bool,
+    /// The leaf's learned BSDF-sampling fraction: the probability of sampling the BSDF rather than
+    /// the guide (1 when unguided).
     pub alpha: f32,
     /// The part of the sphere the guide samples from (see [`pathfarm_guide::region`]):
     /// everything, or the hemisphere an opaque surface reflects into.
@@ -176,8 +180,12 @@ pub struct MixtureSample {
     pub fcos: Vec3,
     /// Mixture pdf (for a delta lobe `alpha` times the lobe probability).
     pub p_mix: f32,
+    /// The BSDF's solid-angle pdf of `wo` (for a delta lobe, its lobe probability).
     pub p_bsdf: f32,
+    /// The guide's solid-angle pdf of `wo_world` (0 when unguided or for a delta lobe).
     pub p_guide: f32,
+    /// The direction came from a delta lobe of the BSDF: it takes no part in MIS and is not
+    /// recorded.
     pub delta: bool,
     /// Relative IOR of the crossing (1 for reflection), from the actual direction.
     pub eta: f32,

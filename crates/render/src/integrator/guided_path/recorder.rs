@@ -9,15 +9,21 @@ pub const MAX_RECORDED_VERTICES: usize = 32;
 /// One recorded path vertex (doc section 2).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct RecVertex {
+    /// The vertex's position, in world space.
     pub position: Vec3,
     /// The guide's spatial leaf at `position` (from the vertex's [`VertexGuide`]).
     pub at: SLookup,
+    /// The sampled direction leaving the vertex, in world space (unit).
     pub direction: Vec3,
     /// Throughput including this bounce's `f cos / p_mix` (before Russian roulette).
     pub throughput: Vec3,
+    /// `f cos` of the sampled direction (BSDF value times the cosine; not divided by any pdf).
     pub fcos: Vec3,
+    /// Mixture pdf (solid angle) the direction was sampled with.
     pub p_mix: f32,
+    /// The BSDF's solid-angle pdf of the direction.
     pub p_bsdf: f32,
+    /// The guide's solid-angle pdf of the direction.
     pub p_guide: f32,
     /// Statistical weight (1, or 0.5 while NEE kick-start is active).
     pub weight: f32,
