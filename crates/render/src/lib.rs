@@ -36,7 +36,7 @@ pub use render::{
     path_estimator, render, render_into, render_region_into, CameraSample, Estimator,
     PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
 };
-pub use scene::Scene;
+pub use scene::{Purpose, Scene};
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).
 #[derive(Debug, thiserror::Error)]

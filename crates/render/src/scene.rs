@@ -9,7 +9,7 @@ use pathfarm_scene::{
 
 use crate::camera::Camera;
 use crate::filter::Filter;
-use crate::geometry::{Accel, Analytic, ShapeGeom, SurfaceInteraction};
+use crate::geometry::{Accel, Analytic, Bvh, ShapeGeom, SurfaceInteraction};
 use crate::light::{AreaLight, EnvMap, Light, Lights};
 use crate::material::Material;
 use crate::RenderError;
@@ -56,11 +56,28 @@ pub struct Scene {
     pub limits: Limits,
 }
 
+/// What a [`Scene`] is built for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Purpose {
+    /// Rendering: everything, the BVH included.
+    Render,
+    /// Reading its settings and checking it: no BVH, so no ray hits its triangles.
+    Inspect,
+}
+
 impl Scene {
     /// Builds the render-ready scene from a loaded description: the BVH, the lights, the materials.
     /// Fails when the estimated memory exceeds the scene's limits, when the BVH cannot be built, or
     /// with more than one environment emitter.
     pub fn build(desc: &SceneDesc) -> Result<Self, RenderError> {
+        Self::build_for(desc, Purpose::Render)
+    }
+
+    /// [`Scene::build`] for `purpose`: with [`Purpose::Inspect`] everything but the BVH is
+    /// built and checked (settings, lights, materials, bounds), and no ray hits the scene's
+    /// triangles; the farm's coordinator validates submitted scenes so, for a BVH is most of a
+    /// large scene's build time.
+    pub fn build_for(desc: &SceneDesc, purpose: Purpose) -> Result<Self, RenderError> {
         let geoms: Vec<ShapeGeom> = desc
             .shapes
             .iter()
@@ -95,7 +112,13 @@ impl Scene {
         check_memory(desc, triangle_count)?;
         // The BVH builder is third-party code: a failure there is an error, not a crash
         // (the loader bounds coordinates, so this is a second line of defence).
-        let accel = std::panic::catch_unwind(move || Accel::build(geoms)).map_err(|_| {
+        let accel = std::panic::catch_unwind(move || {
+            let bvh = match purpose {
+                Purpose::Render => Bvh::Build,
+                Purpose::Inspect => Bvh::Skip,
+            };
+            Accel::build_with(geoms, bvh)
+        }).map_err(|_| {
             RenderError::Unsupported(format!(
                 "{}: building the BVH failed on this geometry",
                 desc.source.display()

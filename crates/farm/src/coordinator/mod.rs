@@ -43,7 +43,7 @@ use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
 use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session};
 use pathfarm_render::pass::{PassKind, PassSpec};
-use pathfarm_render::{Region, Scene};
+use pathfarm_render::{Purpose, Region, Scene};
 use pathfarm_scene::{GuidedParams, Limits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -400,7 +400,8 @@ impl Shared {
                 bundle::override_resolution(&mut desc, r.width, r.height, &limits)
                     .map_err(|e| bad(format!("settings.scene.resolution: {e}")))?;
             }
-            Scene::build(&desc).map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))
+            Scene::build_for(&desc, Purpose::Inspect)
+                .map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))
         })();
         let _ = std::fs::remove_dir_all(&dir);
         let scene = result?;

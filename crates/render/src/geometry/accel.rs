@@ -53,10 +53,26 @@ const FLAT_MAX: usize = 64;
 /// with AVX2 (Zen 3) 16 and 8 are within noise.
 const STREAM: usize = 16;
 
+/// Whether [`Accel::build_with`] builds the BVH.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Bvh {
+    /// Build it: rays can be traced.
+    Build,
+    /// Skip it: only the shapes and the scene's bounds are kept, and no ray hits a triangle.
+    Skip,
+}
+
 impl Accel {
     /// Builds the BVH over every triangle of `shapes` and keeps the shapes, indexed as given (the
     /// scene description's shape order).
     pub fn build(shapes: Vec<ShapeGeom>) -> Self {
+        Self::build_with(shapes, Bvh::Build)
+    }
+
+    /// [`Accel::build`], or with [`Bvh::Skip`] only the shapes and their bounds (the same
+    /// bounds, bit for bit): an accelerator that no ray hits, for reading a scene's settings
+    /// without the cost of its BVH.
+    pub fn build_with(shapes: Vec<ShapeGeom>, bvh: Bvh) -> Self {
         let mut tris = Vec::new();
         let mut refs = Vec::new();
         let mut analytic = Vec::new();
@@ -87,7 +103,7 @@ impl Accel {
                 }
             }
         }
-        let (nodes, tris, prims) = if tris.is_empty() {
+        let (nodes, tris, prims) = if tris.is_empty() || matches!(bvh, Bvh::Skip) {
             (Vec::new(), TriSoa::default(), Vec::new())
         } else {
             let bvh = build_cwbvh_from_tris(
@@ -859,6 +875,19 @@ mod tests {
             flip_normals: false,
         };
         Accel::build(vec![ShapeGeom::Mesh(Arc::new(mesh))])
+    }
+
+    #[test]
+    fn an_accelerator_without_bvh_has_the_bounds_of_the_built_one_and_no_hits() {
+        let mut rng = Rng::new(7, 1);
+        let built = soup(300, &mut rng);
+        let shapes = built.shapes.clone();
+        let skipped = Accel::build_with(shapes, Bvh::Skip);
+        assert_eq!(skipped.bounds(), built.bounds());
+        assert_eq!(skipped.offset_floor(), built.offset_floor());
+        let rays = random_rays(200, &mut rng);
+        assert!(rays.iter().any(|r| built.intersect::<false>(r).is_some()));
+        assert!(rays.iter().all(|r| skipped.intersect::<false>(r).is_none()));
     }
 
     fn random_rays(n: usize, rng: &mut Rng) -> Vec<Ray> {

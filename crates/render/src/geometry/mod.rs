@@ -5,7 +5,7 @@ mod accel;
 mod analytic;
 mod triangle;
 
-pub use accel::{Accel, ShapeGeom};
+pub use accel::{Accel, Bvh, ShapeGeom};
 pub use analytic::Analytic;
 
 use glam::{Vec2, Vec3};
