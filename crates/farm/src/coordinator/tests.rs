@@ -612,14 +612,12 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let scene = scene.unwrap();
     let params = scene.guided.clone().unwrap();
     let settings = pathfarm_render::RenderSettings::new(Some(4), None, scene.seed);
-    let (film, _, _) = guided::render_guided_with_policy(
+    let (film, _, _) = guided::render_guided(
         &scene,
         &params,
         Budget::Spp(4),
         &settings,
-        &|_| {},
-        &|_| {},
-        FallbackPolicy::Rule,
+        guided::GuidedOptions::default(),
     );
     let expected = pathfarm_render::output::encode_exr(&film, false).unwrap();
     assert!(
