@@ -1075,6 +1075,18 @@ mod tests {
         s
     }
 
+    /// A one-tile job whose tile may be tried only once, leased to W1 at t = 0: whatever
+    /// ends that lease badly fails the job.
+    fn single_attempt_lease() -> (Scheduler, Lease) {
+        let config = SchedulerConfig {
+            max_attempts: 1,
+            ..SchedulerConfig::default()
+        };
+        let mut s = with_job(config, &[W1], 1);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        (s, a)
+    }
+
     fn setup(workers: &[WorkerId], tiles: u32) -> Scheduler {
         with_job(SchedulerConfig::default(), workers, tiles)
     }
@@ -1221,12 +1233,7 @@ mod tests {
 
     #[test]
     fn expiries_count_towards_the_attempt_limit_and_tick_reports_the_failure() {
-        let config = SchedulerConfig {
-            max_attempts: 1,
-            ..SchedulerConfig::default()
-        };
-        let mut s = with_job(config, &[W1], 1);
-        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let (mut s, a) = single_attempt_lease();
         keep_alive(&mut s, &[W1], 10, 60);
         let events = s.tick(secs(60));
         let last = Failure::Expired {
@@ -1639,12 +1646,7 @@ mod tests {
 
     #[test]
     fn failure_messages_are_truncated() {
-        let config = SchedulerConfig {
-            max_attempts: 1,
-            ..SchedulerConfig::default()
-        };
-        let mut s = with_job(config, &[W1], 1);
-        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let (mut s, a) = single_attempt_lease();
         let events = s.fail_lease(W1, a.id, &"é".repeat(5000), secs(1)).unwrap();
         let Event::JobFailed { reason, .. } = &events[0] else {
             panic!("{events:?}")
