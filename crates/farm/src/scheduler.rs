@@ -636,9 +636,7 @@ impl Scheduler {
         active: &[LeaseId],
         now: Millis,
     ) -> Result<Vec<LeaseId>, SchedError> {
-        if !self.touch(worker, now) {
-            return Err(SchedError::UnknownWorker(worker));
-        }
+        self.touch_known(worker, now)?;
         let stale = active
             .iter()
             .copied()
@@ -679,9 +677,7 @@ impl Scheduler {
         leases: &[LeaseId],
         now: Millis,
     ) -> Result<Vec<TaskKey>, SchedError> {
-        if !self.touch(worker, now) {
-            return Err(SchedError::UnknownWorker(worker));
-        }
+        self.touch_known(worker, now)?;
         let mut keys = Vec::new();
         for &id in leases {
             if self.check(worker, id, now).is_ok() {
@@ -873,6 +869,15 @@ impl Scheduler {
         };
         record.last_seen = record.last_seen.max(now);
         true
+    }
+
+    /// [`Self::touch`] for the calls only a registered worker may make.
+    fn touch_known(&mut self, worker: WorkerId, now: Millis) -> Result<(), SchedError> {
+        if self.touch(worker, now) {
+            Ok(())
+        } else {
+            Err(SchedError::UnknownWorker(worker))
+        }
     }
 
     fn pick_job(&self) -> Option<JobId> {
