@@ -281,6 +281,23 @@ fn child(path: &[i32], field: i32, i: usize) -> Vec<i32> {
     p
 }
 
+/// Checks the element at `path` (`what name`) and its items (`item_what name.item`): an
+/// enum's values and a message's fields are both field 2 of their parent in
+/// descriptor.proto, so one walk addresses both.
+fn check_with_items<'a>(
+    check: &mut dyn FnMut(Vec<i32>, String),
+    path: &[i32],
+    what: &str,
+    name: &str,
+    item_what: &str,
+    items: impl Iterator<Item = &'a str>,
+) {
+    check(path.to_vec(), format!("{what} {name}"));
+    for (i, item) in items.enumerate() {
+        check(child(path, 2, i), format!("{item_what} {name}.{item}"));
+    }
+}
+
 /// Source paths (descriptor.proto field numbers) of every documented element of a file,
 /// checked against its source info: every message, field, enum, enum value, service and
 /// rpc must have a leading comment.
@@ -317,13 +334,8 @@ fn every_element_is_documented() {
             check: &mut dyn FnMut(Vec<i32>, String),
         ) {
             let name = format!("{scope}{}", e.name());
-            check(path.clone(), format!("enum {name}"));
-            for (i, v) in e.value.iter().enumerate() {
-                check(
-                    child(&path, 2, i),
-                    format!("enum value {name}.{}", v.name()),
-                );
-            }
+            let values = e.value.iter().map(|v| v.name());
+            check_with_items(check, &path, "enum", &name, "enum value", values);
         }
         fn walk_message(
             m: &DescriptorProto,
@@ -332,10 +344,8 @@ fn every_element_is_documented() {
             check: &mut dyn FnMut(Vec<i32>, String),
         ) {
             let name = format!("{scope}{}", m.name());
-            check(path.clone(), format!("message {name}"));
-            for (i, field) in m.field.iter().enumerate() {
-                check(child(&path, 2, i), format!("field {name}.{}", field.name()));
-            }
+            let fields = m.field.iter().map(|f| f.name());
+            check_with_items(check, &path, "message", &name, "field", fields);
             for (i, nested) in m.nested_type.iter().enumerate() {
                 walk_message(nested, child(&path, 3, i), &format!("{name}."), check);
             }
