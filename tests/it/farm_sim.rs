@@ -13,7 +13,7 @@ use pathfarm_farm::scheduler::{
 };
 use pathfarm_guide::SdTree;
 use pathfarm_render::guided::{
-    guide_config, render_guided_with_policy, Budget, FallbackPolicy, Next, Session,
+    guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, Next, Session,
 };
 use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
@@ -97,14 +97,12 @@ fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: 
 fn one_process(scene: &Scene, spp: u32, seed: u64) -> (Film, SdTree) {
     let params = scene.guided.clone().expect("guided");
     let settings = RenderSettings::new(Some(spp), None, seed);
-    let (film, _, tree) = render_guided_with_policy(
+    let (film, _, tree) = render_guided(
         scene,
         &params,
         Budget::Spp(spp),
         &settings,
-        &|_| {},
-        &|_| {},
-        FallbackPolicy::Rule,
+        GuidedOptions::default(),
     );
     (film, tree)
 }

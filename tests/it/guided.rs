@@ -2,8 +2,7 @@
 //! with the path tracer, determinism, parameters and the CLI.
 
 use pathfarm_render::guided::{
-    render_guided, render_guided_with_policy, Budget, FallbackPolicy, GuidedStats, GuidingVerdict,
-    SdTree,
+    render_guided, Budget, FallbackPolicy, GuidedOptions, GuidedStats, GuidingVerdict, SdTree,
 };
 use pathfarm_render::{render, Film, RenderSettings, Scene};
 use pathfarm_scene::{
@@ -20,7 +19,7 @@ fn guided(scene: &Scene, spp: u32, seed: u64) -> (Film, GuidedStats, SdTree) {
         &params,
         Budget::Spp(spp),
         &RenderSettings::new(Some(spp), None, seed),
-        &|_| {},
+        GuidedOptions::default(),
     )
 }
 
@@ -306,7 +305,13 @@ fn guided_roulette_starts_at_guided_rr_depth() {
         let mut params = scene.guided.clone().unwrap();
         params.guided_rr_depth = depth;
         let settings = RenderSettings::new(Some(16), None, 3);
-        render_guided(&scene, &params, Budget::Spp(16), &settings, &|_| {})
+        render_guided(
+            &scene,
+            &params,
+            Budget::Spp(16),
+            &settings,
+            Default::default(),
+        )
     };
     let (film_e, stats_e, _) = from(2);
     let (film_l, stats_l, _) = from(13);
@@ -374,14 +379,15 @@ fn path_fallback_renders_the_rest_unguided_and_agrees_with_the_path_tracer() {
             .build()
             .unwrap()
             .install(|| {
-                render_guided_with_policy(
+                render_guided(
                     &scene,
                     &params,
                     Budget::Spp(spp),
                     &RenderSettings::new(Some(spp), None, 3),
-                    &|_| {},
-                    &|_| {},
-                    FallbackPolicy::Force(verdict),
+                    GuidedOptions {
+                        policy: FallbackPolicy::Force(verdict),
+                        ..Default::default()
+                    },
                 )
             })
     };

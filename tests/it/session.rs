@@ -7,7 +7,8 @@
 use pathfarm_guide::SdTree;
 use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
-    guide_config, render_guided_with_policy, Budget, FallbackPolicy, GuidingVerdict, Next, Session,
+    guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
+    Session,
 };
 use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
@@ -144,15 +145,11 @@ fn one_process(
     policy: FallbackPolicy,
 ) -> (Film, SdTree) {
     let settings = RenderSettings::new(Some(spp), None, seed);
-    let (film, _, tree) = render_guided_with_policy(
-        scene,
-        params,
-        Budget::Spp(spp),
-        &settings,
-        &|_| {},
-        &|_| {},
+    let options = GuidedOptions {
         policy,
-    );
+        ..Default::default()
+    };
+    let (film, _, tree) = render_guided(scene, params, Budget::Spp(spp), &settings, options);
     (film, tree)
 }
 

@@ -68,8 +68,13 @@ fn render_scene(scene: &Scene, spp: u32, seed: u64) -> Rendered {
             }
         }
         Some(params) => {
-            let (film, stats, tree) =
-                render_guided(scene, params, Budget::Spp(spp), &settings, &|_| {});
+            let (film, stats, tree) = render_guided(
+                scene,
+                params,
+                Budget::Spp(spp),
+                &settings,
+                Default::default(),
+            );
             assert_eq!(stats.spp, spp);
             assert!(
                 stats.iterations.len() >= 2,

@@ -89,6 +89,17 @@ impl BsdfSample {
         }
     }
 
+    /// The sample, unless its weight is NaN or infinite (a degenerate configuration): then
+    /// `None`, the path is absorbed rather than carrying a non-finite value on.
+    #[inline]
+    pub fn if_finite(self) -> Option<Self> {
+        if self.weight.is_finite() {
+            Some(self)
+        } else {
+            None
+        }
+    }
+
     #[inline]
     fn reflection(wo: Vec3, pdf: f32, weight: Vec3, delta: bool) -> Self {
         Self {

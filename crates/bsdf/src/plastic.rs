@@ -85,14 +85,7 @@ impl Plastic {
         let prob_diffuse = 1.0 - prob_specular;
         if u_lobe < prob_specular {
             let weight = self.specular_reflectance * (f_i / prob_specular);
-            if !weight.is_finite() {
-                return None;
-            }
-            Some(BsdfSample::specular_reflection(
-                reflect(wi),
-                prob_specular,
-                weight,
-            ))
+            BsdfSample::specular_reflection(reflect(wi), prob_specular, weight).if_finite()
         } else {
             let wo = square_to_cosine_hemisphere(u);
             let pdf = prob_diffuse * square_to_cosine_hemisphere_pdf(wo);
@@ -102,10 +95,7 @@ impl Plastic {
             let f_o = fresnel_dielectric(wo.z, self.eta).0;
             let weight =
                 self.substrate() * (self.inv_eta_2 * (1.0 - f_i) * (1.0 - f_o) / prob_diffuse);
-            if !weight.is_finite() {
-                return None;
-            }
-            Some(BsdfSample::glossy_reflection(wo, pdf, weight))
+            BsdfSample::glossy_reflection(wo, pdf, weight).if_finite()
         }
     }
 

@@ -298,10 +298,7 @@ impl<'a> RoughPlastic<'a> {
             return None;
         }
         let weight = self.eval(wi, wo) / pdf;
-        if !weight.is_finite() {
-            return None;
-        }
-        Some(BsdfSample::glossy_reflection(wo, pdf, weight))
+        BsdfSample::glossy_reflection(wo, pdf, weight).if_finite()
     }
 
     pub fn eval(&self, wi: Vec3, wo: Vec3) -> Vec3 {

@@ -134,13 +134,15 @@ fn train_tree(scene: &Scene, params: &GuidedParams, spp: u32, seed: u64) -> SdTr
             it.seconds
         )
     };
-    guided::render_guided_with(
+    guided::render_guided(
         scene,
         params,
         Budget::Spp(spp),
         &settings,
-        &|_| {},
-        &on_iteration,
+        guided::GuidedOptions {
+            on_iteration: &on_iteration,
+            ..Default::default()
+        },
     )
     .2
 }

@@ -323,8 +323,12 @@ pub fn render_scene(
         (None, None) => guided::params_budget(params, scene),
     };
     guided::check_budget(params, b).map_err(anyhow::Error::msg)?;
-    let (film, gs, _tree) =
-        guided::render_guided_with(scene, params, b, settings, progress, on_iteration);
+    let options = guided::GuidedOptions {
+        progress,
+        on_iteration,
+        ..Default::default()
+    };
+    let (film, gs, _tree) = guided::render_guided(scene, params, b, settings, options);
     let stats = pathfarm_render::RenderStats {
         spp: gs.spp,
         wall: gs.wall,

@@ -636,9 +636,7 @@ impl Scheduler {
         active: &[LeaseId],
         now: Millis,
     ) -> Result<Vec<LeaseId>, SchedError> {
-        if !self.touch(worker, now) {
-            return Err(SchedError::UnknownWorker(worker));
-        }
+        self.touch_known(worker, now)?;
         let stale = active
             .iter()
             .copied()
@@ -679,9 +677,7 @@ impl Scheduler {
         leases: &[LeaseId],
         now: Millis,
     ) -> Result<Vec<TaskKey>, SchedError> {
-        if !self.touch(worker, now) {
-            return Err(SchedError::UnknownWorker(worker));
-        }
+        self.touch_known(worker, now)?;
         let mut keys = Vec::new();
         for &id in leases {
             if self.check(worker, id, now).is_ok() {
@@ -873,6 +869,15 @@ impl Scheduler {
         };
         record.last_seen = record.last_seen.max(now);
         true
+    }
+
+    /// [`Self::touch`] for the calls only a registered worker may make.
+    fn touch_known(&mut self, worker: WorkerId, now: Millis) -> Result<(), SchedError> {
+        if self.touch(worker, now) {
+            Ok(())
+        } else {
+            Err(SchedError::UnknownWorker(worker))
+        }
     }
 
     fn pick_job(&self) -> Option<JobId> {
@@ -1075,6 +1080,18 @@ mod tests {
         s
     }
 
+    /// A one-tile job whose tile may be tried only once, leased to W1 at t = 0: whatever
+    /// ends that lease badly fails the job.
+    fn single_attempt_lease() -> (Scheduler, Lease) {
+        let config = SchedulerConfig {
+            max_attempts: 1,
+            ..SchedulerConfig::default()
+        };
+        let mut s = with_job(config, &[W1], 1);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        (s, a)
+    }
+
     fn setup(workers: &[WorkerId], tiles: u32) -> Scheduler {
         with_job(SchedulerConfig::default(), workers, tiles)
     }
@@ -1221,12 +1238,7 @@ mod tests {
 
     #[test]
     fn expiries_count_towards_the_attempt_limit_and_tick_reports_the_failure() {
-        let config = SchedulerConfig {
-            max_attempts: 1,
-            ..SchedulerConfig::default()
-        };
-        let mut s = with_job(config, &[W1], 1);
-        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let (mut s, a) = single_attempt_lease();
         keep_alive(&mut s, &[W1], 10, 60);
         let events = s.tick(secs(60));
         let last = Failure::Expired {
@@ -1639,12 +1651,7 @@ mod tests {
 
     #[test]
     fn failure_messages_are_truncated() {
-        let config = SchedulerConfig {
-            max_attempts: 1,
-            ..SchedulerConfig::default()
-        };
-        let mut s = with_job(config, &[W1], 1);
-        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let (mut s, a) = single_attempt_lease();
         let events = s.fail_lease(W1, a.id, &"é".repeat(5000), secs(1)).unwrap();
         let Event::JobFailed { reason, .. } = &events[0] else {
             panic!("{events:?}")

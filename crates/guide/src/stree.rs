@@ -251,11 +251,7 @@ impl STree {
             }
             let sn = &self.nodes[n as usize];
             if !sn.is_leaf() {
-                let a = sn.axis as usize;
-                let mut e2 = e;
-                e2[a] *= 0.5;
-                let mut o2 = o;
-                o2[a] += e2[a];
+                let (o2, e2) = upper_half(o, e, sn.axis as usize);
                 stack.push((sn.children[0], o, e2));
                 stack.push((sn.children[1], o2, e2));
             }
@@ -364,10 +360,7 @@ impl STree {
             return;
         }
         let a = sn.axis as usize;
-        let mut e2 = e;
-        e2[a] *= 0.5;
-        let mut o1 = o;
-        o1[a] += e2[a];
+        let (o1, e2) = upper_half(o, e, a);
         for (c, oc) in [(sn.children[0], o), (sn.children[1], o1)] {
             let mut ovc = ov;
             ovc[a] = axis_overlap(lo[a], hi[a], oc[a], e2[a]);
@@ -376,6 +369,21 @@ impl STree {
             }
         }
     }
+}
+
+/// The upper child of the box (`o`, `e`) split at its midpoint along `axis`, as (origin,
+/// extent); the lower child keeps `o` with the same extent. One rule for every walk that
+/// tracks node boxes (f32 in the normalised lookups, f64 in the overlap walks).
+#[inline]
+pub(crate) fn upper_half<T>(o: [T; 3], e: [T; 3], axis: usize) -> ([T; 3], [T; 3])
+where
+    T: Copy + std::ops::Add<Output = T> + std::ops::Mul<Output = T> + From<f32>,
+{
+    let mut e2 = e;
+    e2[axis] = e[axis] * T::from(0.5);
+    let mut o2 = o;
+    o2[axis] = o[axis] + e2[axis];
+    (o2, e2)
 }
 
 /// Overlap of `[lo, hi]` with a node's interval `[o, o + e]` along one axis, the node's faces

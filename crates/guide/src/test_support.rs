@@ -27,6 +27,30 @@ pub(crate) fn config_2019() -> GuideConfig {
     }
 }
 
+/// The default configuration with spatial threshold `s_tree_threshold`: how finely the tests'
+/// records split space.
+pub(crate) fn threshold_config(s_tree_threshold: f64) -> GuideConfig {
+    GuideConfig {
+        s_tree_threshold,
+        ..GuideConfig::default()
+    }
+}
+
+/// The default configuration with a learned fraction under `loss` and spatial threshold
+/// `s_tree_threshold` (1e15: space is never split, one leaf learns from every record).
+pub(crate) fn learned_config(s_tree_threshold: f64, loss: FractionLoss) -> GuideConfig {
+    GuideConfig {
+        s_tree_threshold,
+        bsdf_sampling_fraction: FractionMode::Learned { loss },
+        ..GuideConfig::default()
+    }
+}
+
+/// An empty tree over the cube [-1, 1]^3, the domain of every test's records.
+pub(crate) fn cube_tree(cfg: GuideConfig) -> SdTree {
+    SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg)
+}
+
 /// Small deterministic PRNG (PCG-XSH-RR 64/32): the random numbers of every test in the crate.
 #[derive(Clone)]
 pub(crate) struct Pcg(u64);

@@ -273,6 +273,31 @@ fn key_messages_keep_their_field_numbers() {
     assert_eq!(job_state, want);
 }
 
+/// The source path of element `i` of the repeated field numbered `field` in the element at
+/// `path` (how descriptor.proto's source info addresses nested elements).
+fn child(path: &[i32], field: i32, i: usize) -> Vec<i32> {
+    let mut p = path.to_vec();
+    p.extend([field, i as i32]);
+    p
+}
+
+/// Checks the element at `path` (`what name`) and its items (`item_what name.item`): an
+/// enum's values and a message's fields are both field 2 of their parent in
+/// descriptor.proto, so one walk addresses both.
+fn check_with_items<'a>(
+    check: &mut dyn FnMut(Vec<i32>, String),
+    path: &[i32],
+    what: &str,
+    name: &str,
+    item_what: &str,
+    items: impl Iterator<Item = &'a str>,
+) {
+    check(path.to_vec(), format!("{what} {name}"));
+    for (i, item) in items.enumerate() {
+        check(child(path, 2, i), format!("{item_what} {name}.{item}"));
+    }
+}
+
 /// Source paths (descriptor.proto field numbers) of every documented element of a file,
 /// checked against its source info: every message, field, enum, enum value, service and
 /// rpc must have a leading comment.
@@ -309,12 +334,8 @@ fn every_element_is_documented() {
             check: &mut dyn FnMut(Vec<i32>, String),
         ) {
             let name = format!("{scope}{}", e.name());
-            check(path.clone(), format!("enum {name}"));
-            for (i, v) in e.value.iter().enumerate() {
-                let mut p = path.clone();
-                p.extend([2, i as i32]);
-                check(p, format!("enum value {name}.{}", v.name()));
-            }
+            let values = e.value.iter().map(|v| v.name());
+            check_with_items(check, &path, "enum", &name, "enum value", values);
         }
         fn walk_message(
             m: &DescriptorProto,
@@ -323,21 +344,13 @@ fn every_element_is_documented() {
             check: &mut dyn FnMut(Vec<i32>, String),
         ) {
             let name = format!("{scope}{}", m.name());
-            check(path.clone(), format!("message {name}"));
-            for (i, field) in m.field.iter().enumerate() {
-                let mut p = path.clone();
-                p.extend([2, i as i32]);
-                check(p, format!("field {name}.{}", field.name()));
-            }
+            let fields = m.field.iter().map(|f| f.name());
+            check_with_items(check, &path, "message", &name, "field", fields);
             for (i, nested) in m.nested_type.iter().enumerate() {
-                let mut p = path.clone();
-                p.extend([3, i as i32]);
-                walk_message(nested, p, &format!("{name}."), check);
+                walk_message(nested, child(&path, 3, i), &format!("{name}."), check);
             }
             for (i, e) in m.enum_type.iter().enumerate() {
-                let mut p = path.clone();
-                p.extend([4, i as i32]);
-                walk_enum(e, p, &format!("{name}."), check);
+                walk_enum(e, child(&path, 4, i), &format!("{name}."), check);
             }
         }
         for (i, m) in f.message_type.iter().enumerate() {
@@ -350,7 +363,7 @@ fn every_element_is_documented() {
             check(vec![6, i as i32], format!("service {}", s.name()));
             for (j, m) in s.method.iter().enumerate() {
                 check(
-                    vec![6, i as i32, 2, j as i32],
+                    child(&[6, i as i32], 2, j),
                     format!("rpc {}.{}", s.name(), m.name()),
                 );
             }

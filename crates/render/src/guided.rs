@@ -230,52 +230,45 @@ pub fn combine_films(films: &[&Film], weights: &[f64]) -> Film {
     out
 }
 
+/// What a guided render reports as it goes and how its path fallback decides, beyond what
+/// it renders. The default reports nothing and applies [`FallbackPolicy::Rule`].
+#[derive(Clone, Copy)]
+pub struct GuidedOptions<'a> {
+    /// Called with the samples done so far (and the estimated total) as the render goes.
+    pub progress: &'a (dyn Fn(Progress) + Sync),
+    /// Called as each iteration ends.
+    pub on_iteration: &'a dyn Fn(&GuidedIteration),
+    /// The path fallback's rule; tests and experiments force either outcome with it.
+    pub policy: FallbackPolicy,
+}
+
+impl Default for GuidedOptions<'_> {
+    fn default() -> Self {
+        GuidedOptions {
+            progress: &|_| {},
+            on_iteration: &|_| {},
+            policy: FallbackPolicy::Rule,
+        }
+    }
+}
+
 /// Renders `scene` with the guided path tracer within `budget`. Returns the final film,
 /// the statistics and the tree (as it stands at the end).
+///
+/// The one-process driver of a [`Session`]: every unit is rendered over the whole image as
+/// one tile, recording straight into the session's tree.
 pub fn render_guided(
     scene: &Scene,
     params: &GuidedParams,
     budget: Budget,
     settings: &RenderSettings,
-    progress: &(dyn Fn(Progress) + Sync),
+    options: GuidedOptions,
 ) -> (Film, GuidedStats, SdTree) {
-    render_guided_with(scene, params, budget, settings, progress, &|_| {})
-}
-
-/// [`render_guided`], calling `on_iteration` as each iteration ends.
-pub fn render_guided_with(
-    scene: &Scene,
-    params: &GuidedParams,
-    budget: Budget,
-    settings: &RenderSettings,
-    progress: &(dyn Fn(Progress) + Sync),
-    on_iteration: &dyn Fn(&GuidedIteration),
-) -> (Film, GuidedStats, SdTree) {
-    render_guided_with_policy(
-        scene,
-        params,
-        budget,
-        settings,
+    let GuidedOptions {
         progress,
         on_iteration,
-        FallbackPolicy::Rule,
-    )
-}
-
-/// [`render_guided_with`] with the path fallback's rule as a parameter (by default
-/// [`FallbackPolicy::Rule`]), so that tests and experiments can force either outcome.
-///
-/// The one-process driver of a [`Session`]: every unit is rendered over the whole image as
-/// one tile, recording straight into the session's tree.
-pub fn render_guided_with_policy(
-    scene: &Scene,
-    params: &GuidedParams,
-    budget: Budget,
-    settings: &RenderSettings,
-    progress: &(dyn Fn(Progress) + Sync),
-    on_iteration: &dyn Fn(&GuidedIteration),
-    policy: FallbackPolicy,
-) -> (Film, GuidedStats, SdTree) {
+        policy,
+    } = options;
     // The budget's clock starts with the call (building the tree is part of the render).
     let start = Instant::now();
     let (lo, hi) = scene.accel.bounds();

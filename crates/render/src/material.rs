@@ -155,6 +155,12 @@ fn mean(textures: &[TextureDesc], r: TexRef) -> f32 {
     (c.x + c.y + c.z) / 3.0
 }
 
+/// The specular sampling weight of a (rough) plastic: both share Mitsuba's rule, from the
+/// means of the diffuse and specular reflectances.
+fn plastic_ssw(textures: &[TextureDesc], diffuse: TexRef, specular: TexRef) -> f32 {
+    specular_sampling_weight(mean(textures, diffuse), mean(textures, specular))
+}
+
 impl Side {
     fn new(desc: &BsdfDesc, textures: &[TextureDesc]) -> Self {
         match desc {
@@ -230,10 +236,7 @@ impl Side {
                 diffuse: *diffuse_reflectance,
                 specular: *specular_reflectance,
                 nonlinear: *nonlinear,
-                ssw: specular_sampling_weight(
-                    mean(textures, *diffuse_reflectance),
-                    mean(textures, *specular_reflectance),
-                ),
+                ssw: plastic_ssw(textures, *diffuse_reflectance, *specular_reflectance),
             },
             BsdfDesc::RoughPlastic {
                 roughness: r,
@@ -251,10 +254,7 @@ impl Side {
                 diffuse: *diffuse_reflectance,
                 specular: *specular_reflectance,
                 nonlinear: *nonlinear,
-                ssw: specular_sampling_weight(
-                    mean(textures, *diffuse_reflectance),
-                    mean(textures, *specular_reflectance),
-                ),
+                ssw: plastic_ssw(textures, *diffuse_reflectance, *specular_reflectance),
                 sample_visible: r.sample_visible,
             },
             // Nested twosided is resolved by Material::new; treat as its front.

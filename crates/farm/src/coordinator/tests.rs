@@ -125,6 +125,33 @@ impl Running {
     }
 }
 
+/// A coordinator without a token over a fresh data directory (named for `what`), and a
+/// jobs client connected to it.
+async fn start_open(what: &str) -> (PathBuf, Running, JobsClient<Channel>) {
+    let data = temp_dir(what);
+    let c = Running::start(config(data.clone(), None)).await;
+    let jobs = JobsClient::new(c.channel().await);
+    (data, c, jobs)
+}
+
+/// Opens a control stream that sends what `rx` receives; returns it with the coordinator's
+/// first answer (Registered or Refused).
+async fn open_control(
+    workers: &mut WorkersClient<Channel>,
+    rx: tokio::sync::mpsc::Receiver<v1::WorkerMessage>,
+) -> (
+    tonic::Streaming<v1::CoordinatorMessage>,
+    v1::CoordinatorMessage,
+) {
+    let mut inbound = workers
+        .control(tokio_stream::wrappers::ReceiverStream::new(rx))
+        .await
+        .unwrap()
+        .into_inner();
+    let first = inbound.message().await.unwrap().unwrap();
+    (inbound, first)
+}
+
 fn authed<T>(msg: T, token: Option<&str>) -> Request<T> {
     let mut req = Request::new(msg);
     if let Some(t) = token {
@@ -158,6 +185,16 @@ async fn upload(
         digest: digest.0.to_vec(),
         size: bytes.len() as u64,
     }
+}
+
+/// Uploads [`SCENE`] and submits it as [`submit_request`] does; returns the new job's id.
+async fn submit_scene(jobs: &mut JobsClient<Channel>) -> String {
+    let file = upload(jobs, SCENE.as_bytes(), None).await;
+    jobs.submit_job(submit_request(file))
+        .await
+        .unwrap()
+        .into_inner()
+        .job_id
 }
 
 fn submit_request(file: v1::BundleFile) -> v1::SubmitJobRequest {
@@ -211,9 +248,7 @@ async fn wrong_or_missing_token_is_unauthenticated() {
 
 #[tokio::test]
 async fn malformed_scene_is_invalid_argument_and_stores_nothing() {
-    let data = temp_dir("bad");
-    let c = Running::start(config(data.clone(), None)).await;
-    let mut jobs = JobsClient::new(c.channel().await);
+    let (data, c, mut jobs) = start_open("bad").await;
     let file = upload(&mut jobs, b"<scene version=\"3.0.0\"><shape", None).await;
     let e = jobs.submit_job(submit_request(file)).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument, "{}", e.message());
@@ -240,9 +275,7 @@ async fn malformed_scene_is_invalid_argument_and_stores_nothing() {
 
 #[tokio::test]
 async fn corrupt_blob_upload_is_rejected_and_not_stored() {
-    let data = temp_dir("blob");
-    let c = Running::start(config(data.clone(), None)).await;
-    let mut jobs = JobsClient::new(c.channel().await);
+    let (data, c, mut jobs) = start_open("blob").await;
     let digest = digest_of(b"hello");
     let parts = vec![
         v1::BlobChunk {
@@ -291,12 +324,7 @@ async fn worker_with_other_protocol_is_refused() {
     };
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     tx.send(register).await.unwrap();
-    let mut inbound = workers
-        .control(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
-    let first = inbound.message().await.unwrap().unwrap();
+    let (mut inbound, first) = open_control(&mut workers, rx).await;
     let Some(v1::coordinator_message::Msg::Refused(r)) = first.msg else {
         panic!("expected Refused, got {first:?}");
     };
@@ -314,16 +342,8 @@ async fn worker_with_other_protocol_is_refused() {
 
 #[tokio::test]
 async fn submitted_job_is_queued_persisted_and_restarted() {
-    let data = temp_dir("submit");
-    let c = Running::start(config(data.clone(), None)).await;
-    let mut jobs = JobsClient::new(c.channel().await);
-    let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
-    let id = jobs
-        .submit_job(submit_request(file))
-        .await
-        .unwrap()
-        .into_inner()
-        .job_id;
+    let (data, c, mut jobs) = start_open("submit").await;
+    let id = submit_scene(&mut jobs).await;
     assert_eq!(id, "job-1");
     let got = jobs
         .get_job(v1::GetJobRequest { job_id: id.clone() })
@@ -420,13 +440,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let ch = c.channel().await;
     let mut jobs = JobsClient::new(ch.clone());
     let mut workers = WorkersClient::new(ch);
-    let file = upload(&mut jobs, SCENE.as_bytes(), None).await;
-    let id = jobs
-        .submit_job(submit_request(file))
-        .await
-        .unwrap()
-        .into_inner()
-        .job_id;
+    let id = submit_scene(&mut jobs).await;
     let mut watch = jobs
         .watch_job(v1::WatchJobRequest { job_id: id.clone() })
         .await
@@ -450,12 +464,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     tx.send(send(W::RequestWork(v1::RequestWork { slots: 2 })))
         .await
         .unwrap();
-    let mut inbound = workers
-        .control(tokio_stream::wrappers::ReceiverStream::new(rx))
-        .await
-        .unwrap()
-        .into_inner();
-    let m = inbound.message().await.unwrap().unwrap();
+    let (mut inbound, m) = open_control(&mut workers, rx).await;
     assert!(matches!(
         m.msg,
         Some(v1::coordinator_message::Msg::Registered(_))
@@ -612,14 +621,12 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let scene = scene.unwrap();
     let params = scene.guided.clone().unwrap();
     let settings = pathfarm_render::RenderSettings::new(Some(4), None, scene.seed);
-    let (film, _, _) = guided::render_guided_with_policy(
+    let (film, _, _) = guided::render_guided(
         &scene,
         &params,
         Budget::Spp(4),
         &settings,
-        &|_| {},
-        &|_| {},
-        FallbackPolicy::Rule,
+        guided::GuidedOptions::default(),
     );
     let expected = pathfarm_render::output::encode_exr(&film, false).unwrap();
     assert!(

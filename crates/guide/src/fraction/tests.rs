@@ -1,11 +1,10 @@
 //! Tests of the learned BSDF-sampling fraction on a 1-D toy with a known optimum.
 
 use super::*;
-use crate::config::{FractionMode, GuideConfig};
+use crate::config::GuideConfig;
 use crate::record::Record;
-use crate::sdtree::SdTree;
 use crate::stats::FIXED_ONE;
-use crate::test_support::Pcg;
+use crate::test_support::{cube_tree, learned_config, Pcg};
 use glam::Vec3;
 
 /// Expected gradient of the loss with respect to theta (including L2), by quadrature, for the
@@ -50,12 +49,7 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
             unreg.abs() < 1e-6,
             "unregularised gradient at alpha = 0.3: {unreg}"
         );
-        let cfg = GuideConfig {
-            s_tree_threshold: 1e15,
-            bsdf_sampling_fraction: FractionMode::Learned { loss },
-            ..GuideConfig::default()
-        };
-        let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+        let mut t = cube_tree(learned_config(1e15, loss));
         let mut rng = Pcg::new(99);
         let steps = 1500;
         let mut tail = 0.0;
@@ -109,15 +103,11 @@ fn learned_fraction_reaches_its_optimum_in_a_few_passes() {
     let p = FractionLoss::Kl.exponent();
     let alpha_opt = toy_optimum(p);
     let cfg = GuideConfig {
-        s_tree_threshold: 1e15,
-        bsdf_sampling_fraction: FractionMode::Learned {
-            loss: FractionLoss::Kl,
-        },
         fraction_clamp: (0.0, 1.0),
-        ..GuideConfig::default()
+        ..learned_config(1e15, FractionLoss::Kl)
     };
     for seed in [5, 6, 7] {
-        let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg.clone());
+        let mut t = cube_tree(cfg.clone());
         let mut rng = Pcg::new(seed);
         for _ in 0..8 {
             let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
@@ -142,14 +132,7 @@ fn learned_fraction_reaches_its_optimum_in_a_few_passes() {
 #[test]
 fn fraction_batch_holds_the_exact_gradient_at_every_grid_alpha() {
     use crate::fraction::{dloss_dalpha, interpolate, GRID, GRID_LEN};
-    let cfg = GuideConfig {
-        s_tree_threshold: 1e15,
-        bsdf_sampling_fraction: FractionMode::Learned {
-            loss: FractionLoss::Var,
-        },
-        ..GuideConfig::default()
-    };
-    let t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let t = cube_tree(learned_config(1e15, FractionLoss::Var));
     let mut rng = Pcg::new(17);
     // recorded with two different sampling fractions: the batch does not care
     let mut recs = toy_records(&mut rng, 0.3, 500);

@@ -6,12 +6,13 @@
 mod stability;
 
 use super::*;
-use crate::config::{FractionLoss, FractionMode};
+use crate::config::FractionLoss;
 use crate::dtree::MAX_DEPTH;
 use crate::mapping::{dir_to_uv, uv_to_dir};
 use crate::stats::FIXED_ONE;
 use crate::test_support::{
-    clustered_records, config_2019, det_records, record_all, warmed_tree, Pcg,
+    clustered_records, config_2019, cube_tree, det_records, learned_config, record_all,
+    threshold_config, warmed_tree, Pcg,
 };
 use crate::AdamConfig;
 use glam::Vec2;
@@ -45,14 +46,20 @@ fn sdtree_sample_returns_unit_directions_whose_pdf_round_trips() {
     }
 }
 
+/// Every node's building sums of `leaf`'s quadtree, in node order: what a record that must
+/// add nothing to them is checked against.
+fn building_sums(leaf: &Leaf) -> Vec<u128> {
+    leaf.building
+        .nodes()
+        .iter()
+        .flat_map(|n| n.sums.iter().map(|s| s.get()))
+        .collect()
+}
+
 #[test]
 fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_change_w() {
     use std::f64::consts::PI;
-    let cfg = GuideConfig {
-        s_tree_threshold: 1e12,
-        ..GuideConfig::default()
-    };
-    let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut tree = cube_tree(threshold_config(1e12));
     let mut rng = Pcg::new(11);
     // L(w) = 3 max(z, 0) + 0.5 [y > 0]; sampled with p_uv(u, v) = u + 0.5.
     let l = |d: Vec3| 3.0 * (d.z as f64).max(0.0) + if d.y > 0.0 { 0.5 } else { 0.0 };
@@ -75,12 +82,7 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
     // Zero and negative radiance records only add to W; NaN or infinite radiance and invalid
     // weights add nothing, and the non-finite ones are counted.
     let leaf = &tree.leaves()[0];
-    let sums_before: Vec<u128> = leaf
-        .building
-        .nodes()
-        .iter()
-        .flat_map(|n| n.sums.iter().map(|s| s.get()))
-        .collect();
+    let sums_before = building_sums(leaf);
     let w_before = leaf.building.weight_fixed();
     for rad in [0.0f32, -1.0, f32::NAN, f32::INFINITY] {
         tree.record(
@@ -99,12 +101,7 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
         &mut rng.rng(),
     );
     let leaf = &tree.leaves()[0];
-    let sums_after: Vec<u128> = leaf
-        .building
-        .nodes()
-        .iter()
-        .flat_map(|n| n.sums.iter().map(|s| s.get()))
-        .collect();
+    let sums_after = building_sums(leaf);
     assert_eq!(
         sums_before, sums_after,
         "zero / invalid radiance must not change sums"
@@ -149,11 +146,7 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
 fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire() {
     // Deterministic identities plus one statistical check (5 standard errors, ~6e-7).
     use std::f64::consts::PI;
-    let cfg = GuideConfig {
-        s_tree_threshold: 1e12,
-        ..GuideConfig::default()
-    };
-    let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut tree = cube_tree(threshold_config(1e12));
     let h = LeafHandle(0);
     assert_eq!(
         tree.incident_radiance_leaf(h, 1.0),
@@ -193,14 +186,7 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
     assert_eq!(tree.incident_radiance_leaf(h, tree.pdf_leaf(h, -up)), 0.0);
     // Splitting halves the sampling weight but children keep the parent's flux.
     let flux = leaf.flux;
-    let mut split = SdTree::new(
-        Vec3::splat(-1.0),
-        Vec3::splat(1.0),
-        GuideConfig {
-            s_tree_threshold: 10.0,
-            ..GuideConfig::default()
-        },
-    );
+    let mut split = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), threshold_config(10.0));
     for _ in 0..2000 {
         let pos = Vec3::new(rng.f64() as f32, rng.f64() as f32, rng.f64() as f32) * 2.0 - 1.0;
         split.record(
@@ -264,10 +250,7 @@ fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
 
 #[test]
 fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
-    let cfg = GuideConfig {
-        s_tree_threshold: 300.0,
-        ..GuideConfig::default()
-    };
+    let cfg = threshold_config(300.0);
     let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg.clone());
     let mut rng = Pcg::new(21);
     let recs = clustered_records(&mut rng, 20_000);
@@ -314,10 +297,7 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     assert!(t2.stats().spatial_nodes <= 5);
     assert_eq!(t2.stats().leaves, 3);
     // a zero threshold does not split without bound (floor of one record weight)
-    let zero = GuideConfig {
-        s_tree_threshold: 0.0,
-        ..GuideConfig::default()
-    };
+    let zero = threshold_config(0.0);
     let mut t3 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), zero);
     for r in recs.iter().take(50) {
         t3.record(r, &mut rng.rng());
@@ -328,14 +308,7 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
 
 #[test]
 fn stree_children_inherit_the_whole_payload() {
-    let cfg = GuideConfig {
-        s_tree_threshold: 1000.0,
-        bsdf_sampling_fraction: FractionMode::Learned {
-            loss: FractionLoss::Kl,
-        },
-        ..GuideConfig::default()
-    };
-    let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
+    let mut t = cube_tree(learned_config(1000.0, FractionLoss::Kl));
     let mut rng = Pcg::new(4);
     for r in clustered_records(&mut rng, 3000) {
         t.record(&r, &mut rng.rng());
@@ -461,15 +434,7 @@ fn recording_from_one_or_two_threads_gives_bit_identical_trees() {
 
 #[test]
 fn stats_report_sizes_and_depth_histogram() {
-    let t = warmed_tree(
-        GuideConfig {
-            s_tree_threshold: 200.0,
-            ..GuideConfig::default()
-        },
-        81,
-        4000,
-        2,
-    );
+    let t = warmed_tree(threshold_config(200.0), 81, 4000, 2);
     let s = t.stats();
     assert_eq!(s.leaves, t.leaves().len());
     assert_eq!(s.depth_histogram.iter().sum::<usize>(), s.leaves);

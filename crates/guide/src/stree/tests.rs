@@ -1,16 +1,17 @@
 //! Tests of the spatial tree: lookups, the jump table and the box-overlap walk.
 
 use super::*;
-use crate::config::GuideConfig;
-use crate::test_support::{warmed_tree, Pcg};
+use crate::test_support::{threshold_config, warmed_tree, Pcg};
+
+/// A uniform point in the domain [-1, 1]^3 grown by 0.2 on every side, so that lookups and
+/// boxes also cross the domain's faces.
+fn point_around_domain(rng: &mut Pcg) -> Vec3 {
+    Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2)
+}
 
 #[test]
 fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
-    let cfg = GuideConfig {
-        s_tree_threshold: 100.0,
-        ..GuideConfig::default()
-    };
-    let t = warmed_tree(cfg, 5, 6000, 2);
+    let t = warmed_tree(threshold_config(100.0), 5, 6000, 2);
     assert!(t.stats().leaves > 10);
     let st = t.stree();
     let mut rng = Pcg::new(9);
@@ -73,11 +74,7 @@ fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
 fn stree_jump_table_finds_the_leaves_the_plain_descent_finds() {
     // Leaves above and below the jump table's depth (12 levels), points everywhere
     // (deterministic sweep, no significance level).
-    let cfg = GuideConfig {
-        s_tree_threshold: 20.0,
-        ..GuideConfig::default()
-    };
-    let t = warmed_tree(cfg, 7, 20_000, 2);
+    let t = warmed_tree(threshold_config(20.0), 7, 20_000, 2);
     let st = t.stree();
     let plain = st.without_index();
     let depths: Vec<u32> = st
@@ -94,7 +91,7 @@ fn stree_jump_table_finds_the_leaves_the_plain_descent_finds() {
     let mut deep = 0;
     for i in 0..50_000 {
         let p = if i % 2 == 0 {
-            Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2)
+            point_around_domain(&mut rng)
         } else {
             // nodes' lower corners: points on split planes
             let node = (rng.f32() * st.nodes().len() as f32) as u32 % st.nodes().len() as u32;
@@ -131,11 +128,7 @@ fn overlaps_reference(st: &crate::STree, lo: [f32; 3], hi: [f32; 3]) -> Vec<(u32
         if sn.is_leaf() {
             out.push((sn.leaf, vol));
         } else {
-            let a = sn.axis as usize;
-            let mut e2 = e;
-            e2[a] *= 0.5;
-            let mut o2 = o;
-            o2[a] += e2[a];
+            let (o2, e2) = upper_half(o, e, sn.axis as usize);
             stack.push((sn.children[1], o2, e2));
             stack.push((sn.children[0], o, e2));
         }
@@ -145,11 +138,7 @@ fn overlaps_reference(st: &crate::STree, lo: [f32; 3], hi: [f32; 3]) -> Vec<(u32
 
 #[test]
 fn box_overlap_walk_equals_the_walk_from_the_root_bit_for_bit() {
-    let cfg = GuideConfig {
-        s_tree_threshold: 50.0,
-        ..GuideConfig::default()
-    };
-    let t = warmed_tree(cfg, 11, 8000, 3);
+    let t = warmed_tree(threshold_config(50.0), 11, 8000, 3);
     assert!(t.stats().leaves > 100, "{}", t.stats().leaves);
     let st = t.stree();
     let mut rng = Pcg::new(4);
@@ -157,7 +146,7 @@ fn box_overlap_walk_equals_the_walk_from_the_root_bit_for_bit() {
     for i in 0..20_000 {
         // Boxes of a leaf's size around points in it (as the spatial box filter makes them),
         // also across the domain's faces, plus boxes of random sizes up to the whole domain.
-        let p = Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2);
+        let p = point_around_domain(&mut rng);
         let c = st.normalise(p);
         let e = if i % 4 == 0 {
             Vec3::splat(rng.f32() * rng.f32())
