@@ -118,7 +118,8 @@ impl Scene {
                 Purpose::Inspect => Bvh::Skip,
             };
             Accel::build_with(geoms, bvh)
-        }).map_err(|_| {
+        })
+        .map_err(|_| {
             RenderError::Unsupported(format!(
                 "{}: building the BVH failed on this geometry",
                 desc.source.display()
