@@ -160,57 +160,6 @@ fn inverse_variance_weights_combine_synthetic_images_optimally() {
     assert!(mse < vars[5] * 0.8);
 }
 
-/// Variance of an image's pixel estimates from per-entry sums (sample weights, weighted
-/// values and squares, sample counts): the mean over entries with at least 2 samples of
-/// `max(m2 - m1^2, 0) / (N - 1)`. pathfarm-render estimates with
-/// `PixelStats::variance_of_mean`, the filter-weighted form, tested there; the test checks
-/// this plain form.
-fn image_variance(weight_sum: &[f64], sum: &[f64], sum_sq: &[f64], count: &[f64]) -> f64 {
-    let (mut acc, mut n) = (0.0, 0usize);
-    for i in 0..weight_sum.len() {
-        let (ws, c) = (weight_sum[i], count[i]);
-        if !(ws > 0.0) || !(c >= 2.0) {
-            continue;
-        }
-        let (m1, m2) = (sum[i] / ws, sum_sq[i] / ws);
-        let v = (m2 - m1 * m1).max(0.0) / (c - 1.0);
-        if v.is_finite() {
-            acc += v;
-            n += 1;
-        }
-    }
-    if n == 0 {
-        0.0
-    } else {
-        acc / n as f64
-    }
-}
-
-#[test]
-fn image_variance_estimator_is_unbiased_on_synthetic_pixels() {
-    let mut rng = Pcg::new(17);
-    let (npx, n, sigma) = (5000usize, 16usize, 0.7f64);
-    let (mut ws, mut s1, mut s2, mut cnt) = (
-        vec![0.0; npx],
-        vec![0.0; npx],
-        vec![0.0; npx],
-        vec![0.0; npx],
-    );
-    for i in 0..npx {
-        for _ in 0..n {
-            let x = 3.0 + sigma * rng.gauss();
-            ws[i] += 1.0;
-            s1[i] += x;
-            s2[i] += x * x;
-            cnt[i] += 1.0;
-        }
-    }
-    let v = image_variance(&ws, &s1, &s2, &cnt);
-    let truth = sigma * sigma / n as f64;
-    // the mean of npx unbiased per-pixel estimates has relative sd sqrt(2/(n-1)/npx) ~ 0.5%
-    assert!((v / truth - 1.0).abs() < 0.03, "{v} vs {truth}");
-}
-
 #[test]
 fn guiding_verdict_keeps_clear_wins_and_falls_back_after_two_clear_losses_or_one_far_loss() {
     // Deterministic rule (no significance level). `v(costs, path)`: per-sample variance ratio 1.
