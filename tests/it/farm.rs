@@ -433,7 +433,7 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
         .to_string();
     // A job in flight when the coordinator is killed, after its first iterations.
     let what = "the coordinator could be killed";
-    let (reference, out, mut run) = job_under_way(&farm, 128, "resumed.exr", 20, what);
+    let (reference, out, mut run) = job_under_way(&farm, 256, "resumed.exr", 20, what);
     assert!(
         run.poll().is_none(),
         "the job must still be running at the kill"
