@@ -165,6 +165,15 @@ struct Caches {
 
 const INPUT_CACHE: usize = 4;
 
+/// The value of `key` in a most-recently-used-last list, moved to the end (most recent).
+fn most_recent<K: PartialEq, V: Clone>(list: &mut Vec<(K, V)>, key: &K) -> Option<V> {
+    let i = list.iter().position(|(k, _)| k == key)?;
+    let e = list.remove(i);
+    let v = e.1.clone();
+    list.push(e);
+    Some(v)
+}
+
 const SCENE_CACHE: usize = 2;
 
 /// The outcome of rendering one lease.
@@ -695,14 +704,8 @@ async fn pass_input(
     }
     let d = digest_of_field(bytes, what)?;
     let caches = || shared.caches.lock().expect("cache lock");
-    {
-        let mut c = caches();
-        if let Some(i) = c.inputs.iter().position(|(x, _)| x == &d) {
-            let e = c.inputs.remove(i);
-            let data = e.1.clone();
-            c.inputs.push(e);
-            return Ok(Some(data));
-        }
+    if let Some(data) = most_recent(&mut caches().inputs, &d) {
+        return Ok(Some(data));
     }
     let data = Arc::new(fetch(api, &d).await?);
     let mut c = caches();
@@ -797,10 +800,7 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
     let job = &p.lease.job_id;
     {
         let mut c = shared.caches.lock().expect("cache lock");
-        if let Some(i) = c.scenes.iter().position(|(j, _)| j == job) {
-            let e = c.scenes.remove(i);
-            let s = e.1.clone();
-            c.scenes.push(e);
+        if let Some(s) = most_recent(&mut c.scenes, job) {
             return Ok(s);
         }
     }
