@@ -287,6 +287,12 @@ fn tiles_accepted(farm: &Farm, i: usize) -> usize {
         .count()
 }
 
+/// Checkpoints the coordinator has recorded so far (from its log).
+fn checkpoints_recorded(farm: &Farm) -> usize {
+    let c = farm.coordinator.as_ref().expect("a running coordinator");
+    c.stderr_text().matches("checkpoint recorded").count()
+}
+
 /// Waits (at most 120 s) until worker 0 has had `n` tiles accepted, failing if the job
 /// `run` ends first (then the fault would come too late to test anything).
 fn wait_for_tiles(farm: &Farm, run: &mut Running, n: usize, what: &str) {
@@ -433,7 +439,17 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
         .to_string();
     // A job in flight when the coordinator is killed, after its first iterations.
     let what = "the coordinator could be killed";
-    let (reference, out, mut run) = job_under_way(&farm, 256, "resumed.exr", 20, what);
+    let recorded = checkpoints_recorded(&farm);
+    let (reference, out, mut run) = job_under_way(&farm, 256, "resumed.exr", 2, what);
+    // The kill must come after a checkpoint of this job is durable (written in the
+    // background), or there would be nothing to resume from.
+    let t0 = Instant::now();
+    while checkpoints_recorded(&farm) <= recorded {
+        assert!(run.poll().is_none(), "the job ended before {what}");
+        let late = t0.elapsed() > Duration::from_secs(120);
+        assert!(!late, "no checkpoint recorded\n{}", farm.logs());
+        std::thread::sleep(Duration::from_millis(10));
+    }
     assert!(
         run.poll().is_none(),
         "the job must still be running at the kill"

@@ -142,7 +142,7 @@ impl Shared {
         if let Err(e) = self.db.put(n, &job.record) {
             tracing::error!(job = %job_name(n), "checkpoint not recorded: {e}");
         }
-        tracing::debug!(job = %job_name(n), seconds = t0.elapsed().as_secs_f64(), "checkpoint recorded");
+        tracing::info!(job = %job_name(n), seconds = t0.elapsed().as_secs_f64(), "checkpoint recorded");
         st.garbage.extend(old);
         self.collect_garbage(&mut st);
     }
