@@ -2,52 +2,28 @@
 //! Beckmann/GGX distribution, separable Smith G and complex Fresnel.
 
 use crate::fresnel::{fresnel_conductor_rgb, reflect_about};
-use crate::microfacet::{Microfacet, MicrofacetType};
+use crate::microfacet::Microfacet;
 use crate::{finite_or_zero, BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RoughConductor {
-    pub distribution: MicrofacetType,
-    pub alpha_u: f32,
-    pub alpha_v: f32,
-    /// Visible-normal sampling (Mitsuba's default `sample_visible = true`).
-    pub sample_visible: bool,
+    /// The microfacet distribution and its roughness; visible-normal sampling is Mitsuba's
+    /// default.
+    pub distr: Microfacet,
     pub eta: Vec3,
     pub k: Vec3,
     pub specular_reflectance: Vec3,
 }
 
 impl RoughConductor {
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        distribution: MicrofacetType,
-        alpha_u: f32,
-        alpha_v: f32,
-        sample_visible: bool,
-        eta: Vec3,
-        k: Vec3,
-        specular_reflectance: Vec3,
-    ) -> Self {
+    pub fn new(distr: Microfacet, eta: Vec3, k: Vec3, specular_reflectance: Vec3) -> Self {
         Self {
-            distribution,
-            alpha_u,
-            alpha_v,
-            sample_visible,
+            distr,
             eta,
             k,
             specular_reflectance,
         }
-    }
-
-    #[inline]
-    fn distr(&self) -> Microfacet {
-        Microfacet::new(
-            self.distribution,
-            self.alpha_u,
-            self.alpha_v,
-            self.sample_visible,
-        )
     }
 
     pub fn flags(&self) -> BsdfFlags {
@@ -58,13 +34,13 @@ impl RoughConductor {
         if !(wi.z > 0.0) {
             return None;
         }
-        let distr = self.distr();
+        let distr = self.distr;
         let (m, pdf_m) = distr.sample(wi, u);
         let wo = reflect_about(wi, m);
         if !(pdf_m > 0.0) || !(wo.z > 0.0) {
             return None;
         }
-        let weight = if self.sample_visible {
+        let weight = if distr.sample_visible {
             distr.smith_g1(wo, m)
         } else {
             distr.g(wi, wo, m) * wi.dot(m) / (wi.z * m.z)
@@ -83,7 +59,7 @@ impl RoughConductor {
             return Vec3::ZERO;
         }
         let h = (wi + wo).normalize();
-        let distr = self.distr();
+        let distr = self.distr;
         let d = distr.eval(h);
         if d == 0.0 {
             return Vec3::ZERO;
@@ -102,8 +78,8 @@ impl RoughConductor {
         if !(wi.dot(m) > 0.0 && wo.dot(m) > 0.0) {
             return 0.0;
         }
-        let distr = self.distr();
-        let r = if self.sample_visible {
+        let distr = self.distr;
+        let r = if distr.sample_visible {
             distr.eval(m) * distr.smith_g1(wi, m) / (4.0 * wi.z)
         } else {
             distr.pdf(wi, m) / (4.0 * wo.dot(m))

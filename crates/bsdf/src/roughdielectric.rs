@@ -1,16 +1,14 @@
 //! Rough dielectric interface (Mitsuba `roughdielectric`, Walter et al. 2007).
 
 use crate::fresnel::{fresnel_dielectric, reflect_about, refract_about};
-use crate::microfacet::{Microfacet, MicrofacetType};
+use crate::microfacet::Microfacet;
 use crate::{finite_or_zero, BsdfFlags, BsdfSample, Lobe};
 use glam::{Vec2, Vec3};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RoughDielectric {
-    pub distribution: MicrofacetType,
-    pub alpha_u: f32,
-    pub alpha_v: f32,
-    pub sample_visible: bool,
+    /// The microfacet distribution and its roughness.
+    pub distr: Microfacet,
     /// Relative IOR int_ior / ext_ior.
     pub eta: f32,
     pub specular_reflectance: Vec3,
@@ -18,43 +16,26 @@ pub struct RoughDielectric {
 }
 
 impl RoughDielectric {
-    #[allow(clippy::too_many_arguments)]
     pub fn new(
-        distribution: MicrofacetType,
-        alpha_u: f32,
-        alpha_v: f32,
-        sample_visible: bool,
+        distr: Microfacet,
         eta: f32,
         specular_reflectance: Vec3,
         specular_transmittance: Vec3,
     ) -> Self {
         Self {
-            distribution,
-            alpha_u,
-            alpha_v,
-            sample_visible,
+            distr,
             eta,
             specular_reflectance,
             specular_transmittance,
         }
     }
 
-    #[inline]
-    fn distr(&self) -> Microfacet {
-        Microfacet::new(
-            self.distribution,
-            self.alpha_u,
-            self.alpha_v,
-            self.sample_visible,
-        )
-    }
-
     /// The distribution used for sampling (Walter's roughness scaling trick
     /// when not sampling visible normals).
     #[inline]
     fn sample_distr(&self, cos_theta_i: f32) -> Microfacet {
-        let mut d = self.distr();
-        if !self.sample_visible {
+        let mut d = self.distr;
+        if !self.distr.sample_visible {
             d.scale_alpha(1.2 - 0.2 * cos_theta_i.abs().sqrt());
         }
         d
@@ -93,7 +74,7 @@ impl RoughDielectric {
                 1.0,
             ));
         }
-        let distr = self.distr();
+        let distr = self.distr;
         let sdistr = self.sample_distr(cos_theta_i);
         let wi_up = if cos_theta_i < 0.0 { -wi } else { wi };
         let (m, pdf_m) = sdistr.sample(wi_up, u);
@@ -128,7 +109,7 @@ impl RoughDielectric {
             return None;
         }
         let pdf = pdf_m * pdf_lobe * dwh_dwo.abs();
-        if self.sample_visible {
+        if self.distr.sample_visible {
             weight *= distr.smith_g1(wo, m);
         } else {
             // Mitsuba uses G (wi.m) / (cos_i cos_m) here, which is eval/pdf
@@ -185,7 +166,7 @@ impl RoughDielectric {
         let Some((m, reflect, eta)) = self.half_vector(wi, wo) else {
             return Vec3::ZERO;
         };
-        let distr = self.distr();
+        let distr = self.distr;
         let d = distr.eval(m);
         let f = fresnel_dielectric(wi.dot(m), self.eta).0;
         let g = distr.g(wi, wo, m);

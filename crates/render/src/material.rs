@@ -6,10 +6,10 @@
 use glam::Vec3;
 use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::{
-    specular_sampling_weight, Bsdf, Conductor, Dielectric, Diffuse, MicrofacetType, Plastic,
-    RoughConductor, RoughDielectric, RoughPlastic, RoughPlasticTable, ThinDielectric,
+    specular_sampling_weight, Bsdf, Conductor, Dielectric, Diffuse, Microfacet, MicrofacetType,
+    Plastic, RoughConductor, RoughDielectric, RoughPlastic, RoughPlasticTable, ThinDielectric,
 };
-use pathfarm_scene::{BsdfDesc, MicrofacetDistribution, TexRef, TextureDesc};
+use pathfarm_scene::{BsdfDesc, MicrofacetDistribution, Roughness, TexRef, TextureDesc};
 
 use crate::geometry::SurfaceInteraction;
 use crate::texture;
@@ -34,18 +34,10 @@ pub enum Side {
     },
     /// Microfacet conductor (Mitsuba `roughconductor`).
     RoughConductor {
-        /// Microfacet distribution (Beckmann or GGX).
-        kind: MicrofacetType,
-        /// Roughness along the shading frame's first tangent axis. The frame is built from the
-        /// shading normal alone, so for anisotropic roughness this axis is not the surface's `u`
-        /// direction.
-        alpha_u: f32,
-        /// Roughness along the shading frame's second tangent axis; equal to `alpha_u` when
-        /// isotropic.
-        alpha_v: f32,
-        /// Sample only the microfacet normals visible from the incident direction (Mitsuba's
-        /// default).
-        sample_visible: bool,
+        /// Microfacet distribution (Beckmann or GGX) and its roughness along the shading
+        /// frame's tangent axes. The frame is built from the shading normal alone, so for
+        /// anisotropic roughness its first axis is not the surface's `u` direction.
+        distr: Microfacet,
         /// Real part of the complex index of refraction per RGB channel, relative to the exterior.
         eta: Vec3,
         /// Imaginary part of the complex index of refraction (absorption coefficient) per RGB
@@ -66,15 +58,9 @@ pub enum Side {
     /// Microfacet dielectric interface with rough reflection and refraction (Mitsuba
     /// `roughdielectric`).
     RoughDielectric {
-        /// Microfacet distribution (Beckmann or GGX).
-        kind: MicrofacetType,
-        /// Roughness along the shading frame's first tangent axis (see [`Side::RoughConductor`]).
-        alpha_u: f32,
-        /// Roughness along the shading frame's second tangent axis; equal to `alpha_u` when
-        /// isotropic.
-        alpha_v: f32,
-        /// Sample only the microfacet normals visible from the incident direction.
-        sample_visible: bool,
+        /// Microfacet distribution (Beckmann or GGX) and its roughness (see
+        /// [`Side::RoughConductor`]).
+        distr: Microfacet,
         /// Relative index of refraction, `int_ior / ext_ior`.
         eta: f32,
         /// Factor on the reflected lobe (Mitsuba `specular_reflectance`).
@@ -136,6 +122,11 @@ pub enum Material {
     TwoSided(Side, Side),
 }
 
+/// The distribution a rough model samples and evaluates (roughness clamped as Mitsuba's).
+fn microfacet(r: &Roughness) -> Microfacet {
+    Microfacet::new(kind(r.distribution), r.alpha_u, r.alpha_v, r.sample_visible)
+}
+
 fn kind(d: MicrofacetDistribution) -> MicrofacetType {
     match d {
         MicrofacetDistribution::Beckmann => MicrofacetType::Beckmann,
@@ -182,10 +173,7 @@ impl Side {
                 k,
                 specular_reflectance,
             } => Side::RoughConductor {
-                kind: kind(r.distribution),
-                alpha_u: r.alpha_u,
-                alpha_v: r.alpha_v,
-                sample_visible: r.sample_visible,
+                distr: microfacet(r),
                 eta: *eta,
                 k: *k,
                 specular: *specular_reflectance,
@@ -207,10 +195,7 @@ impl Side {
                 specular_reflectance,
                 specular_transmittance,
             } => Side::RoughDielectric {
-                kind: kind(r.distribution),
-                alpha_u: r.alpha_u,
-                alpha_v: r.alpha_v,
-                sample_visible: r.sample_visible,
+                distr: microfacet(r),
                 eta: int_ior / ext_ior,
                 reflect: *specular_reflectance,
                 transmit: *specular_transmittance,
@@ -273,40 +258,23 @@ impl Side {
                 Bsdf::Conductor(Conductor::new(*eta, *k, t(*specular)))
             }
             Side::RoughConductor {
-                kind,
-                alpha_u,
-                alpha_v,
-                sample_visible,
+                distr,
                 eta,
                 k,
                 specular,
-            } => Bsdf::RoughConductor(RoughConductor::new(
-                *kind,
-                *alpha_u,
-                *alpha_v,
-                *sample_visible,
-                *eta,
-                *k,
-                t(*specular),
-            )),
+            } => Bsdf::RoughConductor(RoughConductor::new(*distr, *eta, *k, t(*specular))),
             Side::Dielectric {
                 eta,
                 reflect,
                 transmit,
             } => Bsdf::Dielectric(Dielectric::new(*eta, t(*reflect), t(*transmit))),
             Side::RoughDielectric {
-                kind,
-                alpha_u,
-                alpha_v,
-                sample_visible,
+                distr,
                 eta,
                 reflect,
                 transmit,
             } => Bsdf::RoughDielectric(RoughDielectric::new(
-                *kind,
-                *alpha_u,
-                *alpha_v,
-                *sample_visible,
+                *distr,
                 *eta,
                 t(*reflect),
                 t(*transmit),

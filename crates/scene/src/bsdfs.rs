@@ -8,7 +8,7 @@ use crate::context::Ctx;
 use crate::desc::{BsdfDesc, MicrofacetDistribution, Roughness};
 use crate::error::SceneError;
 use crate::ior::{lookup_conductor, lookup_ior};
-use crate::props::{Props, Resolved};
+use crate::props::{Case, Keyword, Props, Resolved};
 use crate::textures::{const_color, const_float, texref};
 use crate::xml::{invalid, Category, Value};
 
@@ -182,20 +182,18 @@ fn ior(p: &Props, name: &str, default: &str) -> Result<f32, SceneError> {
     Ok(v)
 }
 
+impl Keyword for MicrofacetDistribution {
+    const WHAT: &'static str = "microfacet distribution";
+    const NAMES: &'static [(&'static str, Self)] =
+        &[("beckmann", Self::Beckmann), ("ggx", Self::Ggx)];
+    /// Mitsuba reads the distribution's name in any case.
+    const CASE: Case = Case::Insensitive;
+}
+
 /// `distribution`, `alpha` (or `alpha_u`/`alpha_v` when `anisotropic`),
 /// `sample_visible`, with Mitsuba's defaults (beckmann, 0.1, true).
 fn roughness(p: &Props, anisotropic: bool) -> Result<Roughness, SceneError> {
-    // (Mitsuba reads the distribution's name in any case.)
-    let distribution = p.keyword(
-        "distribution",
-        "microfacet distribution",
-        MicrofacetDistribution::Beckmann,
-        &[
-            ("beckmann", MicrofacetDistribution::Beckmann),
-            ("ggx", MicrofacetDistribution::Ggx),
-        ],
-        true,
-    )?;
+    let distribution = p.keyword("distribution", MicrofacetDistribution::Beckmann)?;
     let sample_visible = p.bool("sample_visible", true)?;
     let (alpha_u, alpha_v) = if anisotropic && (p.has("alpha_u") || p.has("alpha_v")) {
         if !(p.has("alpha_u") && p.has("alpha_v")) {

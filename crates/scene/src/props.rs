@@ -290,29 +290,22 @@ impl Props {
         }
     }
 
-    /// A keyword parameter `name`: `default` when absent, else the value `choices` pairs with
-    /// the word (compared in lower case when `fold_case`); any other word is an error at its
-    /// line, "unknown {what} \"{word}\" (expected a, b or c)".
-    pub(crate) fn keyword<T: Copy>(
-        &self,
-        name: &str,
-        what: &str,
-        default: T,
-        choices: &[(&str, T)],
-        fold_case: bool,
-    ) -> Result<T, SceneError> {
+    /// A keyword parameter `name`: `default` when absent, else the value [`Keyword::NAMES`]
+    /// pairs with the word; any other word is an error at its line, "unknown {what} \"{word}\"
+    /// (expected a, b or c)".
+    pub(crate) fn keyword<T: Keyword>(&self, name: &str, default: T) -> Result<T, SceneError> {
         let Some((word, loc)) = self.string_opt(name)? else {
             return Ok(default);
         };
-        let key = if fold_case {
-            word.to_ascii_lowercase()
-        } else {
-            word.clone()
+        let key = match T::CASE {
+            Case::Insensitive => word.to_ascii_lowercase(),
+            Case::Sensitive => word.clone(),
         };
-        if let Some((_, v)) = choices.iter().find(|(n, _)| *n == key) {
+        if let Some((_, v)) = T::NAMES.iter().find(|(n, _)| *n == key) {
             return Ok(*v);
         }
-        let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+        let what = T::WHAT;
+        let names: Vec<&str> = T::NAMES.iter().map(|(n, _)| *n).collect();
         let expected = match names.split_last() {
             Some((last, rest)) if !rest.is_empty() => format!("{} or {last}", rest.join(", ")),
             _ => names.concat(),
@@ -481,4 +474,22 @@ impl Props {
         }
         Ok(())
     }
+}
+
+/// Whether a keyword's words are compared as written or in lower case.
+pub(crate) enum Case {
+    /// As written (Mitsuba's default for string parameters).
+    Sensitive,
+    /// In lower case (where Mitsuba folds the case itself).
+    Insensitive,
+}
+
+/// A parameter whose value is one of a fixed set of words, read by [`Props::keyword`].
+pub(crate) trait Keyword: Copy + 'static {
+    /// What the parameter is, in error messages ("unknown {WHAT} ...").
+    const WHAT: &'static str;
+    /// The words Mitsuba accepts, each with its value, in the order errors list them.
+    const NAMES: &'static [(&'static str, Self)];
+    /// How words are compared.
+    const CASE: Case = Case::Sensitive;
 }

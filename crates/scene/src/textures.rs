@@ -7,7 +7,7 @@ use crate::context::Ctx;
 use crate::desc::{BitmapDesc, TexFilter, TexRef, TextureDesc, UvTransform, WrapMode};
 use crate::error::SceneError;
 use crate::imageio::load_checked;
-use crate::props::{Props, Resolved};
+use crate::props::{Keyword, Props, Resolved};
 use crate::xml::{invalid, Category};
 
 /// A colour parameter `name` of the plugin `p`: `<rgb>`/`<spectrum>`/`<float>`
@@ -121,31 +121,27 @@ fn checkerboard(p: &Props) -> Result<TextureDesc, SceneError> {
     })
 }
 
+impl Keyword for TexFilter {
+    const WHAT: &'static str = "filter_type";
+    const NAMES: &'static [(&'static str, Self)] =
+        &[("bilinear", Self::Bilinear), ("nearest", Self::Nearest)];
+}
+
+impl Keyword for WrapMode {
+    const WHAT: &'static str = "wrap_mode";
+    const NAMES: &'static [(&'static str, Self)] = &[
+        ("repeat", Self::Repeat),
+        ("mirror", Self::Mirror),
+        ("clamp", Self::Clamp),
+    ];
+}
+
 fn bitmap(ctx: &mut Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     let (name, loc) = p
         .string_opt("filename")?
         .ok_or_else(|| invalid(p.loc(), "bitmap texture requires a 'filename' parameter"))?;
-    let filter = p.keyword(
-        "filter_type",
-        "filter_type",
-        TexFilter::Bilinear,
-        &[
-            ("bilinear", TexFilter::Bilinear),
-            ("nearest", TexFilter::Nearest),
-        ],
-        false,
-    )?;
-    let wrap = p.keyword(
-        "wrap_mode",
-        "wrap_mode",
-        WrapMode::Repeat,
-        &[
-            ("repeat", WrapMode::Repeat),
-            ("mirror", WrapMode::Mirror),
-            ("clamp", WrapMode::Clamp),
-        ],
-        false,
-    )?;
+    let filter = p.keyword("filter_type", TexFilter::Bilinear)?;
+    let wrap = p.keyword("wrap_mode", WrapMode::Repeat)?;
     let raw = p.bool("raw", false)?;
     let to_uv = uv_transform(p.transform("to_uv")?);
     // `accel` only selects Mitsuba's hardware texture path: no effect here.

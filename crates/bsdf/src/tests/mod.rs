@@ -4,7 +4,7 @@ mod mitsuba_values;
 mod stats;
 mod table;
 
-use crate::{Bsdf, MicrofacetType, RoughConductor, RoughDielectric};
+use crate::{Bsdf, Microfacet, MicrofacetType, RoughConductor, RoughDielectric};
 use glam::Vec3;
 
 // The tests build many rough models; these spell one in a line, naming the roughness
@@ -18,15 +18,8 @@ fn rough_conductor(
     eta: Vec3,
     k: Vec3,
 ) -> Bsdf<'static> {
-    Bsdf::RoughConductor(RoughConductor::new(
-        kind,
-        alpha.0,
-        alpha.1,
-        vis,
-        eta,
-        k,
-        Vec3::ONE,
-    ))
+    let distr = Microfacet::new(kind, alpha.0, alpha.1, vis);
+    Bsdf::RoughConductor(RoughConductor::new(distr, eta, k, Vec3::ONE))
 }
 
 /// A rough dielectric of relative IOR `eta`, reflectance `r` and transmittance `t`.
@@ -38,5 +31,6 @@ fn rough_dielectric(
     r: Vec3,
     t: Vec3,
 ) -> Bsdf<'static> {
-    Bsdf::RoughDielectric(RoughDielectric::new(kind, alpha.0, alpha.1, vis, eta, r, t))
+    let distr = Microfacet::new(kind, alpha.0, alpha.1, vis);
+    Bsdf::RoughDielectric(RoughDielectric::new(distr, eta, r, t))
 }

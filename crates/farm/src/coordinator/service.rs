@@ -50,6 +50,8 @@ pub(super) async fn run(
         .await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(pathfarm_proto::FILE_DESCRIPTOR_SET)
+        // so that a stock client can describe the health service as well as call it
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()
         .map_err(|e| CoordinatorError::Reflection(e.to_string()))?;
     let svc = Svc {

@@ -41,30 +41,8 @@ async fn list_jobs(jobs: &mut JobsClient<Channel>) -> Vec<v1::JobStatus> {
         .jobs
 }
 
-const SCENE: &str = r#"<scene version="3.0.0">
-	<integrator type="guided_path"/>
-	<sensor type="perspective">
-		<float name="fov" value="40"/>
-		<transform name="to_world"><lookat origin="0, 1, 3.75" target="0, 1, 0" up="0, 1, 0"/></transform>
-		<sampler type="independent"><integer name="sample_count" value="8"/></sampler>
-		<film type="hdrfilm">
-			<integer name="width" value="16"/>
-			<integer name="height" value="16"/>
-			<rfilter type="box"/>
-		</film>
-	</sensor>
-	<bsdf type="diffuse" id="white"><rgb name="reflectance" value="0.7, 0.7, 0.7"/></bsdf>
-	<shape type="rectangle">
-		<transform name="to_world"><rotate x="1" angle="-90"/></transform>
-		<ref id="white"/>
-	</shape>
-	<shape type="rectangle">
-		<transform name="to_world"><scale x="0.3" y="0.3"/><rotate x="1" angle="90"/><translate y="1.9"/></transform>
-		<ref id="white"/>
-		<emitter type="area"><rgb name="radiance" value="10, 10, 10"/></emitter>
-	</shape>
-</scene>
-"#;
+/// A 16x16 guided_path scene at 8 spp: a floor lit by a small area light above it.
+const SCENE: &str = include_str!("testdata/lit-floor.xml");
 
 fn temp_dir(what: &str) -> PathBuf {
     static N: AtomicU64 = AtomicU64::new(0);
@@ -643,6 +621,43 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// What `grpcurl list` asks: the coordinator's reflection service names every service it
+/// serves, its own, health and reflection.
+#[tokio::test]
+async fn reflection_lists_every_service_the_coordinator_serves() {
+    use refl::server_reflection_request::MessageRequest;
+    use refl::server_reflection_response::MessageResponse;
+    use tonic_reflection::pb::v1 as refl;
+    let (data, c, _) = start_open("reflection").await;
+    let mut client = refl::server_reflection_client::ServerReflectionClient::new(c.channel().await);
+    let req = refl::ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut answers = client
+        .server_reflection_info(tokio_stream::iter([req]))
+        .await
+        .unwrap()
+        .into_inner();
+    let answer = answers.message().await.unwrap().unwrap().message_response;
+    let Some(MessageResponse::ListServicesResponse(list)) = answer else {
+        panic!("expected a service list, got {answer:?}");
+    };
+    let mut names: Vec<_> = list.service.into_iter().map(|s| s.name).collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "grpc.health.v1.Health",
+            "grpc.reflection.v1.ServerReflection",
+            pathfarm_proto::JOBS_SERVICE,
+            pathfarm_proto::WORKERS_SERVICE,
+        ]
+    );
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
 }
 
 #[tokio::test]

@@ -312,6 +312,59 @@ const UV_PROPERTIES: [(&str, &str); 4] = [
     ("texture_s", "texture_t"),
 ];
 
+/// Which attributes a file's vertices carry besides their position.
+#[derive(Clone, Copy)]
+struct VertexLayout {
+    /// `nx ny nz` are all present.
+    normals: bool,
+    /// The first of [`UV_PROPERTIES`] present.
+    uv: Option<(&'static str, &'static str)>,
+    /// Store `1 - v` (the shape's `flip_tex_coords`).
+    flip_tex_coords: bool,
+}
+
+impl VertexLayout {
+    /// The layout of vertices that have exactly the properties `has` answers yes for.
+    fn new(has: impl Fn(&str) -> bool, flip_tex_coords: bool) -> Self {
+        VertexLayout {
+            normals: has("nx") && has("ny") && has("nz"),
+            uv: UV_PROPERTIES.into_iter().find(|(u, v)| has(u) && has(v)),
+            flip_tex_coords,
+        }
+    }
+
+    /// A mesh with room for `n` vertices and `triangles` triangles, with normal and uv arrays
+    /// where the layout has them.
+    fn mesh_with_capacity(&self, n: usize, triangles: usize) -> TriangleMesh {
+        TriangleMesh {
+            positions: Vec::with_capacity(n),
+            indices: Vec::with_capacity(triangles),
+            normals: self.normals.then(|| Vec::with_capacity(n)),
+            uvs: self.uv.map(|_| Vec::with_capacity(n)),
+            flip_normals: false,
+        }
+    }
+
+    /// Appends vertex `e` to `mesh`; the error is the name of a property that is missing or
+    /// not a scalar.
+    fn push(&self, e: &DefaultElement, mesh: &mut TriangleMesh) -> Result<(), &'static str> {
+        let get = |n: &'static str| scalar(e, n).ok_or(n);
+        mesh.positions
+            .push(Vec3::new(get("x")?, get("y")?, get("z")?));
+        if let Some(normals) = &mut mesh.normals {
+            normals.push(Vec3::new(get("nx")?, get("ny")?, get("nz")?));
+        }
+        if let (Some(uvs), Some((un, vn))) = (&mut mesh.uvs, self.uv) {
+            let v = get(vn)?;
+            uvs.push(Vec2::new(
+                get(un)?,
+                if self.flip_tex_coords { 1.0 - v } else { v },
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Read the `vertex` (x y z, optional nx ny nz, optional u v / s t /
 /// texture_u texture_v / texture_s texture_t) and `face` (`vertex_indices`
 /// or `vertex_index` lists, fan-triangulated) elements. Mitsuba does not flip
@@ -355,26 +408,18 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
     check_sizes(format, &elements, file_bytes, header_bytes).map_err(|m| input.err(m))?;
 
     let nv = vertices.count;
-    let has = |n: &str| nv > 0 && vertices.has(n);
-    let has_normals = has("nx") && has("ny") && has("nz");
-    let uv_names = UV_PROPERTIES.into_iter().find(|(u, v)| has(u) && has(v));
+    let layout = VertexLayout::new(|n| nv > 0 && vertices.has(n), input.flip_tex_coords);
 
     // Reserve for the vertices and one triangle per face; polygons reserve more as they come.
     let what = format!("{} ({} vertices, {} faces)", input.source, nv, faces.count);
     budget.reserve(
-        nv.saturating_mul(vertex_bytes(uv_names.is_some()))
+        nv.saturating_mul(vertex_bytes(layout.uv.is_some()))
             .saturating_add(faces.count.saturating_mul(TRIANGLE_BYTES)),
         &what,
     )?;
     let mut reserved_triangles = faces.count;
 
-    let mut mesh = TriangleMesh {
-        positions: Vec::with_capacity(nv as usize),
-        indices: Vec::with_capacity(faces.count as usize),
-        ..Default::default()
-    };
-    let mut normals = Vec::with_capacity(if has_normals { nv as usize } else { 0 });
-    let mut uvs = Vec::with_capacity(if uv_names.is_some() { nv as usize } else { 0 });
+    let mut mesh = layout.mesh_with_capacity(nv as usize, faces.count as usize);
 
     lines.set_cap(ascii_line_cap(limits.max_polygon_vertices));
     let mut reading = Elements {
@@ -391,23 +436,9 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
         if element.def.name == "vertex" {
             for i in 0..element.count {
                 let e = reading.next(element, i).map_err(err)?;
-                let get = |n: &str| {
-                    scalar(&e, n).ok_or_else(|| {
-                        err(format!("vertex {i}: missing or non-scalar property '{n}'"))
-                    })
-                };
-                mesh.positions
-                    .push(Vec3::new(get("x")?, get("y")?, get("z")?));
-                if has_normals {
-                    normals.push(Vec3::new(get("nx")?, get("ny")?, get("nz")?));
-                }
-                if let Some((un, vn)) = uv_names {
-                    let v = get(vn)?;
-                    uvs.push(Vec2::new(
-                        get(un)?,
-                        if input.flip_tex_coords { 1.0 - v } else { v },
-                    ));
-                }
+                layout.push(&e, &mut mesh).map_err(|n| {
+                    err(format!("vertex {i}: missing or non-scalar property '{n}'"))
+                })?;
             }
             vertices_read = true;
         } else if element.def.name == "face" {
@@ -436,12 +467,6 @@ pub(crate) fn load_ply(input: &MeshInput, budget: &mut Budget) -> Result<Triangl
         } else {
             reading.skip(element).map_err(err)?;
         }
-    }
-    if has_normals {
-        mesh.normals = Some(normals);
-    }
-    if uv_names.is_some() {
-        mesh.uvs = Some(uvs);
     }
     Ok(mesh)
 }
@@ -500,27 +525,14 @@ mod tests {
             .map_err(|e| format!("cannot parse PLY: {e}"))?;
         let vertices = ply.payload.get("vertex").ok_or("no vertex")?;
         let faces = ply.payload.get("face").ok_or("no face")?;
-        let mut mesh = TriangleMesh::default();
         let first = vertices.first();
-        let has = |n: &str| first.is_some_and(|e| e.contains_key(n));
-        let has_normals = has("nx") && has("ny") && has("nz");
-        let uv_names = UV_PROPERTIES.into_iter().find(|(u, v)| has(u) && has(v));
-        let mut normals = Vec::new();
-        let mut uvs = Vec::new();
+        let layout = VertexLayout::new(
+            |n| first.is_some_and(|e| e.contains_key(n)),
+            flip_tex_coords,
+        );
+        let mut mesh = layout.mesh_with_capacity(0, 0);
         for e in vertices {
-            let get = |n: &str| scalar(e, n).ok_or("missing");
-            mesh.positions
-                .push(Vec3::new(get("x")?, get("y")?, get("z")?));
-            if has_normals {
-                normals.push(Vec3::new(get("nx")?, get("ny")?, get("nz")?));
-            }
-            if let Some((un, vn)) = uv_names {
-                let v = get(vn)?;
-                uvs.push(Vec2::new(
-                    get(un)?,
-                    if flip_tex_coords { 1.0 - v } else { v },
-                ));
-            }
+            layout.push(e, &mut mesh)?;
         }
         for e in faces {
             let list = e
@@ -537,12 +549,6 @@ mod tests {
                 mesh.indices
                     .push([idx[0] as u32, idx[k] as u32, idx[k + 1] as u32]);
             }
-        }
-        if has_normals {
-            mesh.normals = Some(normals);
-        }
-        if uv_names.is_some() {
-            mesh.uvs = Some(uvs);
         }
         Ok(mesh)
     }

@@ -1,5 +1,5 @@
 use super::*;
-use pathfarm_bsdf::{Diffuse, MicrofacetType, RoughConductor};
+use pathfarm_bsdf::{Diffuse, Microfacet, MicrofacetType, RoughConductor};
 use pathfarm_guide::GuideConfig;
 
 /// A built tree with a peaked distribution (records from a direction cone around +z, and
@@ -142,10 +142,7 @@ fn nee_and_hit_weights_partition_unity_with_the_same_mixture_pdf() {
     let frame = Frame::from_normal(Vec3::new(0.1, 0.2, 1.0).normalize());
     let diffuse = Bsdf::Diffuse(Diffuse::new(Vec3::splat(0.8)));
     let rough = Bsdf::RoughConductor(RoughConductor::new(
-        MicrofacetType::Ggx,
-        0.3,
-        0.3,
-        true,
+        Microfacet::new(MicrofacetType::Ggx, 0.3, 0.3, true),
         Vec3::splat(0.2),
         Vec3::splat(3.0),
         Vec3::ONE,
