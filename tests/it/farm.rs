@@ -681,7 +681,7 @@ fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted
         let out = farm.data.join(format!("soak-{i}.exr"));
         runs.push((submit_seeded(&farm, spp, seed, &out, &[]), out, spp, seed));
     }
-    let mut rng = TestRng(0x5eed_50a4);
+    let mut rng = TestRng::new(0x5eed_50a4);
     let mut kills = 0;
     let t0 = Instant::now();
     while runs.iter_mut().any(|r| r.0.poll().is_none()) {

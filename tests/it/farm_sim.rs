@@ -118,8 +118,8 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
         leases_per_worker: 3,
     };
     for sim_seed in [1u64, 2, 3] {
-        let mut rng = TestRng(sim_seed * 0x1234_5678);
-        let mut tiling = TestRng(sim_seed ^ 0xabcd);
+        let mut rng = TestRng::new(sim_seed * 0x1234_5678);
+        let mut tiling = TestRng::new(sim_seed ^ 0xabcd);
         let mut sched = Scheduler::new(config.clone());
         let mut now = Millis(0);
         let mut jobs: BTreeMap<u64, SimJob> = BTreeMap::new();
@@ -167,7 +167,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
             assert!(step < 199_999, "seed {sim_seed}: the jobs did not finish");
             now = Millis(now.0 + 1 + rng.below(40));
             // joins and deaths
-            if workers.len() < 4 && (workers.is_empty() || rng.chance(3)) {
+            if workers.len() < 4 && (workers.is_empty() || rng.chance(0.03)) {
                 let id = WorkerId(next_worker);
                 next_worker += 1;
                 sched.register_worker(id, 1, now).expect("register");
@@ -178,7 +178,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 };
                 workers.insert(id.0, w);
             }
-            if workers.len() > 1 && rng.chance(4) {
+            if workers.len() > 1 && rng.chance(0.04) {
                 let ids: Vec<u64> = workers.keys().copied().collect();
                 let victim = ids[rng.below(ids.len() as u64) as usize];
                 workers.remove(&victim);
@@ -186,7 +186,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 deaths += 1;
             }
             // a worker hangs for a while (no heartbeats: its leases expire)
-            if rng.chance(4) {
+            if rng.chance(0.04) {
                 let ids: Vec<u64> = workers.keys().copied().collect();
                 let w = ids[rng.below(ids.len() as u64) as usize];
                 let until = Millis(now.0 + 200 + rng.below(1000));
@@ -230,7 +230,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                     let out = render_unit(&inputs, &spec, region, &|_| {});
                     let stats = spec.record().then(|| tree.take_stats());
                     // mostly prompt, sometimes later than the lease lives
-                    let delay = if rng.chance(15) {
+                    let delay = if rng.chance(0.15) {
                         500 + rng.below(800)
                     } else {
                         rng.below(60)

@@ -77,7 +77,8 @@ fn render_tiled(
         }
         let tiles = session.tiles().to_vec();
         let mut order: Vec<usize> = (0..tiles.len()).collect();
-        TestRng(order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15)).shuffle(&mut order);
+        TestRng::new(order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+            .shuffle(&mut order);
         for index in order {
             let version = (spec.tree_version, spec.fraction_version);
             let estimate = session.estimate().to_vec();

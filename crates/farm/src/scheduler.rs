@@ -1682,28 +1682,7 @@ mod tests {
     const SLOTS: usize = 2;
     const MAX_STEPS: usize = 200_000;
 
-    /// splitmix64.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            mix(self.0)
-        }
-
-        fn below(&mut self, n: u64) -> u64 {
-            self.next() % n
-        }
-
-        /// Uniform in `lo..=hi`.
-        fn range(&mut self, lo: u64, hi: u64) -> u64 {
-            lo + self.below(hi - lo + 1)
-        }
-
-        fn chance(&mut self, per_mille: u64) -> bool {
-            self.below(1000) < per_mille
-        }
-    }
+    use pathfarm_testkit::TestRng;
 
     fn mix(mut z: u64) -> u64 {
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
@@ -1856,7 +1835,7 @@ mod tests {
 
     struct Sim {
         s: Scheduler,
-        rng: Rng,
+        rng: TestRng,
         now: Millis,
         max_attempts: u32,
         fail_per_mille: u64,
@@ -1878,7 +1857,7 @@ mod tests {
         worker.0 as usize - 1
     }
 
-    fn sim_job(id: JobId, rng: &mut Rng) -> SimJob {
+    fn sim_job(id: JobId, rng: &mut TestRng) -> SimJob {
         let priority = rng.below(3) as i32;
         let arrive_at = Millis(rng.below(120_000));
         let units = (0..rng.range(1, 4))
@@ -1908,7 +1887,7 @@ mod tests {
 
     impl Sim {
         fn new(seed: u64, max_attempts: u32, fail_per_mille: u64) -> Sim {
-            let mut rng = Rng(seed);
+            let mut rng = TestRng::new(seed);
             let jobs = (1..=8).map(|i| sim_job(JobId(i), &mut rng)).collect();
             let config = SchedulerConfig {
                 lease_timeout: LEASE_TIMEOUT,
@@ -1949,7 +1928,7 @@ mod tests {
                 self.maybe_cancel();
                 // Not every step: completions past a deadline must be rejected before the
                 // tick reclaims the lease too.
-                if self.rng.chance(600) {
+                if self.rng.chance(0.6) {
                     let events = self.s.tick(self.now);
                     self.apply(events);
                 }
@@ -1978,14 +1957,14 @@ mod tests {
             let alive: Vec<usize> = (0..self.workers.len())
                 .filter(|&wi| self.workers[wi].mode == Mode::Alive)
                 .collect();
-            if alive.is_empty() || (alive.len() < 6 && self.rng.chance(15)) {
+            if alive.is_empty() || (alive.len() < 6 && self.rng.chance(0.015)) {
                 self.spawn();
             }
-            if alive.is_empty() || !self.rng.chance(8) {
+            if alive.is_empty() || !self.rng.chance(0.008) {
                 return;
             }
             let wi = alive[self.rng.below(alive.len() as u64) as usize];
-            let zombie = self.rng.chance(500);
+            let zombie = self.rng.chance(0.5);
             match self.rng.below(3) {
                 0 => self.lose_explicitly(wi, zombie),
                 1 => self.workers[wi].mode = Mode::Silent { zombie },
@@ -2023,7 +2002,7 @@ mod tests {
             let id = self.workers[wi].id;
             self.s.drain_worker(id).unwrap();
             self.workers[wi].mode = Mode::Draining;
-            if self.rng.chance(500) {
+            if self.rng.chance(0.5) {
                 return;
             }
             let offered: Vec<LeaseId> = self.workers[wi].live.iter().copied().collect();
@@ -2040,7 +2019,7 @@ mod tests {
         }
 
         fn maybe_cancel(&mut self) {
-            if self.cancelled_one || !self.rng.chance(3) {
+            if self.cancelled_one || !self.rng.chance(0.003) {
                 return;
             }
             let running: Vec<usize> = (0..self.jobs.len())
@@ -2079,7 +2058,7 @@ mod tests {
                         self.heartbeat(wi);
                     }
                     self.finish_due(wi);
-                    if self.rng.chance(30) {
+                    if self.rng.chance(0.03) {
                         self.resend(wi);
                     }
                     if self.workers[wi].mode == Mode::Alive {
@@ -2113,7 +2092,7 @@ mod tests {
             }
             // Half the time the worker abandons what it was told is void; otherwise its late
             // results must be rejected.
-            if self.rng.chance(500) {
+            if self.rng.chance(0.5) {
                 self.workers[wi].pending.retain(|l| !stale.contains(l));
             }
             let interval = Duration::from_millis(self.rng.range(2000, 6000));
@@ -2207,7 +2186,7 @@ mod tests {
             }
             job.finished = true;
             self.stats.completed += 1;
-            if self.rng.chance(500) {
+            if self.rng.chance(0.5) {
                 assert_eq!(self.s.remove_job(job.id), Ok(vec![]));
                 job.removed = true;
             }
@@ -2292,14 +2271,14 @@ mod tests {
             assert_eq!(lease.attempt, job.failures[tile] + 1, "attempt of {key}");
             job.holder[tile] = Some(lease.id);
             job.leased_before[tile] = true;
-            let hung = self.rng.chance(50);
+            let hung = self.rng.chance(0.05);
             let ms = if hung {
                 self.rng.range(30_000, 120_000)
             } else {
                 self.rng.range(500, 20_000)
             };
             let done_at = self.now + Duration::from_millis(ms);
-            let fails = self.rng.chance(self.fail_per_mille);
+            let fails = self.rng.chance(self.fail_per_mille as f64 / 1000.0);
             let (worker, deadline, listed, end) =
                 (self.workers[wi].id, lease.deadline, !hung, None);
             let record = SimLease {

@@ -205,7 +205,7 @@ fn div_rem(a: u128, b: u128) -> (u128, u128) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_support::Pcg;
+    use crate::test_support::TestRng;
 
     #[test]
     fn acc128_carries_into_high_word_exactly_in_any_order() {
@@ -292,7 +292,7 @@ mod tests {
 
     #[test]
     fn split_exact_equals_the_128_bit_reference_bit_for_bit() {
-        let mut rng = Pcg::new(8);
+        let mut rng = TestRng::new(8);
         let mut out = Vec::new();
         for n in 1..24 {
             for _ in 0..300 {

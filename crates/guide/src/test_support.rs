@@ -51,50 +51,8 @@ pub(crate) fn cube_tree(cfg: GuideConfig) -> SdTree {
     SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg)
 }
 
-/// Small deterministic PRNG (PCG-XSH-RR 64/32): the random numbers of every test in the crate.
-#[derive(Clone)]
-pub(crate) struct Pcg(u64);
-
-impl Pcg {
-    pub(crate) fn new(seed: u64) -> Self {
-        let mut p = Pcg(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0xDA3E_39CB_94B9_5BDB);
-        p.next_u32();
-        p
-    }
-    pub(crate) fn next_u32(&mut self) -> u32 {
-        let old = self.0;
-        self.0 = old
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
-        let rot = (old >> 59) as u32;
-        xorshifted.rotate_right(rot)
-    }
-    /// Uniform in [0, 1) with 24 bits.
-    pub(crate) fn f32(&mut self) -> f32 {
-        (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0)
-    }
-    /// Uniform in [0, 1) with 53 bits.
-    pub(crate) fn f64(&mut self) -> f64 {
-        let a = (self.next_u32() >> 5) as u64;
-        let b = (self.next_u32() >> 6) as u64;
-        ((a << 26) | b) as f64 * (1.0 / 9_007_199_254_740_992.0)
-    }
-    /// Uniform in `0..n`.
-    pub(crate) fn below(&mut self, n: u32) -> u32 {
-        ((self.next_u32() as u64 * n as u64) >> 32) as u32
-    }
-    /// Standard normal (Box-Muller).
-    pub(crate) fn gauss(&mut self) -> f64 {
-        let u1 = 1.0 - self.f64();
-        let u2 = self.f64();
-        (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
-    }
-    /// The generator as the `FnMut() -> f32` the library takes.
-    pub(crate) fn rng(&mut self) -> impl FnMut() -> f32 + '_ {
-        move || self.f32()
-    }
-}
+/// The random numbers of every test in the crate.
+pub(crate) use pathfarm_testkit::TestRng;
 
 /// Kinds of random quadtrees.
 #[derive(Clone, Copy, Debug)]
@@ -107,10 +65,15 @@ pub(crate) enum TreeKind {
     Rect,
 }
 
-fn random_uv(rng: &mut Pcg, kind: TreeKind, centres: &[(f64, f64, f64)], rect: [f64; 4]) -> Vec2 {
+fn random_uv(
+    rng: &mut TestRng,
+    kind: TreeKind,
+    centres: &[(f64, f64, f64)],
+    rect: [f64; 4],
+) -> Vec2 {
     match kind {
         TreeKind::Blobs => {
-            let (cx, cy, s) = centres[rng.below(centres.len() as u32) as usize];
+            let (cx, cy, s) = centres[rng.below(centres.len() as u64) as usize];
             let u = (cx + s * rng.gauss()).clamp(0.0, 0.999_999);
             let v = (cy + s * rng.gauss()).rem_euclid(1.0).min(0.999_999);
             Vec2::new(u as f32, v as f32)
@@ -126,7 +89,7 @@ fn random_uv(rng: &mut Pcg, kind: TreeKind, centres: &[(f64, f64, f64)], rect: [
 /// A random built quadtree: several rounds of deposit / build / reset, then a final deposit
 /// and build.
 pub(crate) fn random_dtree(seed: u64, kind: TreeKind) -> DTree {
-    let mut rng = Pcg::new(seed);
+    let mut rng = TestRng::new(seed);
     let ov = AtomicU64::new(0);
     let nc = 1 + rng.below(4) as usize;
     let centres: Vec<(f64, f64, f64)> = (0..nc)
@@ -167,7 +130,7 @@ pub(crate) fn random_dtree(seed: u64, kind: TreeKind) -> DTree {
     t
 }
 
-pub(crate) fn clustered_records(rng: &mut Pcg, n: usize) -> Vec<Record> {
+pub(crate) fn clustered_records(rng: &mut TestRng, n: usize) -> Vec<Record> {
     (0..n)
         .map(|_| {
             let p = if rng.below(2) == 0 {
@@ -203,10 +166,10 @@ pub(crate) fn clustered_records(rng: &mut Pcg, n: usize) -> Vec<Record> {
 
 pub(crate) fn warmed_tree(cfg: GuideConfig, seed: u64, n: usize, iterations: u32) -> SdTree {
     let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
-    let mut rng = Pcg::new(seed);
+    let mut rng = TestRng::new(seed);
     for k in 0..iterations {
         for r in clustered_records(&mut rng, n) {
-            t.record(&r, &mut rng.rng());
+            t.record(&r, &mut rng.f32_source());
         }
         t.step_fractions();
         t.refine(k);
@@ -215,7 +178,7 @@ pub(crate) fn warmed_tree(cfg: GuideConfig, seed: u64, n: usize, iterations: u32
 }
 
 pub(crate) fn det_records(n: usize, seed: u64) -> Vec<(Record, u64)> {
-    let mut rng = Pcg::new(seed);
+    let mut rng = TestRng::new(seed);
     clustered_records(&mut rng, n)
         .into_iter()
         .enumerate()
@@ -227,7 +190,7 @@ pub(crate) fn det_records(n: usize, seed: u64) -> Vec<(Record, u64)> {
 /// occluded, value 0) whose value derives from the record's seed.
 pub(crate) fn record_all(t: &SdTree, recs: &[(Record, u64)]) {
     for (r, s) in recs {
-        t.record(r, &mut Pcg::new(*s).rng());
+        t.record(r, &mut TestRng::new(*s).f32_source());
         let light = if s % 3 == 0 {
             0.0
         } else {
@@ -237,7 +200,7 @@ pub(crate) fn record_all(t: &SdTree, recs: &[(Record, u64)]) {
     }
 }
 
-pub(crate) fn random_unit(rng: &mut Pcg) -> Vec3 {
+pub(crate) fn random_unit(rng: &mut TestRng) -> Vec3 {
     loop {
         let v = Vec3::new(rng.gauss() as f32, rng.gauss() as f32, rng.gauss() as f32);
         if v.length() > 1e-3 {

@@ -25,30 +25,7 @@ const SLOW_CASE: Duration = Duration::from_secs(2);
 /// A load still running after this is reported and the process aborted (a hang).
 const HUNG_CASE: Duration = Duration::from_secs(60);
 
-// ---------------------------------------------------------------------------------------------
-// A tiny seeded RNG (splitmix64)
-
-struct Rng(u64);
-
-impl Rng {
-    fn new(seed: u64) -> Self {
-        Rng(seed)
-    }
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in `0..n` (`n > 0`).
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n as u64) as usize
-    }
-    fn pick<'a, T>(&mut self, v: &'a [T]) -> &'a T {
-        &v[self.below(v.len())]
-    }
-}
+use pathfarm_testkit::TestRng;
 
 // ---------------------------------------------------------------------------------------------
 // Mutations
@@ -307,20 +284,20 @@ fn replace_spans(t: &mut Vec<u8>, spans: &[(usize, usize)], with: &[u8]) {
 }
 
 /// Applies one random mutation to `t` (or adds an override); returns what it did.
-fn mutate(rng: &mut Rng, t: &mut Vec<u8>, overrides: &mut Vec<(String, String)>) -> String {
+fn mutate(rng: &mut TestRng, t: &mut Vec<u8>, overrides: &mut Vec<(String, String)>) -> String {
     for _ in 0..16 {
         if let Some(d) = try_mutate(rng, t, overrides) {
             return d;
         }
     }
     // Nothing applicable (the text was mostly deleted): flip a byte or append one.
-    let b = rng.next() as u8;
+    let b = rng.next_u32() as u8;
     t.push(b);
     format!("appended byte {b:#04x}")
 }
 
 fn try_mutate(
-    rng: &mut Rng,
+    rng: &mut TestRng,
     t: &mut Vec<u8>,
     overrides: &mut Vec<(String, String)>,
 ) -> Option<String> {
@@ -354,7 +331,7 @@ fn try_mutate(
         (0, 7),
     ];
     let total: u32 = WEIGHTS.iter().map(|w| w.0).sum();
-    let mut r = rng.below(total as usize) as u32;
+    let mut r = rng.index(total as usize) as u32;
     let kind = WEIGHTS
         .iter()
         .find(|(w, _)| {
@@ -368,10 +345,10 @@ fn try_mutate(
             if t.is_empty() {
                 return None;
             }
-            let i = rng.below(t.len());
+            let i = rng.index(t.len());
             let old = t[i];
-            let new = if rng.below(2) == 0 {
-                old ^ (1 << rng.below(8))
+            let new = if rng.index(2) == 0 {
+                old ^ (1 << rng.index(8))
             } else {
                 *rng.pick(b"<>/\"'=&$;\\ \n\0\xff\xc3")
             };
@@ -385,7 +362,7 @@ fn try_mutate(
             if lines.is_empty() {
                 return None;
             }
-            let k = rng.below(lines.len());
+            let k = rng.index(lines.len());
             let (s, e) = lines[k];
             let text = t[s..e].to_vec();
             if kind == 1 {
@@ -435,7 +412,7 @@ fn try_mutate(
             let a = rng.pick(&attrs);
             let (s, e) = a.value;
             let old = t[s..e].to_vec();
-            let new = if rng.below(2) == 0 {
+            let new = if rng.index(2) == 0 {
                 rng.pick(HOSTILE_NUMBERS).to_string()
             } else {
                 rng.pick(TYPES).to_string()
@@ -446,13 +423,13 @@ fn try_mutate(
         }
         9 => {
             // A plugin (or property) element renamed to another, with its closing tag.
-            let names = if rng.below(3) == 0 {
+            let names = if rng.index(3) == 0 {
                 PROPERTIES
             } else {
                 CATEGORIES
             };
             let from = *rng.pick(names);
-            let to_names = if rng.below(4) == 0 {
+            let to_names = if rng.index(4) == 0 {
                 PROPERTIES
             } else {
                 CATEGORIES
@@ -492,14 +469,14 @@ fn try_mutate(
         }
         _ => {
             let name = *rng.pick(OVERRIDE_NAMES);
-            let value = if rng.below(4) == 0 {
+            let value = if rng.index(4) == 0 {
                 rng.pick(TYPES).to_string()
             } else {
                 rng.pick(HOSTILE_NUMBERS).to_string()
             };
             let guided = !matches!(name, "integrator" | "spp" | "resx" | "resy" | "max_depth");
             let mut what = String::new();
-            if guided && rng.below(4) != 0 {
+            if guided && rng.index(4) != 0 {
                 // Guided parameters mean something only to guided_path.
                 overrides.push(("integrator".into(), "guided_path".into()));
                 what.push_str("-D integrator=guided_path ");
@@ -629,11 +606,11 @@ fn mutated_shipped_scenes_never_panic_and_every_error_names_the_file_and_line() 
         None => 0..cases,
     };
     for i in range {
-        let mut rng = Rng::new(seed ^ i.wrapping_mul(0xD1B5_4A32_D192_ED03));
+        let mut rng = TestRng::new(seed ^ i.wrapping_mul(0xD1B5_4A32_D192_ED03));
         let (name, path, original) = &scenes[(i % scenes.len() as u64) as usize];
         let mut text = original.clone();
         let mut overrides = Vec::new();
-        let n = 1 + rng.below(3);
+        let n = 1 + rng.index(3);
         let done: Vec<String> = (0..n)
             .map(|_| mutate(&mut rng, &mut text, &mut overrides))
             .collect();

@@ -1,7 +1,10 @@
-//! Statistics helpers shared by the test suites (dev-dependency only): the
-//! chi-square distribution (own implementation via the regularised incomplete
-//! gamma function), Pearson's test with pooling of small bins, and the Šidák
-//! correction.
+//! Helpers shared by the test suites (dev-dependency only): their random-number generator,
+//! the chi-square distribution (own implementation via the regularised incomplete gamma
+//! function), Pearson's test with pooling of small bins, and the Šidák correction.
+
+mod rng;
+
+pub use rng::TestRng;
 
 /// ln Gamma(x) for x > 0 (Lanczos, g = 7, n = 9).
 pub fn ln_gamma(x: f64) -> f64 {

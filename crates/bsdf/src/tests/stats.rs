@@ -1,41 +1,15 @@
-//! Test utilities: a small RNG, the chi-square distribution (regularised
+//! Test utilities: the 2D samples of the shared test RNG, the chi-square distribution (regularised
 //! incomplete gamma function, no stats crate) and a spherical histogram
 //! goodness-of-fit test of `sample` against `pdf`.
 
 use crate::Bsdf;
 use glam::{Vec2, Vec3};
 
-/// PCG32 (O'Neill), fixed seeds for reproducible tests.
-pub struct Pcg32 {
-    state: u64,
-    inc: u64,
-}
+pub use pathfarm_testkit::TestRng;
 
-impl Pcg32 {
-    pub fn new(seed: u64, seq: u64) -> Self {
-        let mut r = Self {
-            state: 0,
-            inc: (seq << 1) | 1,
-        };
-        r.next_u32();
-        r.state = r.state.wrapping_add(seed);
-        r.next_u32();
-        r
-    }
-    pub fn next_u32(&mut self) -> u32 {
-        let old = self.state;
-        self.state = old.wrapping_mul(6364136223846793005).wrapping_add(self.inc);
-        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
-        let rot = (old >> 59) as u32;
-        xorshifted.rotate_right(rot)
-    }
-    /// Uniform in [0, 1).
-    pub fn f32(&mut self) -> f32 {
-        (self.next_u32() >> 8) as f32 * (1.0 / 16_777_216.0)
-    }
-    pub fn vec2(&mut self) -> Vec2 {
-        Vec2::new(self.f32(), self.f32())
-    }
+/// Two uniform numbers in [0, 1): the 2D sample a BSDF's `sample` takes.
+pub fn vec2(rng: &mut TestRng) -> Vec2 {
+    Vec2::new(rng.f32(), rng.f32())
 }
 
 pub use pathfarm_testkit::{chi2_quantile, chi2_sf, sidak};
@@ -144,10 +118,10 @@ pub fn chi2_test_refine(bsdf: &Bsdf, wi: Vec3, n: usize, seed: u64, refine: f64)
     let nb = THETA_BINS * PHI_BINS;
     let mut obs = vec![0f64; nb];
     let mut leftover_obs = 0f64;
-    let mut rng = Pcg32::new(seed, 0xda3e_39cb_94b9_5bdb);
+    let mut rng = TestRng::new(seed);
     for _ in 0..n {
         let u_lobe = rng.f32();
-        let u = rng.vec2();
+        let u = vec2(&mut rng);
         match bsdf.sample(wi, u_lobe, u) {
             Some(s) if !s.lobe.delta => obs[bin_of(s.wo)] += 1.0,
             _ => leftover_obs += 1.0,

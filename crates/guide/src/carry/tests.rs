@@ -4,7 +4,7 @@
 use crate::config::GuideConfig;
 use crate::record::Record;
 use crate::sdtree::SdTree;
-use crate::test_support::{clustered_records, Pcg};
+use crate::test_support::{clustered_records, TestRng};
 use glam::Vec3;
 
 /// Sum of a quadtree's leaf-cell sums (what a refinement builds on).
@@ -29,9 +29,9 @@ fn carry_over_moves_the_built_statistics_into_the_refined_structure_exactly() {
             ..GuideConfig::default()
         };
         let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg);
-        let mut rng = Pcg::new(81);
+        let mut rng = TestRng::new(81);
         for r in clustered_records(&mut rng, 5000) {
-            t.record(&r, &mut rng.rng());
+            t.record(&r, &mut rng.f32_source());
         }
         let (total, weight) = {
             let b = &t.leaves()[0].building;

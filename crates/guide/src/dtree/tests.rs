@@ -7,7 +7,7 @@ use super::*;
 use crate::mapping::{uv_to_dir, JACOBIAN};
 use crate::region::{CellMask, CellWeights, Restriction};
 use crate::stats::to_fixed;
-use crate::test_support::{random_dtree, random_unit, Pcg, TreeKind};
+use crate::test_support::{random_dtree, random_unit, TestRng, TreeKind};
 use glam::Vec3;
 use pathfarm_testkit::{pooled_chi2_pvalue as chi2_test, sidak};
 
@@ -91,9 +91,9 @@ fn quadtree_sampling_matches_pdf_chi_square_on_random_trees() {
         );
         let mut obs_uv = vec![0.0; nu * nv];
         let mut obs_sp = vec![0.0; nt * nv];
-        let mut rng = Pcg::new(seed ^ 0xABCD);
+        let mut rng = TestRng::new(seed ^ 0xABCD);
         for _ in 0..n_samples {
-            let (uv, pdf) = t.sample_with_pdf(&mut rng.rng());
+            let (uv, pdf) = t.sample_with_pdf(&mut rng.f32_source());
             assert!(pdf > 0.0, "sampled a zero-pdf point");
             let p2 = t.pdf(uv);
             assert!(
@@ -149,9 +149,9 @@ fn chi_square_detects_a_wrong_sampler() {
         .map(|m| m * n as f64)
         .collect();
     let mut obs = vec![0.0; 16 * nv];
-    let mut rng = Pcg::new(5);
+    let mut rng = TestRng::new(5);
     for _ in 0..n {
-        let uv = t.sample(&mut rng.rng());
+        let uv = t.sample(&mut rng.f32_source());
         obs[bin_index(&u_edges, uv.x as f64) * nv + ((uv.y * nv as f32) as usize).min(nv - 1)] +=
             1.0;
     }
@@ -175,8 +175,8 @@ fn quadtree_pdf_integrates_to_one_in_uv_and_on_the_sphere() {
     }
     let empty = DTree::new().freeze();
     assert_eq!(empty.pdf(Vec2::new(0.3, 0.7)), 1.0);
-    let mut rng = Pcg::new(1);
-    let (uv, p) = empty.sample_with_pdf(&mut rng.rng());
+    let mut rng = TestRng::new(1);
+    let (uv, p) = empty.sample_with_pdf(&mut rng.f32_source());
     assert!(p == 1.0 && uv.x >= 0.0 && uv.x < 1.0 && uv.y >= 0.0 && uv.y < 1.0);
 }
 
@@ -327,10 +327,10 @@ fn frozen_sampling_cache_gives_bit_identical_samples_and_pdfs() {
             plain.cell_masses().map(f32::to_bits),
             f.cell_masses().map(f32::to_bits)
         );
-        let (mut r1, mut r2) = (Pcg::new(i), Pcg::new(i));
+        let (mut r1, mut r2) = (TestRng::new(i), TestRng::new(i));
         for _ in 0..2000 {
-            let a = plain.sample_with_pdf(&mut r1.rng());
-            let b = f.sample_with_pdf(&mut r2.rng());
+            let a = plain.sample_with_pdf(&mut r1.f32_source());
+            let b = f.sample_with_pdf(&mut r2.f32_source());
             assert_eq!(
                 a.0.to_array().map(f32::to_bits),
                 b.0.to_array().map(f32::to_bits)
@@ -371,7 +371,7 @@ fn leaf_slot_finds_the_same_cell_as_leaf_cell() {
         .enumerate()
     {
         let t = random_dtree(900 + i as u64, kind);
-        let mut r = Pcg::new(i as u64);
+        let mut r = TestRng::new(i as u64);
         let mut points: Vec<Vec2> = (0..5000).map(|_| Vec2::new(r.f32(), r.f32())).collect();
         for c in t.leaf_cells() {
             let (o, s) = (c.origin, c.size);
@@ -396,7 +396,7 @@ fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
     // Overall significance 0.01 over all (tree, mask or weighted mask) pairs, Šidák corrected.
     // Bins: the 16x16 grid over (u, v), which nests in the 4x4 cells of a mask.
     let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
-    let mut rng = Pcg::new(43);
+    let mut rng = TestRng::new(43);
     let mut cases = Vec::new();
     for i in 0..9u64 {
         let t = random_dtree(300 + i, kinds[i as usize % 3]).freeze();
@@ -439,9 +439,9 @@ fn restricted_sampling_matches_the_restricted_pdf_chi_square() {
         );
         restricted += (r.mask != CellMask::ALL) as u32;
         let mut obs = vec![0.0; 256];
-        let mut g = Pcg::new(k as u64);
+        let mut g = TestRng::new(k as u64);
         for _ in 0..n {
-            let (uv, p) = t.sample_restricted(r, &mut g.rng());
+            let (uv, p) = t.sample_restricted(r, &mut g.f32_source());
             assert!(p > 0.0 && r.mask.contains_uv(uv), "case {k}: {uv} pdf {p}");
             assert_eq!(
                 p.to_bits(),
@@ -462,7 +462,7 @@ fn restricted_pdf_integrates_to_one_and_vanishes_outside_the_mask() {
     // Deterministic quadrature (exact for piecewise-constant densities; no significance level).
     // Plain and cosine-weighted hemispheres.
     let kinds = [TreeKind::Blobs, TreeKind::Peak, TreeKind::Rect];
-    let mut rng = Pcg::new(47);
+    let mut rng = TestRng::new(47);
     for i in 0..18u64 {
         let t = random_dtree(400 + i, kinds[i as usize % 3]).freeze();
         let n = random_unit(&mut rng);

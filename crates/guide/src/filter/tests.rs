@@ -5,7 +5,7 @@ use crate::config::{DirectionalFilter, GuideConfig, SpatialFilter};
 use crate::mapping::uv_to_dir;
 use crate::record::Record;
 use crate::stats::{to_fixed, FIXED_ONE};
-use crate::test_support::{clustered_records, warmed_tree, Pcg};
+use crate::test_support::{clustered_records, warmed_tree, TestRng};
 use glam::{Vec2, Vec3};
 use pathfarm_testkit::{pooled_chi2_pvalue as chi2_test, sidak};
 
@@ -19,7 +19,7 @@ fn box_splats_conserve_mass_exactly() {
     };
     let t = warmed_tree(base, 31, 4000, 3);
     assert!(t.stats().leaves > 8);
-    let mut rng = Pcg::new(32);
+    let mut rng = TestRng::new(32);
     let mut recs = clustered_records(&mut rng, 3000);
     // records at the phi seam, the poles and the domain corners
     for i in 0..200 {
@@ -41,7 +41,7 @@ fn box_splats_conserve_mass_exactly() {
     let mut expect_sum = 0u128;
     let mut expect_w = 0u128;
     for r in &recs {
-        t.record(r, &mut rng.rng());
+        t.record(r, &mut rng.f32_source());
         let v = r.weight as f64 * r.radiance as f64 / r.pdf_mix as f64;
         expect_sum += to_fixed(v).0;
         expect_w += to_fixed(r.weight as f64).0;
@@ -64,7 +64,7 @@ fn box_splats_conserve_mass_exactly() {
     let p = Vec3::new(-0.62, -0.6, 0.7);
     t2.record(
         &Record::radiance_only(p, uv_to_dir(Vec2::new(0.3, 0.9995)), 1.0, 1.0, 1.0),
-        &mut rng.rng(),
+        &mut rng.f32_source(),
     );
     let s = t2.take_stats();
     assert!(s.leaves.len() > 1, "box splat hit only one leaf");
@@ -103,12 +103,12 @@ fn mean_of_stochastic_splats_equals_the_box_splat() {
         b.config.spatial_filter = SpatialFilter::Box;
         let _ = b.take_stats();
         let m = 40_000;
-        let mut rng = Pcg::new(42);
+        let mut rng = TestRng::new(42);
         let rec = Record::radiance_only(p, Vec3::Z, 1.0, 1.0, 1.0);
         for _ in 0..m {
-            a.record(&rec, &mut rng.rng());
+            a.record(&rec, &mut rng.f32_source());
         }
-        b.record(&rec, &mut rng.rng());
+        b.record(&rec, &mut rng.f32_source());
         let obs: Vec<f64> = a.leaves().iter().map(|l| l.building.weight()).collect();
         let exp: Vec<f64> = b
             .leaves()

@@ -4,7 +4,7 @@ use super::*;
 use crate::config::GuideConfig;
 use crate::record::Record;
 use crate::stats::FIXED_ONE;
-use crate::test_support::{cube_tree, learned_config, Pcg};
+use crate::test_support::{cube_tree, learned_config, TestRng};
 use glam::Vec3;
 
 /// Expected gradient of the loss with respect to theta (including L2), by quadrature, for the
@@ -50,13 +50,13 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
             "unregularised gradient at alpha = 0.3: {unreg}"
         );
         let mut t = cube_tree(learned_config(1e15, loss));
-        let mut rng = Pcg::new(99);
+        let mut rng = TestRng::new(99);
         let steps = 1500;
         let mut tail = 0.0;
         for s in 0..steps {
             let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
             for rec in toy_records(&mut rng, alpha, 128) {
-                t.record(&rec, &mut rng.rng());
+                t.record(&rec, &mut rng.f32_source());
             }
             assert_eq!(t.step_fractions(), 1);
             if s >= steps - 300 {
@@ -72,7 +72,7 @@ fn adam_fraction_converges_to_the_analytic_optimum_on_a_1d_toy() {
 }
 
 /// The toy's records (see [`toy_expected_grad`]), sampled with fraction `alpha`.
-fn toy_records(rng: &mut Pcg, alpha: f64, n: usize) -> Vec<Record> {
+fn toy_records(rng: &mut TestRng, alpha: f64, n: usize) -> Vec<Record> {
     (0..n)
         .map(|_| {
             let x = if rng.f64() < alpha {
@@ -108,11 +108,11 @@ fn learned_fraction_reaches_its_optimum_in_a_few_passes() {
     };
     for seed in [5, 6, 7] {
         let mut t = cube_tree(cfg.clone());
-        let mut rng = Pcg::new(seed);
+        let mut rng = TestRng::new(seed);
         for _ in 0..8 {
             let alpha = t.bsdf_sampling_fraction(Vec3::ZERO) as f64;
             for r in toy_records(&mut rng, alpha, 2000) {
-                t.record(&r, &mut rng.rng());
+                t.record(&r, &mut rng.f32_source());
             }
             assert_eq!(t.step_fractions(), 1);
         }
@@ -133,12 +133,12 @@ fn learned_fraction_reaches_its_optimum_in_a_few_passes() {
 fn fraction_batch_holds_the_exact_gradient_at_every_grid_alpha() {
     use crate::fraction::{dloss_dalpha, interpolate, GRID, GRID_LEN};
     let t = cube_tree(learned_config(1e15, FractionLoss::Var));
-    let mut rng = Pcg::new(17);
+    let mut rng = TestRng::new(17);
     // recorded with two different sampling fractions: the batch does not care
     let mut recs = toy_records(&mut rng, 0.3, 500);
     recs.extend(toy_records(&mut rng, 0.8, 500));
     for r in &recs {
-        t.record(r, &mut rng.rng());
+        t.record(r, &mut rng.f32_source());
     }
     let g = &t.leaves()[0].grad;
     assert_eq!(g.weight.get(), 1000 * FIXED_ONE);

@@ -3,7 +3,7 @@
 use super::*;
 use crate::config::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use crate::record::Record;
-use crate::test_support::{det_records, record_all, warmed_tree, Pcg};
+use crate::test_support::{det_records, record_all, warmed_tree, TestRng};
 
 #[test]
 fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
@@ -23,7 +23,7 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
         "the base tree carries statistics"
     );
     let recs = det_records(20_000, 62);
-    let mut rng = Pcg::new(63);
+    let mut rng = TestRng::new(63);
     let mut parts: [Vec<(Record, u64)>; 3] = Default::default();
     for r in &recs {
         parts[rng.below(3) as usize].push(*r);

@@ -2,7 +2,7 @@
 //! fallback's rule.
 
 use super::*;
-use crate::test_support::Pcg;
+use crate::test_support::TestRng;
 
 #[test]
 fn schedule_doubles_passes_and_last_iteration_absorbs_the_remainder() {
@@ -132,7 +132,7 @@ fn inverse_variance_weights_combine_synthetic_images_optimally() {
     );
     assert_eq!(inverse_variance_weights(&[f64::NAN]), vec![1.0]);
     // synthetic noisy images of a known truth
-    let mut rng = Pcg::new(7);
+    let mut rng = TestRng::new(7);
     let npx = 20_000;
     let truth: Vec<f32> = (0..npx).map(|i| (i % 17) as f32 * 0.1).collect();
     let sig = [2.0f64, 1.5, 1.0, 0.8, 0.6, 0.5];

@@ -12,7 +12,7 @@ use crate::mapping::{dir_to_uv, uv_to_dir};
 use crate::stats::FIXED_ONE;
 use crate::test_support::{
     clustered_records, config_2019, cube_tree, det_records, learned_config, record_all,
-    threshold_config, warmed_tree, Pcg,
+    threshold_config, warmed_tree, TestRng,
 };
 use crate::AdamConfig;
 use glam::Vec2;
@@ -20,9 +20,9 @@ use glam::Vec2;
 #[test]
 fn sdtree_sample_returns_unit_directions_whose_pdf_round_trips() {
     let mut tree = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), GuideConfig::default());
-    let mut rng = Pcg::new(3);
+    let mut rng = TestRng::new(3);
     assert!(
-        tree.sample(Vec3::ZERO, &mut rng.rng()).is_none(),
+        tree.sample(Vec3::ZERO, &mut rng.f32_source()).is_none(),
         "no sampling before refine"
     );
     assert_eq!(tree.pdf(Vec3::ZERO, Vec3::Z), 0.0);
@@ -30,13 +30,13 @@ fn sdtree_sample_returns_unit_directions_whose_pdf_round_trips() {
         let d = uv_to_dir(Vec2::new(0.6 + 0.3 * rng.f32(), 0.2 * rng.f32()));
         tree.record(
             &Record::radiance_only(Vec3::ZERO, d, 1.0, 1.0, 1.0),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     tree.refine(0);
     for _ in 0..2000 {
         let (d, p) = tree
-            .sample(Vec3::new(0.1, 0.2, 0.3), &mut rng.rng())
+            .sample(Vec3::new(0.1, 0.2, 0.3), &mut rng.f32_source())
             .unwrap();
         assert!((d.length() - 1.0).abs() < 1e-5);
         let p2 = tree.pdf(Vec3::new(0.1, 0.2, 0.3), d);
@@ -60,7 +60,7 @@ fn building_sums(leaf: &Leaf) -> Vec<u128> {
 fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_change_w() {
     use std::f64::consts::PI;
     let mut tree = cube_tree(threshold_config(1e12));
-    let mut rng = Pcg::new(11);
+    let mut rng = TestRng::new(11);
     // L(w) = 3 max(z, 0) + 0.5 [y > 0]; sampled with p_uv(u, v) = u + 0.5.
     let l = |d: Vec3| 3.0 * (d.z as f64).max(0.0) + if d.y > 0.0 { 0.5 } else { 0.0 };
     let n = 200_000;
@@ -76,7 +76,7 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
         vals.push(rad / p);
         tree.record(
             &Record::radiance_only(Vec3::ZERO, d, rad as f32, p as f32, 1.0),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     // Zero and negative radiance records only add to W; NaN or infinite radiance and invalid
@@ -87,18 +87,18 @@ fn recorder_sums_converge_to_known_radiance_integrals_and_zero_records_only_chan
     for rad in [0.0f32, -1.0, f32::NAN, f32::INFINITY] {
         tree.record(
             &Record::radiance_only(Vec3::ZERO, Vec3::Z, rad, 1.0, 1.0),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     for w in [0.0f32, -1.0, f32::NAN] {
         tree.record(
             &Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 1.0, w),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     tree.record(
         &Record::radiance_only(Vec3::ZERO, Vec3::Z, 1.0, 0.0, 1.0),
-        &mut rng.rng(),
+        &mut rng.f32_source(),
     );
     let leaf = &tree.leaves()[0];
     let sums_after = building_sums(leaf);
@@ -154,7 +154,7 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
         "unbuilt: no estimate"
     );
     // Uniform directions, L = 2 on the upper hemisphere (z > 0), 0 below: integral 4 pi.
-    let mut rng = Pcg::new(77);
+    let mut rng = TestRng::new(77);
     let n = 100_000;
     let p = (1.0 / (4.0 * PI)) as f32;
     for _ in 0..n {
@@ -162,7 +162,7 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
         let l = if d.z > 0.0 { 2.0 } else { 0.0 };
         tree.record(
             &Record::radiance_only(Vec3::ZERO, d, l, p, 1.0),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     tree.refine(0);
@@ -191,7 +191,7 @@ fn incident_radiance_estimate_is_flux_times_pdf_and_survives_splits_and_the_wire
         let pos = Vec3::new(rng.f64() as f32, rng.f64() as f32, rng.f64() as f32) * 2.0 - 1.0;
         split.record(
             &Record::radiance_only(pos, Vec3::Z, 3.0, p, 1.0),
-            &mut rng.rng(),
+            &mut rng.f32_source(),
         );
     }
     split.refine(0);
@@ -252,10 +252,10 @@ fn quadtree_node_cap_bounds_refinement_and_changes_nothing_when_not_reached() {
 fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     let cfg = threshold_config(300.0);
     let mut t = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), cfg.clone());
-    let mut rng = Pcg::new(21);
+    let mut rng = TestRng::new(21);
     let recs = clustered_records(&mut rng, 20_000);
     for r in &recs {
-        t.record(r, &mut rng.rng());
+        t.record(r, &mut rng.f32_source());
     }
     t.refine(0);
     let thr = cfg.split_threshold(1);
@@ -291,7 +291,7 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     };
     let mut t2 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), capped);
     for r in &recs {
-        t2.record(r, &mut rng.rng());
+        t2.record(r, &mut rng.f32_source());
     }
     t2.refine(0);
     assert!(t2.stats().spatial_nodes <= 5);
@@ -300,7 +300,7 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
     let zero = threshold_config(0.0);
     let mut t3 = SdTree::new(Vec3::splat(-1.0), Vec3::splat(1.0), zero);
     for r in recs.iter().take(50) {
-        t3.record(r, &mut rng.rng());
+        t3.record(r, &mut rng.f32_source());
     }
     t3.refine(0);
     assert!(t3.stats().leaves <= 100, "{}", t3.stats().leaves);
@@ -309,9 +309,9 @@ fn stree_splits_until_every_leaf_is_at_most_the_threshold() {
 #[test]
 fn stree_children_inherit_the_whole_payload() {
     let mut t = cube_tree(learned_config(1000.0, FractionLoss::Kl));
-    let mut rng = Pcg::new(4);
+    let mut rng = TestRng::new(4);
     for r in clustered_records(&mut rng, 3000) {
-        t.record(&r, &mut rng.rng());
+        t.record(&r, &mut rng.f32_source());
     }
     t.leaves[0].fraction.theta = 0.75;
     t.leaves[0].fraction.m = 0.125;
@@ -358,15 +358,18 @@ fn sample_and_pdf_read_only_the_frozen_sampling_tree() {
         })
         .collect();
     let before: Vec<f32> = dirs.iter().map(|&d| t.pdf(Vec3::ZERO, d)).collect();
-    let mut rng = Pcg::new(1);
-    let s_before = t.sample(Vec3::ZERO, &mut Pcg::new(2).rng());
+    let mut rng = TestRng::new(1);
+    let s_before = t.sample(Vec3::ZERO, &mut TestRng::new(2).f32_source());
     for _ in 0..5000 {
         let r = Record::radiance_only(Vec3::ZERO, Vec3::Z, 100.0, 0.1, 1.0);
-        t.record(&r, &mut rng.rng());
+        t.record(&r, &mut rng.f32_source());
     }
     let after: Vec<f32> = dirs.iter().map(|&d| t.pdf(Vec3::ZERO, d)).collect();
     assert_eq!(before, after);
-    assert_eq!(s_before, t.sample(Vec3::ZERO, &mut Pcg::new(2).rng()));
+    assert_eq!(
+        s_before,
+        t.sample(Vec3::ZERO, &mut TestRng::new(2).f32_source())
+    );
     let h = t.leaf_index(Vec3::ZERO);
     assert_eq!(t.pdf_leaf(h, dirs[3]), after[3]);
     // and the next refinement does pick the new records up

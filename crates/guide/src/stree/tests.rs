@@ -1,11 +1,11 @@
 //! Tests of the spatial tree: lookups, the jump table and the box-overlap walk.
 
 use super::*;
-use crate::test_support::{threshold_config, warmed_tree, Pcg};
+use crate::test_support::{threshold_config, warmed_tree, TestRng};
 
 /// A uniform point in the domain [-1, 1]^3 grown by 0.2 on every side, so that lookups and
 /// boxes also cross the domain's faces.
-fn point_around_domain(rng: &mut Pcg) -> Vec3 {
+fn point_around_domain(rng: &mut TestRng) -> Vec3 {
     Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.4 - Vec3::splat(1.2)
 }
 
@@ -14,7 +14,7 @@ fn stree_lookup_and_extent_agree_and_faces_stay_inside() {
     let t = warmed_tree(threshold_config(100.0), 5, 6000, 2);
     assert!(t.stats().leaves > 10);
     let st = t.stree();
-    let mut rng = Pcg::new(9);
+    let mut rng = TestRng::new(9);
     for i in 0..20_000 {
         let p = if i < 8 {
             // corners of the domain, including the max faces
@@ -87,7 +87,7 @@ fn stree_jump_table_finds_the_leaves_the_plain_descent_finds() {
         depths.iter().any(|&d| d < 12) && depths.iter().any(|&d| d > 12),
         "{depths:?}"
     );
-    let mut rng = Pcg::new(11);
+    let mut rng = TestRng::new(11);
     let mut deep = 0;
     for i in 0..50_000 {
         let p = if i % 2 == 0 {
@@ -141,7 +141,7 @@ fn box_overlap_walk_equals_the_walk_from_the_root_bit_for_bit() {
     let t = warmed_tree(threshold_config(50.0), 11, 8000, 3);
     assert!(t.stats().leaves > 100, "{}", t.stats().leaves);
     let st = t.stree();
-    let mut rng = Pcg::new(4);
+    let mut rng = TestRng::new(4);
     let (mut multi, mut got) = (0, Vec::new());
     for i in 0..20_000 {
         // Boxes of a leaf's size around points in it (as the spatial box filter makes them),

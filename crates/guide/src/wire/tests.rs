@@ -2,7 +2,7 @@
 
 use super::*;
 use crate::test_support::{
-    config_2019, det_records, random_dtree, record_all, warmed_tree, Pcg, TreeKind,
+    config_2019, det_records, random_dtree, record_all, warmed_tree, TestRng, TreeKind,
 };
 
 #[test]
@@ -34,7 +34,7 @@ fn wire_round_trips_and_detects_corruption() {
     let sbytes = stats.encode();
     assert_eq!(IterationStats::decode(&sbytes).unwrap(), stats);
 
-    let mut rng = Pcg::new(73);
+    let mut rng = TestRng::new(73);
     for (buf, is_tree) in [(&bytes, true), (&sbytes, false)] {
         let decode = |b: &[u8]| -> Result<(), WireError> {
             if is_tree {
@@ -45,12 +45,12 @@ fn wire_round_trips_and_detects_corruption() {
         };
         for _ in 0..300 {
             let mut c = buf.clone();
-            let i = rng.below(c.len() as u32) as usize;
+            let i = rng.below(c.len() as u64) as usize;
             c[i] ^= 1 << rng.below(8);
             assert!(decode(&c).is_err(), "flip at {i} undetected");
         }
         for _ in 0..50 {
-            let n = rng.below(buf.len() as u32) as usize;
+            let n = rng.below(buf.len() as u64) as usize;
             let e = decode(&buf[..n]).unwrap_err();
             assert!(
                 matches!(e, WireError::Truncated | WireError::BadMagic(_)),

@@ -624,6 +624,7 @@ fn resolve(x: i64, len: usize, what: &str, items: &str) -> Result<u32, String> {
 mod tests {
     //! Equivalence with the tobj-based loader this one replaces.
 
+    use pathfarm_testkit::TestRng;
     use std::path::{Path, PathBuf};
 
     use glam::{Vec2, Vec3};
@@ -786,24 +787,7 @@ mod tests {
         }
     }
 
-    /// A small deterministic generator (xorshift).
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 << 13;
-            self.0 ^= self.0 >> 7;
-            self.0 ^= self.0 << 17;
-            self.0
-        }
-        fn below(&mut self, n: u64) -> u64 {
-            self.next() % n
-        }
-        fn chance(&mut self, percent: u64) -> bool {
-            self.below(100) < percent
-        }
-    }
-
-    fn number_text(r: &mut Rng) -> String {
+    fn number_text(r: &mut TestRng) -> String {
         let x = (r.below(2_000_001) as f64 - 1_000_000.0) / 1e3 / (1 + r.below(7)) as f64;
         match r.below(7) {
             0 => format!("{x:e}"),
@@ -817,20 +801,20 @@ mod tests {
     }
 
     /// A random OBJ file both loaders accept.
-    fn random_obj(r: &mut Rng) -> String {
+    fn random_obj(r: &mut TestRng) -> String {
         let mut s = String::new();
-        let nl = if r.chance(20) { "\r\n" } else { "\n" };
-        let sep = |r: &mut Rng| {
-            if r.chance(10) {
+        let nl = if r.chance(0.2) { "\r\n" } else { "\n" };
+        let sep = |r: &mut TestRng| {
+            if r.chance(0.1) {
                 "\t"
-            } else if r.chance(10) {
+            } else if r.chance(0.1) {
                 "  "
             } else {
                 " "
             }
         };
-        let with_t = r.chance(60);
-        let with_n = r.chance(60);
+        let with_t = r.chance(0.6);
+        let with_n = r.chance(0.6);
         // Corner forms: 0 `i`, 1 `i/t`, 2 `i//n`, 3 `i/t/n`.
         let form = match (with_t, with_n) {
             (false, false) => 0,
@@ -839,7 +823,7 @@ mod tests {
             (true, true) => 3,
         };
         // tobj refuses files where only some vertices have colours.
-        let colours = r.chance(15);
+        let colours = r.chance(0.15);
         let (mut nv, mut nt, mut nn) = (0u64, 0u64, 0u64);
         s += &format!("# random test file{nl}mtllib x.mtl{nl}");
         for _ in 0..1 + r.below(4) {
@@ -848,7 +832,7 @@ mod tests {
                 1 => s += &format!("g group {}{nl}", r.below(100)),
                 _ => {}
             }
-            if r.chance(30) {
+            if r.chance(0.3) {
                 s += &format!("usemtl m{}{nl}s {}{nl}", r.below(3), r.below(2));
             }
             for _ in 0..3 + r.below(12) {
@@ -858,7 +842,7 @@ mod tests {
                 }
                 if colours {
                     line += "0.1 0.2 0.3";
-                } else if r.chance(10) {
+                } else if r.chance(0.1) {
                     line += &format!("{}", 0.5 + r.below(4) as f32);
                 }
                 s += &line;
@@ -878,7 +862,7 @@ mod tests {
                     nn += 1;
                 }
             }
-            if r.chance(30) {
+            if r.chance(0.3) {
                 s += nl;
                 s += &format!("# a comment{nl}l 1 2{nl}p 1{nl}");
             }
@@ -892,13 +876,13 @@ mod tests {
                 let mut line = "f".to_string();
                 for _ in 0..k {
                     // Reuse a few indices so corners repeat across faces.
-                    let pick = |r: &mut Rng, n: u64| -> String {
-                        let i = if r.chance(50) {
+                    let pick = |r: &mut TestRng, n: u64| -> String {
+                        let i = if r.chance(0.5) {
                             r.below(n.min(4))
                         } else {
                             r.below(n)
                         };
-                        if r.chance(25) {
+                        if r.chance(0.25) {
                             format!("-{}", n - i)
                         } else {
                             format!("{}", i + 1)
@@ -918,7 +902,7 @@ mod tests {
                 s += nl;
             }
         }
-        if r.chance(50) {
+        if r.chance(0.5) {
             s += "# no final newline";
         }
         s
@@ -928,7 +912,7 @@ mod tests {
     fn same_meshes_as_tobj_for_random_files() {
         let dir = std::env::temp_dir().join(format!("pathfarm-obj-oracle-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let mut r = Rng(0x9E37_79B9_7F4A_7C15);
+        let mut r = TestRng::new(0x9E37_79B9_7F4A_7C15);
         let (mut meshes, mut with_uvs, mut with_normals, mut shared) = (0, 0, 0, 0);
         for i in 0..400 {
             let text = random_obj(&mut r);

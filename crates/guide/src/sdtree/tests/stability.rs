@@ -9,7 +9,7 @@ use crate::config::*;
 use crate::mapping::{dir_to_uv, uv_to_dir, JACOBIAN};
 use crate::record::Record;
 use crate::sdtree::{LeafHandle, SdTree};
-use crate::test_support::{config_2019, seam_and_poles, Pcg};
+use crate::test_support::{config_2019, seam_and_poles, TestRng};
 use glam::{Vec2, Vec3};
 
 /// The configurations under test: the defaults (nearest filters, fixed fraction), the 2019
@@ -39,7 +39,7 @@ fn configs() -> Vec<(&'static str, GuideConfig)> {
 
 /// A valid record: a point in [-1, 1]^3, a direction mostly within a lobe around
 /// (u, v) = (0.7, 0.3), radiance in [0, 2), positive pdfs.
-fn good_record(rng: &mut Pcg) -> Record {
+fn good_record(rng: &mut TestRng) -> Record {
     let p = Vec3::new(rng.f32(), rng.f32(), rng.f32()) * 2.0 - 1.0;
     let uv = if rng.f32() < 0.8 {
         Vec2::new(0.6 + 0.2 * rng.f32(), 0.2 + 0.2 * rng.f32())
@@ -146,14 +146,14 @@ fn train(
     iterations: u32,
     extra: impl Fn(&Record) -> Vec<Record>,
 ) {
-    let mut rng = Pcg::new(seed);
-    let mut jitter = Pcg::new(seed ^ 0x5555);
+    let mut rng = TestRng::new(seed);
+    let mut jitter = TestRng::new(seed ^ 0x5555);
     for k in 0..iterations {
         for i in 0..n {
             let r = good_record(&mut rng);
-            tree.record(&r, &mut jitter.rng());
+            tree.record(&r, &mut jitter.f32_source());
             for x in extra(&r) {
-                tree.record(&x, &mut jitter.rng());
+                tree.record(&x, &mut jitter.f32_source());
             }
             if i % 500 == 499 {
                 tree.step_fractions();
@@ -173,7 +173,7 @@ fn fresh(cfg: &GuideConfig) -> SdTree {
 /// whose pdf is positive, finite and what [`SdTree::pdf_leaf`] gives for them.
 fn assert_guide_sane(tree: &SdTree, what: &str) {
     assert!(tree.is_built(), "{what}");
-    let mut rng = Pcg::new(99);
+    let mut rng = TestRng::new(99);
     for (i, leaf) in tree.leaves().iter().enumerate() {
         let h = LeafHandle(i as u32);
         let f = &leaf.fraction;
@@ -206,7 +206,7 @@ fn assert_guide_sane(tree: &SdTree, what: &str) {
         );
         for _ in 0..64 {
             let (d, p) = tree
-                .sample_leaf(h, &mut rng.rng())
+                .sample_leaf(h, &mut rng.f32_source())
                 .expect("built tree samples");
             assert!(
                 d.is_finite() && (d.length() - 1.0).abs() < 1e-5,
@@ -274,14 +274,14 @@ fn directional_tree(
     cfg: &GuideConfig,
     iterations: u32,
     n: usize,
-    dir: impl Fn(usize, &mut Pcg) -> Vec3,
+    dir: impl Fn(usize, &mut TestRng) -> Vec3,
     radiance: impl Fn(usize) -> f32,
 ) -> SdTree {
     let mut tree = fresh(&GuideConfig {
         s_tree_threshold: 1e12,
         ..cfg.clone()
     });
-    let mut rng = Pcg::new(7);
+    let mut rng = TestRng::new(7);
     for k in 0..iterations {
         for i in 0..n {
             let d = dir(i, &mut rng);
@@ -321,8 +321,8 @@ fn zero_energy_cells_are_never_sampled_and_near_zero_cells_keep_a_finite_inverse
     // elsewhere, none anywhere else: refined quadtrees have deep cells, cells with zero
     // energy (pdf exactly 0, never sampled) and cells with pdfs many orders of magnitude
     // below the peak, whose inverse must still be finite (no subnormal pdf).
-    let lobe = |r: &mut Pcg| uv_to_dir(Vec2::new(0.7 + 0.01 * r.f32(), 0.3 + 0.01 * r.f32()));
-    let faint = |r: &mut Pcg| uv_to_dir(Vec2::new(0.1 + 0.05 * r.f32(), 0.8 + 0.05 * r.f32()));
+    let lobe = |r: &mut TestRng| uv_to_dir(Vec2::new(0.7 + 0.01 * r.f32(), 0.3 + 0.01 * r.f32()));
+    let faint = |r: &mut TestRng| uv_to_dir(Vec2::new(0.1 + 0.05 * r.f32(), 0.8 + 0.05 * r.f32()));
     for (name, cfg) in configs() {
         let tree = directional_tree(
             &cfg,
@@ -350,7 +350,7 @@ fn zero_energy_cells_are_never_sampled_and_near_zero_cells_keep_a_finite_inverse
             );
             assert_eq!(quadtree.pdf(centre), 0.0, "{name}: dark cell {c:?}");
         }
-        let mut rng = Pcg::new(3);
+        let mut rng = TestRng::new(3);
         let (mut min_faint, mut peak) = (f32::INFINITY, 0.0f32);
         for _ in 0..200 {
             let p = tree.pdf_leaf(h, faint(&mut rng));
@@ -365,7 +365,7 @@ fn zero_energy_cells_are_never_sampled_and_near_zero_cells_keep_a_finite_inverse
             "{name}: the faint patch is faint: {min_faint} vs {peak}"
         );
         for _ in 0..20_000 {
-            let (d, p) = tree.sample_leaf(h, &mut rng.rng()).unwrap();
+            let (d, p) = tree.sample_leaf(h, &mut rng.f32_source()).unwrap();
             let uv = dir_to_uv(d);
             let in_lobe = (0.69..=0.72).contains(&uv.x) && (0.29..=0.32).contains(&uv.y);
             let in_faint = (0.09..=0.16).contains(&uv.x) && (0.79..=0.86).contains(&uv.y);
@@ -417,10 +417,10 @@ fn energy_at_the_poles_and_on_the_seam_is_sampled_with_consistent_finite_pdfs() 
             "{name}: deep cells ({})",
             quadtree.tree().depth()
         );
-        let mut rng = Pcg::new(11);
+        let mut rng = TestRng::new(11);
         let mut on_edges = 0;
         for _ in 0..20_000 {
-            let (uv, p) = quadtree.sample_with_pdf(&mut rng.rng());
+            let (uv, p) = quadtree.sample_with_pdf(&mut rng.f32_source());
             let d = uv_to_dir(uv);
             assert!(
                 d.is_finite() && (d.length() - 1.0).abs() < 1e-5,
