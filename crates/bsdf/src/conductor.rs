@@ -22,6 +22,13 @@ impl Conductor {
         }
     }
 
+    /// The reflectance at incidence cosine `cos_theta_i` (Fresnel times
+    /// `specular_reflectance`).
+    #[inline]
+    pub fn fresnel(&self, cos_theta_i: f32) -> Vec3 {
+        fresnel_conductor_rgb(cos_theta_i, self.eta, self.k) * self.specular_reflectance
+    }
+
     pub fn flags(&self) -> BsdfFlags {
         BsdfFlags::DELTA_REFLECTION
     }
@@ -30,8 +37,11 @@ impl Conductor {
         if !(wi.z > 0.0) {
             return None;
         }
-        let f = fresnel_conductor_rgb(wi.z, self.eta, self.k) * self.specular_reflectance;
-        Some(BsdfSample::specular_reflection(reflect(wi), 1.0, f))
+        Some(BsdfSample::specular_reflection(
+            reflect(wi),
+            1.0,
+            self.fresnel(wi.z),
+        ))
     }
 
     pub fn eval(&self, _wi: Vec3, _wo: Vec3) -> Vec3 {

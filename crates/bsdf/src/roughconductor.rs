@@ -1,7 +1,8 @@
 //! Rough conductor (Mitsuba `roughconductor`): Cook–Torrance with a
 //! Beckmann/GGX distribution, separable Smith G and complex Fresnel.
 
-use crate::fresnel::{fresnel_conductor_rgb, reflect_about};
+use crate::conductor::Conductor;
+use crate::fresnel::reflect_about;
 use crate::microfacet::Microfacet;
 use crate::{finite_or_zero, BsdfFlags, BsdfSample};
 use glam::{Vec2, Vec3};
@@ -11,19 +12,14 @@ pub struct RoughConductor {
     /// The microfacet distribution and its roughness; visible-normal sampling is Mitsuba's
     /// default.
     pub distr: Microfacet,
-    pub eta: Vec3,
-    pub k: Vec3,
-    pub specular_reflectance: Vec3,
+    /// Each microfacet's reflectance: the smooth conductor's (Mitsuba's `roughconductor` takes
+    /// the same parameters as `conductor`).
+    pub interface: Conductor,
 }
 
 impl RoughConductor {
-    pub fn new(distr: Microfacet, eta: Vec3, k: Vec3, specular_reflectance: Vec3) -> Self {
-        Self {
-            distr,
-            eta,
-            k,
-            specular_reflectance,
-        }
+    pub fn new(distr: Microfacet, interface: Conductor) -> Self {
+        Self { distr, interface }
     }
 
     pub fn flags(&self) -> BsdfFlags {
@@ -46,8 +42,7 @@ impl RoughConductor {
             distr.g(wi, wo, m) * wi.dot(m) / (wi.z * m.z)
         };
         let pdf = pdf_m / (4.0 * wo.dot(m));
-        let f = fresnel_conductor_rgb(wi.dot(m), self.eta, self.k);
-        let weight = f * self.specular_reflectance * weight;
+        let weight = self.interface.fresnel(wi.dot(m)) * weight;
         if !(pdf > 0.0) || !pdf.is_finite() || !weight.is_finite() || weight == Vec3::ZERO {
             return None;
         }
@@ -66,8 +61,7 @@ impl RoughConductor {
         }
         let g = distr.g(wi, wo, h);
         let result = d * g / (4.0 * wi.z);
-        let f = fresnel_conductor_rgb(wi.dot(h), self.eta, self.k);
-        finite_or_zero(f * self.specular_reflectance * result)
+        finite_or_zero(self.interface.fresnel(wi.dot(h)) * result)
     }
 
     pub fn pdf(&self, wi: Vec3, wo: Vec3) -> f32 {

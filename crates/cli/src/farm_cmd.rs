@@ -16,7 +16,7 @@ use pathfarm_scene::Limits;
 use tokio::signal::unix::{signal, Signal, SignalKind};
 
 use crate::outfile::{self, OutputFile};
-use crate::render_cmd::{check_budget_flags, parse_defines};
+use crate::render_cmd::{parse_defines, BudgetArgs};
 
 #[derive(Args)]
 pub struct CoordinatorArgs {
@@ -109,18 +109,8 @@ fn remote(url: &str, token: Option<&str>, tls_ca: Option<&Path>) -> Result<Remot
 /// Render settings shared by `submit` and `cluster`.
 #[derive(Args, Clone)]
 pub struct JobArgs {
-    /// Samples per pixel (default: the scene's own budget).
-    #[arg(long, conflicts_with = "time")]
-    pub spp: Option<u32>,
-    /// Wall-clock budget in seconds.
-    #[arg(long)]
-    pub time: Option<f64>,
-    /// Seed of all random numbers (default: the scene sampler's seed).
-    #[arg(long)]
-    pub seed: Option<u64>,
-    /// Override a scene parameter declared with <default>, e.g. -D spp=64.
-    #[arg(short = 'D', value_name = "NAME=VALUE")]
-    pub defines: Vec<String>,
+    #[command(flatten)]
+    pub budget: BudgetArgs,
     /// Render at this resolution instead of the scene film's, e.g. 1280x720.
     #[arg(long, value_name = "WxH", value_parser = parse_resolution)]
     pub resolution: Option<(u32, u32)>,
@@ -347,19 +337,22 @@ fn job_options(
     tile: Option<u32>,
     priority: i32,
 ) -> Result<SubmitOptions> {
-    check_budget_flags(job.spp, job.time, &Limits::default())?;
+    job.budget.check(&Limits::default())?;
+    if job.budget.spp.is_some() && job.budget.time.is_some() {
+        bail!("--spp and --time: a farm job has one budget, give one of them");
+    }
     if tile == Some(0) {
         bail!("--tile must be at least 1");
     }
     Ok(SubmitOptions {
-        defines: parse_defines(&job.defines)?,
+        defines: parse_defines(&job.budget.defines)?,
         resolution: job.resolution,
-        budget: match (job.spp, job.time) {
+        budget: match (job.budget.spp, job.budget.time) {
             (Some(n), _) => Some(Budget::Spp(n)),
             (None, Some(t)) => Some(Budget::Seconds(t)),
             _ => None,
         },
-        seed: job.seed,
+        seed: job.budget.seed,
         tile_size: tile,
         priority,
         name: scene

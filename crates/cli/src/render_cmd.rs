@@ -20,21 +20,11 @@ pub struct RenderArgs {
     /// Output EXR path (a PNG preview is written beside it; see --preview).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Samples per pixel (default: the scene's sample_count; unbounded with --time).
-    #[arg(long)]
-    pub spp: Option<u32>,
-    /// Wall-clock budget in seconds (the render stops at the end of a pass).
-    #[arg(long)]
-    pub time: Option<f64>,
-    /// Seed of all random numbers (default: the scene sampler's seed).
-    #[arg(long)]
-    pub seed: Option<u64>,
+    #[command(flatten)]
+    pub budget: BudgetArgs,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Override a scene parameter declared with <default>, e.g. -D spp=64.
-    #[arg(short = 'D', value_name = "NAME=VALUE")]
-    pub defines: Vec<String>,
     /// Also write per-pixel variance of the mean (variance.R/G/B) and spp channels.
     #[arg(long)]
     pub aovs: bool,
@@ -45,6 +35,33 @@ pub struct RenderArgs {
     /// this flag, an existing file there is replaced only if pathfarm wrote it.
     #[arg(long, value_name = "PATH", conflicts_with = "no_png")]
     pub preview: Option<PathBuf>,
+}
+
+/// What a render computes and with which random numbers: the flags `render`, `submit` and
+/// `cluster` share.
+#[derive(Args, Clone)]
+pub struct BudgetArgs {
+    /// Samples per pixel (default: the scene's own budget; for the path tracer, unbounded
+    /// with --time). With --time as well, the path tracer stops at whichever comes first and
+    /// a guided render takes --spp.
+    #[arg(long)]
+    pub spp: Option<u32>,
+    /// Wall-clock budget in seconds (the render stops at the end of a pass).
+    #[arg(long)]
+    pub time: Option<f64>,
+    /// Seed of all random numbers (default: the scene sampler's seed).
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Override a scene parameter declared with <default>, e.g. -D spp=64.
+    #[arg(short = 'D', value_name = "NAME=VALUE")]
+    pub defines: Vec<String>,
+}
+
+impl BudgetArgs {
+    /// `--spp` and `--time` within `limits` (see [`check_budget_flags`]).
+    pub fn check(&self, limits: &Limits) -> Result<()> {
+        check_budget_flags(self.spp, self.time, limits)
+    }
 }
 
 #[derive(Args)]
@@ -146,7 +163,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         use_threads(n)?;
     }
     let limits = Limits::default();
-    check_budget_flags(args.spp, args.time, &limits)?;
+    args.budget.check(&limits)?;
     let ext_ok = args
         .output
         .extension()
@@ -163,7 +180,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         Some(open_preview(&args)?)
     };
     let t_load = Instant::now();
-    let desc = load_scene_with_limits(&args.scene, &parse_defines(&args.defines)?, &limits)?;
+    let defines = parse_defines(&args.budget.defines)?;
+    let desc = load_scene_with_limits(&args.scene, &defines, &limits)?;
     for w in &desc.warnings {
         tracing::warn!("{w}");
     }
@@ -206,10 +224,10 @@ pub fn render(args: RenderArgs) -> Result<()> {
         })
     };
     let budget = RenderBudget {
-        spp: args.spp,
-        time: args.time,
+        spp: args.budget.spp,
+        time: args.budget.time,
     };
-    let seed = args.seed.unwrap_or(scene.seed);
+    let seed = args.budget.seed.unwrap_or(scene.seed);
     let rendered = render_scene(&scene, budget, seed, &progress, &on_iteration)?;
     if let Some(gs) = &rendered.guided {
         bar.suspend(|| log_guided(gs));
@@ -221,7 +239,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
         bail!(
             "--time {}: the budget ended before one sample per pixel was rendered; nothing \
              was written (give more time)",
-            args.time.unwrap_or(0.0)
+            args.budget.time.unwrap_or(0.0)
         );
     }
     if stats.invalid_samples > 0 {

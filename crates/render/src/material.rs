@@ -262,7 +262,10 @@ impl Side {
                 eta,
                 k,
                 specular,
-            } => Bsdf::RoughConductor(RoughConductor::new(*distr, *eta, *k, t(*specular))),
+            } => Bsdf::RoughConductor(RoughConductor::new(
+                *distr,
+                Conductor::new(*eta, *k, t(*specular)),
+            )),
             Side::Dielectric {
                 eta,
                 reflect,

@@ -183,7 +183,6 @@ fn ior(p: &Props, name: &str, default: &str) -> Result<f32, SceneError> {
 }
 
 impl Keyword for MicrofacetDistribution {
-    const WHAT: &'static str = "microfacet distribution";
     const NAMES: &'static [(&'static str, Self)] =
         &[("beckmann", Self::Beckmann), ("ggx", Self::Ggx)];
     /// Mitsuba reads the distribution's name in any case.

@@ -9,7 +9,7 @@ use crate::desc::{
 };
 use crate::error::SceneError;
 use crate::limits::{format_number, Limits};
-use crate::props::{Props, Resolved};
+use crate::props::{Case, Keyword, Props, Resolved};
 use crate::xml::invalid;
 
 /// Build the integrator `r`.
@@ -35,33 +35,53 @@ fn path_params(p: &Props) -> Result<PathParams, SceneError> {
     })
 }
 
-/// A string parameter that must be one of `choices` (name, value).
-fn choice<T: Clone>(
-    p: &Props,
-    name: &str,
-    default: T,
-    choices: &[(&str, T)],
-) -> Result<T, SceneError> {
-    let Some((s, loc)) = p.string_opt(name)? else {
-        return Ok(default);
-    };
-    let key = s.to_ascii_lowercase();
-    choices
-        .iter()
-        .find(|(n, _)| *n == key)
-        .map(|(_, v)| v.clone())
-        .ok_or_else(|| {
-            let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
-            invalid(
-                &loc,
-                format!(
-                    "parameter '{name}' of {} must be one of {} (got '{s}')",
-                    p.what(),
-                    names.join(", ")
-                ),
-            )
-        })
+/// `guided_path`'s named parameter sets.
+#[derive(Clone, Copy)]
+enum Preset {
+    /// Müller et al. 2017.
+    Ppg2017,
+    /// Müller 2019's production improvements.
+    Ppg2019,
+    /// pathfarm's default.
+    Pathfarm,
 }
+
+impl Preset {
+    fn params(self) -> GuidedParams {
+        match self {
+            Preset::Ppg2017 => GuidedParams::preset_2017(),
+            Preset::Ppg2019 => GuidedParams::preset_2019(),
+            Preset::Pathfarm => GuidedParams::preset_pathfarm(),
+        }
+    }
+}
+
+/// The words of a `guided_path` keyword parameter, read in any case.
+macro_rules! keywords {
+    ($t:ty: $($word:literal => $v:expr),+ $(,)?) => {
+        impl Keyword for $t {
+            const NAMES: &'static [(&'static str, Self)] = &[$(($word, $v)),+];
+            const CASE: Case = Case::Insensitive;
+        }
+    };
+}
+
+keywords!(Preset: "2017" => Preset::Ppg2017, "2019" => Preset::Ppg2019, "pathfarm" => Preset::Pathfarm);
+keywords!(GuidedRoulette: "throughput" => Self::Throughput, "ppg" => Self::Ppg, "guided" => Self::Guided);
+keywords!(GuidedNee: "never" => Self::Never, "always" => Self::Always, "kickstart" => Self::Kickstart);
+keywords!(GuidedCombination:
+    "discard" => Self::Discard,
+    "automatic" => Self::Automatic,
+    "inversevar" => Self::InverseVar,
+);
+keywords!(GuidedSpatialFilter:
+    "nearest" => Self::Nearest,
+    "stochastic" => Self::Stochastic,
+    "box" => Self::Box,
+);
+keywords!(GuidedDirectionalFilter: "nearest" => Self::Nearest, "box" => Self::Box);
+keywords!(GuidedFractionLoss: "none" => Self::None, "kl" => Self::Kl, "var" => Self::Var);
+keywords!(GuidedBudgetType: "spp" => Self::Spp, "seconds" => Self::Seconds);
 
 /// A float parameter that must be finite and within `[min, max]` (checked before rounding).
 fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f64, SceneError> {
@@ -75,16 +95,7 @@ const MIN_D_TREE_THRESHOLD: f64 = 1e-5;
 
 /// `guided_path`: the `path` parameters plus the SD-tree guide's (see [`GuidedParams`]).
 fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError> {
-    let d = choice(
-        p,
-        "preset",
-        GuidedParams::preset_pathfarm(),
-        &[
-            ("2017", GuidedParams::preset_2017()),
-            ("2019", GuidedParams::preset_2019()),
-            ("pathfarm", GuidedParams::preset_pathfarm()),
-        ],
-    )?;
+    let d = p.keyword("preset", Preset::Pathfarm)?.params();
     let path = path_params(p)?;
     let (budget_type, budget) = guided_budget(p, limits, d.budget_type)?;
     let (max_memory_mb, max_nodes) = guided_caps(p)?;
@@ -104,16 +115,7 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
             1.0,
         )?,
         carry_over: float_in(p, "carry_over", d.carry_over, 0.0, 1.0)?,
-        russian_roulette: choice(
-            p,
-            "russian_roulette",
-            d.russian_roulette,
-            &[
-                ("throughput", GuidedRoulette::Throughput),
-                ("ppg", GuidedRoulette::Ppg),
-                ("guided", GuidedRoulette::Guided),
-            ],
-        )?,
+        russian_roulette: p.keyword("russian_roulette", d.russian_roulette)?,
         guided_rr_depth: p.int_in(
             "guided_rr_depth",
             d.guided_rr_depth as i64,
@@ -125,45 +127,10 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
         path_fallback: p.bool("path_fallback", d.path_fallback)?,
         guide_hemisphere: p.bool("guide_hemisphere", d.guide_hemisphere)?,
         guide_cosine: p.bool("guide_cosine", d.guide_cosine)?,
-        nee: choice(
-            p,
-            "nee",
-            d.nee,
-            &[
-                ("never", GuidedNee::Never),
-                ("always", GuidedNee::Always),
-                ("kickstart", GuidedNee::Kickstart),
-            ],
-        )?,
-        sample_combination: choice(
-            p,
-            "sample_combination",
-            d.sample_combination,
-            &[
-                ("discard", GuidedCombination::Discard),
-                ("automatic", GuidedCombination::Automatic),
-                ("inversevar", GuidedCombination::InverseVar),
-            ],
-        )?,
-        spatial_filter: choice(
-            p,
-            "spatial_filter",
-            d.spatial_filter,
-            &[
-                ("nearest", GuidedSpatialFilter::Nearest),
-                ("stochastic", GuidedSpatialFilter::Stochastic),
-                ("box", GuidedSpatialFilter::Box),
-            ],
-        )?,
-        directional_filter: choice(
-            p,
-            "directional_filter",
-            d.directional_filter,
-            &[
-                ("nearest", GuidedDirectionalFilter::Nearest),
-                ("box", GuidedDirectionalFilter::Box),
-            ],
-        )?,
+        nee: p.keyword("nee", d.nee)?,
+        sample_combination: p.keyword("sample_combination", d.sample_combination)?,
+        spatial_filter: p.keyword("spatial_filter", d.spatial_filter)?,
+        directional_filter: p.keyword("directional_filter", d.directional_filter)?,
         bsdf_sampling_fraction: float_in(
             p,
             "bsdf_sampling_fraction",
@@ -171,16 +138,8 @@ fn guided_params(p: &Props, limits: &Limits) -> Result<GuidedParams, SceneError>
             0.0,
             1.0,
         )? as f32,
-        bsdf_sampling_fraction_loss: choice(
-            p,
-            "bsdf_sampling_fraction_loss",
-            d.bsdf_sampling_fraction_loss,
-            &[
-                ("none", GuidedFractionLoss::None),
-                ("kl", GuidedFractionLoss::Kl),
-                ("var", GuidedFractionLoss::Var),
-            ],
-        )?,
+        bsdf_sampling_fraction_loss: p
+            .keyword("bsdf_sampling_fraction_loss", d.bsdf_sampling_fraction_loss)?,
         max_memory_mb,
         max_nodes,
     })
@@ -192,15 +151,7 @@ fn guided_budget(
     limits: &Limits,
     default_type: GuidedBudgetType,
 ) -> Result<(GuidedBudgetType, Option<f64>), SceneError> {
-    let budget_type = choice(
-        p,
-        "budget_type",
-        default_type,
-        &[
-            ("spp", GuidedBudgetType::Spp),
-            ("seconds", GuidedBudgetType::Seconds),
-        ],
-    )?;
+    let budget_type = p.keyword("budget_type", default_type)?;
     let (max_budget, unit, limit) = match budget_type {
         GuidedBudgetType::Spp => (limits.max_spp as f64, "spp", "Limits::max_spp"),
         GuidedBudgetType::Seconds => (

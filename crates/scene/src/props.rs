@@ -291,8 +291,8 @@ impl Props {
     }
 
     /// A keyword parameter `name`: `default` when absent, else the value [`Keyword::NAMES`]
-    /// pairs with the word; any other word is an error at its line, "unknown {what} \"{word}\"
-    /// (expected a, b or c)".
+    /// pairs with the word; any other word is an error at its line naming the parameter, its
+    /// plugin and the words it takes.
     pub(crate) fn keyword<T: Keyword>(&self, name: &str, default: T) -> Result<T, SceneError> {
         let Some((word, loc)) = self.string_opt(name)? else {
             return Ok(default);
@@ -304,15 +304,14 @@ impl Props {
         if let Some((_, v)) = T::NAMES.iter().find(|(n, _)| *n == key) {
             return Ok(*v);
         }
-        let what = T::WHAT;
         let names: Vec<&str> = T::NAMES.iter().map(|(n, _)| *n).collect();
-        let expected = match names.split_last() {
-            Some((last, rest)) if !rest.is_empty() => format!("{} or {last}", rest.join(", ")),
-            _ => names.concat(),
-        };
         Err(invalid(
             &loc,
-            format!("unknown {what} \"{word}\" (expected {expected})"),
+            format!(
+                "parameter '{name}' of {} must be one of {} (got \"{word}\")",
+                self.what(),
+                names.join(", ")
+            ),
         ))
     }
 
@@ -486,8 +485,6 @@ pub(crate) enum Case {
 
 /// A parameter whose value is one of a fixed set of words, read by [`Props::keyword`].
 pub(crate) trait Keyword: Copy + 'static {
-    /// What the parameter is, in error messages ("unknown {WHAT} ...").
-    const WHAT: &'static str;
     /// The words Mitsuba accepts, each with its value, in the order errors list them.
     const NAMES: &'static [(&'static str, Self)];
     /// How words are compared.

@@ -122,13 +122,11 @@ fn checkerboard(p: &Props) -> Result<TextureDesc, SceneError> {
 }
 
 impl Keyword for TexFilter {
-    const WHAT: &'static str = "filter_type";
     const NAMES: &'static [(&'static str, Self)] =
         &[("bilinear", Self::Bilinear), ("nearest", Self::Nearest)];
 }
 
 impl Keyword for WrapMode {
-    const WHAT: &'static str = "wrap_mode";
     const NAMES: &'static [(&'static str, Self)] = &[
         ("repeat", Self::Repeat),
         ("mirror", Self::Mirror),

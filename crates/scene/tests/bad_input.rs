@@ -114,6 +114,20 @@ fn bad_scenes_are_reported_at_the_line_at_fault() {
             At::First("include"),
             &["not supported"],
         ),
+        (
+            // Keyword parameters name themselves, their plugin and the words they take.
+            "unknown-keyword",
+            scene("<integrator type=\"guided_path\">\n  <string name=\"nee\" value=\"sometimes\"/>\n</integrator>"),
+            At::First("sometimes"),
+            &["parameter 'nee' of guided_path integrator must be one of never, always, kickstart (got \"sometimes\")"],
+        ),
+        (
+            // Mitsuba reads a distribution's name in any case but a wrap mode's as written.
+            "keyword-case",
+            scene("<bsdf type=\"roughconductor\"><string name=\"distribution\" value=\"GGX\"/></bsdf>\n<texture type=\"bitmap\" id=\"t\"><string name=\"filename\" value=\"t.png\"/>\n  <string name=\"wrap_mode\" value=\"Repeat\"/>\n</texture>"),
+            At::First("Repeat"),
+            &["parameter 'wrap_mode' of bitmap texture must be one of repeat, mirror, clamp (got \"Repeat\")"],
+        ),
     ];
     check_cases(
         cases,

@@ -4,7 +4,7 @@ mod mitsuba_values;
 mod stats;
 mod table;
 
-use crate::{Bsdf, Microfacet, MicrofacetType, RoughConductor, RoughDielectric};
+use crate::{Bsdf, Conductor, Microfacet, MicrofacetType, RoughConductor, RoughDielectric};
 use glam::Vec3;
 
 // The tests build many rough models; these spell one in a line, naming the roughness
@@ -19,7 +19,10 @@ fn rough_conductor(
     k: Vec3,
 ) -> Bsdf<'static> {
     let distr = Microfacet::new(kind, alpha.0, alpha.1, vis);
-    Bsdf::RoughConductor(RoughConductor::new(distr, eta, k, Vec3::ONE))
+    Bsdf::RoughConductor(RoughConductor::new(
+        distr,
+        Conductor::new(eta, k, Vec3::ONE),
+    ))
 }
 
 /// A rough dielectric of relative IOR `eta`, reflectance `r` and transmittance `t`.

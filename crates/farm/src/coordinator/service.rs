@@ -244,11 +244,9 @@ impl Jobs for Svc {
         req: Request<Streaming<v1::BlobChunk>>,
     ) -> Result<Response<v1::UploadBlobResponse>, Status> {
         let mut stream = req.into_inner();
-        let header = match stream.message().await? {
-            Some(v1::BlobChunk {
-                part: Some(v1::blob_chunk::Part::Header(h)),
-            }) => h,
-            _ => return Err(bad("the first message of UploadBlob must be a BlobHeader")),
+        let first = stream.message().await?.and_then(|m| m.part);
+        let Some(v1::blob_chunk::Part::Header(header)) = first else {
+            return Err(bad("the first message of UploadBlob must be a BlobHeader"));
         };
         let digest = digest_from(&header.digest, "header.digest")?;
         let max = self.shared.cfg.bundle_limits.max_file_bytes;
@@ -625,15 +623,11 @@ impl Workers for Svc {
     ) -> Result<Response<Self::ControlStream>, Status> {
         use v1::coordinator_message::Msg;
         let mut inbound = req.into_inner();
-        let register = match inbound.message().await? {
-            Some(v1::WorkerMessage {
-                msg: Some(v1::worker_message::Msg::Register(r)),
-            }) => r,
-            _ => {
-                return Err(Status::failed_precondition(
-                    "the first message on the control stream must be Register",
-                ))
-            }
+        let first = inbound.message().await?.and_then(|m| m.msg);
+        let Some(v1::worker_message::Msg::Register(register)) = first else {
+            return Err(Status::failed_precondition(
+                "the first message on the control stream must be Register",
+            ));
         };
         let (tx, rx) = mpsc::unbounded_channel();
         let ours = crate::build::build_id();
@@ -744,11 +738,9 @@ impl Workers for Svc {
         req: Request<Streaming<v1::TileUpload>>,
     ) -> Result<Response<v1::TileAck>, Status> {
         let mut stream = req.into_inner();
-        let header = match stream.message().await? {
-            Some(v1::TileUpload {
-                part: Some(v1::tile_upload::Part::Header(h)),
-            }) => h,
-            _ => return corrupt("the first message of UploadTile must be a TileHeader"),
+        let first = stream.message().await?.and_then(|m| m.part);
+        let Some(v1::tile_upload::Part::Header(header)) = first else {
+            return corrupt("the first message of UploadTile must be a TileHeader");
         };
         let received = std::time::Instant::now();
         let total = header.pixels_size.saturating_add(header.stats_size);

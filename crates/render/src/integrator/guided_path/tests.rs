@@ -1,5 +1,5 @@
 use super::*;
-use pathfarm_bsdf::{Diffuse, Microfacet, MicrofacetType, RoughConductor};
+use pathfarm_bsdf::{Conductor, Diffuse, Microfacet, MicrofacetType, RoughConductor};
 use pathfarm_guide::GuideConfig;
 
 /// A built tree with a peaked distribution (records from a direction cone around +z, and
@@ -143,9 +143,7 @@ fn nee_and_hit_weights_partition_unity_with_the_same_mixture_pdf() {
     let diffuse = Bsdf::Diffuse(Diffuse::new(Vec3::splat(0.8)));
     let rough = Bsdf::RoughConductor(RoughConductor::new(
         Microfacet::new(MicrofacetType::Ggx, 0.3, 0.3, true),
-        Vec3::splat(0.2),
-        Vec3::splat(3.0),
-        Vec3::ONE,
+        Conductor::new(Vec3::splat(0.2), Vec3::splat(3.0), Vec3::ONE),
     ));
     let wi = Vec3::new(0.3, -0.2, 0.9).normalize();
     let mut rng = Rng::new(9, 1);
