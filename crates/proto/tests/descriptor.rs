@@ -281,20 +281,81 @@ fn child(path: &[i32], field: i32, i: usize) -> Vec<i32> {
     p
 }
 
-/// Checks the element at `path` (`what name`) and its items (`item_what name.item`): an
-/// enum's values and a message's fields are both field 2 of their parent in
-/// descriptor.proto, so one walk addresses both.
-fn check_with_items<'a>(
-    check: &mut dyn FnMut(Vec<i32>, String),
-    path: &[i32],
-    what: &str,
-    name: &str,
-    item_what: &str,
-    items: impl Iterator<Item = &'a str>,
-) {
-    check(path.to_vec(), format!("{what} {name}"));
-    for (i, item) in items.enumerate() {
-        check(child(path, 2, i), format!("{item_what} {name}.{item}"));
+/// Walks a file's elements, noting each one without a leading comment.
+struct Walker<'f> {
+    /// The source paths that have a leading comment.
+    documented: std::collections::HashSet<Vec<i32>>,
+    file: &'f str,
+    checked: usize,
+    undocumented: Vec<String>,
+}
+
+impl Walker<'_> {
+    fn check(&mut self, path: Vec<i32>, what: String) {
+        self.checked += 1;
+        if !self.documented.contains(&path) {
+            self.undocumented.push(format!("{}: {what}", self.file));
+        }
+    }
+
+    /// The element at `path` (`what name`) and its items (`item_what name.item`): an enum's
+    /// values and a message's fields are both field 2 of their parent in descriptor.proto.
+    fn element<'a>(
+        &mut self,
+        path: &[i32],
+        what: &str,
+        name: &str,
+        item_what: &str,
+        items: impl Iterator<Item = &'a str>,
+    ) {
+        self.check(path.to_vec(), format!("{what} {name}"));
+        for (i, item) in items.enumerate() {
+            self.check(child(path, 2, i), format!("{item_what} {name}.{item}"));
+        }
+    }
+
+    fn enumeration(&mut self, e: &EnumDescriptorProto, path: Vec<i32>, scope: &str) {
+        let values = e.value.iter().map(|v| v.name());
+        self.element(
+            &path,
+            "enum",
+            &format!("{scope}{}", e.name()),
+            "enum value",
+            values,
+        );
+    }
+
+    fn message(&mut self, m: &DescriptorProto, path: Vec<i32>, scope: &str) {
+        let name = format!("{scope}{}", m.name());
+        self.element(
+            &path,
+            "message",
+            &name,
+            "field",
+            m.field.iter().map(|f| f.name()),
+        );
+        for (i, nested) in m.nested_type.iter().enumerate() {
+            self.message(nested, child(&path, 3, i), &format!("{name}."));
+        }
+        for (i, e) in m.enum_type.iter().enumerate() {
+            self.enumeration(e, child(&path, 4, i), &format!("{name}."));
+        }
+    }
+
+    fn file(&mut self, f: &FileDescriptorProto) {
+        for (i, m) in f.message_type.iter().enumerate() {
+            self.message(m, vec![4, i as i32], "");
+        }
+        for (i, e) in f.enum_type.iter().enumerate() {
+            self.enumeration(e, vec![5, i as i32], "");
+        }
+        for (i, s) in f.service.iter().enumerate() {
+            self.check(vec![6, i as i32], format!("service {}", s.name()));
+            for (j, m) in s.method.iter().enumerate() {
+                let path = child(&[6, i as i32], 2, j);
+                self.check(path, format!("rpc {}.{}", s.name(), m.name()));
+            }
+        }
     }
 }
 
@@ -311,7 +372,7 @@ fn every_element_is_documented() {
             .source_code_info
             .as_ref()
             .unwrap_or_else(|| panic!("{} has source info (comments)", f.name()));
-        let documented: std::collections::HashSet<Vec<i32>> = info
+        let documented = info
             .location
             .iter()
             .filter(|l| {
@@ -321,53 +382,15 @@ fn every_element_is_documented() {
             })
             .map(|l| l.path.clone())
             .collect();
-        let mut check = |path: Vec<i32>, what: String| {
-            checked += 1;
-            if !documented.contains(&path) {
-                undocumented.push(format!("{}: {what}", f.name()));
-            }
+        let mut walker = Walker {
+            documented,
+            file: f.name(),
+            checked: 0,
+            undocumented: Vec::new(),
         };
-        fn walk_enum(
-            e: &EnumDescriptorProto,
-            path: Vec<i32>,
-            scope: &str,
-            check: &mut dyn FnMut(Vec<i32>, String),
-        ) {
-            let name = format!("{scope}{}", e.name());
-            let values = e.value.iter().map(|v| v.name());
-            check_with_items(check, &path, "enum", &name, "enum value", values);
-        }
-        fn walk_message(
-            m: &DescriptorProto,
-            path: Vec<i32>,
-            scope: &str,
-            check: &mut dyn FnMut(Vec<i32>, String),
-        ) {
-            let name = format!("{scope}{}", m.name());
-            let fields = m.field.iter().map(|f| f.name());
-            check_with_items(check, &path, "message", &name, "field", fields);
-            for (i, nested) in m.nested_type.iter().enumerate() {
-                walk_message(nested, child(&path, 3, i), &format!("{name}."), check);
-            }
-            for (i, e) in m.enum_type.iter().enumerate() {
-                walk_enum(e, child(&path, 4, i), &format!("{name}."), check);
-            }
-        }
-        for (i, m) in f.message_type.iter().enumerate() {
-            walk_message(m, vec![4, i as i32], "", &mut check);
-        }
-        for (i, e) in f.enum_type.iter().enumerate() {
-            walk_enum(e, vec![5, i as i32], "", &mut check);
-        }
-        for (i, s) in f.service.iter().enumerate() {
-            check(vec![6, i as i32], format!("service {}", s.name()));
-            for (j, m) in s.method.iter().enumerate() {
-                check(
-                    child(&[6, i as i32], 2, j),
-                    format!("rpc {}.{}", s.name(), m.name()),
-                );
-            }
-        }
+        walker.file(f);
+        checked += walker.checked;
+        undocumented.extend(walker.undocumented);
     }
     assert!(checked > 200, "only {checked} elements checked");
     assert!(

@@ -12,7 +12,7 @@ use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
-use prometheus_client::registry::Registry;
+use prometheus_client::registry::{Metric, Registry};
 use tokio::net::TcpListener;
 
 use super::ledger::UnitLedger;
@@ -53,56 +53,46 @@ pub(crate) struct Metrics {
 
 impl Default for Metrics {
     fn default() -> Self {
-        let mut registry = Registry::with_prefix("pathfarm");
-        let m = Metrics {
-            jobs: Family::default(),
-            workers: Gauge::default(),
-            tiles_in_flight: Gauge::default(),
-            tiles_ready: Gauge::default(),
-            blob_bytes_sent: Counter::default(),
-            tile_bytes_uploaded: Counter::default(),
-            tiles: Family::default(),
-            units: Counter::default(),
-            unit_seconds: Family::default(),
-            registry: Registry::default(),
-        };
-        registry.register("jobs", "Jobs by state", m.jobs.clone());
-        registry.register("workers", "Connected workers", m.workers.clone());
-        registry.register(
-            "tiles_in_flight",
-            "Tiles leased to workers and not yet in",
-            m.tiles_in_flight.clone(),
-        );
-        registry.register(
-            "tiles_ready",
-            "Tiles waiting for a worker",
-            m.tiles_ready.clone(),
-        );
-        registry.register(
-            "blob_bytes_sent",
-            "Bytes of blobs (scenes, trees, fractions, estimates) and results sent",
-            m.blob_bytes_sent.clone(),
-        );
-        registry.register(
-            "tile_bytes_received",
-            "Bytes of tile uploads (pixel sums and guide statistics) received",
-            m.tile_bytes_uploaded.clone(),
-        );
-        registry.register(
-            "tiles",
-            "Tile uploads by outcome (accepted, rejected)",
-            m.tiles.clone(),
-        );
-        registry.register("units", "Units (passes of a job) finished", m.units.clone());
-        registry.register(
-            "unit_seconds",
-            "Seconds spent on finished units by phase: render, prepare and serialize on the \
-             workers; receive, decode, merge, end (refinement), checkpoint and publish \
-             (tree broadcast) on the coordinator; wall per unit",
-            m.unit_seconds.clone(),
-        );
-        Metrics { registry, ..m }
+        let mut r = Registry::with_prefix("pathfarm");
+        let on = &mut r;
+        let jobs = registered(on, "jobs", "Jobs by state");
+        let workers = registered(on, "workers", "Connected workers");
+        let tiles_in_flight = registered(on, "tiles_in_flight", IN_FLIGHT_HELP);
+        let tiles_ready = registered(on, "tiles_ready", "Tiles waiting for a worker");
+        let blob_bytes_sent = registered(on, "blob_bytes_sent", BLOB_BYTES_HELP);
+        let tile_bytes_uploaded = registered(on, "tile_bytes_received", TILE_BYTES_HELP);
+        let tiles = registered(on, "tiles", "Tile uploads by outcome (accepted, rejected)");
+        let units = registered(on, "units", "Units (passes of a job) finished");
+        let unit_seconds = registered(on, "unit_seconds", UNIT_SECONDS_HELP);
+        Metrics {
+            registry: r,
+            jobs,
+            workers,
+            tiles_in_flight,
+            tiles_ready,
+            blob_bytes_sent,
+            tile_bytes_uploaded,
+            tiles,
+            units,
+            unit_seconds,
+        }
     }
+}
+
+const IN_FLIGHT_HELP: &str = "Tiles leased to workers and not yet in";
+const BLOB_BYTES_HELP: &str =
+    "Bytes of blobs (scenes, trees, fractions, estimates) and results sent";
+const TILE_BYTES_HELP: &str = "Bytes of tile uploads (pixel sums and guide statistics) received";
+const UNIT_SECONDS_HELP: &str = "Seconds spent on finished units by phase: render, prepare and \
+     serialize on the workers; receive, decode, merge, end (refinement), checkpoint and \
+     publish (tree broadcast) on the coordinator; wall per unit";
+
+/// A new metric, registered as `name` with `help` (the registry keeps a handle sharing its
+/// value).
+fn registered<M: Metric + Clone + Default>(registry: &mut Registry, name: &str, help: &str) -> M {
+    let metric = M::default();
+    registry.register(name, help, metric.clone());
+    metric
 }
 
 impl Metrics {
