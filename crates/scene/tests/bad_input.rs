@@ -4,7 +4,6 @@ mod common;
 
 use common::*;
 use pathfarm_scene::*;
-use std::path::PathBuf;
 
 /// Where a case's error must be reported: a line number, or the first line containing a text.
 enum At {
@@ -212,7 +211,7 @@ fn mesh_error(
     name: &str,
     mesh: &[u8],
     shape_body: &str,
-) -> (SceneError, PathBuf, String) {
+) -> (SceneError, TempFile, String) {
     let (p, xml, _) = mesh_scene_with(tag, kind, name, mesh, shape_body);
     let err = load_scene(&p, &[]).expect_err(tag);
     (err, p, xml)

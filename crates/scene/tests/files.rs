@@ -16,21 +16,6 @@ const TRI_PLY: &str =
 property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\
 0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n";
 
-/// Removes its directory when dropped, also when the test fails.
-struct Cleanup(PathBuf);
-
-impl Drop for Cleanup {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
-/// A fresh directory for test `name`, removed at the end of the test.
-fn test_dir(name: &str) -> (PathBuf, Cleanup) {
-    let d = temp_dir(name);
-    (d.clone(), Cleanup(d))
-}
-
 fn confined() -> Limits {
     Limits {
         confine_files: true,
@@ -65,7 +50,7 @@ fn assert_confined_fails(dir: &Path, body: &str, needles: &[&str]) -> PathBuf {
 
 #[test]
 fn files_lists_every_file_read_once_root_first_in_first_read_order() {
-    let (d, _cleanup) = test_dir("files-list");
+    let d = temp_dir("files-list");
     write_png(&d.join("textures/wood.png"));
     write(&d.join("meshes/tri.obj"), TRI_OBJ.as_bytes());
     write(&d.join("tri.ply"), TRI_PLY.as_bytes());
@@ -103,7 +88,7 @@ fn files_lists_every_file_read_once_root_first_in_first_read_order() {
 
 #[test]
 fn files_lists_absolute_and_parent_names_as_written_without_confinement() {
-    let (d, _cleanup) = test_dir("files-abs");
+    let d = temp_dir("files-abs");
     let outside = d.join("outside/abs.obj");
     write(&outside, TRI_OBJ.as_bytes());
     write(&d.join("up.obj"), TRI_OBJ.as_bytes());
@@ -119,7 +104,7 @@ fn files_lists_absolute_and_parent_names_as_written_without_confinement() {
 
 #[test]
 fn confinement_refuses_absolute_paths() {
-    let (d, _cleanup) = test_dir("confine-abs");
+    let d = temp_dir("confine-abs");
     // A valid mesh outside the scene's directory, named by its absolute path.
     let outside = d.join("outside/abs.obj");
     write(&outside, TRI_OBJ.as_bytes());
@@ -140,7 +125,7 @@ fn confinement_refuses_absolute_paths() {
 
 #[test]
 fn confinement_refuses_parent_components_even_when_they_stay_inside() {
-    let (d, _cleanup) = test_dir("confine-dotdot");
+    let d = temp_dir("confine-dotdot");
     write(&d.join("x.obj"), TRI_OBJ.as_bytes());
     write(&d.join("scene/x.obj"), TRI_OBJ.as_bytes());
     write(&d.join("scene/sub/y.obj"), TRI_OBJ.as_bytes());
@@ -158,7 +143,7 @@ fn confinement_refuses_parent_components_even_when_they_stay_inside() {
 #[test]
 fn confinement_refuses_symlinks_that_lead_outside_and_accepts_those_that_stay_inside() {
     use std::os::unix::fs::symlink;
-    let (d, _cleanup) = test_dir("confine-symlink");
+    let d = temp_dir("confine-symlink");
     write(&d.join("outside/x.obj"), TRI_OBJ.as_bytes());
     write_png(&d.join("outside/t.png"));
     write(&d.join("scene/models/real.obj"), TRI_OBJ.as_bytes());
@@ -194,7 +179,7 @@ fn confinement_refuses_symlinks_that_lead_outside_and_accepts_those_that_stay_in
 
 #[test]
 fn confinement_accepts_subdirectories_and_applies_to_textures_and_envmaps() {
-    let (d, _cleanup) = test_dir("confine-subdir");
+    let d = temp_dir("confine-subdir");
     write(&d.join("scene/models/deep/er/tri.obj"), TRI_OBJ.as_bytes());
     write(&d.join("scene/models/tri.ply"), TRI_PLY.as_bytes());
     write_png(&d.join("scene/textures/a b.png"));
@@ -232,7 +217,7 @@ fn confinement_accepts_subdirectories_and_applies_to_textures_and_envmaps() {
 
 #[test]
 fn confinement_reports_a_missing_file_by_name_and_line() {
-    let (d, _cleanup) = test_dir("confine-missing");
+    let d = temp_dir("confine-missing");
     assert_confined_fails(
         &d,
         &mesh_shape("obj", "models/gone.obj"),

@@ -5,14 +5,9 @@
 mod common;
 
 use std::fmt::Write as _;
-use std::path::Path;
 
 use common::*;
 use pathfarm_scene::{load_scene, load_scene_with_limits, Geometry, Limits, SceneDesc, SceneError};
-
-fn cleanup(scene: &Path) {
-    let _ = std::fs::remove_dir_all(scene.parent().unwrap());
-}
 
 fn triangles(s: &SceneDesc) -> usize {
     match &s.shapes[0].geometry {
@@ -46,7 +41,6 @@ fn load_polygon(name: &str, n: usize, negative: bool) -> SceneDesc {
     let obj = polygon_obj(n, negative);
     let (p, _, _) = mesh_scene(name, "obj", "poly.obj", obj.as_bytes());
     let s = load_scene(&p, &[]).unwrap();
-    cleanup(&p);
     s
 }
 
@@ -79,7 +73,6 @@ fn obj_error(name: &str, contents: &[u8], needle: &str) -> String {
     let (p, xml, mesh) = mesh_scene(name, "obj", "x.obj", contents);
     let prefix = format!("mesh file '{}': ", mesh.display());
     let err = assert_load_fails_at(&p, &xml, "x.obj", &[&prefix, needle]);
-    cleanup(&p);
     err.to_string()
 }
 
@@ -179,7 +172,6 @@ fn obj_files_that_are_not_text_are_refused() {
         b"\xEF\xBB\xBFv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
     );
     assert_eq!(triangles(&load_scene(&p, &[]).unwrap()), 1);
-    cleanup(&p);
 }
 
 /// A binary little-endian PLY header announcing `vertices` vertices (x y z floats) and
@@ -226,7 +218,6 @@ fn ply_header_announcing_2_pow_31_vertices_in_a_tiny_file_is_refused() {
             &format!("the file is only {} bytes long", bytes.len()),
         ],
     );
-    cleanup(&p);
 
     let bytes = ply_bytes("ascii", n, 1, b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n");
     let (p, xml, _) = mesh_scene("ply-huge-ascii", "ply", "x.ply", &bytes);
@@ -236,7 +227,6 @@ fn ply_header_announcing_2_pow_31_vertices_in_a_tiny_file_is_refused() {
         "x.ply",
         &["element 'vertex' announces 2147483648 elements of at least 2 bytes each"],
     );
-    cleanup(&p);
 }
 
 fn limited(limits: Limits, name: &str, kind: &str, contents: &[u8], needles: &[&str]) {
@@ -248,7 +238,6 @@ fn limited(limits: Limits, name: &str, kind: &str, contents: &[u8], needles: &[&
     );
     let err = load_scene_with_limits(&p, &[], &limits).unwrap_err();
     assert_invalid_at(&err, &p, line_of(&xml, &file), needles);
-    cleanup(&p);
 }
 
 #[test]
@@ -364,7 +353,6 @@ fn a_directory_given_as_a_mesh_is_reported_as_a_directory() {
             &["meshes': is a directory, not a mesh file"],
         );
         assert!(!err.to_string().contains("read error"), "{err}");
-        cleanup(&p);
     }
 }
 
@@ -387,7 +375,6 @@ fn a_missing_mesh_file_prints_its_os_error_once() {
         let err = assert_load_fails_at(&p, &xml, "gone.", &["cannot read: "]);
         let shown = chain(&err);
         assert_eq!(shown.matches("os error 2").count(), 1, "{shown}");
-        cleanup(&p);
     }
 }
 
@@ -438,7 +425,6 @@ fn sphere_radius_must_be_positive() {
             &[&format!("sphere: radius must be positive, {shown}")],
         );
         assert!(!err.to_string().contains("similarity"), "{err}");
-        cleanup(&p);
     }
     // A real shear still says why it is refused.
     let xml = scene(
@@ -447,5 +433,4 @@ fn sphere_radius_must_be_positive() {
     );
     let p = write_scene("sheared-sphere", &xml);
     assert_load_fails_at(&p, &xml, "<shape", &["similarity"]);
-    cleanup(&p);
 }

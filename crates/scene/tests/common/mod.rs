@@ -5,17 +5,64 @@ use std::path::{Path, PathBuf};
 
 use pathfarm_scene::{load_scene, SceneError};
 
+/// A directory the test made, removed with what it holds when this is dropped (at the end
+/// of the test, passed or failed).
+pub struct TempDir(PathBuf);
+
+impl std::ops::Deref for TempDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for TempDir {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A file in a [`TempDir`] of its own, removed with it.
+pub struct TempFile {
+    path: PathBuf,
+    _dir: TempDir,
+}
+
+impl std::ops::Deref for TempFile {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl AsRef<Path> for TempFile {
+    fn as_ref(&self) -> &Path {
+        &self.path
+    }
+}
+
 /// A fresh directory unique to this process and `name`.
-pub fn temp_dir(name: &str) -> PathBuf {
+pub fn temp_dir(name: &str) -> TempDir {
     let d = std::env::temp_dir().join(format!("pathfarm-scene-test-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    TempDir(d)
 }
 
-/// Write `xml` as `scene.xml` in a fresh directory; returns its path.
-pub fn write_scene(name: &str, xml: &str) -> PathBuf {
-    write_xml_in(&temp_dir(name), xml)
+/// Write `xml` as `scene.xml` in a fresh directory; the scene file, removed with its directory
+/// when dropped.
+pub fn write_scene(name: &str, xml: &str) -> TempFile {
+    let dir = temp_dir(name);
+    TempFile {
+        path: write_xml_in(&dir, xml),
+        _dir: dir,
+    }
 }
 
 /// Write `xml` as `dir/scene.xml` (creating `dir`); returns its path.
@@ -51,7 +98,7 @@ pub fn mesh_scene(
     kind: &str,
     file: &str,
     contents: &[u8],
-) -> (PathBuf, String, PathBuf) {
+) -> (TempFile, String, PathBuf) {
     mesh_scene_with(name, kind, file, contents, "")
 }
 
@@ -62,7 +109,7 @@ pub fn mesh_scene_with(
     file: &str,
     contents: &[u8],
     extra: &str,
-) -> (PathBuf, String, PathBuf) {
+) -> (TempFile, String, PathBuf) {
     let xml = scene(&mesh_shape_with(kind, file, extra));
     let p = write_scene(name, &xml);
     let mesh = p.parent().unwrap().join(file);
