@@ -13,8 +13,9 @@ use pathfarm_proto::MAX_CHUNK_BYTES;
 use pathfarm_render::pass::TileOutput;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream, UnboundedReceiverStream};
+use tokio_stream::wrappers::{ReceiverStream, UnboundedReceiverStream};
 use tokio_stream::Stream;
+use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::ledger::TileTimes;
@@ -114,7 +115,6 @@ pub(super) async fn run(
     let result = builder
         .initial_stream_window_size(crate::client::STREAM_WINDOW)
         .initial_connection_window_size(crate::client::CONNECTION_WINDOW)
-        .tcp_nodelay(true)
         .add_service(health_service)
         .add_service(reflection)
         .add_service(v1::jobs_server::JobsServer::with_interceptor(
@@ -124,7 +124,13 @@ pub(super) async fn run(
         .add_service(v1::workers_server::WorkersServer::with_interceptor(
             svc, auth,
         ))
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        // The builder's tcp_nodelay applies only to listeners tonic binds itself: without
+        // it on the accepted sockets, a lease offer or an ack written while an earlier
+        // segment is unacknowledged waits for the peer's delayed ACK (about 40 ms on Linux).
+        .serve_with_incoming_shutdown(
+            TcpIncoming::from(listener).with_nodelay(Some(true)),
+            shutdown,
+        )
         .await;
     ticker.abort();
     if let Some(m) = metrics {
