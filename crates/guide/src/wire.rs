@@ -6,8 +6,11 @@
 //! `magic[4] | version u16 | reserved u16 (0) | payload_len u64 | payload | crc32 u32`,
 //! the CRC-32 (IEEE 802.3, reflected, poly 0xEDB88320) covering everything before it.
 //! Magic `PFSD` = whole tree, `PFIS` = iteration statistics. Current version: [`VERSION`].
-//! Fixed-point values are 128-bit integers with 48 fractional bits (see [`crate::stats`]);
-//! quadtree sums are stored sparsely behind a 4-bit mask per node.
+//! Fixed-point values are 128-bit integers with 48 fractional bits (see [`crate::stats`]).
+//! Statistics' sums and quadtree sums are written compactly: a length byte `n` (0..=16) and
+//! the value's `n` low bytes, no high zero byte (a sum of radiance near 1 takes 7-9 bytes
+//! rather than 16: about 40 % fewer bytes per touched node); quadtree sums are stored
+//! sparsely behind a 4-bit mask per node.
 
 use crate::config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
@@ -23,7 +26,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 5;
+pub const VERSION: u16 = 6;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -84,6 +87,12 @@ impl W {
     fn u128(&mut self, v: u128) {
         self.0.extend_from_slice(&v.to_le_bytes());
     }
+    /// `v` compactly: its byte length, then that many low bytes.
+    fn cu128(&mut self, v: u128) {
+        let n = (128 - v.leading_zeros()).div_ceil(8) as usize;
+        self.0.push(n as u8);
+        self.0.extend_from_slice(&v.to_le_bytes()[..n]);
+    }
     fn f32(&mut self, v: f32) {
         self.u32(v.to_bits());
     }
@@ -124,10 +133,34 @@ impl<'a> R<'a> {
         Ok(f64::from_bits(self.u64()?))
     }
     /// One `u128` per fraction-grid alpha.
+    /// A value written by `W::cu128`; only its one (canonical) form is accepted, so that
+    /// re-encoding a decoded frame gives the same bytes.
+    fn cu128(&mut self) -> Result<u128, WireError> {
+        let n = self.u8()? as usize;
+        if n > 16 {
+            return Err(WireError::Malformed("compact integer length"));
+        }
+        let b = self.take(n)?;
+        if b.last() == Some(&0) {
+            return Err(WireError::Malformed(
+                "compact integer with a high zero byte",
+            ));
+        }
+        let mut le = [0u8; 16];
+        le[..n].copy_from_slice(b);
+        Ok(u128::from_le_bytes(le))
+    }
     fn u128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
         let mut v = [0u128; GRID_LEN];
         for x in &mut v {
             *x = self.u128()?;
+        }
+        Ok(v)
+    }
+    fn cu128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
+        let mut v = [0u128; GRID_LEN];
+        for x in &mut v {
+            *x = self.cu128()?;
         }
         Ok(v)
     }
@@ -310,7 +343,7 @@ fn put_sums(w: &mut W, sums: &[u128; 4]) {
     w.u8(mask);
     for &s in sums {
         if s != 0 {
-            w.u128(s);
+            w.cu128(s);
         }
     }
 }
@@ -323,7 +356,10 @@ fn get_sums(r: &mut R) -> Result<[u128; 4], WireError> {
     let mut s = [0u128; 4];
     for (q, v) in s.iter_mut().enumerate() {
         if mask & (1 << q) != 0 {
-            *v = r.u128()?;
+            *v = r.cu128()?;
+            if *v == 0 {
+                return Err(WireError::Malformed("a zero sum under the mask"));
+            }
         }
     }
     Ok(s)
@@ -575,13 +611,13 @@ impl IterationStats {
         w.u32(self.leaves.len() as u32);
         for l in &self.leaves {
             w.u32(l.leaf);
-            w.u128(l.weight);
+            w.cu128(l.weight);
             for x in l.grad_pos.iter().chain(l.grad_neg.iter()) {
-                w.u128(*x);
+                w.cu128(*x);
             }
-            w.u128(l.grad_weight);
+            w.cu128(l.grad_weight);
             for x in l.light {
-                w.u128(x);
+                w.cu128(x);
             }
             w.u32(l.nodes.len() as u32);
             for (n, s) in &l.nodes {
@@ -598,7 +634,8 @@ impl IterationStats {
         let mut r = R { b: payload, p: 0 };
         let structure_hash = r.u64()?;
         let overflow_events = r.u64()?;
-        let nl = r.count(344)?;
+        // (a leaf takes at least 4 + 1 + 2 GRID_LEN + 1 + 3 + 4 bytes)
+        let nl = r.count(13 + 2 * GRID_LEN)?;
         let mut leaves: Vec<LeafStats> = Vec::with_capacity(nl);
         for _ in 0..nl {
             let leaf = r.u32()?;
@@ -607,11 +644,11 @@ impl IterationStats {
             }
             let mut ls = LeafStats {
                 leaf,
-                weight: r.u128()?,
-                grad_pos: r.u128s()?,
-                grad_neg: r.u128s()?,
-                grad_weight: r.u128()?,
-                light: [r.u128()?, r.u128()?, r.u128()?],
+                weight: r.cu128()?,
+                grad_pos: r.cu128s()?,
+                grad_neg: r.cu128s()?,
+                grad_weight: r.cu128()?,
+                light: [r.cu128()?, r.cu128()?, r.cu128()?],
                 nodes: Vec::new(),
             };
             let nn = r.count(5)?;

@@ -76,3 +76,44 @@ fn wire_round_trips_and_detects_corruption() {
         Err(WireError::BadMagic(_))
     ));
 }
+
+/// Compact integers round-trip at every byte length, and only their one canonical form
+/// decodes (a high zero byte or a length over 16 is malformed): re-encoding gives the same
+/// bytes.
+#[test]
+fn compact_integers_round_trip_and_have_one_form() {
+    let values = [
+        0u128,
+        1,
+        255,
+        256,
+        1 << 48,
+        (1 << 64) - 1,
+        1 << 64,
+        u128::MAX,
+    ];
+    for v in values.into_iter().chain((0..128).map(|k| 1u128 << k)) {
+        let mut w = W(Vec::new());
+        w.cu128(v);
+        assert_eq!(
+            w.0.len(),
+            1 + (128 - v.leading_zeros() as usize).div_ceil(8),
+            "{v}"
+        );
+        let mut r = R { b: &w.0, p: 0 };
+        assert_eq!(r.cu128(), Ok(v));
+        assert_eq!(r.p, w.0.len());
+    }
+    let decode = |b: &[u8]| R { b, p: 0 }.cu128();
+    assert_eq!(
+        decode(&[2, 7, 0]),
+        Err(WireError::Malformed(
+            "compact integer with a high zero byte"
+        ))
+    );
+    assert_eq!(
+        decode(&[17; 18]),
+        Err(WireError::Malformed("compact integer length"))
+    );
+    assert_eq!(decode(&[3, 1, 2]), Err(WireError::Truncated));
+}
