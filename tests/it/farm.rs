@@ -672,10 +672,11 @@ fn worker_on_sigterm_hands_back_its_leases_and_the_job_completes_bit_identical()
 
 #[test]
 fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted() {
-    // Three jobs at once on three workers; every 150-650 ms (seeded) a random worker is
-    // killed with SIGKILL and a new one started, at most 10 times. Bounded: 300 s.
+    // Three jobs at once on three workers; every 100-350 ms (seeded) a random worker is
+    // killed with SIGKILL and a new one started, at most 10 times. Bounded: 300 s. (The jobs
+    // are sized to outlast at least three kills on a fast, idle machine.)
     let mut farm = Farm::start("soak", 3);
-    let specs = [(24u32, 3u64), (32, 9), (16, 21)];
+    let specs = [(256u32, 3u64), (384, 9), (192, 21)];
     let mut runs = Vec::new();
     for (i, &(spp, seed)) in specs.iter().enumerate() {
         let out = farm.data.join(format!("soak-{i}.exr"));
@@ -690,7 +691,7 @@ fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted
             "soak did not finish\n{}",
             farm.logs()
         );
-        std::thread::sleep(Duration::from_millis(150 + rng.below(500)));
+        std::thread::sleep(Duration::from_millis(100 + rng.below(250)));
         if kills < 10 && runs.iter_mut().any(|r| r.0.poll().is_none()) {
             let alive: Vec<usize> = (0..farm.workers.len())
                 .filter(|&i| farm.workers[i].poll().is_none())
@@ -701,6 +702,10 @@ fn fault_soak_jobs_complete_bit_identical_while_workers_are_killed_and_restarted
             kills += 1;
         }
     }
+    eprintln!(
+        "soak: {kills} workers killed, jobs done in {:.1} s",
+        t0.elapsed().as_secs_f64()
+    );
     assert!(kills >= 3, "the soak killed {kills} workers");
     for (run, out, spp, seed) in runs {
         assert_submitted(&run.wait(Duration::from_secs(5)), &farm, "submit");
