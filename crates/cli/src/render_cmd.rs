@@ -42,8 +42,8 @@ pub struct RenderArgs {
 #[derive(Args, Clone)]
 pub struct BudgetArgs {
     /// Samples per pixel (default: the scene's own budget; for the path tracer, unbounded
-    /// with --time). With --time as well, the path tracer stops at whichever comes first and
-    /// a guided render takes --spp.
+    /// with --time). `render` also takes both: the path tracer stops at whichever comes first
+    /// and a guided render takes --spp; a farm job takes one of the two.
     #[arg(long)]
     pub spp: Option<u32>,
     /// Wall-clock budget in seconds (the render stops at the end of a pass).
