@@ -788,37 +788,48 @@ impl Shared {
             .filter(|(_, w)| w.credits > 0 && w.tx.is_some() && !w.draining)
             .map(|(&id, _)| id)
             .collect();
-        for id in ids {
-            while st.workers[&id].credits > 0 {
-                let Some(lease) = st.sched.next_lease(WorkerId(id), now) else {
-                    break;
-                };
-                let n = lease.key.job.0;
-                let offer = self.offer(st, &lease, now);
-                st.leases.insert(
-                    lease.id.0,
-                    LeaseInfo {
-                        worker: WorkerId(id),
-                        key: lease.key,
-                        done: false,
-                    },
-                );
-                let w = st.workers.get_mut(&id).expect("listed");
-                w.credits -= 1;
-                tracing::debug!(job = %job_name(n), lease = lease.id.0, worker = id, tile = lease.key.tile, unit = lease.key.unit, "lease offered");
-                if let (Some(tx), Some(offer)) = (&w.tx, offer) {
-                    let _ = tx.send(Ok(v1::CoordinatorMessage {
-                        msg: Some(v1::coordinator_message::Msg::LeaseOffer(offer)),
-                    }));
-                }
-                let job = st.jobs.get_mut(&n).expect("scheduled jobs exist");
-                if job.record.started_unix_ms == 0 {
-                    job.record.started_unix_ms = unix_ms();
-                    job.record.state = v1::JobState::Training as i32;
-                    self.publish_status(st, n);
-                }
+        // One lease per worker per round: a unit's tiles come most costly first, and filling
+        // one worker's slots before the next's gave the first worker the two biggest tiles
+        // (measured: one of two workers idle for a third of every training pass).
+        let mut offered = true;
+        while offered {
+            offered = false;
+            for &id in &ids {
+                offered |= st.workers[&id].credits > 0 && self.offer_next(st, id, now);
             }
         }
+    }
+
+    /// Offers worker `id` its next lease, if the scheduler has one for it.
+    fn offer_next(&self, st: &mut State, id: u64, now: Millis) -> bool {
+        let Some(lease) = st.sched.next_lease(WorkerId(id), now) else {
+            return false;
+        };
+        let n = lease.key.job.0;
+        let offer = self.offer(st, &lease, now);
+        st.leases.insert(
+            lease.id.0,
+            LeaseInfo {
+                worker: WorkerId(id),
+                key: lease.key,
+                done: false,
+            },
+        );
+        let w = st.workers.get_mut(&id).expect("listed");
+        w.credits -= 1;
+        tracing::debug!(job = %job_name(n), lease = lease.id.0, worker = id, tile = lease.key.tile, unit = lease.key.unit, "lease offered");
+        if let (Some(tx), Some(offer)) = (&w.tx, offer) {
+            let _ = tx.send(Ok(v1::CoordinatorMessage {
+                msg: Some(v1::coordinator_message::Msg::LeaseOffer(offer)),
+            }));
+        }
+        let job = st.jobs.get_mut(&n).expect("scheduled jobs exist");
+        if job.record.started_unix_ms == 0 {
+            job.record.started_unix_ms = unix_ms();
+            job.record.state = v1::JobState::Training as i32;
+            self.publish_status(st, n);
+        }
+        true
     }
 
     fn offer(
