@@ -782,21 +782,23 @@ impl Shared {
     /// Offers leases to every worker with credits while the scheduler has tiles.
     pub(crate) fn dispatch(&self, st: &mut State) {
         let now = self.now();
-        let ids: Vec<u64> = st
+        let mut ids: Vec<u64> = st
             .workers
             .iter()
             .filter(|(_, w)| w.credits > 0 && w.tx.is_some() && !w.draining)
             .map(|(&id, _)| id)
             .collect();
-        // One lease per worker per round: a unit's tiles come most costly first, and filling
-        // one worker's slots before the next's gave the first worker the two biggest tiles
-        // (measured: one of two workers idle for a third of every training pass).
+        // One lease per worker per round, every other round in reverse: a unit's tiles come
+        // most costly first, and filling one worker's slots before the next's gave the first
+        // worker the two biggest tiles (one of two workers idle for a third of every training
+        // pass); dealt out this way, the first worker's big tile pairs with a small one.
         let mut offered = true;
         while offered {
             offered = false;
             for &id in &ids {
                 offered |= st.workers[&id].credits > 0 && self.offer_next(st, id, now);
             }
+            ids.reverse();
         }
     }
 
