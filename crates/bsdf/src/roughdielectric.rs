@@ -35,7 +35,7 @@ impl RoughDielectric {
     #[inline]
     fn sample_distr(&self, cos_theta_i: f32) -> Microfacet {
         let mut d = self.distr;
-        if !self.distr.sample_visible {
+        if !d.sample_visible {
             d.scale_alpha(1.2 - 0.2 * cos_theta_i.abs().sqrt());
         }
         d
@@ -109,7 +109,7 @@ impl RoughDielectric {
             return None;
         }
         let pdf = pdf_m * pdf_lobe * dwh_dwo.abs();
-        if self.distr.sample_visible {
+        if distr.sample_visible {
             weight *= distr.smith_g1(wo, m);
         } else {
             // Mitsuba uses G (wi.m) / (cos_i cos_m) here, which is eval/pdf

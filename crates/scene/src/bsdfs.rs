@@ -8,7 +8,7 @@ use crate::context::Ctx;
 use crate::desc::{BsdfDesc, MicrofacetDistribution, Roughness};
 use crate::error::SceneError;
 use crate::ior::{lookup_conductor, lookup_ior};
-use crate::props::{Case, Keyword, Props, Resolved};
+use crate::props::{keywords, Props, Resolved};
 use crate::textures::{const_color, const_float, texref};
 use crate::xml::{invalid, Category, Value};
 
@@ -182,12 +182,8 @@ fn ior(p: &Props, name: &str, default: &str) -> Result<f32, SceneError> {
     Ok(v)
 }
 
-impl Keyword for MicrofacetDistribution {
-    const NAMES: &'static [(&'static str, Self)] =
-        &[("beckmann", Self::Beckmann), ("ggx", Self::Ggx)];
-    /// Mitsuba reads the distribution's name in any case.
-    const CASE: Case = Case::Insensitive;
-}
+// Mitsuba reads the distribution's name in any case.
+keywords!(MicrofacetDistribution, Insensitive: "beckmann" => Self::Beckmann, "ggx" => Self::Ggx);
 
 /// `distribution`, `alpha` (or `alpha_u`/`alpha_v` when `anisotropic`),
 /// `sample_visible`, with Mitsuba's defaults (beckmann, 0.1, true).

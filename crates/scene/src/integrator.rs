@@ -9,7 +9,7 @@ use crate::desc::{
 };
 use crate::error::SceneError;
 use crate::limits::{format_number, Limits};
-use crate::props::{Case, Keyword, Props, Resolved};
+use crate::props::{keywords, Props, Resolved};
 use crate::xml::invalid;
 
 /// Build the integrator `r`.
@@ -56,32 +56,23 @@ impl Preset {
     }
 }
 
-/// The words of a `guided_path` keyword parameter, read in any case.
-macro_rules! keywords {
-    ($t:ty: $($word:literal => $v:expr),+ $(,)?) => {
-        impl Keyword for $t {
-            const NAMES: &'static [(&'static str, Self)] = &[$(($word, $v)),+];
-            const CASE: Case = Case::Insensitive;
-        }
-    };
-}
-
-keywords!(Preset: "2017" => Preset::Ppg2017, "2019" => Preset::Ppg2019, "pathfarm" => Preset::Pathfarm);
-keywords!(GuidedRoulette: "throughput" => Self::Throughput, "ppg" => Self::Ppg, "guided" => Self::Guided);
-keywords!(GuidedNee: "never" => Self::Never, "always" => Self::Always, "kickstart" => Self::Kickstart);
-keywords!(GuidedCombination:
+// The words of `guided_path`'s keyword parameters, read in any case.
+keywords!(Preset, Insensitive: "2017" => Preset::Ppg2017, "2019" => Preset::Ppg2019, "pathfarm" => Preset::Pathfarm);
+keywords!(GuidedRoulette, Insensitive: "throughput" => Self::Throughput, "ppg" => Self::Ppg, "guided" => Self::Guided);
+keywords!(GuidedNee, Insensitive: "never" => Self::Never, "always" => Self::Always, "kickstart" => Self::Kickstart);
+keywords!(GuidedCombination, Insensitive:
     "discard" => Self::Discard,
     "automatic" => Self::Automatic,
     "inversevar" => Self::InverseVar,
 );
-keywords!(GuidedSpatialFilter:
+keywords!(GuidedSpatialFilter, Insensitive:
     "nearest" => Self::Nearest,
     "stochastic" => Self::Stochastic,
     "box" => Self::Box,
 );
-keywords!(GuidedDirectionalFilter: "nearest" => Self::Nearest, "box" => Self::Box);
-keywords!(GuidedFractionLoss: "none" => Self::None, "kl" => Self::Kl, "var" => Self::Var);
-keywords!(GuidedBudgetType: "spp" => Self::Spp, "seconds" => Self::Seconds);
+keywords!(GuidedDirectionalFilter, Insensitive: "nearest" => Self::Nearest, "box" => Self::Box);
+keywords!(GuidedFractionLoss, Insensitive: "none" => Self::None, "kl" => Self::Kl, "var" => Self::Var);
+keywords!(GuidedBudgetType, Insensitive: "spp" => Self::Spp, "seconds" => Self::Seconds);
 
 /// A float parameter that must be finite and within `[min, max]` (checked before rounding).
 fn float_in(p: &Props, name: &str, default: f64, min: f64, max: f64) -> Result<f64, SceneError> {

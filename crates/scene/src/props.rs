@@ -488,5 +488,17 @@ pub(crate) trait Keyword: Copy + 'static {
     /// The words Mitsuba accepts, each with its value, in the order errors list them.
     const NAMES: &'static [(&'static str, Self)];
     /// How words are compared.
-    const CASE: Case = Case::Sensitive;
+    const CASE: Case;
 }
+
+/// `keywords!(Type, Sensitive | Insensitive: "word" => value, ...)`: the [`Keyword`] table
+/// of `Type`, its words compared as [`Case`] says.
+macro_rules! keywords {
+    ($t:ty, $case:ident: $($word:literal => $v:expr),+ $(,)?) => {
+        impl $crate::props::Keyword for $t {
+            const NAMES: &'static [(&'static str, Self)] = &[$(($word, $v)),+];
+            const CASE: $crate::props::Case = $crate::props::Case::$case;
+        }
+    };
+}
+pub(crate) use keywords;

@@ -7,7 +7,7 @@ use crate::context::Ctx;
 use crate::desc::{BitmapDesc, TexFilter, TexRef, TextureDesc, UvTransform, WrapMode};
 use crate::error::SceneError;
 use crate::imageio::load_checked;
-use crate::props::{Keyword, Props, Resolved};
+use crate::props::{keywords, Props, Resolved};
 use crate::xml::{invalid, Category};
 
 /// A colour parameter `name` of the plugin `p`: `<rgb>`/`<spectrum>`/`<float>`
@@ -121,18 +121,12 @@ fn checkerboard(p: &Props) -> Result<TextureDesc, SceneError> {
     })
 }
 
-impl Keyword for TexFilter {
-    const NAMES: &'static [(&'static str, Self)] =
-        &[("bilinear", Self::Bilinear), ("nearest", Self::Nearest)];
-}
-
-impl Keyword for WrapMode {
-    const NAMES: &'static [(&'static str, Self)] = &[
-        ("repeat", Self::Repeat),
-        ("mirror", Self::Mirror),
-        ("clamp", Self::Clamp),
-    ];
-}
+keywords!(TexFilter, Sensitive: "bilinear" => Self::Bilinear, "nearest" => Self::Nearest);
+keywords!(WrapMode, Sensitive:
+    "repeat" => Self::Repeat,
+    "mirror" => Self::Mirror,
+    "clamp" => Self::Clamp,
+);
 
 fn bitmap(ctx: &mut Ctx, p: &Props) -> Result<TextureDesc, SceneError> {
     let (name, loc) = p
