@@ -126,18 +126,26 @@ def parse_peaks(text):
 
 
 def per_iteration(units, threads):
-    """Sums the unit lines of each iteration."""
+    """Sums the unit lines of each iteration; its wall time is the span from its first unit's
+    offer to its last unit's end (units of an iteration overlap)."""
     its = {}
     for u in units:
         k = int(u["iteration"])
-        it = its.setdefault(k, {"units": 0})
+        it = its.setdefault(k, {"units": 0, "span": [float("inf"), 0.0]})
         it["units"] += 1
+        if "job_s" in u:
+            start = float(u["job_s"])
+            it["span"] = [min(it["span"][0], start), max(it["span"][1], start + float(u["wall_s"]))]
         for key in ("wall_s", "render_s", "prepare_s", "serialize_s", "receive_s", "decode_s",
                     "merge_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"):
             v = float(u[key])
             if key in ("render_s", "prepare_s", "serialize_s"):
                 v /= threads  # worker seconds spread over the worker threads
             it[key] = it.get(key, 0.0) + v
+    for it in its.values():
+        lo, hi = it.pop("span")
+        if hi >= lo:
+            it["wall_s"] = hi - lo
     return its
 
 

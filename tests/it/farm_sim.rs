@@ -1,7 +1,8 @@
 //! The farm's two state machines together, without sockets: several guided job sessions
 //! driven through the lease scheduler on an injected clock, by simulated workers that join,
 //! die, hang (stop heartbeating, so their leases expire) and deliver late (their results are
-//! then stale and rejected), in a seeded random schedule. Every job that is not cancelled must
+//! then stale and rejected), in a seeded random schedule, with two units of a job in flight
+//! whenever its session overlaps training passes. Every job that is not cancelled must
 //! end with the image and tree of the one-process render, bit for bit (deterministic checks,
 //! no significance level); the cancelled job must take no more tiles.
 
@@ -11,21 +12,31 @@ use std::time::Duration;
 use pathfarm_farm::scheduler::{
     Event, JobId, LeaseId, Millis, Rejection, Scheduler, SchedulerConfig, WorkerId,
 };
+use pathfarm_guide::fraction::FractionState;
 use pathfarm_guide::SdTree;
 use pathfarm_render::guided::{
-    guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, Next, Session,
+    guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
+    Session,
 };
 use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
 
 use crate::common::*;
 
-/// A job as the driver holds it: its session and the unit in flight.
+/// A unit in flight and the fractions published with it.
+struct Flight {
+    spec: PassSpec,
+    fractions: Vec<FractionState>,
+}
+
+/// A job as the driver holds it: its session and the units in flight.
 struct SimJob {
     seed: u64,
     spp: u32,
     session: Session,
-    spec: Option<PassSpec>,
+    flights: Vec<Flight>,
+    /// Units issued while another was in flight.
+    overlapped: usize,
     /// The tree as published for the unit's tree version: encoded when the version's first
     /// unit is offered (its building statistics empty), as the coordinator publishes it.
     published: (u32, Vec<u8>),
@@ -53,10 +64,11 @@ struct SimWorker {
 }
 
 impl SimWorker {
-    /// The worker's copy of `job`'s tree at `version`: a new tree version is decoded from
-    /// the published bytes, new fractions are taken from the master.
-    fn tree(&mut self, job: u64, j: &SimJob, version: (u32, u32)) -> &mut SdTree {
+    /// The worker's copy of `job`'s tree for `unit`: a new tree version is decoded from
+    /// the published bytes, new fractions are those published with the unit.
+    fn tree(&mut self, job: u64, j: &SimJob, unit: &Flight) -> &mut SdTree {
         let master = j.session.tree();
+        let version = (unit.spec.tree_version, unit.spec.fraction_version);
         let e = self
             .trees
             .entry(job)
@@ -66,7 +78,7 @@ impl SimWorker {
             e.1 = SdTree::decode(&j.published.1).expect("decode");
         }
         if e.0 != version {
-            e.1.set_fraction_states(&master.fraction_states())
+            e.1.set_fraction_states(&unit.fractions)
                 .expect("same leaves");
         }
         e.0 = version;
@@ -74,8 +86,18 @@ impl SimWorker {
     }
 }
 
-/// Offers a job's next unit to the scheduler, or marks it done.
+/// Offers the units a job's session issues to the scheduler, or marks the job done.
 fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: &mut TestRng) {
+    while drive_once(sched, j, id, now, tiling) {}
+}
+
+fn drive_once(
+    sched: &mut Scheduler,
+    j: &mut SimJob,
+    id: JobId,
+    now: Millis,
+    tiling: &mut TestRng,
+) -> bool {
     match j.session.next(now.0 as f64 * 1e-3) {
         Next::Render(spec) => {
             if j.published.0 != spec.tree_version || j.published.1.is_empty() {
@@ -87,24 +109,37 @@ fn drive(sched: &mut Scheduler, j: &mut SimJob, id: JobId, now: Millis, tiling: 
             j.session.retile(Region::tiles(w, h, edge)).expect("retile");
             let n = j.session.tiles().len() as u32;
             sched.offer_unit(id, spec.unit, n).expect("offer");
-            j.spec = Some(spec);
+            j.overlapped += usize::from(!j.flights.is_empty());
+            let fractions = j.session.tree().fraction_states();
+            j.flights.push(Flight { spec, fractions });
+            true
         }
-        Next::Wait => unreachable!("driven only between units"),
-        Next::Done => j.done = true,
+        Next::Wait => false,
+        Next::Done => {
+            j.done = true;
+            false
+        }
     }
 }
 
-fn one_process(scene: &Scene, spp: u32, seed: u64) -> (Film, SdTree) {
+fn one_process(scene: &Scene, spp: u32, seed: u64, policy: FallbackPolicy) -> (Film, SdTree) {
     let params = scene.guided.clone().expect("guided");
     let settings = RenderSettings::new(Some(spp), None, seed);
-    let (film, _, tree) = render_guided(
-        scene,
-        &params,
-        Budget::Spp(spp),
-        &settings,
-        GuidedOptions::default(),
-    );
+    let options = GuidedOptions {
+        policy,
+        ..Default::default()
+    };
+    let (film, _, tree) = render_guided(scene, &params, Budget::Spp(spp), &settings, options);
     (film, tree)
+}
+
+/// Half the jobs keep guiding whatever the fallback check says: at these tiny budgets the
+/// rule falls back early, and the kept ones train long enough for passes to overlap.
+fn policy_of(job: u64) -> FallbackPolicy {
+    match job % 2 {
+        0 => FallbackPolicy::Rule,
+        _ => FallbackPolicy::Force(GuidingVerdict::Keep),
+    }
 }
 
 #[test]
@@ -137,7 +172,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 scene.width,
                 scene.height,
                 tiles,
-                FallbackPolicy::Rule,
+                policy_of(n as u64),
             );
             let id = JobId(n as u64);
             sched
@@ -147,7 +182,8 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 seed: *seed,
                 spp: *spp,
                 session,
-                spec: None,
+                flights: Vec::new(),
+                overlapped: 0,
                 published: (0, Vec::new()),
                 done: false,
                 cancelled: false,
@@ -212,13 +248,14 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 while let Some(lease) = sched.next_lease(WorkerId(wid), now) {
                     let job = lease.key.job;
                     let j = &jobs[&job.0];
-                    let spec = j.spec.expect("a unit in flight");
-                    assert_eq!(spec.unit, lease.key.unit);
-                    let region = j.session.tiles()[lease.key.tile as usize];
-                    let version = (spec.tree_version, spec.fraction_version);
+                    let unit = j.flights.iter().find(|f| f.spec.unit == lease.key.unit);
+                    let unit = unit.expect("a unit in flight");
+                    let spec = unit.spec;
+                    let tiles = j.session.tiles_of(spec.unit).expect("in flight");
+                    let region = tiles[lease.key.tile as usize];
                     let estimate = j.session.estimate().to_vec();
                     let seed = j.seed;
-                    let tree = w.tree(job.0, j, version);
+                    let tree = w.tree(job.0, j, unit);
                     let inputs = UnitInputs {
                         scene: &scene,
                         params: &params,
@@ -263,6 +300,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                                 )
                                 .expect("the session takes what the scheduler accepted");
                             if c.unit_done {
+                                j.flights.retain(|f| f.spec.unit != p.unit);
                                 drive(&mut sched, j, p.job, now, &mut tiling);
                             }
                         }
@@ -287,12 +325,17 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
             "seed {sim_seed}: the schedule had faults ({deaths} deaths, {stale} stale results)"
         );
         assert_eq!(accepted_after_cancel, 0, "a cancelled job takes no tiles");
+        let overlapped: usize = jobs.values().map(|j| j.overlapped).sum();
+        assert!(
+            overlapped >= 2,
+            "seed {sim_seed}: units overlapped {overlapped} times"
+        );
         for (n, j) in jobs {
             if j.cancelled {
                 continue;
             }
             let (film, _, tree) = j.session.finish();
-            let (ref_film, ref_tree) = one_process(&scene, j.spp, j.seed);
+            let (ref_film, ref_tree) = one_process(&scene, j.spp, j.seed, policy_of(n));
             assert!(
                 film_bits(&film) == film_bits(&ref_film),
                 "seed {sim_seed}, job {n}: the image differs from the one-process render"

@@ -1,16 +1,18 @@
 //! The guided job session driven tile by tile, as the farm drives it: every tile rendered on
-//! its own copy of the tree (decoded from the wire form, fractions set from the master),
-//! statistics shipped with `take_stats`, tiles handed in out of order. The image and the
+//! its own copy of the tree (decoded from the wire form, fractions set from those published
+//! with the unit), statistics shipped with `take_stats`, two units in flight whenever the
+//! session allows, tiles of both handed in interleaved and out of order. The image and the
 //! trained tree must be bit-identical to the one-process render (deterministic checks, no
 //! significance level).
 
+use pathfarm_guide::fraction::FractionState;
 use pathfarm_guide::SdTree;
 use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
     guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
     Session,
 };
-use pathfarm_render::pass::{render_unit, PassKind, UnitInputs};
+use pathfarm_render::pass::{render_unit, PassKind, PassSpec, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
 use pathfarm_scene::{GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
 
@@ -23,19 +25,30 @@ struct WorkerTree {
 }
 
 impl WorkerTree {
-    fn get(&mut self, master: &SdTree, version: (u32, u32)) -> &mut SdTree {
+    /// The tree for `unit`, whose fractions were published when it was issued.
+    fn get(&mut self, master: &SdTree, unit: &Flight) -> &mut SdTree {
+        let version = (unit.spec.tree_version, unit.spec.fraction_version);
         if self.version.map(|v| v.0) != Some(version.0) {
             // a new tree version travels in its wire form
             self.tree = Some(SdTree::decode(&master.encode()).expect("decode"));
         }
         let tree = self.tree.as_mut().unwrap();
         if self.version != Some(version) {
-            tree.set_fraction_states(&master.fraction_states())
+            tree.set_fraction_states(&unit.fractions)
                 .expect("same leaves");
         }
         self.version = Some(version);
         tree
     }
+}
+
+/// A unit in flight: what was published with it, and its tiles not handed in yet.
+struct Flight {
+    spec: PassSpec,
+    tiles: Vec<Region>,
+    fractions: Vec<FractionState>,
+    estimate: Vec<f32>,
+    order: Vec<usize>,
 }
 
 /// Whether the tiled driver replaces its session by one restored from a checkpoint
@@ -46,9 +59,20 @@ enum Restarts {
     AtEveryCheckpoint,
 }
 
+/// What a tiled drive gave: the image, the tree, the kinds of the units in issue order, and
+/// how many units were issued while another was in flight.
+struct Driven {
+    film: Film,
+    tree: SdTree,
+    kinds: Vec<PassKind>,
+    overlapped: usize,
+}
+
 /// The session driven over `tile`-pixel tiles (0: each unit re-tiled with another tile
-/// size, as the farm re-tiles units by cost), each unit's tiles handed in in a scrambled
-/// order (`order_seed`), each tile rendered on a worker copy of the tree.
+/// size, as the farm re-tiles units by cost), with every unit the session issues taken at
+/// once (two when training passes overlap), the tiles of the units in flight handed in
+/// interleaved in a scrambled order (`order_seed`: the later unit's tiles may all be in
+/// first), each tile rendered on a worker copy of the tree.
 fn render_tiled(
     scene: &Scene,
     params: &GuidedParams,
@@ -58,7 +82,7 @@ fn render_tiled(
     order_seed: u64,
     policy: FallbackPolicy,
     restarts: Restarts,
-) -> (Film, SdTree, Vec<PassKind>) {
+) -> Driven {
     let (w, h) = (scene.width, scene.height);
     let budget = Budget::Spp(spp);
     let (mut session, _) = new_session(scene, params, spp, tile.max(1), policy);
@@ -68,36 +92,55 @@ fn render_tiled(
         tree: None,
     };
     let mut kinds = Vec::new();
+    let mut overlapped = 0;
+    let mut flights: Vec<Flight> = Vec::new();
+    let mut pick = TestRng::new(order_seed);
     let mut clock = 0.0;
-    while let Next::Render(spec) = session.next(clock) {
-        kinds.push(spec.kind);
-        if tile == 0 {
-            let edge = 3 + (spec.unit % 11) as u32;
-            session.retile(Region::tiles(w, h, edge)).expect("retile");
+    loop {
+        while let Next::Render(spec) = session.next(clock) {
+            kinds.push(spec.kind);
+            overlapped += usize::from(!flights.is_empty());
+            if tile == 0 {
+                let edge = 3 + (spec.unit % 11) as u32;
+                session.retile(Region::tiles(w, h, edge)).expect("retile");
+            }
+            let tiles = session.tiles().to_vec();
+            let mut order: Vec<usize> = (0..tiles.len()).collect();
+            TestRng::new(order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+                .shuffle(&mut order);
+            flights.push(Flight {
+                spec,
+                tiles,
+                fractions: session.tree().fraction_states(),
+                estimate: session.estimate().to_vec(),
+                order,
+            });
         }
-        let tiles = session.tiles().to_vec();
-        let mut order: Vec<usize> = (0..tiles.len()).collect();
-        TestRng::new(order_seed ^ spec.unit.wrapping_mul(0x9e37_79b9_7f4a_7c15))
-            .shuffle(&mut order);
-        for index in order {
-            let version = (spec.tree_version, spec.fraction_version);
-            let estimate = session.estimate().to_vec();
-            let wt = worker.get(session.tree(), version);
-            let inputs = UnitInputs {
-                scene,
-                params,
-                tree: wt,
-                estimate: &estimate,
-                seed,
-                tile_size: 5,
-            };
-            let out = render_unit(&inputs, &spec, tiles[index], &|_| {});
-            let stats = spec.record().then(|| wt.take_stats());
-            clock += 0.001;
-            session
-                .add_tile(spec.unit, index, &out, stats.as_ref(), clock)
-                .expect("tile accepted");
+        if flights.is_empty() {
+            break;
         }
+        let f = pick.index(flights.len());
+        let flight = &mut flights[f];
+        let index = flight.order.pop().expect("a flight has tiles left");
+        let spec = flight.spec;
+        let wt = worker.get(session.tree(), flight);
+        let inputs = UnitInputs {
+            scene,
+            params,
+            tree: wt,
+            estimate: &flight.estimate,
+            seed,
+            tile_size: 5,
+        };
+        let out = render_unit(&inputs, &spec, flight.tiles[index], &|_| {});
+        let stats = spec.record().then(|| wt.take_stats());
+        if flight.order.is_empty() {
+            flights.remove(f);
+        }
+        clock += 0.001;
+        session
+            .add_tile(spec.unit, index, &out, stats.as_ref(), clock)
+            .expect("tile accepted");
         // A coordinator restarted between iterations continues from the checkpoint alone.
         if let (Restarts::AtEveryCheckpoint, Some(cp)) = (restarts, session.checkpoint()) {
             let bytes = cp.to_bytes(&session.tree().encode());
@@ -118,7 +161,12 @@ fn render_tiled(
         );
     }
     let (film, _, tree) = session.finish();
-    (film, tree, kinds)
+    Driven {
+        film,
+        tree,
+        kinds,
+        overlapped,
+    }
 }
 
 /// A fresh session of `scene` with `params` (an untrained tree of the scene's bounds) over
@@ -173,17 +221,17 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 24, 7, policy);
-    let (film, tree, kinds) = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never);
-    assert!(kinds.contains(&PassKind::Record) && kinds.contains(&PassKind::Guided));
-    assert_same(&(film, tree), &single, "pathfarm preset, 8-pixel tiles");
+    let d = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never);
+    assert!(d.kinds.contains(&PassKind::Record) && d.kinds.contains(&PassKind::Guided));
+    assert_same(&(d.film, d.tree), &single, "pathfarm preset, 8-pixel tiles");
     // another tiling and another arrival order: the same bits
-    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 13, 99, policy, Restarts::Never);
-    assert_same(&(film, tree), &single, "13-pixel tiles");
+    let d = render_tiled(&scene, &params, 24, 7, 13, 99, policy, Restarts::Never);
+    assert_same(&(d.film, d.tree), &single, "13-pixel tiles");
     // every unit tiled differently
-    let (film, tree, _) = render_tiled(&scene, &params, 24, 7, 0, 5, policy, Restarts::Never);
-    assert_same(&(film, tree), &single, "a tiling per unit");
+    let d = render_tiled(&scene, &params, 24, 7, 0, 5, policy, Restarts::Never);
+    assert_same(&(d.film, d.tree), &single, "a tiling per unit");
     // restarted from a checkpoint after every iteration: the same bits
-    let (film, tree, _) = render_tiled(
+    let d = render_tiled(
         &scene,
         &params,
         24,
@@ -193,9 +241,24 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
         policy,
         Restarts::AtEveryCheckpoint,
     );
-    assert_same(&(film, tree), &single, "restarted at every checkpoint");
+    assert_same(&(d.film, d.tree), &single, "restarted at every checkpoint");
     // the tree learned something (the test would be vacuous on an empty tree)
     assert!(single.1.stats().leaves > 1, "{:?}", single.1.stats());
+    // guiding kept (no fallback at this budget): the training passes overlap
+    let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
+    let single = one_process(&scene, &params, 24, 7, keep);
+    let d = render_tiled(&scene, &params, 24, 7, 8, 4, keep, Restarts::Never);
+    assert!(
+        d.overlapped >= 2,
+        "{} units overlapped: {:?}",
+        d.overlapped,
+        d.kinds
+    );
+    assert_same(
+        &(d.film, d.tree),
+        &single,
+        "guiding kept, passes overlapping",
+    );
 }
 
 #[test]
@@ -205,7 +268,7 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Force(GuidingVerdict::FallBack);
     let single = one_process(&scene, &params, 24, 3, policy);
-    let (film, tree, kinds) = render_tiled(
+    let d = render_tiled(
         &scene,
         &params,
         24,
@@ -215,9 +278,9 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
         policy,
         Restarts::AtEveryCheckpoint,
     );
-    assert!(kinds.contains(&PassKind::Probe), "{kinds:?}");
-    assert!(kinds.contains(&PassKind::Path), "{kinds:?}");
-    assert_same(&(film, tree), &single, "forced fallback");
+    assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
+    assert!(d.kinds.contains(&PassKind::Path), "{:?}", d.kinds);
+    assert_same(&(d.film, d.tree), &single, "forced fallback");
 }
 
 #[test]
@@ -233,9 +296,15 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
     params.path_fallback = false;
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 40, 11, policy);
-    let (film, tree, _) = render_tiled(&scene, &params, 40, 11, 7, 2, policy, Restarts::Never);
+    let d = render_tiled(&scene, &params, 40, 11, 7, 2, policy, Restarts::Never);
+    assert!(
+        d.overlapped >= 4,
+        "{} units overlapped: {:?}",
+        d.overlapped,
+        d.kinds
+    );
     assert_same(
-        &(film, tree),
+        &(d.film, d.tree),
         &single,
         "stochastic filter, kickstart, automatic",
     );
@@ -276,7 +345,11 @@ fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
     let Next::Render(spec) = s.next(0.0) else {
         panic!("a first unit")
     };
-    assert_eq!(s.next(0.0), Next::Wait, "one unit at a time");
+    assert_eq!(
+        s.next(0.0),
+        Next::Wait,
+        "iteration 0 is one pass: nothing overlaps it"
+    );
     let inputs = UnitInputs {
         scene: &scene,
         params: &params,
@@ -306,4 +379,69 @@ fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
     );
     s.add_tile(spec.unit, 1, &out1, None, 0.0).expect("second");
     assert_eq!(s.tiles_done(), (2, 4));
+}
+
+#[test]
+fn a_unit_whose_tiles_are_all_in_first_waits_for_the_unit_before_it() {
+    let scene = door_ajar((12, 8));
+    let mut params = scene.guided.clone().expect("guided");
+    params.path_fallback = false;
+    let (mut s, tiles) = new_session(&scene, &params, 16, 4, FallbackPolicy::Rule);
+    let mut worker = WorkerTree {
+        version: None,
+        tree: None,
+    };
+    // renders every tile of `unit` on the worker copy and hands them in
+    let hand_in = |s: &mut Session, unit: &Flight, worker: &mut WorkerTree| {
+        for (i, &tile) in unit.tiles.iter().enumerate() {
+            let wt = worker.get(s.tree(), unit);
+            let inputs = UnitInputs {
+                scene: &scene,
+                params: &params,
+                tree: wt,
+                estimate: &unit.estimate,
+                seed: 5,
+                tile_size: 4,
+            };
+            let out = render_unit(&inputs, &unit.spec, tile, &|_| {});
+            let stats = unit.spec.record().then(|| wt.take_stats());
+            s.add_tile(unit.spec.unit, i, &out, stats.as_ref(), 0.0)
+                .expect("accepted");
+        }
+    };
+    let flight = |s: &Session, spec: PassSpec| Flight {
+        spec,
+        tiles: tiles.clone(),
+        fractions: s.tree().fraction_states(),
+        estimate: s.estimate().to_vec(),
+        order: Vec::new(),
+    };
+    // units one at a time until the session issues a second one beside the first
+    let (first, second) = loop {
+        let Next::Render(spec) = s.next(0.0) else {
+            panic!("the job ended without overlapping passes")
+        };
+        let unit = flight(&s, spec);
+        if let Next::Render(next) = s.next(0.0) {
+            break (unit, flight(&s, next));
+        }
+        hand_in(&mut s, &unit, &mut worker);
+    };
+    assert_eq!(second.spec.unit, first.spec.unit + 1);
+    assert_eq!(
+        second.spec.fraction_version, first.spec.fraction_version,
+        "the second unit samples without the first unit's step"
+    );
+    assert_eq!(s.next(0.0), Next::Wait, "two units in flight at most");
+    let spp = s.spp_done();
+    hand_in(&mut s, &second, &mut worker);
+    assert_eq!(
+        s.spp_done(),
+        spp,
+        "the later unit does not end before the earlier one"
+    );
+    assert_eq!(s.next(0.0), Next::Wait);
+    hand_in(&mut s, &first, &mut worker);
+    assert_eq!(s.spp_done(), spp + 2, "both units ended");
+    assert_eq!(s.tiles_done(), (0, tiles.len()));
 }

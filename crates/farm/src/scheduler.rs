@@ -7,10 +7,13 @@
 //!
 //! ## Model
 //!
-//! * A job's session emits **units** one at a time ([`Scheduler::offer_unit`]); a unit is split
-//!   into **tiles**. Every tile of a unit is accepted exactly once; the [`Completion`] that
-//!   accepts a unit's last tile carries `unit_done: true`, and that is the only one that does,
-//!   so the driver tells the session and offers the next unit.
+//! * A job's session emits **units** in order ([`Scheduler::offer_unit`]), at most
+//!   [`MAX_UNITS_IN_FLIGHT`] incomplete at a time (training passes overlap: a pass starts
+//!   while the last tiles of the one before it render); a unit is split into **tiles**, and
+//!   the older unit's ready tiles are leased first. Every tile of a unit is accepted exactly
+//!   once; the [`Completion`] that accepts a unit's last tile carries `unit_done: true`, and
+//!   that is the only one that does, so the driver tells the session and offers what it
+//!   issues next.
 //! * Workers **lease** tiles ([`Scheduler::next_lease`]), at most
 //!   [`SchedulerConfig::leases_per_worker`] at a time. A lease is valid while `now < deadline`;
 //!   heartbeats that list it push the deadline to `now + lease_timeout`. A lease whose deadline
@@ -33,8 +36,9 @@
 //!
 //! ## Memory
 //!
-//! Bounded by the tiles of each job's current unit plus the leases issued for those units: a
-//! lease's record stays until its unit is replaced by the next one or its job is removed,
+//! Bounded by the tiles of each job's offered units plus the leases issued for those units: a
+//! lease's record stays until a unit offered after its complete unit drops it, or its job is
+//! removed,
 //! because exactly-once and the precise [`Rejection`] of a late message need it. After that a
 //! message naming the lease gets [`Rejection::UnknownLease`].
 
@@ -43,6 +47,9 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
 use std::ops::Add;
 use std::time::Duration;
+
+/// Units of one job that may be incomplete at once.
+pub const MAX_UNITS_IN_FLIGHT: usize = 2;
 
 /// An instant on the driver's clock: milliseconds since an epoch of the driver's choosing
 /// (e.g. the coordinator's start, from a monotonic clock). Spans are [`Duration`]s.
@@ -200,7 +207,7 @@ pub enum SchedError {
     UnknownWorker(WorkerId),
     #[error("{0} is cancelled or failed and takes no more units")]
     JobNotActive(JobId),
-    #[error("unit {unit} of {job} still has tiles to render")]
+    #[error("unit {unit} of {job} and the one after it still have tiles to render")]
     UnitInProgress { job: JobId, unit: u64 },
     #[error("unit {unit} of {job} does not follow unit {last}")]
     UnitOutOfOrder { job: JobId, unit: u64, last: u64 },
@@ -314,7 +321,7 @@ pub struct JobInfo {
     pub unit: Option<UnitProgress>,
 }
 
-/// Progress of a job's current unit.
+/// Progress of a job's oldest incomplete unit (or its last one).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct UnitProgress {
     pub unit: u64,
@@ -411,7 +418,8 @@ struct Job {
     arrival: u64,
     arrived: Millis,
     state: JobState,
-    unit: Option<Unit>,
+    /// Offered units, oldest first: complete ones are dropped at the next offer.
+    units: Vec<Unit>,
 }
 
 impl Job {
@@ -420,14 +428,18 @@ impl Job {
     }
 
     fn ready(&self) -> usize {
-        match &self.unit {
-            Some(unit) if self.is_active() => unit.ready(),
-            _ => 0,
+        if !self.is_active() {
+            return 0;
         }
+        self.units.iter().map(Unit::ready).sum()
     }
 
     fn in_flight(&self) -> usize {
-        self.unit.as_ref().map_or(0, |unit| unit.live.len())
+        self.units.iter().map(|unit| unit.live.len()).sum()
+    }
+
+    fn unit(&self, number: u64) -> Option<&Unit> {
+        self.units.iter().find(|unit| unit.number == number)
     }
 }
 
@@ -478,12 +490,11 @@ pub struct Scheduler {
     next_arrival: u64,
 }
 
-/// The unit a lease record belongs to. Records are dropped with their unit (next offer, job
-/// removal), so a record's unit is always its job's current one.
+/// The unit a lease record belongs to. Records are dropped with their unit (an offer after
+/// it completed, job removal), so a record's unit is always one of its job's offered units.
 fn unit_of(jobs: &mut BTreeMap<JobId, Job>, key: TaskKey) -> &mut Unit {
     jobs.get_mut(&key.job)
-        .and_then(|job| job.unit.as_mut())
-        .filter(|unit| unit.number == key.unit)
+        .and_then(|job| job.units.iter_mut().find(|unit| unit.number == key.unit))
         .expect("a lease record outlives neither its job nor its unit")
 }
 
@@ -538,36 +549,43 @@ impl Scheduler {
             arrival,
             arrived: now,
             state,
-            unit: None,
+            units: Vec::new(),
         };
         self.jobs.insert(job, record);
         self.order.insert((Reverse(priority), arrival, job));
         Ok(())
     }
 
-    /// Makes unit `unit` (`tiles` tiles, ready in tile order) the job's current unit. The
-    /// previous unit must be complete and numbered lower; its bookkeeping is dropped.
+    /// Adds unit `unit` (`tiles` tiles, ready in tile order) to the job's units. It must be
+    /// numbered above the units offered before, and fewer than [`MAX_UNITS_IN_FLIGHT`] of
+    /// those may be incomplete; the complete ones' bookkeeping is dropped.
     pub fn offer_unit(&mut self, job: JobId, unit: u64, tiles: u32) -> Result<(), SchedError> {
         let record = self.jobs.get_mut(&job).ok_or(SchedError::UnknownJob(job))?;
         if !record.is_active() {
             return Err(SchedError::JobNotActive(job));
         }
-        if let Some(current) = &record.unit {
-            let last = current.number;
-            if current.remaining > 0 {
-                return Err(SchedError::UnitInProgress { job, unit: last });
-            }
+        if let Some(last) = record.units.last().map(|u| u.number) {
             if unit <= last {
                 return Err(SchedError::UnitOutOfOrder { job, unit, last });
+            }
+        }
+        let mut incomplete = record.units.iter().filter(|u| u.remaining > 0);
+        if let Some(oldest) = incomplete.next() {
+            if incomplete.count() + 1 >= MAX_UNITS_IN_FLIGHT {
+                let unit = oldest.number;
+                return Err(SchedError::UnitInProgress { job, unit });
             }
         }
         if tiles == 0 {
             return Err(SchedError::EmptyUnit { job, unit });
         }
-        if let Some(old) = record.unit.replace(Unit::new(unit, tiles)) {
-            for id in old.issued {
-                self.leases.remove(&id);
-            }
+        let (done, kept) = std::mem::take(&mut record.units)
+            .into_iter()
+            .partition(|u| u.remaining == 0);
+        record.units = kept;
+        record.units.push(Unit::new(unit, tiles));
+        for id in done.into_iter().flat_map(|u: Unit| u.issued) {
+            self.leases.remove(&id);
         }
         Ok(())
     }
@@ -594,7 +612,7 @@ impl Scheduler {
         let record = self.jobs.remove(&job).expect("cancel_job found it");
         self.order
             .remove(&(Reverse(record.priority), record.arrival, job));
-        for id in record.unit.into_iter().flat_map(|unit| unit.issued) {
+        for id in record.units.into_iter().flat_map(|unit| unit.issued) {
             self.leases.remove(&id);
         }
         Ok(cancelled)
@@ -792,10 +810,10 @@ impl Scheduler {
 
     // ----- queries -----
 
-    /// Whether `unit` is the job's current unit and all its tiles are accepted.
+    /// Whether `unit` is one of the job's offered units and all its tiles are accepted.
     pub fn unit_complete(&self, job: JobId, unit: u64) -> bool {
-        let current = self.jobs.get(&job).and_then(|record| record.unit.as_ref());
-        current.is_some_and(|current| current.number == unit && current.remaining == 0)
+        let offered = self.jobs.get(&job).and_then(|record| record.unit(unit));
+        offered.is_some_and(|offered| offered.remaining == 0)
     }
 
     /// Live leases of the job (0 if unknown).
@@ -818,7 +836,8 @@ impl Scheduler {
 
     pub fn job_info(&self, job: JobId) -> Option<JobInfo> {
         let record = self.jobs.get(&job)?;
-        let unit = record.unit.as_ref().map(|unit| UnitProgress {
+        let oldest = record.units.iter().find(|unit| unit.remaining > 0);
+        let unit = oldest.or(record.units.last()).map(|unit| UnitProgress {
             unit: unit.number,
             tiles: unit.tiles.len() as u32,
             done: unit.tiles.len() as u32 - unit.remaining,
@@ -889,11 +908,9 @@ impl Scheduler {
         let id = LeaseId(self.next_lease_id);
         self.next_lease_id += 1;
         let deadline = now + self.config.lease_timeout;
-        let unit = self
-            .jobs
-            .get_mut(&job)
-            .and_then(|record| record.unit.as_mut());
-        let unit = unit.expect("a job with ready tiles has a unit");
+        let units = self.jobs.get_mut(&job).map(|record| &mut record.units);
+        let unit = units.and_then(|units| units.iter_mut().find(|unit| unit.ready() > 0));
+        let unit = unit.expect("a job with ready tiles has a unit with ready tiles");
         let tile = unit.take_ready().expect("the picked job has a ready tile");
         let slot = &mut unit.tiles[tile as usize];
         slot.state = TileState::Leased(id);
@@ -938,7 +955,7 @@ impl Scheduler {
             LeaseState::Ended(Ending::Completed) => Err(Rejection::Duplicate),
             LeaseState::Ended(Ending::Cancelled) => Err(Rejection::JobGone),
             LeaseState::Ended(Ending::Reclaimed) => {
-                let unit = job.unit.as_ref().expect("a record's unit is current");
+                let unit = job.unit(rec.key.unit).expect("a record's unit is offered");
                 match unit.tiles[rec.key.tile as usize].state {
                     TileState::Ready => Err(Rejection::Expired),
                     TileState::Leased(_) | TileState::Done => Err(Rejection::Superseded),
@@ -1044,8 +1061,14 @@ impl Scheduler {
 
     /// Ends every live lease of the job as cancelled.
     fn cancel_live(&mut self, job: JobId) -> Vec<(WorkerId, LeaseId, TaskKey)> {
-        let unit = self.jobs.get(&job).and_then(|record| record.unit.as_ref());
-        let ids: Vec<LeaseId> = unit.map_or(Vec::new(), |unit| unit.live.iter().copied().collect());
+        let units = self
+            .jobs
+            .get(&job)
+            .map_or(&[][..], |record| &record.units[..]);
+        let ids: Vec<LeaseId> = units
+            .iter()
+            .flat_map(|unit| unit.live.iter().copied())
+            .collect();
         let ended = ids.into_iter().filter_map(|id| {
             let (key, worker) = self.end_lease(id, Ending::Cancelled)?;
             Some((worker, id, key))
@@ -1547,21 +1570,26 @@ mod tests {
     }
 
     #[test]
-    fn offer_unit_takes_one_complete_unit_at_a_time_in_order() {
+    fn offer_unit_takes_units_in_order_with_at_most_two_incomplete() {
         let mut s = setup(&[W1], 1);
+        assert_eq!(
+            s.offer_unit(J1, 1, 1),
+            Ok(()),
+            "a second unit overlaps the first"
+        );
         let unit0 = SchedError::UnitInProgress { job: J1, unit: 0 };
-        assert_eq!(s.offer_unit(J1, 1, 1), Err(unit0));
+        assert_eq!(s.offer_unit(J1, 2, 1), Err(unit0));
         let a = s.next_lease(W1, Millis(0)).unwrap();
         s.complete(W1, a.id, secs(1)).unwrap();
         let out_of_order = SchedError::UnitOutOfOrder {
             job: J1,
-            unit: 0,
-            last: 0,
+            unit: 1,
+            last: 1,
         };
-        assert_eq!(s.offer_unit(J1, 0, 1), Err(out_of_order));
+        assert_eq!(s.offer_unit(J1, 1, 1), Err(out_of_order));
         assert_eq!(
-            s.offer_unit(J1, 1, 0),
-            Err(SchedError::EmptyUnit { job: J1, unit: 1 })
+            s.offer_unit(J1, 2, 0),
+            Err(SchedError::EmptyUnit { job: J1, unit: 2 })
         );
         assert_eq!(s.offer_unit(J2, 0, 1), Err(SchedError::UnknownJob(J2)));
         assert_eq!(s.add_job(J1, 0, secs(1)), Err(SchedError::DuplicateJob(J1)));
@@ -1570,7 +1598,37 @@ mod tests {
             Err(SchedError::DuplicateWorker(W1))
         );
         assert_eq!(s.offer_unit(J1, 7, 3), Ok(()));
-        assert_eq!(s.ready(J1), 3);
+        assert_eq!(s.ready(J1), 4, "unit 1's tile and unit 7's three");
+    }
+
+    #[test]
+    fn overlapping_units_lease_the_older_units_tiles_first_and_complete_apart() {
+        let mut s = setup(&[W1, W2], 2);
+        s.offer_unit(J1, 1, 1).unwrap();
+        let leases: Vec<Lease> = (0..3)
+            .map(|i| s.next_lease([W1, W2][i % 2], Millis(0)).unwrap())
+            .collect();
+        let keys: Vec<(u64, u32)> = leases.iter().map(|l| (l.key.unit, l.key.tile)).collect();
+        assert_eq!(keys, [(0, 0), (0, 1), (1, 0)]);
+        // the later unit is in first: only its completion says so
+        let done = s.complete(W1, leases[2].id, secs(1)).unwrap();
+        assert!(done.unit_done);
+        assert!(s.unit_complete(J1, 1) && !s.unit_complete(J1, 0));
+        assert!(!s.complete(W1, leases[0].id, secs(1)).unwrap().unit_done);
+        // a lost worker's tile of the older unit goes back to the queue
+        let events = s.worker_lost(W2).unwrap();
+        assert!(matches!(&events[..], [Event::WorkerLost { returned, .. }] if returned.len() == 1));
+        assert_eq!(s.job_info(J1).unwrap().unit.unwrap().unit, 0);
+        let again = s.next_lease(W1, secs(2)).unwrap();
+        assert_eq!((again.key.unit, again.key.tile), (0, 1));
+        assert!(s.complete(W1, again.id, secs(2)).unwrap().unit_done);
+        assert!(s.unit_complete(J1, 0));
+        // both complete: the next offer drops their bookkeeping
+        s.offer_unit(J1, 2, 1).unwrap();
+        assert_eq!(
+            s.complete(W1, leases[2].id, secs(3)),
+            Err(Rejection::UnknownLease)
+        );
     }
 
     #[test]

@@ -65,7 +65,7 @@ pub use light::LightStats;
 pub use mapping::{dir_to_uv, uv_to_dir};
 pub use record::Record;
 pub use region::{CellMask, CellWeights, Restriction};
-pub use sdtree::{Leaf, LeafHandle, SdTree, TreeStats};
+pub use sdtree::{GradTarget, HeldSlot, Leaf, LeafHandle, SdTree, TreeStats};
 pub use stree::{SLookup, STree};
 pub use wire::WireError;
 

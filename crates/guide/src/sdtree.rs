@@ -43,8 +43,13 @@ pub struct Leaf {
     pub sampling: SamplingDTree,
     /// Learned-fraction state (logit and Adam moments).
     pub fraction: FractionState,
-    /// Exactly accumulated fraction gradients not yet stepped.
+    /// The batch the learned fraction steps on: exactly accumulated fraction gradients of
+    /// every record since the last refinement (see [`crate::fraction`]).
     pub grad: GradAccum,
+    /// Gradients of units whose step is deferred ([`GradTarget::Held`]), by unit parity: they
+    /// join `grad` at [`SdTree::fold_held`]. Not part of the wire form (empty whenever a tree
+    /// is published: between iterations).
+    pub held: [GradAccum; 2],
     /// Integral of the incident radiance over the sphere learned by `sampling`
     /// (`total / W` of the building tree when it was frozen; split children inherit it):
     /// `flux * pdf(direction)` estimates the incident radiance in that direction.
@@ -81,6 +86,7 @@ impl Leaf {
             sampling: DTree::new().freeze(),
             fraction: FractionState::default(),
             grad: GradAccum::default(),
+            held: Default::default(),
             flux: 0.0,
             alpha: alpha_of(0.0),
             light: LightStats::default(),
@@ -135,6 +141,57 @@ pub struct SdTree {
     /// Leaves recorded into since the last [`SdTree::take_stats`] or refinement (one bit a
     /// leaf): taking the statistics of a tile visits only those.
     pub(crate) touched: TouchedLeaves,
+    /// Where recorded fraction gradients go ([`SdTree::set_grad_target`]).
+    pub(crate) grad_target: GradTarget,
+}
+
+/// Where fraction gradients go when records are deposited or statistics applied.
+///
+/// The farm pipelines training passes: a pass samples with the fractions stepped on every
+/// pass but the one before it (which is still rendering), so the gradients of a unit are held
+/// apart until its step is due, and two units can be in flight at once (one slot each, by
+/// unit parity).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum GradTarget {
+    /// Straight into the batch the next [`SdTree::step_fractions`] steps on.
+    #[default]
+    Batch,
+    /// Into the held slot of a unit ([`HeldSlot::of_unit`]), until [`SdTree::fold_held`].
+    Held(HeldSlot),
+}
+
+/// One of the two held gradient slots of every leaf.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HeldSlot {
+    /// Units with an even number.
+    Even,
+    /// Units with an odd number.
+    Odd,
+}
+
+impl HeldSlot {
+    /// The slot of unit `unit`: consecutive units use different slots.
+    pub fn of_unit(unit: u64) -> Self {
+        if unit % 2 == 0 {
+            Self::Even
+        } else {
+            Self::Odd
+        }
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+impl Leaf {
+    /// The accumulator `target` names.
+    fn grad_of(&self, target: GradTarget) -> &GradAccum {
+        match target {
+            GradTarget::Batch => &self.grad,
+            GradTarget::Held(s) => &self.held[s.index()],
+        }
+    }
 }
 
 /// A set of leaf indices that many recording threads may add to: one bit a leaf.
@@ -195,6 +252,7 @@ impl Clone for SdTree {
             raised_rho: self.raised_rho,
             hash: self.hash.clone(),
             touched: self.touched.clone(),
+            grad_target: self.grad_target,
         }
     }
 }
@@ -224,6 +282,7 @@ impl SdTree {
             raised_rho: None,
             hash: OnceLock::new(),
             touched: TouchedLeaves::new(1),
+            grad_target: GradTarget::Batch,
         }
     }
 
@@ -537,7 +596,7 @@ impl SdTree {
         }
         if let FractionMode::Learned { loss } = self.config.bsdf_sampling_fraction {
             if !rec.is_delta && w_share > 0.0 {
-                l.grad.accumulate(
+                l.grad_of(self.grad_target).accumulate(
                     w_share,
                     loss,
                     rec.product,
@@ -573,6 +632,30 @@ impl SdTree {
         n
     }
 
+    /// Where recorded fraction gradients go from now on (and what [`SdTree::take_stats`]
+    /// takes): the batch by default.
+    pub fn set_grad_target(&mut self, target: GradTarget) {
+        self.grad_target = target;
+    }
+
+    /// Adds the gradients held in `slot` into the batch and empties the slot: the deferred
+    /// unit's step is due ([`GradTarget`]).
+    pub fn fold_held(&mut self, slot: HeldSlot) {
+        let mut of = 0u64;
+        for l in &self.leaves {
+            let held = &l.held[slot.index()];
+            if held.is_zero() {
+                continue;
+            }
+            let (pos, neg) = (held.pos.each_ref(), held.neg.each_ref());
+            let pos = pos.map(|a| a.get());
+            let neg = neg.map(|a| a.get());
+            l.grad.add_from(&pos, &neg, held.weight.get(), &mut of);
+            held.clear();
+        }
+        self.overflow.fetch_add(of, Relaxed);
+    }
+
     /// End of iteration `k` (0-based, the iteration whose records were just taken):
     /// 1. build every building quadtree bottom-up and make it the sampling tree
     ///    (`sampling := building`), and freeze each leaf's light-sample mean and deviation;
@@ -593,6 +676,7 @@ impl SdTree {
         let carry_q = crate::carry::quantise(self.config.carry_over);
         for l in &mut self.leaves {
             l.grad.clear();
+            l.held.iter().for_each(GradAccum::clear);
             if carry_q > 0 {
                 crate::carry::add_prior(&l.building, &l.prior, &self.overflow);
             }
@@ -791,16 +875,17 @@ impl SdTree {
             let Some(l) = self.leaves.get(i as usize) else {
                 continue;
             };
+            let grad = l.grad_of(self.grad_target);
             let mut ls = LeafStats {
                 leaf: i,
                 weight: take_nonzero(&l.building.weight),
-                grad_pos: std::array::from_fn(|k| take_nonzero(&l.grad.pos[k])),
-                grad_neg: std::array::from_fn(|k| take_nonzero(&l.grad.neg[k])),
-                grad_weight: take_nonzero(&l.grad.weight),
+                grad_pos: std::array::from_fn(|k| take_nonzero(&grad.pos[k])),
+                grad_neg: std::array::from_fn(|k| take_nonzero(&grad.neg[k])),
+                grad_weight: take_nonzero(&grad.weight),
                 light: l.light.take(),
                 nodes: Vec::new(),
             };
-            l.grad.stepped.set(0);
+            grad.stepped.set(0);
             for (ni, n) in l.building.nodes.iter().enumerate() {
                 let s = n.sums.each_ref().map(take_nonzero);
                 if s.iter().any(|&x| x != 0) {
@@ -821,9 +906,14 @@ impl SdTree {
     }
 
     /// Adds statistics (from [`SdTree::take_stats`] on trees with the same structure, possibly
-    /// merged) into this tree's building statistics, exactly (integer addition). Fails without
-    /// changing anything if the structure fingerprint or an index does not match.
-    pub fn apply_stats(&mut self, s: &IterationStats) -> Result<(), StatsError> {
+    /// merged) into this tree's building statistics, exactly (integer addition), the fraction
+    /// gradients into `target`. Fails without changing anything if the structure fingerprint
+    /// or an index does not match.
+    pub fn apply_stats(
+        &mut self,
+        s: &IterationStats,
+        target: GradTarget,
+    ) -> Result<(), StatsError> {
         if s.structure_hash != self.structure_hash() {
             return Err(StatsError::StructureMismatch);
         }
@@ -845,7 +935,7 @@ impl SdTree {
             l.building
                 .weight
                 .set(add_counted(l.building.weight.get(), ls.weight, &mut of));
-            l.grad
+            l.grad_of(target)
                 .add_from(&ls.grad_pos, &ls.grad_neg, ls.grad_weight, &mut of);
             let cur = l.light.sums();
             l.light.set_sums(std::array::from_fn(|k| {

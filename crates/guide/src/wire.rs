@@ -577,6 +577,7 @@ impl SdTree {
                 sampling,
                 fraction,
                 grad,
+                held: Default::default(),
                 flux,
                 alpha: crate::sdtree::alpha_of(fraction.theta),
                 light,
@@ -596,6 +597,7 @@ impl SdTree {
             raised_rho: None,
             hash: Default::default(),
             touched: crate::sdtree::TouchedLeaves::new(nl),
+            grad_target: Default::default(),
         })
     }
 }

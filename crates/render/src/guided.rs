@@ -3,8 +3,9 @@
 //! Iteration k renders `2^k` passes of `spp_per_pass` samples per pixel over
 //! the whole image with [`crate::integrator::guided_path`], recording into the
 //! SD-tree's building statistics (all but the final iteration); after every
-//! pass the learned fractions take their Adam steps, one per record of the pass
-//! ([`SdTree::step_fractions`]),
+//! pass the learned fractions take their Adam steps, one pass late (the
+//! session pipelines passes for the farm: [`crate::session`];
+//! [`SdTree::step_fractions`]),
 //! after every training iteration the tree is refined ([`SdTree::refine`]).
 //! The budget (spp or seconds) covers training and the final iteration
 //! ([`pathfarm_guide::schedule`]). The final image:
@@ -17,7 +18,7 @@
 //!
 //! Determinism: each pass is one [`render_into`] call whose sample `s` uses
 //! the stream of global sample index `spp_done + s`; recording into the tree is
-//! exact integer arithmetic and fractions step at pass boundaries, so image and
+//! exact integer arithmetic and fractions step at pass ends, so image and
 //! tree are bit-identical for any thread count (spp budgets; time budgets
 //! depend on the clock by nature).
 

@@ -8,14 +8,24 @@
 //! the pixel estimate and the ledger; it renders nothing, does no I/O and reads no clock: the
 //! driver passes `now` (seconds since the job started) to every call.
 //!
+//! Training passes are pipelined: a recording unit samples with the learned fractions stepped
+//! on every unit of its iteration but the one just before it, so unit `u` can be issued as
+//! soon as unit `u - 2` is in, while `u - 1` still renders (at most two units in flight, both
+//! recording, of one iteration). A unit's fraction gradients are held apart by unit parity
+//! ([`pathfarm_guide::GradTarget::Held`]) until its step is due: when the unit is in and the
+//! next one has been issued. The quality cost of the one-pass lag was measured:
+//! docs/decisions/fraction-steps-pipelined.md.
+//!
 //! Invariant (determinism): with an spp budget, the units, their order and every pixel's
 //! additions depend only on the job (scene, parameters, seed), never on the tiling, the
-//! driver or when results arrive: a unit's tiles cover disjoint pixels, a unit's film is
-//! merged into its target film in unit order, guide statistics are exact integers, and the
-//! fractions step once per recorded unit. Time budgets depend on `now` by nature.
+//! driver or when results arrive: a unit's tiles cover disjoint pixels, units end in unit
+//! order (a unit whose tiles are all in waits for the one before it), a unit's film is merged
+//! into its target film when it ends, guide statistics are exact integers, and the fractions
+//! step once per recorded unit, on the gradients of the units up to it, before the unit two
+//! after it is issued. Time budgets depend on `now` by nature.
 
 use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, IterationOutcome};
-use pathfarm_guide::{IterationStats, SdTree, StatsError};
+use pathfarm_guide::{GradTarget, HeldSlot, IterationStats, SdTree, StatsError};
 use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, In, Out};
@@ -52,7 +62,7 @@ impl FallbackPolicy {
 pub enum Next {
     /// Render this unit over every tile and hand the tiles to [`Session::add_tile`].
     Render(PassSpec),
-    /// A unit is being rendered: its tiles are not all in yet.
+    /// The units in flight must come in first.
     Wait,
     /// The job is done: take the result with [`Session::finish`].
     Done,
@@ -130,7 +140,9 @@ struct Iteration {
     until: IterationLength,
     /// Automatic combination stopped training: the rest of the budget goes into this film.
     stopped: bool,
+    /// Passes ended, and passes issued (ended or in flight).
     passes: u32,
+    issued: u32,
     last_pass: f64,
     film: Film,
     t0: f64,
@@ -185,7 +197,13 @@ pub struct Session {
     phase: Phase,
     k: u32,
     next_unit: u64,
-    pending: Option<Pending>,
+    /// Units in flight, oldest first: at most two, both recording units of one iteration.
+    pending: Vec<Pending>,
+    /// Recording units that ended but whose fraction step waits for the next unit's issue,
+    /// oldest first.
+    deferred: Vec<u64>,
+    /// When the last unit ended (per-pass timing while units overlap).
+    last_end: f64,
     spp_done: u64,
     passes_done: u32,
     training_spp: u64,
@@ -237,7 +255,9 @@ impl Session {
             phase: Phase::Plan,
             k: 0,
             next_unit: 0,
-            pending: None,
+            pending: Vec::new(),
+            deferred: Vec::new(),
+            last_end: 0.0,
             spp_done: 0,
             passes_done: 0,
             training_spp: 0,
@@ -301,19 +321,31 @@ impl Session {
         self.estimate_version
     }
 
-    /// The tiles of the unit in flight, or the default tiling units are issued with.
+    /// The tiles of the unit issued last if it is in flight, or the default tiling units
+    /// are issued with.
     pub fn tiles(&self) -> &[Region] {
-        match &self.pending {
+        match self.pending.last() {
             Some(p) => &p.tiles,
             None => &self.tiles,
         }
+    }
+
+    /// The tiles of unit `unit` if it is in flight.
+    pub fn tiles_of(&self, unit: u64) -> Option<&[Region]> {
+        let p = self.pending.iter().find(|p| p.spec.unit == unit)?;
+        Some(&p.tiles)
+    }
+
+    /// Units in flight.
+    pub fn in_flight(&self) -> usize {
+        self.pending.len()
     }
 
     /// Re-tiles the unit just issued, before any of its tiles is in: a farm sizes each
     /// unit's tiles to its work. Any tiling gives the same bits (each pixel's additions do
     /// not depend on its tile). `tiles` must be disjoint, non-empty and cover the image.
     pub fn retile(&mut self, tiles: Vec<Region>) -> Result<(), TileError> {
-        let Some(p) = self.pending.as_mut() else {
+        let Some(p) = self.pending.last_mut() else {
             return Err(TileError::NotRetilable("no unit is in flight"));
         };
         if p.left != p.tiles.len() {
@@ -345,9 +377,9 @@ impl Session {
         self.k
     }
 
-    /// Tiles accepted / total of the unit in flight.
+    /// Tiles accepted / total of the oldest unit in flight.
     pub fn tiles_done(&self) -> (usize, usize) {
-        match &self.pending {
+        match self.pending.first() {
             Some(p) => (p.tiles.len() - p.left, p.tiles.len()),
             None => (0, self.tiles.len()),
         }
@@ -367,10 +399,11 @@ impl Session {
         }
     }
 
-    /// The next unit to render, or `Wait` while one is in flight, or `Done`.
+    /// The next unit to render, or `Wait` while the units in flight must come in first, or
+    /// `Done`. A driver that can render two units at once calls it again after a `Render`.
     pub fn next(&mut self, now: f64) -> Next {
-        if self.pending.is_some() {
-            return Next::Wait;
+        if !self.pending.is_empty() {
+            return self.next_overlapping(now);
         }
         loop {
             let phase = std::mem::replace(&mut self.phase, Phase::Done);
@@ -417,8 +450,8 @@ impl Session {
         stats: Option<&IterationStats>,
         now: f64,
     ) -> Result<(), TileError> {
-        let expected = self.pending.as_ref().map(|p| p.spec.unit);
-        let Some(p) = self.pending.as_mut().filter(|p| p.spec.unit == unit) else {
+        let expected = self.pending.first().map(|p| p.spec.unit);
+        let Some(p) = self.pending.iter_mut().find(|p| p.spec.unit == unit) else {
             return Err(TileError::WrongUnit {
                 got: unit,
                 expected,
@@ -441,8 +474,9 @@ impl Session {
             if !p.spec.record() {
                 return Err(TileError::UnexpectedStats(index));
             }
+            let target = GradTarget::Held(HeldSlot::of_unit(unit));
             self.tree
-                .apply_stats(s)
+                .apply_stats(s, target)
                 .map_err(|source| TileError::Stats { index, source })?;
         }
         copy_region(&mut p.film, &out.film, tile);
@@ -454,11 +488,12 @@ impl Session {
         self.nonfinite_records += out.nonfinite_records;
         self.splits += out.split_paths;
         self.light_splits += out.extra_light_samples;
-        if p.left == 0 {
-            let p = self.pending.take().unwrap();
+        while self.pending.first().is_some_and(|p| p.left == 0) {
+            let p = self.pending.remove(0);
             self.end_unit(p, now);
-            self.settle(now);
         }
+        self.catch_up_steps();
+        self.settle(now);
         Ok(())
     }
 
@@ -516,7 +551,7 @@ impl Session {
     /// taken before the next [`Session::next`].
     fn settle(&mut self, now: f64) {
         let done = match &self.phase {
-            Phase::Iterate(it) => self.iteration_unit(it, now).is_none(),
+            Phase::Iterate(it) => self.pending.is_empty() && self.iteration_unit(it, now).is_none(),
             _ => false,
         };
         if done {
@@ -527,9 +562,72 @@ impl Session {
         }
     }
 
-    fn issue(&mut self, spec: PassSpec, now: f64) -> Next {
+    /// With a unit in flight: the next recording unit of the iteration if it may overlap it
+    /// (see the module documentation), else `Wait`.
+    fn next_overlapping(&mut self, now: f64) -> Next {
+        let overlappable = self.pending.len() == 1 && self.pending[0].spec.record();
+        let Phase::Iterate(it) = &self.phase else {
+            return Next::Wait;
+        };
+        if !overlappable {
+            return Next::Wait;
+        }
+        match self.iteration_unit(it, now) {
+            Some(spec) if spec.record() => self.issue(spec, now),
+            _ => Next::Wait,
+        }
+    }
+
+    /// Takes the deferred fraction steps that are due: a unit's once the unit after it has
+    /// been issued (it sampled with the fractions before that step).
+    fn catch_up_steps(&mut self) {
+        while let Some(&j) = self.deferred.first() {
+            if self.next_unit <= j + 1 {
+                break;
+            }
+            self.step_deferred();
+        }
+    }
+
+    /// Takes every deferred step: no unit is in flight and the next one is not a recording
+    /// unit of the same iteration, or the iteration ended.
+    fn flush_steps(&mut self) {
+        while !self.deferred.is_empty() {
+            self.step_deferred();
+        }
+    }
+
+    fn step_deferred(&mut self) {
+        let j = self.deferred.remove(0);
+        self.tree.fold_held(HeldSlot::of_unit(j));
+        self.tree.step_fractions();
+        self.fraction_version += 1;
+    }
+
+    /// Units issued but not ended: their samples are not in `spp_done` yet.
+    fn spp_issued(&self) -> u64 {
+        self.spp_done + self.pending.iter().map(|p| p.spec.unit_spp()).sum::<u64>()
+    }
+
+    /// Issues `spec` as unit `next_unit`, with the fractions its kind samples with: a
+    /// recording unit after the steps that are due, any other after every step.
+    fn issue(&mut self, mut spec: PassSpec, now: f64) -> Next {
+        if spec.record() {
+            self.catch_up_steps();
+        } else {
+            self.flush_steps();
+        }
+        spec.fraction_version = self.fraction_version;
         self.next_unit += 1;
-        self.pending = Some(Pending {
+        if let Phase::Iterate(it) = &mut self.phase {
+            it.issued += spec.passes;
+        }
+        if spec.record() {
+            // One process records straight into the tree: into the unit's held slot.
+            let slot = HeldSlot::of_unit(spec.unit);
+            self.tree.set_grad_target(GradTarget::Held(slot));
+        }
+        self.pending.push(Pending {
             spec,
             tiles: self.tiles.clone(),
             film: Film::new(self.width, self.height),
@@ -572,6 +670,7 @@ impl Session {
             until: plan.length,
             stopped: false,
             passes: 0,
+            issued: 0,
             last_pass: 0.0,
             film: Film::new(self.width, self.height),
             t0: now,
@@ -586,25 +685,25 @@ impl Session {
         }));
     }
 
-    /// The iteration's next unit, or `None` when its passes are done. Training passes are
-    /// one unit each: the learned fractions take their Adam steps between them, as in the
-    /// one-process render of the 2019 paper, so every training pass is a synchronisation
-    /// point of a farm (stepping once per iteration instead, measured with 8 paired seeds at
-    /// 64 spp, gave 1.2-2.6 % higher relMSE: docs/decisions/fraction-steps-per-pass.md). The
-    /// passes of an iteration that records nothing are one unit with an spp budget, one per
-    /// pass with a time budget (so the clock can end it).
+    /// The iteration's next unit (after the ones issued), or `None` when its passes are
+    /// issued. Training passes are one unit each: the learned fractions take their Adam steps
+    /// between them, one pass late, so that two can be in flight (stepping once per iteration
+    /// instead gave 1.2-2.6 % higher relMSE: docs/decisions/fraction-steps-per-pass.md; the
+    /// one-pass lag costs less: docs/decisions/fraction-steps-pipelined.md). The passes of an
+    /// iteration that records nothing are one unit with an spp budget, one per pass with a
+    /// time budget (so the clock can end it).
     fn iteration_unit(&self, it: &Iteration, now: f64) -> Option<PassSpec> {
         let passes = match it.until {
-            IterationLength::Passes(p) if it.passes >= p => return None,
-            IterationLength::Passes(p) => p - it.passes,
-            IterationLength::UntilSeconds(s) if it.passes > 0 && now + 0.5 * it.last_pass >= s => {
+            IterationLength::Passes(p) if it.issued >= p => return None,
+            IterationLength::Passes(p) => p - it.issued,
+            IterationLength::UntilSeconds(s) if it.issued > 0 && now + 0.5 * it.last_pass >= s => {
                 return None
             }
             IterationLength::UntilSeconds(_) => 1,
         };
         // The first pass of a training iteration checked by the path fallback is not
         // recorded: it times what a final, guided pass costs.
-        let probe = it.passes == 0 && it.record && self.checks();
+        let probe = it.issued == 0 && it.record && self.checks();
         let rec = it.record && !it.stopped && !probe;
         // Splitting only in passes that sample as the final image does (not in the
         // fallback's timed check pass: there it judged immature trees by split paths and
@@ -616,7 +715,7 @@ impl Session {
             PassKind::Guided
         };
         let n = if rec || probe { 1 } else { passes };
-        Some(self.spec(kind, self.spp_done, n, split))
+        Some(self.spec(kind, self.spp_issued(), n, split))
     }
 
     /// Whether an iteration sampling from the tree is checked by the fallback.
@@ -626,13 +725,13 @@ impl Session {
 
     fn end_unit(&mut self, p: Pending, now: f64) {
         let spec = p.spec;
-        let seconds = now - p.issued_at;
+        let seconds = now - p.issued_at.max(self.last_end);
+        self.last_end = now;
         match &mut self.phase {
             Phase::Iterate(it) => {
                 it.film.merge(&p.film);
                 if spec.record() {
-                    self.tree.step_fractions();
-                    self.fraction_version += 1;
+                    self.deferred.push(spec.unit);
                 }
                 it.last_pass = seconds / spec.passes.max(1) as f64;
                 if it.passes == 0 && it.record && !spec.record() && !it.stopped {
@@ -664,6 +763,7 @@ impl Session {
     /// iteration into the final one (the rest of the budget goes into its film); otherwise
     /// the iteration ends.
     fn end_passes(&mut self, mut it: Box<Iteration>, now: f64) {
+        self.flush_steps();
         let automatic = self.params.sample_combination == GuidedCombination::Automatic;
         if it.record && !it.stopped && automatic {
             let cost = match self.budget {
@@ -934,7 +1034,7 @@ impl Session {
     /// in flight and the next iteration is not planned yet): `None` otherwise. The tree is
     /// not in it: keep [`Session::tree`]'s encoding with it (a farm publishes that anyway).
     pub fn checkpoint(&self) -> Option<Checkpoint> {
-        if self.pending.is_some() || !matches!(self.phase, Phase::Plan) {
+        if !self.pending.is_empty() || !matches!(self.phase, Phase::Plan) {
             return None;
         }
         let mut o = Out::default();

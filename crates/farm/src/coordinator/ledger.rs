@@ -13,8 +13,11 @@ use super::Metrics;
 /// The accounts of the unit in flight.
 #[derive(Clone, Debug)]
 pub(crate) struct UnitLedger {
-    /// When its tiles were offered.
+    /// When its tiles were offered, and the same on the job's clock (seconds since the job
+    /// started: units of one iteration overlap, so an iteration's wall time is the span of
+    /// its units, not their sum).
     pub(crate) started: Instant,
+    pub(crate) job_s: f64,
     /// Seconds to encode and store the unit's inputs (tree, fractions, estimate).
     pub(crate) publish_s: f64,
     /// Sums over its accepted tiles of the workers' seconds.
@@ -40,6 +43,7 @@ impl Default for UnitLedger {
     fn default() -> Self {
         Self {
             started: Instant::now(),
+            job_s: 0.0,
             publish_s: 0.0,
             render_s: 0.0,
             prepare_s: 0.0,
@@ -64,10 +68,11 @@ pub(crate) struct TileTimes {
 }
 
 impl UnitLedger {
-    /// A unit whose inputs took `publish_s` to publish starts now.
-    pub(crate) fn start(publish_s: f64, metrics: &Metrics) -> Self {
+    /// A unit whose inputs took `publish_s` to publish starts now, `job_s` seconds into its job.
+    pub(crate) fn start(publish_s: f64, job_s: f64, metrics: &Metrics) -> Self {
         Self {
             publish_s,
+            job_s,
             blobs_sent_before: metrics.blob_bytes_sent.get(),
             ..Self::default()
         }
@@ -99,6 +104,7 @@ impl UnitLedger {
             iteration,
             kind,
             tiles = self.tiles,
+            job_s = self.job_s,
             wall_s = wall,
             render_s = self.render_s,
             prepare_s = self.prepare_s,

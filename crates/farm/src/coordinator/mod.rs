@@ -187,39 +187,56 @@ pub(crate) struct Active {
     pub(crate) session: Session,
     pub(crate) clock: Instant,
     pub(crate) seed: u64,
-    pub(crate) spec: Option<PassSpec>,
+    /// The units whose tiles are not all in, oldest first (at most two: training passes
+    /// overlap, see [`pathfarm_render::session`]).
+    pub(crate) flights: Vec<Flight>,
     /// The job's fixed tile edge, or `None` for tiles cut by cost ([`CostMap::tiles`]).
     pub(crate) tile: Option<u32>,
     /// What the image cost per sample in the job's earlier units.
     pub(crate) cost: CostMap,
-    /// Where the time and bytes of the unit in flight went.
-    pub(crate) ledger: UnitLedger,
     /// Checkpoints taken so far (a background write records its checkpoint only if no later
     /// one was taken meanwhile).
     pub(crate) checkpoint_seq: u64,
     /// The PNG preview of the image so far (updated at every iteration's end).
     pub(crate) preview: Option<Digest>,
     pub(crate) tree_digest: Option<(u32, Digest)>,
-    pub(crate) fractions_digest: Option<((u32, u32), Digest)>,
+    /// The fractions of the last two units issued (the units in flight are among them).
+    pub(crate) fractions_digests: Vec<((u32, u32), Digest)>,
     pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
     pub(crate) samples_total: u64,
 }
 
+/// A unit whose tiles are not all in.
+pub(crate) struct Flight {
+    pub(crate) spec: PassSpec,
+    /// Where its time and bytes went.
+    pub(crate) ledger: UnitLedger,
+}
+
 impl Active {
-    /// The blobs the job's unit in flight refers to: its published inputs (tree, fractions,
-    /// pixel estimate) and the preview.
+    /// The blobs the job's units in flight refer to: their published inputs (tree,
+    /// fractions, pixel estimate) and the preview.
     pub(crate) fn blobs(&self) -> Vec<Digest> {
         let estimate = self.estimate_digest.as_ref().map(|x| x.1.as_slice());
         let estimate = estimate.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest));
-        let published = [
-            self.tree_digest.map(|x| x.1),
-            self.fractions_digest.map(|x| x.1),
-        ];
-        published
+        let fractions = self.fractions_digests.iter().map(|x| x.1);
+        [self.tree_digest.map(|x| x.1), estimate, self.preview]
             .into_iter()
-            .chain([estimate, self.preview])
             .flatten()
+            .chain(fractions)
             .collect()
+    }
+
+    /// The unit in flight numbered `unit`.
+    pub(crate) fn flight(&self, unit: u64) -> Option<&Flight> {
+        self.flights.iter().find(|f| f.spec.unit == unit)
+    }
+
+    /// The digest of the fractions `spec` samples with.
+    fn fractions_of(&self, spec: &PassSpec) -> Option<Digest> {
+        let v = (spec.tree_version, spec.fraction_version);
+        let found = self.fractions_digests.iter().find(|x| x.0 == v);
+        found.map(|x| x.1)
     }
 }
 
@@ -456,17 +473,20 @@ impl Shared {
         })
     }
 
-    /// The unit `spec` of job `n` is complete: checkpoint the session (between iterations),
-    /// log the unit's accounts, and go on to the next unit.
-    pub(crate) fn end_unit(self: &Arc<Self>, st: &mut State, n: u64, spec: PassSpec) {
+    /// The unit `unit` of job `n` has all its tiles in: checkpoint the session (between
+    /// iterations), log the unit's accounts, and go on with the next units.
+    pub(crate) fn end_unit(self: &Arc<Self>, st: &mut State, n: u64, unit: u64) {
         let checkpoint_s = self.save_checkpoint(st, n);
         if checkpoint_s > 0.0 {
             self.update_preview(st, n);
         }
         if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
-            a.ledger.checkpoint_s = checkpoint_s;
-            let kind = format!("{:?}", spec.kind);
-            a.ledger.finish(&job_name(n), &spec, &kind, &self.metrics);
+            if let Some(i) = a.flights.iter().position(|f| f.spec.unit == unit) {
+                let mut f = a.flights.remove(i);
+                f.ledger.checkpoint_s = checkpoint_s;
+                let kind = format!("{:?}", f.spec.kind);
+                f.ledger.finish(&job_name(n), &f.spec, &kind, &self.metrics);
+            }
         }
         self.drive(st, n);
     }
@@ -546,35 +566,40 @@ impl Shared {
             session,
             clock: Instant::now(),
             seed: p.seed,
-            spec: None,
+            flights: Vec::new(),
             tile: p.tile,
             cost: CostMap::new(p.width, p.height),
-            ledger: UnitLedger::default(),
             checkpoint_seq: 0,
             preview: None,
             tree_digest: None,
-            fractions_digest: None,
+            fractions_digests: Vec::new(),
             estimate_digest: None,
             samples_total,
         });
         self.drive(st, n);
     }
 
-    /// Advances job `n`'s session: offers its next unit, or finishes the job.
+    /// Advances job `n`'s session: offers the units it issues (two at once when training
+    /// passes overlap), or finishes the job.
     pub(crate) fn drive(self: &Arc<Self>, st: &mut State, n: u64) {
+        while self.drive_once(st, n) {}
+    }
+
+    /// One [`Session::next`] of job `n`; true if it issued a unit (ask again).
+    fn drive_once(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
-            return;
+            return false;
         };
         let now = a.clock.elapsed().as_secs_f64();
         match a.session.next(now) {
-            Next::Wait => {}
+            Next::Wait => false,
             Next::Render(spec) => {
                 let publish_start = Instant::now();
                 match self.publish(a, &spec) {
                     Ok(replaced) => st.garbage.extend(replaced),
                     Err(e) => {
                         self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
-                        return;
+                        return false;
                     }
                 }
                 let publish_s = publish_start.elapsed().as_secs_f64();
@@ -587,11 +612,11 @@ impl Shared {
                 };
                 if let Err(e) = a.session.retile(tiling) {
                     self.fail_job(st, n, format!("tiling unit {}: {e}", spec.unit));
-                    return;
+                    return false;
                 }
                 let tiles = a.session.tiles().len() as u32;
-                a.ledger = UnitLedger::start(publish_s, &self.metrics);
-                a.spec = Some(spec);
+                let ledger = UnitLedger::start(publish_s, now, &self.metrics);
+                a.flights.push(Flight { spec, ledger });
                 tracing::info!(
                     job = %job_name(n),
                     unit = spec.unit,
@@ -602,9 +627,10 @@ impl Shared {
                 );
                 if let Err(e) = st.sched.offer_unit(JobId(n), spec.unit, tiles) {
                     self.fail_job(st, n, format!("scheduler: {e}"));
-                    return;
+                    return false;
                 }
                 self.publish_status(st, n);
+                true
             }
             Next::Done => {
                 let job = st.jobs.get_mut(&n).expect("checked");
@@ -625,6 +651,7 @@ impl Shared {
                 );
                 let shared = self.clone();
                 tokio::task::spawn_blocking(move || shared.assemble(n, film, tree, released));
+                false
             }
         }
     }
@@ -694,10 +721,13 @@ impl Shared {
             replaced.extend(a.tree_digest.replace((spec.tree_version, d)).map(|x| x.1));
         }
         let fv = (spec.tree_version, spec.fraction_version);
-        if a.fractions_digest.map(|(v, _)| v) != Some(fv) {
+        if a.fractions_of(spec).is_none() {
             let bytes = codec::encode_fractions(&a.session.tree().fraction_states());
             let d = self.blobs.put_unsynced(&bytes)?;
-            replaced.extend(a.fractions_digest.replace((fv, d)).map(|x| x.1));
+            a.fractions_digests.push((fv, d));
+            if a.fractions_digests.len() > 2 {
+                replaced.push(a.fractions_digests.remove(0).1);
+            }
         }
         let ev = a.session.estimate_version();
         if a.estimate_digest.as_ref().map(|(v, _)| *v) != Some(ev) {
@@ -842,15 +872,16 @@ impl Shared {
     ) -> Option<v1::LeaseOffer> {
         let job = st.jobs.get(&lease.key.job.0)?;
         let a = job.active.as_ref()?;
-        let spec = a.spec.as_ref()?;
+        let spec = &a.flight(lease.key.unit)?.spec;
         let request = job.record.request.as_ref()?;
-        let region = *a.session.tiles().get(lease.key.tile as usize)?;
+        let tiles = a.session.tiles_of(lease.key.unit)?;
+        let region = *tiles.get(lease.key.tile as usize)?;
         let mut pass = codec::spec_to_proto(spec);
         if spec.guide() || spec.record() {
             pass.tree_digest = a.tree_digest.map(|(_, d)| d.0.to_vec()).unwrap_or_default();
             pass.fractions_digest = a
-                .fractions_digest
-                .map(|(_, d)| d.0.to_vec())
+                .fractions_of(spec)
+                .map(|d| d.0.to_vec())
                 .unwrap_or_default();
         }
         if spec.kind != PassKind::Path {
@@ -921,10 +952,8 @@ impl Shared {
             .iter()
             .filter_map(|(&n, j)| {
                 let a = j.active.as_ref()?;
-                let idle = match a.spec {
-                    None => true,
-                    Some(spec) => st.sched.unit_complete(JobId(n), spec.unit),
-                };
+                // a resumed session, or one that may overlap its next unit
+                let idle = a.flights.len() < crate::scheduler::MAX_UNITS_IN_FLIGHT;
                 idle.then_some(n)
             })
             .collect();
@@ -1017,11 +1046,15 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         let (done, total) = a.session.tiles_done();
         s.iteration = a.session.iteration();
         s.tiles_done = done as u32;
-        s.tiles_total = if a.spec.is_some() { total as u32 } else { 0 };
+        s.tiles_total = if a.flights.is_empty() {
+            0
+        } else {
+            total as u32
+        };
         s.samples_total = a.samples_total;
         s.spp_done = a.session.spp_done();
         s.nonfinite = a.session.nonfinite();
-        if let Some(spec) = &a.spec {
+        if let Some(spec) = a.flights.first().map(|f| &f.spec) {
             s.unit = spec.unit;
             s.pass_kind = codec::spec_to_proto(spec).kind;
         }

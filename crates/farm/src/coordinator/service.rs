@@ -828,8 +828,9 @@ impl Svc {
             .jobs
             .get(&n)
             .and_then(|j| j.active.as_ref())
-            .filter(|a| a.spec.is_some_and(|s| s.unit == info.key.unit))
-            .and_then(|a| a.session.tiles().get(info.key.tile as usize).copied());
+            .filter(|a| a.flight(info.key.unit).is_some())
+            .and_then(|a| a.session.tiles_of(info.key.unit))
+            .and_then(|tiles| tiles.get(info.key.tile as usize).copied());
         let Some(region) = current else {
             return Ok(ack(
                 false,
@@ -887,7 +888,7 @@ impl Svc {
         let a = job.active.as_mut().expect("checked");
         let secs = a.clock.elapsed().as_secs_f64();
         let merge_start = std::time::Instant::now();
-        let spec = a.spec.expect("checked");
+        let spec = a.flight(info.key.unit).expect("checked").spec;
         if let Err(e) = a.session.add_tile(
             info.key.unit,
             info.key.tile as usize,
@@ -906,11 +907,13 @@ impl Svc {
         let samples = region.pixels() as u64 * spec.unit_spp();
         a.cost
             .record(region, c.render_seconds / samples.max(1) as f64);
+        let flight = a.flights.iter_mut().find(|f| f.spec.unit == spec.unit);
+        let ledger = &mut flight.expect("checked").ledger;
         if completion.unit_done {
-            a.ledger.end_s = merge_s;
-            a.ledger.tile(&c, &times, 0.0);
+            ledger.end_s = merge_s;
+            ledger.tile(&c, &times, 0.0);
         } else {
-            a.ledger.tile(&c, &times, merge_s);
+            ledger.tile(&c, &times, merge_s);
         }
         job.record.samples_done += samples;
         if let Some(w) = st.workers.get_mut(&info.worker.0) {
@@ -921,7 +924,7 @@ impl Svc {
             l.done = true;
         }
         if completion.unit_done {
-            shared.end_unit(&mut st, n, spec);
+            shared.end_unit(&mut st, n, spec.unit);
         }
         shared.publish_status(&st, n);
         shared.dispatch(&mut st);

@@ -3,6 +3,7 @@
 use super::*;
 use crate::config::{DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter};
 use crate::record::Record;
+use crate::sdtree::{GradTarget, HeldSlot};
 use crate::test_support::{det_records, record_all, warmed_tree, TestRng};
 
 #[test]
@@ -46,7 +47,7 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
         .iter()
         .any(|l| l.light[2] != 0 && l.light[0] != 0));
     let mut applied = base.clone();
-    applied.apply_stats(&merged).unwrap();
+    applied.apply_stats(&merged, GradTarget::Batch).unwrap();
     assert_eq!(applied.encode(), one.encode());
     assert_eq!(one.clone().take_stats(), merged);
     one.step_fractions();
@@ -57,7 +58,55 @@ fn merged_statistics_of_a_three_way_split_equal_one_place_recording() {
     assert!(one.leaves().iter().any(|l| l.light.std_dev > 0.0));
     // statistics of another structure are refused
     assert!(matches!(
-        one.apply_stats(&merged),
+        one.apply_stats(&merged, GradTarget::Batch),
         Err(crate::StatsError::StructureMismatch)
     ));
+}
+
+#[test]
+fn gradients_held_by_unit_and_folded_equal_gradients_recorded_into_the_batch() {
+    let cfg = GuideConfig {
+        bsdf_sampling_fraction: FractionMode::Learned {
+            loss: FractionLoss::Var,
+        },
+        ..GuideConfig::default()
+    };
+    let base = warmed_tree(cfg, 71, 4000, 2);
+    let (even, odd) = (det_records(6_000, 72), det_records(6_000, 73));
+    let mut one = base.clone();
+    record_all(&one, &even);
+    record_all(&one, &odd);
+    // one process: records go to the unit's slot directly
+    let mut held = base.clone();
+    held.set_grad_target(GradTarget::Held(HeldSlot::of_unit(4)));
+    record_all(&held, &even);
+    held.set_grad_target(GradTarget::Held(HeldSlot::of_unit(5)));
+    record_all(&held, &odd);
+    assert_eq!(
+        held.step_fractions(),
+        0,
+        "nothing is in the batch before a fold"
+    );
+    // a farm: a worker's statistics applied into the unit's slot
+    let mut shipped = base.clone();
+    for (unit, recs) in [(5, &odd), (4, &even)] {
+        let w = base.clone();
+        record_all(&w, recs);
+        let mut w = w;
+        let target = GradTarget::Held(HeldSlot::of_unit(unit));
+        shipped.apply_stats(&w.take_stats(), target).unwrap();
+    }
+    for t in [&mut held, &mut shipped] {
+        t.fold_held(HeldSlot::Even);
+        t.fold_held(HeldSlot::Odd);
+        assert!(t
+            .leaves()
+            .iter()
+            .all(|l| l.held.iter().all(|h| h.is_zero())));
+    }
+    assert!(one.step_fractions() > 0);
+    assert!(held.step_fractions() > 0);
+    assert!(shipped.step_fractions() > 0);
+    assert_eq!(held.encode(), one.encode());
+    assert_eq!(shipped.encode(), one.encode());
 }
