@@ -445,27 +445,7 @@ impl SdTree {
             w.u32(n.depth);
         }
         w.u32(self.leaves.len() as u32);
-        for l in &self.leaves {
-            let f = &l.fraction;
-            w.f64(f.theta);
-            w.f64(f.m);
-            w.f64(f.v);
-            w.u64(f.t);
-            for a in l.grad.pos.iter().chain(l.grad.neg.iter()) {
-                w.u128(a.get());
-            }
-            w.u128(l.grad.weight.get());
-            w.u128(l.grad.stepped.get());
-            w.f32(l.flux);
-            for x in l.light.sums() {
-                w.u128(x);
-            }
-            w.f32(l.light.mean);
-            w.f32(l.light.std_dev);
-            put_dtree(&mut w, &l.building);
-            put_dtree(&mut w, l.sampling.tree());
-            put_dtree(&mut w, &l.prior);
-        }
+        put_leaves(&mut w, &self.leaves);
         frame(MAGIC_TREE, w)
     }
 
@@ -600,6 +580,61 @@ impl SdTree {
             grad_target: Default::default(),
         })
     }
+}
+
+/// Leaves below which a tree is encoded on the calling thread alone.
+const LEAVES_PER_ENCODER: usize = 256;
+
+/// Appends every leaf's encoding, in order. A big tree's leaves are encoded in chunks on
+/// several threads (a farm encodes each new tree while every worker waits for it), each
+/// chunk into its own buffer, appended in order: the bytes are those of one thread.
+fn put_leaves(w: &mut W, leaves: &[Leaf]) {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let threads = cores.min(leaves.len() / LEAVES_PER_ENCODER).max(1);
+    if threads == 1 {
+        leaves.iter().for_each(|l| put_leaf(w, l));
+        return;
+    }
+    let chunk = leaves.len().div_ceil(threads);
+    let parts: Vec<Vec<u8>> = std::thread::scope(|scope| {
+        let encoders: Vec<_> = leaves
+            .chunks(chunk)
+            .map(|c| {
+                scope.spawn(move || {
+                    let mut part = W(Vec::new());
+                    c.iter().for_each(|l| put_leaf(&mut part, l));
+                    part.0
+                })
+            })
+            .collect();
+        let joined = encoders.into_iter().map(|e| e.join());
+        joined
+            .map(|r| r.expect("encoding a leaf cannot panic"))
+            .collect()
+    });
+    parts.iter().for_each(|p| w.0.extend_from_slice(p));
+}
+
+fn put_leaf(w: &mut W, l: &Leaf) {
+    let f = &l.fraction;
+    w.f64(f.theta);
+    w.f64(f.m);
+    w.f64(f.v);
+    w.u64(f.t);
+    for a in l.grad.pos.iter().chain(l.grad.neg.iter()) {
+        w.u128(a.get());
+    }
+    w.u128(l.grad.weight.get());
+    w.u128(l.grad.stepped.get());
+    w.f32(l.flux);
+    for x in l.light.sums() {
+        w.u128(x);
+    }
+    w.f32(l.light.mean);
+    w.f32(l.light.std_dev);
+    put_dtree(w, &l.building);
+    put_dtree(w, l.sampling.tree());
+    put_dtree(w, &l.prior);
 }
 
 // ---------------------------------------------------------------- statistics

@@ -117,3 +117,24 @@ fn compact_integers_round_trip_and_have_one_form() {
     );
     assert_eq!(decode(&[3, 1, 2]), Err(WireError::Truncated));
 }
+
+#[test]
+fn a_tree_of_many_leaves_encodes_on_several_threads_to_the_bytes_of_one() {
+    let cfg = GuideConfig {
+        s_tree_threshold: 4.0,
+        ..config_2019()
+    };
+    let t = warmed_tree(cfg, 81, 40_000, 2);
+    assert!(
+        t.leaves.len() >= 4 * LEAVES_PER_ENCODER,
+        "enough leaves for several encoders: {}",
+        t.leaves.len()
+    );
+    let mut parallel = W(Vec::new());
+    put_leaves(&mut parallel, &t.leaves);
+    let mut serial = W(Vec::new());
+    t.leaves.iter().for_each(|l| put_leaf(&mut serial, l));
+    assert!(parallel.0 == serial.0, "the leaves' bytes in order");
+    let back = SdTree::decode(&t.encode()).unwrap();
+    assert!(back == t);
+}
