@@ -68,6 +68,15 @@ struct Driven {
     overlapped: usize,
 }
 
+impl Driven {
+    /// Training passes overlapped at least `n` times (a test of the pipelined steps would be
+    /// vacuous otherwise).
+    fn assert_overlapped(&self, n: usize) {
+        let (got, kinds) = (self.overlapped, &self.kinds);
+        assert!(got >= n, "{got} units overlapped: {kinds:?}");
+    }
+}
+
 /// The session driven over `tile`-pixel tiles (0: each unit re-tiled with another tile
 /// size, as the farm re-tiles units by cost), with every unit the session issues taken at
 /// once (two when training passes overlap), the tiles of the units in flight handed in
@@ -248,12 +257,7 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
     let single = one_process(&scene, &params, 24, 7, keep);
     let d = render_tiled(&scene, &params, 24, 7, 8, 4, keep, Restarts::Never);
-    assert!(
-        d.overlapped >= 2,
-        "{} units overlapped: {:?}",
-        d.overlapped,
-        d.kinds
-    );
+    d.assert_overlapped(2);
     assert_same(
         &(d.film, d.tree),
         &single,
@@ -297,12 +301,7 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 40, 11, policy);
     let d = render_tiled(&scene, &params, 40, 11, 7, 2, policy, Restarts::Never);
-    assert!(
-        d.overlapped >= 4,
-        "{} units overlapped: {:?}",
-        d.overlapped,
-        d.kinds
-    );
+    d.assert_overlapped(4);
     assert_same(
         &(d.film, d.tree),
         &single,
