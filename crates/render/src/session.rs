@@ -336,11 +336,6 @@ impl Session {
         Some(&p.tiles)
     }
 
-    /// Units in flight.
-    pub fn in_flight(&self) -> usize {
-        self.pending.len()
-    }
-
     /// Re-tiles the unit just issued, before any of its tiles is in: a farm sizes each
     /// unit's tiles to its work. Any tiling gives the same bits (each pixel's additions do
     /// not depend on its tile). `tiles` must be disjoint, non-empty and cover the image.
