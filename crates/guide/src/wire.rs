@@ -10,7 +10,10 @@
 //! Statistics' sums and quadtree sums are written compactly: a length byte `n` (0..=16) and
 //! the value's `n` low bytes, no high zero byte (a sum of radiance near 1 takes 7-9 bytes
 //! rather than 16: about 40 % fewer bytes per touched node); quadtree sums are stored
-//! sparsely behind a 4-bit mask per node.
+//! sparsely behind a 4-bit mask per node; a quadtree node's children as a second 4-bit mask
+//! (in the same byte) and short distances between indices (v7; v6 wrote four `u32`s per
+//! node, 40 % of a tree); a leaf's carried prior without the structure it shares with the
+//! leaf's building tree.
 
 use crate::config::{
     AdamConfig, DirectionalFilter, FractionLoss, FractionMode, GuideConfig, SpatialFilter,
@@ -26,7 +29,7 @@ use glam::Vec3;
 use std::sync::atomic::AtomicU64;
 
 /// Format version written by this crate.
-pub const VERSION: u16 = 6;
+pub const VERSION: u16 = 7;
 /// Magic of a whole-tree frame.
 pub const MAGIC_TREE: [u8; 4] = *b"PFSD";
 /// Magic of an iteration-statistics frame.
@@ -84,14 +87,19 @@ impl W {
     fn u64(&mut self, v: u64) {
         self.0.extend_from_slice(&v.to_le_bytes());
     }
-    fn u128(&mut self, v: u128) {
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
     /// `v` compactly: its byte length, then that many low bytes.
     fn cu128(&mut self, v: u128) {
         let n = (128 - v.leading_zeros()).div_ceil(8) as usize;
         self.0.push(n as u8);
         self.0.extend_from_slice(&v.to_le_bytes()[..n]);
+    }
+    /// `v` in LEB128: seven bits a byte, low first, the high bit set on all but the last.
+    fn varint(&mut self, mut v: u64) {
+        while v >= 0x80 {
+            self.0.push((v as u8 & 0x7f) | 0x80);
+            v >>= 7;
+        }
+        self.0.push(v as u8);
     }
     fn f32(&mut self, v: f32) {
         self.u32(v.to_bits());
@@ -123,16 +131,12 @@ impl<'a> R<'a> {
     fn u64(&mut self) -> Result<u64, WireError> {
         Ok(u64::from_le_bytes(self.take(8)?.try_into().unwrap()))
     }
-    fn u128(&mut self) -> Result<u128, WireError> {
-        Ok(u128::from_le_bytes(self.take(16)?.try_into().unwrap()))
-    }
     fn f32(&mut self) -> Result<f32, WireError> {
         Ok(f32::from_bits(self.u32()?))
     }
     fn f64(&mut self) -> Result<f64, WireError> {
         Ok(f64::from_bits(self.u64()?))
     }
-    /// One `u128` per fraction-grid alpha.
     /// A value written by `W::cu128`; only its one (canonical) form is accepted, so that
     /// re-encoding a decoded frame gives the same bytes.
     fn cu128(&mut self) -> Result<u128, WireError> {
@@ -150,12 +154,21 @@ impl<'a> R<'a> {
         le[..n].copy_from_slice(b);
         Ok(u128::from_le_bytes(le))
     }
-    fn u128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
-        let mut v = [0u128; GRID_LEN];
-        for x in &mut v {
-            *x = self.u128()?;
+    /// A value written by `W::varint`, of at most 5 bytes (35 bits: child distances are
+    /// `u32`s), in its one shortest form.
+    fn varint(&mut self) -> Result<u64, WireError> {
+        let mut v = 0u64;
+        for k in 0..5 {
+            let b = self.u8()?;
+            v |= u64::from(b & 0x7f) << (7 * k);
+            if b & 0x80 == 0 {
+                if b == 0 && k > 0 {
+                    return Err(WireError::Malformed("variable-length integer not shortest"));
+                }
+                return Ok(v);
+            }
         }
-        Ok(v)
+        Err(WireError::Malformed("variable-length integer too long"))
     }
     fn cu128s(&mut self) -> Result<[u128; GRID_LEN], WireError> {
         let mut v = [0u128; GRID_LEN];
@@ -334,7 +347,12 @@ fn get_config(r: &mut R) -> Result<GuideConfig, WireError> {
 }
 
 fn put_sums(w: &mut W, sums: &[u128; 4]) {
-    let mut mask = 0u8;
+    put_sums_with(w, sums, 0);
+}
+
+/// The sums behind their 4-bit mask, `high` (a high nibble) or-ed into the mask's byte.
+fn put_sums_with(w: &mut W, sums: &[u128; 4], high: u8) {
+    let mut mask = high;
     for (q, &s) in sums.iter().enumerate() {
         if s != 0 {
             mask |= 1 << q;
@@ -349,10 +367,17 @@ fn put_sums(w: &mut W, sums: &[u128; 4]) {
 }
 
 fn get_sums(r: &mut R) -> Result<[u128; 4], WireError> {
-    let mask = r.u8()?;
-    if mask > 15 {
+    let (s, high) = get_sums_with(r)?;
+    if high != 0 {
         return Err(WireError::Malformed("sum mask"));
     }
+    Ok(s)
+}
+
+/// The sums written by [`put_sums_with`] and the high nibble of their mask's byte.
+fn get_sums_with(r: &mut R) -> Result<([u128; 4], u8), WireError> {
+    let byte = r.u8()?;
+    let mask = byte & 15;
     let mut s = [0u128; 4];
     for (q, v) in s.iter_mut().enumerate() {
         if mask & (1 << q) != 0 {
@@ -362,51 +387,61 @@ fn get_sums(r: &mut R) -> Result<[u128; 4], WireError> {
             }
         }
     }
-    Ok(s)
+    Ok((s, byte >> 4))
+}
+
+fn zigzag(v: i64) -> u64 {
+    ((v << 1) ^ (v >> 63)) as u64
+}
+
+fn unzigzag(v: u64) -> i64 {
+    ((v >> 1) as i64) ^ -((v & 1) as i64)
 }
 
 fn put_dtree(w: &mut W, t: &DTree) {
-    w.u128(t.weight.get());
+    w.cu128(t.weight.get());
     w.u32(t.nodes.len() as u32);
-    for n in &t.nodes {
-        for &c in &n.children {
-            w.u32(c);
+    for (i, n) in t.nodes.iter().enumerate() {
+        let sums = n.sums.each_ref().map(|s| s.get());
+        let child_mask = (0..4).fold(0u8, |m, q| m | (u8::from(n.children[q] != 0) << q));
+        put_sums_with(w, &sums, child_mask << 4);
+        put_children(w, i as u32, &n.children);
+    }
+}
+
+fn put_children(w: &mut W, i: u32, children: &[u32; 4]) {
+    let mut prev: Option<u32> = None;
+    for &c in children.iter().filter(|&&c| c != 0) {
+        match prev {
+            None => w.varint(u64::from(c - i - 1)),
+            Some(p) => w.varint(zigzag(i64::from(c) - i64::from(p) - 1)),
         }
-        put_sums(
-            w,
-            &[
-                n.sums[0].get(),
-                n.sums[1].get(),
-                n.sums[2].get(),
-                n.sums[3].get(),
-            ],
-        );
+        prev = Some(c);
+    }
+}
+
+/// A quadtree's nodes without their children (the structure is another tree's: a leaf's
+/// carried prior has its building tree's).
+fn put_dtree_sums(w: &mut W, t: &DTree) {
+    w.cu128(t.weight.get());
+    for n in &t.nodes {
+        put_sums(w, &n.sums.each_ref().map(|s| s.get()));
     }
 }
 
 fn get_dtree(r: &mut R) -> Result<DTree, WireError> {
-    let weight = r.u128()?;
-    let n = r.count(17)?;
+    let weight = r.cu128()?;
+    let n = r.count(1)?;
     if n == 0 {
         return Err(WireError::Malformed("empty quadtree"));
     }
     let mut nodes = Vec::with_capacity(n);
     let mut seen = vec![false; n];
     for i in 0..n {
-        let mut children = [0u32; 4];
-        for c in &mut children {
-            *c = r.u32()?;
-            if *c != 0 {
-                let ci = *c as usize;
-                if ci <= i || ci >= n || seen[ci] {
-                    return Err(WireError::Malformed("quadtree child index"));
-                }
-                seen[ci] = true;
-            }
-        }
-        let s = get_sums(r)?;
+        let (sums, child_mask) = get_sums_with(r)?;
+        let children = get_children(r, i, child_mask, &mut seen)?;
         nodes.push(DNode {
-            sums: s.map(Acc128::from_u128),
+            sums: sums.map(Acc128::from_u128),
             children,
         });
     }
@@ -421,6 +456,67 @@ fn get_dtree(r: &mut R) -> Result<DTree, WireError> {
         return Err(WireError::Malformed("quadtree too deep"));
     }
     Ok(t)
+}
+
+/// Node `i`'s children (`mask`: which quadrants have one); each must lie after `i`, inside
+/// the tree, and be nobody else's child.
+fn get_children(r: &mut R, i: usize, mask: u8, seen: &mut [bool]) -> Result<[u32; 4], WireError> {
+    let mut children = [0u32; 4];
+    let mut prev: Option<i64> = None;
+    for (q, c) in children.iter_mut().enumerate() {
+        if mask & (1 << q) == 0 {
+            continue;
+        }
+        let ci = match prev {
+            None => i as i64 + 1 + r.varint()? as i64,
+            Some(p) => p + 1 + unzigzag(r.varint()?),
+        };
+        if ci <= i as i64 || ci >= seen.len() as i64 || seen[ci as usize] {
+            return Err(WireError::Malformed("quadtree child index"));
+        }
+        seen[ci as usize] = true;
+        *c = ci as u32;
+        prev = Some(ci);
+    }
+    Ok(children)
+}
+
+/// A prior: `0` none (an empty quadtree), `1` the building tree's structure with these
+/// sums, `2` a structure of its own (which decoding rejects: see [`carry::fits`]).
+///
+/// [`carry::fits`]: crate::carry::fits
+fn put_prior(w: &mut W, prior: &DTree, building: &DTree) {
+    if crate::carry::is_empty(prior) {
+        w.u8(0);
+    } else if crate::carry::fits(prior, building) {
+        w.u8(1);
+        put_dtree_sums(w, prior);
+    } else {
+        w.u8(2);
+        put_dtree(w, prior);
+    }
+}
+
+fn get_prior(r: &mut R, building: &DTree) -> Result<DTree, WireError> {
+    match r.u8()? {
+        0 => Ok(DTree::new()),
+        1 => {
+            let weight = Acc128::from_u128(r.cu128()?);
+            let mut nodes = Vec::with_capacity(building.nodes.len());
+            for b in &building.nodes {
+                let sums = get_sums(r)?.map(Acc128::from_u128);
+                let children = b.children;
+                nodes.push(DNode { sums, children });
+            }
+            let prior = DTree { nodes, weight };
+            if crate::carry::is_empty(&prior) {
+                return Err(WireError::Malformed("an empty prior in the shared form"));
+            }
+            Ok(prior)
+        }
+        2 => get_dtree(r),
+        _ => Err(WireError::Malformed("prior form")),
+    }
 }
 
 impl SdTree {
@@ -472,7 +568,8 @@ impl SdTree {
                 depth: r.u32()?,
             });
         }
-        let nl = r.count(433)?;
+        // (a leaf takes at least 32 + 18 + 4 + 3 + 8 bytes, two 6-byte quadtrees, a prior tag)
+        let nl = r.count(78)?;
         // validate the S-tree
         if nn == 0 || !(size > 0.0) || !min.is_finite() {
             return Err(WireError::Malformed("spatial domain"));
@@ -522,19 +619,19 @@ impl SdTree {
                 t: r.u64()?,
             };
             let grad = GradAccum {
-                pos: r.u128s()?.map(Acc128::from_u128),
-                neg: r.u128s()?.map(Acc128::from_u128),
-                weight: Acc128::from_u128(r.u128()?),
-                stepped: Acc128::from_u128(r.u128()?),
+                pos: r.cu128s()?.map(Acc128::from_u128),
+                neg: r.cu128s()?.map(Acc128::from_u128),
+                weight: Acc128::from_u128(r.cu128()?),
+                stepped: Acc128::from_u128(r.cu128()?),
             };
             let flux = r.f32()?;
             if !(flux >= 0.0 && flux.is_finite()) {
                 return Err(WireError::Malformed("leaf flux"));
             }
             let light = LightStats {
-                sum: Acc128::from_u128(r.u128()?),
-                sum_sq: Acc128::from_u128(r.u128()?),
-                count: Acc128::from_u128(r.u128()?),
+                sum: Acc128::from_u128(r.cu128()?),
+                sum_sq: Acc128::from_u128(r.cu128()?),
+                count: Acc128::from_u128(r.cu128()?),
                 mean: r.f32()?,
                 std_dev: r.f32()?,
             };
@@ -547,7 +644,7 @@ impl SdTree {
             }
             let building = get_dtree(&mut r)?;
             let sampling = get_dtree(&mut r)?.freeze();
-            let prior = get_dtree(&mut r)?;
+            let prior = get_prior(&mut r, &building)?;
             // Carried statistics fit the building tree's structure, or there are none.
             if !crate::carry::fits(&prior, &building) {
                 return Err(WireError::Malformed("carried statistics' structure"));
@@ -622,19 +719,19 @@ fn put_leaf(w: &mut W, l: &Leaf) {
     w.f64(f.v);
     w.u64(f.t);
     for a in l.grad.pos.iter().chain(l.grad.neg.iter()) {
-        w.u128(a.get());
+        w.cu128(a.get());
     }
-    w.u128(l.grad.weight.get());
-    w.u128(l.grad.stepped.get());
+    w.cu128(l.grad.weight.get());
+    w.cu128(l.grad.stepped.get());
     w.f32(l.flux);
     for x in l.light.sums() {
-        w.u128(x);
+        w.cu128(x);
     }
     w.f32(l.light.mean);
     w.f32(l.light.std_dev);
     put_dtree(w, &l.building);
     put_dtree(w, l.sampling.tree());
-    put_dtree(w, &l.prior);
+    put_prior(w, &l.prior, &l.building);
 }
 
 // ---------------------------------------------------------------- statistics

@@ -138,3 +138,109 @@ fn a_tree_of_many_leaves_encodes_on_several_threads_to_the_bytes_of_one() {
     let back = SdTree::decode(&t.encode()).unwrap();
     assert!(back == t);
 }
+
+/// Variable-length integers round-trip, and only their shortest form of at most 5 bytes
+/// decodes; child distances survive zigzag in both directions.
+#[test]
+fn varints_round_trip_and_have_one_form() {
+    for v in [
+        0u64,
+        1,
+        127,
+        128,
+        300,
+        16_383,
+        16_384,
+        u64::from(u32::MAX),
+        (1 << 35) - 1,
+    ] {
+        let mut w = W(Vec::new());
+        w.varint(v);
+        let mut r = R { b: &w.0, p: 0 };
+        assert_eq!(r.varint(), Ok(v));
+        assert_eq!(r.p, w.0.len());
+    }
+    let decode = |b: &[u8]| R { b, p: 0 }.varint();
+    assert_eq!(
+        decode(&[0x81, 0x00]),
+        Err(WireError::Malformed("variable-length integer not shortest"))
+    );
+    assert_eq!(
+        decode(&[0xff; 6]),
+        Err(WireError::Malformed("variable-length integer too long"))
+    );
+    assert_eq!(decode(&[0x80]), Err(WireError::Truncated));
+    for v in [
+        0i64,
+        1,
+        -1,
+        5,
+        -5,
+        i64::from(u32::MAX),
+        -i64::from(u32::MAX),
+    ] {
+        assert_eq!(unzigzag(zigzag(v)), v);
+    }
+}
+
+/// A quadtree whose children are not where refinement puts them (a node's children in
+/// reverse order, far from their parent) survives the trip; a child index before its
+/// parent, past the end or shared is malformed, never a panic.
+#[test]
+fn quadtrees_of_any_layout_round_trip_and_bad_children_are_malformed() {
+    let mut t = DTree::uniform(1);
+    for _ in 0..8 {
+        t.nodes.push(DNode::default());
+    }
+    t.nodes[0].children = [8, 0, 3, 1];
+    t.nodes[1].children = [0, 2, 0, 0];
+    t.nodes[3].children = [7, 6, 5, 4];
+    t.nodes[5].sums[2] = Acc128::from_u128(12345);
+    let mut w = W(Vec::new());
+    put_dtree(&mut w, &t);
+    let mut r = R { b: &w.0, p: 0 };
+    assert_eq!(get_dtree(&mut r), Ok(t.clone()));
+    assert_eq!(r.p, w.0.len());
+
+    let bad = |children: [u32; 4]| {
+        let mut u = t.clone();
+        u.nodes[1].children = children;
+        let mut w = W(Vec::new());
+        put_dtree(&mut w, &u);
+        let got = get_dtree(&mut R { b: &w.0, p: 0 });
+        assert_eq!(got, Err(WireError::Malformed("quadtree child index")));
+    };
+    bad([0, 2, 4, 0]); // 4 is node 3's child too
+    bad([0, 2, 9, 0]); // past the end
+    let mut u = t.clone();
+    u.nodes[4].children = [0, 0, 0, 2]; // 2 is node 1's child and before 4
+    let mut w = W(Vec::new());
+    put_dtree(&mut w, &u);
+    assert!(get_dtree(&mut R { b: &w.0, p: 0 }).is_err());
+}
+
+/// The point of v7: a quadtree's structure costs a byte or two a node, not 17 (four `u32`
+/// children and the sums' mask), and a carried prior adds only its sums.
+#[test]
+fn a_quadtree_without_sums_costs_under_three_bytes_a_node() {
+    let t = DTree::uniform(8);
+    let mut w = W(Vec::new());
+    put_dtree(&mut w, &t);
+    let per_node = w.0.len() as f64 / t.nodes.len() as f64;
+    assert!(per_node < 3.0, "{per_node} bytes a node");
+
+    let mut prior = t.clone();
+    prior.nodes[7].sums[1] = Acc128::from_u128(99);
+    let mut w = W(Vec::new());
+    put_prior(&mut w, &prior, &t);
+    assert_eq!(
+        w.0.len(),
+        1 + 2 + t.nodes.len() + 1,
+        "tag, weight (none), masks, one one-byte sum"
+    );
+    assert_eq!(get_prior(&mut R { b: &w.0, p: 0 }, &t), Ok(prior));
+    let mut w = W(Vec::new());
+    put_prior(&mut w, &DTree::new(), &t);
+    assert_eq!(w.0, [0]);
+    assert_eq!(get_prior(&mut R { b: &w.0, p: 0 }, &t), Ok(DTree::new()));
+}
