@@ -19,9 +19,10 @@ Every farm image must be byte-identical to the render's (the script fails otherw
 Reported: the median wall time of each, the farm/render ratio per repetition, the peak
 resident memory of the render, the coordinator and a worker (VmHWM / ru_maxrss), and per
 training iteration (medians over repetitions of the coordinator's `unit finished` lines,
-summed over the iteration's units): wall seconds, rendering (worker CPU-seconds / worker
-threads), and the farm's own seconds: inputs (workers fetching and decoding trees,
-fractions, estimates; on the workers, divided by threads), serialise (workers), receive,
+summed over the iteration's units): wall seconds, rendering (the workers' seconds in their
+render calls / workers: a worker renders one tile at a time on all its threads), and the
+farm's own seconds: inputs (workers fetching and decoding trees, fractions, estimates; on
+the workers, divided by workers), serialise (workers), receive,
 decode and merge (coordinator), end (refinement at the iteration's end), checkpoint, publish
 (encoding the tree for broadcast), and the bytes uploaded and sent.
 
@@ -125,7 +126,7 @@ def parse_peaks(text):
     return peaks
 
 
-def per_iteration(units, threads):
+def per_iteration(units, workers):
     """Sums the unit lines of each iteration; its wall time is the span from its first unit's
     offer to its last unit's end (units of an iteration overlap)."""
     its = {}
@@ -140,7 +141,7 @@ def per_iteration(units, threads):
                     "merge_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"):
             v = float(u[key])
             if key in ("render_s", "prepare_s", "serialize_s"):
-                v /= threads  # worker seconds spread over the worker threads
+                v /= workers  # a worker renders one tile at a time on all its threads
             it[key] = it.get(key, 0.0) + v
     for it in its.values():
         lo, hi = it.pop("span")
@@ -370,11 +371,11 @@ def report(a, runs, threads):
         say(f"## Per training iteration: {kind}")
         say("")
         say("Seconds are medians over repetitions of the sums over the iteration's units; worker "
-            "seconds (render, inputs, serialise) are divided by the worker threads. `one process s`: "
+            "seconds (render, inputs, serialise) are divided by the workers. `one process s`: "
             "the iteration's time in `pathfarm render` (its log line); wall / one process is the "
             "farm's cost of the iteration, e.g. the final pass's throughput is its inverse.")
         say("")
-        its = [per_iteration(x["units"], threads) for x in rs]
+        its = [per_iteration(x["units"], a.workers) for x in rs]
         keys = sorted({k for it in its for k in it})
         cols = ["units", "wall_s", "render_s", "prepare_s", "serialize_s", "receive_s", "decode_s",
                 "merge_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"]

@@ -4,6 +4,7 @@ mod converge;
 mod cpu_time;
 mod farm_cmd;
 mod guide_cmd;
+mod heap;
 mod outfile;
 mod render_cmd;
 
@@ -52,6 +53,7 @@ enum Command {
 }
 
 fn main() {
+    heap::tune();
     let cli = Cli::parse();
     // converge renders dozens of times: each render's progress lines would bury its own
     // progress bar, so it logs warnings only unless RUST_LOG says otherwise.
