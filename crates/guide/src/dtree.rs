@@ -58,14 +58,14 @@ impl DNode {
     pub fn total(&self) -> u128 {
         self.sums.iter().fold(0u128, |a, s| a.wrapping_add(s.get()))
     }
+    /// The four quadrants' sums in fixed point.
+    #[inline]
+    pub(crate) fn sums_fixed(&self) -> [u128; 4] {
+        self.sums.each_ref().map(|s| s.get())
+    }
     #[inline]
     fn sums_f64(&self) -> [f64; 4] {
-        [
-            from_fixed(self.sums[0].get()),
-            from_fixed(self.sums[1].get()),
-            from_fixed(self.sums[2].get()),
-            from_fixed(self.sums[3].get()),
-        ]
+        self.sums_fixed().map(from_fixed)
     }
 }
 

@@ -402,7 +402,7 @@ fn put_dtree(w: &mut W, t: &DTree) {
     w.cu128(t.weight.get());
     w.u32(t.nodes.len() as u32);
     for (i, n) in t.nodes.iter().enumerate() {
-        let sums = n.sums.each_ref().map(|s| s.get());
+        let sums = n.sums_fixed();
         let child_mask = (0..4).fold(0u8, |m, q| m | (u8::from(n.children[q] != 0) << q));
         put_sums_with(w, &sums, child_mask << 4);
         put_children(w, i as u32, &n.children);
@@ -425,7 +425,7 @@ fn put_children(w: &mut W, i: u32, children: &[u32; 4]) {
 fn put_dtree_sums(w: &mut W, t: &DTree) {
     w.cu128(t.weight.get());
     for n in &t.nodes {
-        put_sums(w, &n.sums.each_ref().map(|s| s.get()));
+        put_sums(w, &n.sums_fixed());
     }
 }
 
