@@ -11,9 +11,11 @@ models a job of the same passes on N single-thread workers:
 
 where render is the workers' rendering seconds (all units) and central(N) is the
 coordinator's serial work, none of it assumed to overlap rendering (an upper bound):
-  * merge: receiving, decoding and applying the tiles' statistics and pixels; half of a
-    unit's measured merge time is counted per tile (statistics: 3 tiles per worker thread
-    per unit, the tiler's default before costs are known), half per pixel;
+  * merge: receiving, decoding and applying the uploads' statistics and pixels; half of a
+    unit's measured merge time is counted per statistics upload, half per pixel. Since
+    joint uploads (runs whose ledger has `uploads`), a worker uploads a unit's statistics
+    once: N uploads per unit; before them, each tile did: 3 tiles per worker thread per
+    unit, the tiler's default before costs are known;
   * refine and publish: refinement at each iteration's end and encoding the new tree, as
     measured (they do not depend on N);
   * broadcast: every worker fetches each new tree: tree bytes x N / the coordinator's
@@ -37,6 +39,9 @@ def med(xs):
 def parts(run):
     units = run["units"]
     tiles = sum(int(u["tiles"]) for u in units)
+    # ledgers before joint uploads have no `uploads`: every tile was an upload
+    uploads = sum(int(u.get("uploads", u["tiles"])) for u in units)
+    joint = all("uploads" in u for u in units)
     merge = sum(float(u["decode_s"]) + float(u["merge_s"]) + float(u["receive_s"]) for u in units)
     its = {}
     for u in units:
@@ -49,6 +54,8 @@ def parts(run):
     return {
         "units": len(units),
         "tiles_per_unit": tiles / max(len(units), 1),
+        "uploads_per_unit": uploads / max(len(units), 1),
+        "uploads_per_worker_unit": 1.0 if joint else 3.0,
         "merge_per_unit": merge / max(len(units), 1),
         "refine": refine,
         "publish": publish,
@@ -66,19 +73,23 @@ def main():
     a = ap.parse_args()
     runs = json.load(open(a.json))["cluster"]
     ps = [parts(r) for r in runs]
-    p = {k: med([x[k] for x in ps]) for k in ("units", "tiles_per_unit", "merge_per_unit", "refine", "publish", "render")}
+    keys = ("units", "tiles_per_unit", "uploads_per_unit", "uploads_per_worker_unit", "merge_per_unit",
+            "refine", "publish", "render")
+    p = {k: med([x[k] for x in ps]) for k in keys}
     trees = [sum(x["tree_bytes"]) / a.workers for x in ps]
     tree_total = med(trees)  # bytes of all tree versions one worker fetches
     bw = a.bandwidth_gbit * 1e9 / 8
     print(f"measured ({a.workers} workers, medians): {p['units']:.0f} units, render {p['render']:.1f} CPU-s, "
-          f"merge {p['merge_per_unit'] * 1e3:.0f} ms per unit of {p['tiles_per_unit']:.1f} tiles, "
+          f"merge {p['merge_per_unit'] * 1e3:.0f} ms per unit of {p['tiles_per_unit']:.1f} tiles "
+          f"in {p['uploads_per_unit']:.1f} uploads, "
           f"refine+checkpoint {p['refine']:.2f} s, publish {p['publish']:.2f} s, "
           f"trees fetched per worker {tree_total / 1e6:.0f} MB")
     for scale in [float(x) for x in a.scale.split(",")]:
         def central(n):
-            # half of a unit's merge is per tile (statistics), half per pixel (pixel sums)
-            per_tile = 0.5 * p["merge_per_unit"] / p["tiles_per_unit"]
-            merge = p["units"] * (per_tile * 3 * n + 0.5 * p["merge_per_unit"] * scale)
+            # half of a unit's merge is per statistics upload, half per pixel (pixel sums)
+            per_upload = 0.5 * p["merge_per_unit"] / p["uploads_per_unit"]
+            uploads = p["uploads_per_worker_unit"] * n
+            merge = p["units"] * (per_upload * uploads + 0.5 * p["merge_per_unit"] * scale)
             return merge + p["refine"] + p["publish"] + tree_total * n / bw, merge
 
         def share(n):

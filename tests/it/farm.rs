@@ -279,12 +279,15 @@ enum Security {
     Tls,
 }
 
-/// Tiles worker `i` has had accepted so far (from its log).
+/// Tiles worker `i` has had accepted so far (from its log: "... N tiles accepted" per
+/// upload).
 fn tiles_accepted(farm: &Farm, i: usize) -> usize {
-    farm.workers[i]
-        .stderr_text()
-        .matches("tile accepted")
-        .count()
+    let log = farm.workers[i].stderr_text();
+    let count = |line: &str| -> Option<usize> {
+        let (head, _) = line.split_once(" tiles accepted")?;
+        head.rsplit(' ').next()?.parse().ok()
+    };
+    log.lines().filter_map(count).sum()
 }
 
 /// Checkpoints the coordinator has recorded so far (from its log).

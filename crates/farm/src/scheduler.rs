@@ -132,8 +132,11 @@ pub struct SchedulerConfig {
     /// Counted failures (expiry, loss, reported failure) after which a tile fails its job
     /// (default 5; at least 1).
     pub max_attempts: u32,
-    /// Leases a worker may hold at once (default 3: one uploading, one rendering, one
-    /// prefetched; at least 1).
+    /// Leases a worker may hold at once (default 24, at least 1): a worker holds the tiles
+    /// of a unit it has rendered until it uploads them together (at most
+    /// [`crate::worker::MAX_JOINT_TILES`]), besides one rendering, one prefetched and an
+    /// upload in flight. The coordinator's offers follow the worker's requests; this is
+    /// the ceiling.
     pub leases_per_worker: u32,
 }
 
@@ -143,7 +146,7 @@ impl Default for SchedulerConfig {
             lease_timeout: Duration::from_secs(60),
             heartbeat_timeout: Duration::from_secs(15),
             max_attempts: 5,
-            leases_per_worker: 3,
+            leases_per_worker: 24,
         }
     }
 }
@@ -742,6 +745,45 @@ impl Scheduler {
         }
         let unit_done = unit_of(&mut self.jobs, key).remaining == 0;
         Ok(Completion { key, unit_done })
+    }
+
+    /// Accepts the results of several leases at once (a worker's joint upload of tiles of
+    /// one unit), all or none: if any lease is not this worker's live lease, nothing is
+    /// accepted and the first lease's rejection, in `leases` order, is returned (an upload
+    /// whose every lease was already accepted is a [`Rejection::Duplicate`], one with only
+    /// some accepted is [`Rejection::Superseded`]; a lease named twice is an
+    /// [`Rejection::UnknownLease`]). On success the
+    /// completions are in `leases` order; at most the last can have `unit_done`.
+    pub fn complete_all(
+        &mut self,
+        worker: WorkerId,
+        leases: &[LeaseId],
+        now: Millis,
+    ) -> Result<Vec<Completion>, Rejection> {
+        self.touch(worker, now);
+        let checks: Vec<Result<(), Rejection>> = leases
+            .iter()
+            .map(|&id| self.check(worker, id, now))
+            .collect();
+        if !checks.is_empty() && checks.iter().all(|c| *c == Err(Rejection::Duplicate)) {
+            return Err(Rejection::Duplicate);
+        }
+        if let Some(r) = checks.iter().find_map(|c| c.err()) {
+            // Some accepted, some not: never a retry of one upload (a worker uploads a
+            // joint set once, whole), so not a duplicate either.
+            return Err(match r {
+                Rejection::Duplicate => Rejection::Superseded,
+                r => r,
+            });
+        }
+        let mut seen = BTreeSet::new();
+        if leases.iter().any(|id| !seen.insert(*id)) {
+            return Err(Rejection::UnknownLease);
+        }
+        Ok(leases
+            .iter()
+            .map(|&id| self.complete(worker, id, now).expect("checked live"))
+            .collect())
     }
 
     /// The worker could not render the lease: its tile is queued again, counting an attempt.
@@ -1570,6 +1612,43 @@ mod tests {
     }
 
     #[test]
+    fn joint_completion_accepts_all_or_none() {
+        let mut s = setup(&[W1, W2], 4);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let b = s.next_lease(W1, Millis(0)).unwrap();
+        let c = s.next_lease(W2, Millis(0)).unwrap();
+        let d = s.next_lease(W1, Millis(0)).unwrap();
+        // One lease of another worker spoils the upload: nothing is accepted.
+        assert_eq!(
+            s.complete_all(W1, &[a.id, c.id], secs(1)),
+            Err(Rejection::WrongWorker)
+        );
+        assert_eq!((s.in_flight(J1), s.ready(J1)), (4, 0));
+        // A lease named twice is not a lease of this upload.
+        assert_eq!(
+            s.complete_all(W1, &[a.id, a.id], secs(1)),
+            Err(Rejection::UnknownLease)
+        );
+        assert_eq!(s.in_flight(J1), 4);
+        let done = s.complete_all(W1, &[b.id, a.id], secs(2)).unwrap();
+        let keys: Vec<_> = done.iter().map(|c| (c.key, c.unit_done)).collect();
+        assert_eq!(keys, vec![(b.key, false), (a.key, false)]);
+        assert_eq!(
+            s.complete_all(W1, &[a.id, b.id], secs(3)),
+            Err(Rejection::Duplicate)
+        );
+        // Accepted leases with a live one are not a retry: rejected whole.
+        assert_eq!(
+            s.complete_all(W1, &[a.id, d.id], secs(3)),
+            Err(Rejection::Superseded)
+        );
+        assert!(!s.complete(W2, c.id, secs(4)).unwrap().unit_done);
+        let last = s.complete_all(W1, &[d.id], secs(5)).unwrap();
+        assert!(last[0].unit_done);
+        assert!(s.unit_complete(J1, 0));
+    }
+
+    #[test]
     fn offer_unit_takes_units_in_order_with_at_most_two_incomplete() {
         let mut s = setup(&[W1], 1);
         assert_eq!(
@@ -1633,7 +1712,8 @@ mod tests {
 
     #[test]
     fn worker_lease_limit_is_respected() {
-        let mut s = setup(&[W1], 5);
+        let limit = SchedulerConfig::default().leases_per_worker;
+        let mut s = setup(&[W1], limit + 2);
         let limit = s.config().leases_per_worker;
         let a = s.next_lease(W1, Millis(0)).unwrap();
         for _ in 1..limit {

@@ -185,29 +185,31 @@ fn job_and_tile_messages_round_trip() {
     });
     round_trip(&v1::TileUpload {
         part: Some(tile_upload::Part::Header(v1::TileHeader {
-            lease_id: 77,
             job_id: "job-42".into(),
             unit: 5,
-            tile: Some(v1::Rect {
-                x0: 0,
-                y0: 0,
-                x1: 32,
-                y1: 32,
-            }),
-            counters: Some(v1::TileCounters {
-                rays: 1 << 33,
-                invalid_samples: 2,
-                split_paths: 300,
-                extra_light_samples: 40,
-                render_seconds: 1.25,
-                prepare_seconds: 0.5,
-                serialize_seconds: 0.0625,
-                nonfinite_records: 5,
-            }),
-            pixels_size: 32 * 32 * 16,
             stats_size: 0,
-            pixels_digest: digest(9),
             stats_digest: digest(10),
+            tiles: vec![v1::UploadedTile {
+                lease_id: 77,
+                tile: Some(v1::Rect {
+                    x0: 0,
+                    y0: 0,
+                    x1: 32,
+                    y1: 32,
+                }),
+                counters: Some(v1::TileCounters {
+                    rays: 1 << 33,
+                    invalid_samples: 2,
+                    split_paths: 300,
+                    extra_light_samples: 40,
+                    render_seconds: 1.25,
+                    prepare_seconds: 0.5,
+                    serialize_seconds: 0.0625,
+                    nonfinite_records: 5,
+                }),
+                pixels_size: 32 * 32 * 16,
+                pixels_digest: digest(9),
+            }],
         })),
     });
     round_trip(&v1::TileAck {
@@ -256,6 +258,6 @@ fn wire_form_is_stable() {
 
 #[test]
 fn constants() {
-    assert_eq!(PROTOCOL_VERSION, 1);
+    assert_eq!(PROTOCOL_VERSION, 2);
     assert_eq!(MAX_CHUNK_BYTES, 1_048_576);
 }

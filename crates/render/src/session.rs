@@ -445,6 +445,20 @@ impl Session {
         stats: Option<&IterationStats>,
         now: f64,
     ) -> Result<(), TileError> {
+        self.add_tiles(unit, &[(index, out)], stats, now)
+    }
+
+    /// Accepts several rendered tiles of `unit` at once, with the guide statistics of all of
+    /// them together (a worker that renders tiles of a unit one after the other into its
+    /// tree takes their statistics once: exact sums, the same as each tile's added up). All
+    /// or nothing: nothing changes on an error.
+    pub fn add_tiles(
+        &mut self,
+        unit: u64,
+        tiles: &[(usize, &TileOutput)],
+        stats: Option<&IterationStats>,
+        now: f64,
+    ) -> Result<(), TileError> {
         let expected = self.pending.first().map(|p| p.spec.unit);
         let Some(p) = self.pending.iter_mut().find(|p| p.spec.unit == unit) else {
             return Err(TileError::WrongUnit {
@@ -452,37 +466,36 @@ impl Session {
                 expected,
             });
         };
-        let Some(&tile) = p.tiles.get(index) else {
-            return Err(TileError::NoSuchTile(index));
-        };
-        if p.done[index] {
-            return Err(TileError::Duplicate(index));
-        }
-        if out.region != tile || out.film.pixels.len() != tile.pixels() {
-            return Err(TileError::WrongRegion {
-                index,
-                got: out.region,
-                expected: tile,
-            });
+        for (k, &(index, out)) in tiles.iter().enumerate() {
+            check_tile(p, index, out)?;
+            if tiles[..k].iter().any(|&(other, _)| other == index) {
+                return Err(TileError::Duplicate(index));
+            }
         }
         if let Some(s) = stats {
+            let first = tiles.first().map_or(0, |&(index, _)| index);
             if !p.spec.record() {
-                return Err(TileError::UnexpectedStats(index));
+                return Err(TileError::UnexpectedStats(first));
             }
             let target = GradTarget::Held(HeldSlot::of_unit(unit));
             self.tree
                 .apply_stats(s, target)
-                .map_err(|source| TileError::Stats { index, source })?;
+                .map_err(|source| TileError::Stats {
+                    index: first,
+                    source,
+                })?;
         }
-        copy_region(&mut p.film, &out.film, tile);
-        p.done[index] = true;
-        p.left -= 1;
-        self.rays += out.rays;
-        p.rays += out.rays;
-        self.invalid += out.invalid_samples;
-        self.nonfinite_records += out.nonfinite_records;
-        self.splits += out.split_paths;
-        self.light_splits += out.extra_light_samples;
+        for &(index, out) in tiles {
+            copy_region(&mut p.film, &out.film, p.tiles[index]);
+            p.done[index] = true;
+            p.left -= 1;
+            p.rays += out.rays;
+            self.rays += out.rays;
+            self.invalid += out.invalid_samples;
+            self.nonfinite_records += out.nonfinite_records;
+            self.splits += out.split_paths;
+            self.light_splits += out.extra_light_samples;
+        }
         while self.pending.first().is_some_and(|p| p.left == 0) {
             let p = self.pending.remove(0);
             self.end_unit(p, now);
@@ -1016,6 +1029,24 @@ impl Session {
 }
 
 /// Copies the `region`-sized `src` into `region` of the whole-image `dst`.
+/// Ok if `out` may be accepted as tile `index` of `p`.
+fn check_tile(p: &Pending, index: usize, out: &TileOutput) -> Result<(), TileError> {
+    let Some(&tile) = p.tiles.get(index) else {
+        return Err(TileError::NoSuchTile(index));
+    };
+    if p.done[index] {
+        return Err(TileError::Duplicate(index));
+    }
+    if out.region != tile || out.film.pixels.len() != tile.pixels() {
+        return Err(TileError::WrongRegion {
+            index,
+            got: out.region,
+            expected: tile,
+        });
+    }
+    Ok(())
+}
+
 fn copy_region(dst: &mut Film, src: &Film, region: Region) {
     let (rw, w) = (region.width() as usize, dst.width as usize);
     for (row, line) in src.pixels.chunks_exact(rw).enumerate() {

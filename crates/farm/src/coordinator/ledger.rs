@@ -37,6 +37,8 @@ pub(crate) struct UnitLedger {
     pub(crate) bytes_up: u64,
     blobs_sent_before: u64,
     pub(crate) tiles: u32,
+    /// Uploads accepted (each one or more tiles).
+    pub(crate) uploads: u32,
 }
 
 impl Default for UnitLedger {
@@ -56,11 +58,12 @@ impl Default for UnitLedger {
             bytes_up: 0,
             blobs_sent_before: 0,
             tiles: 0,
+            uploads: 0,
         }
     }
 }
 
-/// What the coordinator measured of one accepted tile.
+/// What the coordinator measured of one accepted upload.
 pub(crate) struct TileTimes {
     pub(crate) receive_s: f64,
     pub(crate) decode_s: f64,
@@ -78,16 +81,19 @@ impl UnitLedger {
         }
     }
 
-    /// Adds an accepted tile (`merge_s`: its hand-over to the session).
-    pub(crate) fn tile(&mut self, c: &v1::TileCounters, t: &TileTimes, merge_s: f64) {
-        self.render_s += c.render_seconds.max(0.0);
-        self.prepare_s += c.prepare_seconds.max(0.0);
-        self.serialize_s += c.serialize_seconds.max(0.0);
+    /// Adds an accepted upload of one or more tiles (`merge_s`: its hand-over to the session).
+    pub(crate) fn upload(&mut self, tiles: &[&v1::TileCounters], t: &TileTimes, merge_s: f64) {
+        for c in tiles {
+            self.render_s += c.render_seconds.max(0.0);
+            self.prepare_s += c.prepare_seconds.max(0.0);
+            self.serialize_s += c.serialize_seconds.max(0.0);
+        }
         self.receive_s += t.receive_s;
         self.decode_s += t.decode_s;
         self.merge_s += merge_s;
         self.bytes_up += t.bytes;
-        self.tiles += 1;
+        self.tiles += tiles.len() as u32;
+        self.uploads += 1;
     }
 
     /// Logs the finished unit and adds it to the metrics.
@@ -104,6 +110,7 @@ impl UnitLedger {
             iteration,
             kind,
             tiles = self.tiles,
+            uploads = self.uploads,
             job_s = self.job_s,
             wall_s = wall,
             render_s = self.render_s,

@@ -749,13 +749,10 @@ impl Workers for Svc {
             return corrupt("the first message of UploadTile must be a TileHeader");
         };
         let received = std::time::Instant::now();
-        let total = header.pixels_size.saturating_add(header.stats_size);
-        if header.pixels_size == 0 || total > 1 << 32 {
-            return corrupt(format!(
-                "payload sizes {} + {} are out of range",
-                header.pixels_size, header.stats_size
-            ));
-        }
+        let total = match payload_size(&header) {
+            Ok(t) => t,
+            Err(detail) => return corrupt(detail),
+        };
         let mut bytes = Vec::with_capacity(total as usize);
         while let Some(part) = stream.message().await? {
             match part.part {
@@ -783,6 +780,42 @@ impl Workers for Svc {
     }
 }
 
+/// The most tiles one upload may carry.
+pub const MAX_UPLOAD_TILES: usize = 64;
+
+/// The payload bytes `header` announces, or why it is malformed: no tile or too many, a
+/// tile without pixels, a lease named twice, more than 4 GiB.
+fn payload_size(header: &v1::TileHeader) -> Result<u64, String> {
+    let n = header.tiles.len();
+    if n == 0 || n > MAX_UPLOAD_TILES {
+        return Err(format!("{n} tiles in one upload (1 to {MAX_UPLOAD_TILES})"));
+    }
+    let mut ids: Vec<u64> = header.tiles.iter().map(|t| t.lease_id).collect();
+    ids.sort_unstable();
+    if ids.windows(2).any(|w| w[0] == w[1]) {
+        return Err("a lease named twice in one upload".into());
+    }
+    let mut total = header.stats_size;
+    for t in &header.tiles {
+        if t.pixels_size == 0 {
+            return Err(format!("lease {}: no pixel sums", t.lease_id));
+        }
+        total = total.saturating_add(t.pixels_size);
+    }
+    if total > 1 << 32 {
+        return Err(format!("payload of {total} bytes is over 4 GiB"));
+    }
+    Ok(total)
+}
+
+/// A tile of an upload, checked against its lease and decoded.
+struct Accepting {
+    lease: LeaseId,
+    index: usize,
+    out: TileOutput,
+    counters: v1::TileCounters,
+}
+
 impl Svc {
     fn count_fetch(&self, path: &std::path::Path) {
         if let Ok(meta) = std::fs::metadata(path) {
@@ -798,9 +831,18 @@ impl Svc {
     ) -> Result<Response<v1::TileAck>, Status> {
         let decode_start = std::time::Instant::now();
         let total = bytes.len() as u64;
-        let (pixels, stats_bytes) = bytes.split_at(header.pixels_size as usize);
-        if digest_of(pixels).0.as_slice() != header.pixels_digest.as_slice() {
-            return corrupt("pixels_digest does not match the pixel payload");
+        let (mut pixels, stats_bytes) = bytes.split_at(total as usize - header.stats_size as usize);
+        let mut parts = Vec::with_capacity(header.tiles.len());
+        for t in &header.tiles {
+            let (mine, rest) = pixels.split_at(t.pixels_size as usize);
+            if digest_of(mine).0.as_slice() != t.pixels_digest.as_slice() {
+                return corrupt(format!(
+                    "lease {}: pixels_digest does not match",
+                    t.lease_id
+                ));
+            }
+            parts.push(mine);
+            pixels = rest;
         }
         if digest_of(stats_bytes).0.as_slice() != header.stats_digest.as_slice() {
             return corrupt("stats_digest does not match the statistics payload");
@@ -813,51 +855,20 @@ impl Svc {
                 Err(e) => return corrupt(format!("statistics: {e}")),
             }
         };
-        // Decoding is timed apart from waiting for the state lock (another tile's merge, a
+        // Decoding is timed apart from waiting for the state lock (another upload's merge, a
         // unit's end, a checkpoint): the ledger's decode column is CPU, not queueing.
         let mut decode_s = decode_start.elapsed().as_secs_f64();
         let shared = &self.shared;
         let mut st = shared.lock();
-        let lease_id = header.lease_id;
-        let Some(info) = st.leases.get(&lease_id).copied() else {
-            return Ok(ack(
-                false,
-                v1::TileRejectReason::UnknownLease,
-                format!("lease {lease_id} is not known"),
-            ));
-        };
-        let n = info.key.job.0;
-        let current = st
-            .jobs
-            .get(&n)
-            .and_then(|j| j.active.as_ref())
-            .filter(|a| a.flight(info.key.unit).is_some())
-            .and_then(|a| a.session.tiles_of(info.key.unit))
-            .and_then(|tiles| tiles.get(info.key.tile as usize).copied());
-        let Some(region) = current else {
-            return Ok(ack(
-                false,
-                v1::TileRejectReason::Superseded,
-                format!("unit {} of {} is over", info.key.unit, job_name(n)),
-            ));
-        };
-        if header.job_id != job_name(n)
-            || header.unit != info.key.unit
-            || header.tile != Some(codec::region_to_proto(region))
-        {
-            return corrupt(format!(
-                "header job/unit/tile do not match lease {lease_id} ({})",
-                info.key
-            ));
-        }
         let pixels_start = std::time::Instant::now();
-        let film = match codec::decode_pixels(pixels, region) {
-            Ok(f) => f,
-            Err(e) => return corrupt(format!("pixels: {e}")),
+        let (n, worker, unit, tiles) = match self.check_tiles(&st, &header, &parts) {
+            Ok(checked) => checked,
+            Err(a) => return Ok(self.refuse(&mut st, &header, Response::new(a))),
         };
         decode_s += pixels_start.elapsed().as_secs_f64();
         let now = shared.now();
-        let completion = match st.sched.complete(info.worker, LeaseId(lease_id), now) {
+        let ids: Vec<LeaseId> = tiles.iter().map(|t| t.lease).collect();
+        let completions = match st.sched.complete_all(worker, &ids, now) {
             Ok(c) => c,
             Err(Rejection::Duplicate) => {
                 let mut a = ack(true, v1::TileRejectReason::Unspecified, String::new());
@@ -870,20 +881,11 @@ impl Svc {
                     Rejection::Expired => v1::TileRejectReason::Expired,
                     _ => v1::TileRejectReason::Superseded,
                 };
-                tracing::info!(job = %job_name(n), lease = lease_id, "tile rejected: {r}");
-                return Ok(ack(false, reason, r.to_string()));
+                tracing::info!(job = %job_name(n), leases = ?ids, "tiles rejected: {r}");
+                return Ok(self.refuse(&mut st, &header, ack(false, reason, r.to_string())));
             }
         };
-        let c = header.counters.unwrap_or_default();
-        let out = TileOutput {
-            region,
-            film,
-            rays: c.rays,
-            invalid_samples: c.invalid_samples,
-            nonfinite_records: c.nonfinite_records,
-            split_paths: c.split_paths,
-            extra_light_samples: c.extra_light_samples,
-        };
+        let unit_done = completions.last().is_some_and(|c| c.unit_done);
         let times = TileTimes {
             receive_s,
             decode_s,
@@ -893,46 +895,157 @@ impl Svc {
         let a = job.active.as_mut().expect("checked");
         let secs = a.clock.elapsed().as_secs_f64();
         let merge_start = std::time::Instant::now();
-        let spec = a.flight(info.key.unit).expect("checked").spec;
-        if let Err(e) = a.session.add_tile(
-            info.key.unit,
-            info.key.tile as usize,
-            &out,
-            stats.as_ref(),
-            secs,
-        ) {
-            shared.fail_job(
-                &mut st,
-                n,
-                format!("tile {} rejected by the session: {e}", info.key),
-            );
+        let spec = a.flight(unit).expect("checked").spec;
+        let outs: Vec<(usize, &TileOutput)> = tiles.iter().map(|t| (t.index, &t.out)).collect();
+        if let Err(e) = a.session.add_tiles(unit, &outs, stats.as_ref(), secs) {
+            let reason = format!("tiles {ids:?} rejected by the session: {e}");
+            shared.fail_job(&mut st, n, reason);
             return Ok(ack(false, v1::TileRejectReason::Superseded, e.to_string()));
         }
         let merge_s = merge_start.elapsed().as_secs_f64();
-        let samples = region.pixels() as u64 * spec.unit_spp();
-        a.cost
-            .record(region, c.render_seconds / samples.max(1) as f64);
+        let mut samples = 0;
+        for t in &tiles {
+            let s = t.out.region.pixels() as u64 * spec.unit_spp();
+            a.cost
+                .record(t.out.region, t.counters.render_seconds / s.max(1) as f64);
+            samples += s;
+        }
         let flight = a.flights.iter_mut().find(|f| f.spec.unit == spec.unit);
         let ledger = &mut flight.expect("checked").ledger;
-        if completion.unit_done {
+        let counters: Vec<&v1::TileCounters> = tiles.iter().map(|t| &t.counters).collect();
+        if unit_done {
             ledger.end_s = merge_s;
-            ledger.tile(&c, &times, 0.0);
+            ledger.upload(&counters, &times, 0.0);
         } else {
-            ledger.tile(&c, &times, merge_s);
+            ledger.upload(&counters, &times, merge_s);
         }
         job.record.samples_done += samples;
-        if let Some(w) = st.workers.get_mut(&info.worker.0) {
-            w.tiles_done += 1;
+        if let Some(w) = st.workers.get_mut(&worker.0) {
+            w.tiles_done += tiles.len() as u64;
         }
-        tracing::debug!(job = %job_name(n), lease = lease_id, tile = info.key.tile, unit = info.key.unit, "tile accepted");
-        if let Some(l) = st.leases.get_mut(&lease_id) {
-            l.done = true;
+        tracing::debug!(job = %job_name(n), leases = ?ids, unit, "tiles accepted");
+        for id in &ids {
+            if let Some(l) = st.leases.get_mut(&id.0) {
+                l.done = true;
+            }
         }
-        if completion.unit_done {
+        if unit_done {
             shared.end_unit(&mut st, n, spec.unit);
         }
         shared.publish_status(&st, n);
         shared.dispatch(&mut st);
         Ok(ack(true, v1::TileRejectReason::Unspecified, String::new()))
     }
+
+    /// Checks every tile of an upload against its lease (one worker, the header's job and
+    /// unit, a unit still in flight, the lease's region) and decodes its pixels; the answer
+    /// to give when one does not pass.
+    fn check_tiles(
+        &self,
+        st: &State,
+        header: &v1::TileHeader,
+        parts: &[&[u8]],
+    ) -> Result<(u64, WorkerId, u64, Vec<Accepting>), v1::TileAck> {
+        let mut out = Vec::with_capacity(parts.len());
+        let mut owner: Option<(WorkerId, TaskKey)> = None;
+        for (t, bytes) in header.tiles.iter().zip(parts) {
+            let lease_id = t.lease_id;
+            let Some(info) = st.leases.get(&lease_id).copied() else {
+                return Err(ack(
+                    false,
+                    v1::TileRejectReason::UnknownLease,
+                    format!("lease {lease_id} is not known"),
+                )
+                .into_inner());
+            };
+            let (worker, first) = *owner.get_or_insert((info.worker, info.key));
+            let n = info.key.job.0;
+            if info.worker != worker
+                || info.key.job != first.job
+                || info.key.unit != first.unit
+                || header.job_id != job_name(n)
+                || header.unit != info.key.unit
+            {
+                return Err(corrupt_ack(format!(
+                    "lease {lease_id} ({}) does not belong with the upload's job {} unit {} \
+                     and first lease ({first})",
+                    info.key, header.job_id, header.unit
+                )));
+            }
+            let current = st
+                .jobs
+                .get(&n)
+                .and_then(|j| j.active.as_ref())
+                .filter(|a| a.flight(info.key.unit).is_some())
+                .and_then(|a| a.session.tiles_of(info.key.unit))
+                .and_then(|tiles| tiles.get(info.key.tile as usize).copied());
+            let Some(region) = current else {
+                return Err(ack(
+                    false,
+                    v1::TileRejectReason::Superseded,
+                    format!("unit {} of {} is over", info.key.unit, job_name(n)),
+                )
+                .into_inner());
+            };
+            if t.tile != Some(codec::region_to_proto(region)) {
+                return Err(corrupt_ack(format!(
+                    "the tile of lease {lease_id} is not its lease's ({})",
+                    info.key
+                )));
+            }
+            let film = codec::decode_pixels(bytes, region)
+                .map_err(|e| corrupt_ack(format!("lease {lease_id}: pixels: {e}")))?;
+            let c = t.counters.unwrap_or_default();
+            out.push(Accepting {
+                lease: LeaseId(lease_id),
+                index: info.key.tile as usize,
+                out: TileOutput {
+                    region,
+                    film,
+                    rays: c.rays,
+                    invalid_samples: c.invalid_samples,
+                    nonfinite_records: c.nonfinite_records,
+                    split_paths: c.split_paths,
+                    extra_light_samples: c.extra_light_samples,
+                },
+                counters: c,
+            });
+        }
+        let (worker, key) = owner.expect("an upload has at least one tile");
+        Ok((key.job.0, worker, key.unit, out))
+    }
+
+    /// Answers a rejected upload: the worker keeps nothing of it, so the leases it names
+    /// that were still valid go back to the queue now (without counting an attempt) instead
+    /// of waiting out their deadlines.
+    fn refuse(
+        &self,
+        st: &mut State,
+        header: &v1::TileHeader,
+        answer: Response<v1::TileAck>,
+    ) -> Response<v1::TileAck> {
+        let now = self.shared.now();
+        let known = |t: &v1::UploadedTile| st.leases.get(&t.lease_id).map(|i| i.worker);
+        // The upload's owner is the holder of its first known lease; another worker's
+        // leases named in it (a corrupt upload) are left alone.
+        let Some(owner) = header.tiles.iter().find_map(known) else {
+            return answer;
+        };
+        let ids: Vec<LeaseId> = header
+            .tiles
+            .iter()
+            .filter(|t| known(t) == Some(owner))
+            .map(|t| LeaseId(t.lease_id))
+            .collect();
+        let returned = st.sched.hand_back(owner, &ids, now).map_or(0, |k| k.len());
+        if returned > 0 {
+            tracing::info!(job = %header.job_id, returned, "valid leases of a rejected upload returned");
+            self.shared.dispatch(st);
+        }
+        answer
+    }
+}
+
+fn corrupt_ack(detail: String) -> v1::TileAck {
+    ack(false, v1::TileRejectReason::Corrupt, detail).into_inner()
 }

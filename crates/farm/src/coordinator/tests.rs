@@ -293,7 +293,7 @@ async fn worker_with_other_protocol_is_refused() {
     let mut workers = WorkersClient::new(c.channel().await);
     let register = v1::WorkerMessage {
         msg: Some(v1::worker_message::Msg::Register(v1::Register {
-            protocol_version: 2,
+            protocol_version: pathfarm_proto::PROTOCOL_VERSION + 1,
             build_id: crate::build::build_id().to_string(),
             threads: 1,
             host_name: "test".into(),
@@ -307,7 +307,12 @@ async fn worker_with_other_protocol_is_refused() {
         panic!("expected Refused, got {first:?}");
     };
     assert!(
-        r.reason.contains("worker protocol 2") && r.reason.contains("coordinator 1"),
+        r.reason.contains(&format!(
+            "worker protocol {}",
+            pathfarm_proto::PROTOCOL_VERSION + 1
+        )) && r
+            .reason
+            .contains(&format!("coordinator {}", pathfarm_proto::PROTOCOL_VERSION)),
         "{}",
         r.reason
     );
@@ -535,15 +540,17 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
         };
         let pixels = codec::encode_pixels(&out.film);
         let header = v1::TileHeader {
-            lease_id: lease.lease_id,
             job_id: lease.job_id.clone(),
             unit: pass.unit,
-            tile: lease.tile,
-            counters: Some(codec::tile_counters(&out)),
-            pixels_size: pixels.len() as u64,
             stats_size: stats.len() as u64,
-            pixels_digest: digest_of(&pixels).0.to_vec(),
             stats_digest: digest_of(&stats).0.to_vec(),
+            tiles: vec![v1::UploadedTile {
+                lease_id: lease.lease_id,
+                tile: lease.tile,
+                counters: Some(codec::tile_counters(&out)),
+                pixels_size: pixels.len() as u64,
+                pixels_digest: digest_of(&pixels).0.to_vec(),
+            }],
         };
         let mut parts = vec![v1::TileUpload {
             part: Some(v1::tile_upload::Part::Header(header)),
@@ -683,6 +690,142 @@ async fn metrics_report_jobs_by_state() {
     assert!(text.starts_with("HTTP/1.1 200"), "{text}");
     assert!(text.contains("pathfarm_jobs{state=\"queued\"} 1"), "{text}");
     assert!(text.contains("pathfarm_workers 0"), "{text}");
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}
+
+/// Registers a fake worker asking for `slots` leases; returns its sender and control stream.
+async fn fake_worker(
+    workers: &mut WorkersClient<Channel>,
+    slots: u32,
+) -> (
+    tokio::sync::mpsc::Sender<v1::WorkerMessage>,
+    tonic::Streaming<v1::CoordinatorMessage>,
+) {
+    use v1::worker_message::Msg as W;
+    let (tx, rx) = tokio::sync::mpsc::channel(16);
+    let send = |m| v1::WorkerMessage { msg: Some(m) };
+    let register = W::Register(v1::Register {
+        protocol_version: pathfarm_proto::PROTOCOL_VERSION,
+        build_id: crate::build::build_id().to_string(),
+        threads: 1,
+        host_name: "test".into(),
+        worker_name: "fake".into(),
+    });
+    tx.send(send(register)).await.unwrap();
+    let more = W::RequestWork(v1::RequestWork { slots });
+    tx.send(send(more)).await.unwrap();
+    let (inbound, m) = open_control(workers, rx).await;
+    assert!(matches!(
+        m.msg,
+        Some(v1::coordinator_message::Msg::Registered(_))
+    ));
+    (tx, inbound)
+}
+
+/// The next lease offered on `inbound` (within 10 s).
+async fn next_offer(inbound: &mut tonic::Streaming<v1::CoordinatorMessage>) -> v1::Lease {
+    let wait = Duration::from_secs(10);
+    loop {
+        let m = tokio::time::timeout(wait, inbound.message())
+            .await
+            .expect("an offer within 10 s")
+            .unwrap()
+            .unwrap();
+        if let Some(v1::coordinator_message::Msg::LeaseOffer(o)) = m.msg {
+            return o.lease.unwrap();
+        }
+    }
+}
+
+/// Uploads a header naming `leases` (each with one byte of "pixels", no statistics).
+async fn upload_named(
+    workers: &mut WorkersClient<Channel>,
+    job: &str,
+    unit: u64,
+    leases: &[(u64, Option<v1::Rect>)],
+) -> v1::TileAck {
+    let pixel = [7u8];
+    let tiles = leases
+        .iter()
+        .map(|(id, rect)| v1::UploadedTile {
+            lease_id: *id,
+            tile: *rect,
+            counters: None,
+            pixels_size: 1,
+            pixels_digest: digest_of(&pixel).0.to_vec(),
+        })
+        .collect::<Vec<_>>();
+    let header = v1::TileHeader {
+        job_id: job.into(),
+        unit,
+        stats_size: 0,
+        stats_digest: digest_of(&[]).0.to_vec(),
+        tiles,
+    };
+    let mut parts = vec![v1::TileUpload {
+        part: Some(v1::tile_upload::Part::Header(header)),
+    }];
+    parts.push(v1::TileUpload {
+        part: Some(v1::tile_upload::Part::Data(vec![7; leases.len()])),
+    });
+    workers
+        .upload_tile(tokio_stream::iter(parts))
+        .await
+        .unwrap()
+        .into_inner()
+}
+
+#[tokio::test]
+async fn malformed_joint_uploads_are_corrupt_and_a_rejected_one_returns_its_valid_leases() {
+    let data = temp_dir("joint");
+    let c = Running::start(config(data.clone(), None)).await;
+    let ch = c.channel().await;
+    let mut jobs = JobsClient::new(ch.clone());
+    let mut workers = WorkersClient::new(ch);
+    let id = submit_scene(&mut jobs).await;
+    let (tx, mut inbound) = fake_worker(&mut workers, 1).await;
+    let lease = next_offer(&mut inbound).await;
+    let unit = lease.pass.as_ref().unwrap().unit;
+    let corrupt = v1::TileRejectReason::Corrupt as i32;
+    // No tile, or one lease named twice: malformed.
+    let ack = upload_named(&mut workers, &id, unit, &[]).await;
+    assert_eq!(
+        (ack.accepted, ack.reject_reason),
+        (false, corrupt),
+        "{ack:?}"
+    );
+    let twice = [(lease.lease_id, lease.tile), (lease.lease_id, lease.tile)];
+    let ack = upload_named(&mut workers, &id, unit, &twice).await;
+    assert_eq!(
+        (ack.accepted, ack.reject_reason),
+        (false, corrupt),
+        "{ack:?}"
+    );
+    // An unknown lease spoils the upload; the valid lease it named goes back to the queue
+    // at once, not counting an attempt, and is offered again.
+    let ack = upload_named(
+        &mut workers,
+        &id,
+        unit,
+        &[(999_999, None), (lease.lease_id, lease.tile)],
+    )
+    .await;
+    let unknown = v1::TileRejectReason::UnknownLease as i32;
+    assert_eq!(
+        (ack.accepted, ack.reject_reason),
+        (false, unknown),
+        "{ack:?}"
+    );
+    let more = v1::worker_message::Msg::RequestWork(v1::RequestWork { slots: 1 });
+    tx.send(v1::WorkerMessage { msg: Some(more) })
+        .await
+        .unwrap();
+    let again = next_offer(&mut inbound).await;
+    assert_ne!(again.lease_id, lease.lease_id);
+    assert_eq!((again.tile, again.attempt), (lease.tile, lease.attempt));
+    assert_eq!(again.pass.as_ref().unwrap().unit, unit);
+    drop(tx);
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);
 }

@@ -1,6 +1,12 @@
 //! A farm worker: registers with the coordinator on the control stream, takes leases,
 //! renders their tiles bit-exactly (one lease at a time, one more prefetched) and uploads the
 //! results. Reconnects with backoff when the coordinator goes away; drains on shutdown.
+//!
+//! Tiles of one unit that the worker renders one after the other record into its copy of
+//! the tree without taking the statistics in between, and go up in one upload with the
+//! statistics taken once ([`upload`]): a unit costs the coordinator one statistics decode and
+//! merge per worker, not one per tile. The leases stay the worker's until that upload, so a
+//! worker lost before it re-renders all of them, as for a single tile.
 
 use std::collections::{HashMap, VecDeque};
 use std::future::Future;
@@ -11,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use pathfarm_guide::SdTree;
 use pathfarm_proto::v1::{self, workers_client::WorkersClient};
-use pathfarm_proto::{MAX_CHUNK_BYTES, PROTOCOL_VERSION};
+use pathfarm_proto::PROTOCOL_VERSION;
 use pathfarm_render::guided::guide_config;
 use pathfarm_render::pass::{render_unit, UnitInputs};
 use pathfarm_render::Scene;
@@ -23,6 +29,11 @@ use tokio_stream::wrappers::ReceiverStream;
 use crate::bundle::{self, Digest, Manifest, ManifestEntry};
 use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote};
 use crate::codec;
+
+mod upload;
+
+pub use upload::MAX_JOINT_TILES;
+use upload::{spawn_upload, FlushEnd, Flushing, Joint, RenderedTile, Spoiled, UploadEnd, Uploads};
 
 /// How a worker runs.
 #[derive(Clone, Debug)]
@@ -146,6 +157,8 @@ struct JobTree {
     tree_digest: Vec<u8>,
     fractions_digest: Vec<u8>,
     tree: SdTree,
+    /// The unit whose tiles' records are in the tree, not yet taken (see [`upload::Joint`]).
+    recording: Option<u64>,
 }
 
 #[derive(Default)]
@@ -178,19 +191,15 @@ const SCENE_CACHE: usize = 2;
 
 /// The outcome of rendering one lease.
 enum LeaseEnd {
-    /// Rendered: the upload runs while the next lease renders.
+    /// Rendered: it joins the tiles of its unit waiting for their joint upload.
     Rendered(RenderedTile),
+    /// Cancelled after it rendered: its records are in the tree and must be discarded.
+    CancelledRendered(RenderedTile),
     Cancelled,
     Failed {
         reason: String,
         fatal: bool,
     },
-}
-
-/// The outcome of one lease's upload.
-enum UploadEnd {
-    Acked(v1::TileAck),
-    Failed(String),
 }
 
 struct Running {
@@ -204,14 +213,20 @@ fn send(tx: &mpsc::Sender<v1::WorkerMessage>, msg: v1::worker_message::Msg) -> b
     tx.try_send(v1::WorkerMessage { msg: Some(msg) }).is_ok()
 }
 
-/// One control-stream session's leases: queued, rendering and uploading, and whether the
-/// worker is draining. The session loop feeds it one event at a time.
+/// One control-stream session's leases: queued, rendering, rendered and waiting for the
+/// rest of their unit, being serialised and uploading, and whether the worker is draining.
+/// The session loop feeds it one event at a time.
 struct Leases {
     tx: mpsc::Sender<v1::WorkerMessage>,
     queue: VecDeque<v1::Lease>,
     running: Option<Running>,
-    /// Uploads in progress: (lease, job) -> outcome. The next lease renders meanwhile.
+    /// Rendered tiles of one unit whose records are in the tree: uploaded together.
+    joint: Option<Joint>,
+    /// The joint tiles' statistics being taken and encoded (the tree is busy meanwhile).
+    flushing: Option<Flushing>,
+    /// Uploads in progress: (leases, job) -> outcome. The next lease renders meanwhile.
     uploads: Uploads,
+    /// Leases being serialised or uploaded.
     uploading: Vec<u64>,
     draining: bool,
 }
@@ -237,6 +252,7 @@ impl Leases {
     fn heartbeat(&self) {
         let mut ids: Vec<u64> = self.running.iter().map(|r| r.lease_id).collect();
         ids.extend(self.queue.iter().map(|l| l.lease_id));
+        ids.extend(self.joint.iter().flat_map(Joint::lease_ids));
         ids.extend(self.uploading.iter().copied());
         let hb = v1::Heartbeat {
             active_lease_ids: ids,
@@ -244,14 +260,14 @@ impl Leases {
         self.send(v1::worker_message::Msg::Heartbeat(hb));
     }
 
-    /// The running lease's render ended: upload it (while the next one renders) or report.
-    fn on_rendered(&mut self, api: &Api, r: Running, end: LeaseEnd) {
+    /// The running lease's render ended: it joins its unit's tiles, or is reported.
+    fn on_rendered(&mut self, id: u64, job: String, end: LeaseEnd) {
         use v1::worker_message::Msg;
-        let (id, job) = (r.lease_id, r.job_id);
         match end {
-            LeaseEnd::Rendered(tile) => {
-                self.uploading.push(id);
-                spawn_upload(&mut self.uploads, api, id, job, tile);
+            LeaseEnd::Rendered(tile) => self.join(tile, Spoiled::No),
+            LeaseEnd::CancelledRendered(tile) => {
+                tracing::info!("lease {id} (job {job}): cancelled, nothing uploaded");
+                self.join(tile, Spoiled::Yes);
             }
             LeaseEnd::Cancelled => {
                 tracing::info!("lease {id} (job {job}): cancelled, nothing uploaded");
@@ -271,30 +287,78 @@ impl Leases {
         }
     }
 
-    fn on_uploaded(&mut self, id: u64, job: String, end: UploadEnd) {
-        self.uploading.retain(|&l| l != id);
+    /// Adds a rendered tile to the tiles of its unit (the session loop flushes a joint of
+    /// another unit before it starts a lease, so the joint is this tile's unit's).
+    fn join(&mut self, tile: RenderedTile, spoiled: Spoiled) {
+        let joint = self.joint.get_or_insert_with(|| Joint::new(&tile));
+        debug_assert!(joint.holds(&tile.job_id, tile.unit));
+        joint.push(tile, spoiled);
+    }
+
+    /// Whether the joint tiles must be uploaded before anything else starts: the next lease
+    /// is of another unit, or there is none yet, or the joint is full or spoiled.
+    fn joint_is_due(&self) -> bool {
+        let Some(j) = &self.joint else {
+            return false;
+        };
+        let next = self.queue.front();
+        j.is_full_or_spoiled()
+            || !next.is_some_and(|l| j.holds(&l.job_id, l.pass.as_ref().map_or(0, |p| p.unit)))
+    }
+
+    /// Starts taking and encoding the joint tiles' statistics.
+    fn start_flush(&mut self, shared: &Arc<Shared>) {
+        let joint = self.joint.take().expect("a joint is due");
+        self.uploading.extend(joint.lease_ids());
+        self.flushing = Some(Flushing::start(shared, joint));
+    }
+
+    /// The joint tiles are serialised: upload them, or give their leases back.
+    fn on_flushed(&mut self, api: &Api, ids: Vec<u64>, job: String, end: FlushEnd) {
+        use v1::worker_message::Msg;
+        match end {
+            FlushEnd::Ready(upload) => spawn_upload(&mut self.uploads, api, ids, job, upload),
+            FlushEnd::Discarded => {
+                self.uploading.retain(|l| !ids.contains(l));
+                self.send(Msg::HandBack(v1::HandBack { lease_ids: ids }));
+            }
+            FlushEnd::Failed(reason) => {
+                self.uploading.retain(|l| !ids.contains(l));
+                self.fail_all(ids, &job, reason);
+            }
+        }
+    }
+
+    /// Reports leases `ids` failed (retryable): their tiles are rendered again.
+    fn fail_all(&self, ids: Vec<u64>, job: &str, reason: String) {
+        tracing::error!("leases {ids:?} (job {job}) failed: {reason}");
+        for lease_id in ids {
+            let failed = v1::LeaseFailed {
+                lease_id,
+                reason: reason.clone(),
+                fatal: false,
+            };
+            self.send(v1::worker_message::Msg::LeaseFailed(failed));
+        }
+    }
+
+    fn on_uploaded(&mut self, ids: Vec<u64>, job: String, end: UploadEnd) {
+        self.uploading.retain(|l| !ids.contains(l));
         match end {
             UploadEnd::Acked(ack) if ack.accepted => {
                 let dup = if ack.duplicate { " (duplicate)" } else { "" };
-                tracing::info!("lease {id} (job {job}): tile accepted{dup}");
+                let n = ids.len();
+                tracing::info!("leases {ids:?} (job {job}): {n} tiles accepted{dup}");
             }
             UploadEnd::Acked(ack) => {
                 let reason = v1::TileRejectReason::try_from(ack.reject_reason)
                     .unwrap_or(v1::TileRejectReason::Unspecified);
                 tracing::warn!(
-                    "lease {id} (job {job}): tile rejected: {reason:?} {}",
+                    "leases {ids:?} (job {job}): tiles rejected: {reason:?} {}",
                     ack.detail
                 );
             }
-            UploadEnd::Failed(reason) => {
-                tracing::error!("lease {id} (job {job}) failed: {reason}");
-                let failed = v1::LeaseFailed {
-                    lease_id: id,
-                    reason,
-                    fatal: false,
-                };
-                self.send(v1::worker_message::Msg::LeaseFailed(failed));
-            }
+            UploadEnd::Failed(reason) => self.fail_all(ids, &job, reason),
         }
     }
 
@@ -349,20 +413,37 @@ impl Leases {
                 c.reason
             );
             r.cancelled.store(true, Ordering::SeqCst);
+        } else if let Some(j) = self.joint.as_mut().filter(|j| j.has_lease(c.lease_id)) {
+            tracing::info!(
+                "lease {} (job {}): cancelled while waiting for its unit's upload: {}",
+                c.lease_id,
+                j.job_id(),
+                c.reason
+            );
+            j.cancel(c.lease_id);
         }
     }
 
     /// The stream broke (or the worker drained): leases not started are abandoned (the
-    /// coordinator re-queues them); the one rendering is finished and uploaded if it can be.
-    async fn finish(mut self, api: &Api, lost: bool) {
+    /// coordinator re-queues them); the one rendering is finished, and the rendered tiles
+    /// are uploaded if they can be.
+    async fn finish(mut self, shared: &Arc<Shared>, api: &Api, lost: bool) {
         if let Some(r) = self.running.take() {
             if lost {
                 let (id, job) = (r.lease_id, &r.job_id);
                 tracing::info!("lease {id} (job {job}): finishing after the stream broke");
             }
-            if let Ok(LeaseEnd::Rendered(tile)) = r.handle.await {
-                spawn_upload(&mut self.uploads, api, r.lease_id, r.job_id, tile);
-            }
+            let end = r.handle.await.unwrap_or(LeaseEnd::Cancelled);
+            self.on_rendered(r.lease_id, r.job_id, end);
+        }
+        if let Some(f) = self.flushing.take() {
+            let (ids, job, end) = f.finish().await;
+            self.on_flushed(api, ids, job, end);
+        }
+        if self.joint.is_some() {
+            self.start_flush(shared);
+            let (ids, job, end) = self.flushing.take().expect("started").finish().await;
+            self.on_flushed(api, ids, job, end);
         }
         while self.uploads.join_next().await.is_some() {}
     }
@@ -424,6 +505,8 @@ async fn session<S: Future<Output = ()>>(
         tx,
         queue: VecDeque::new(),
         running: None,
+        joint: None,
+        flushing: None,
         uploads: Uploads::new(),
         uploading: Vec::new(),
         draining: *stop,
@@ -438,10 +521,12 @@ async fn session<S: Future<Output = ()>>(
     heartbeat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut shutdown_seen = *stop;
     let lost: Option<String> = loop {
-        if l.running.is_none() {
-            if let Some(lease) = l.queue.pop_front() {
+        if l.running.is_none() && l.flushing.is_none() {
+            if l.joint_is_due() {
+                l.start_flush(shared);
+            } else if let Some(lease) = l.queue.pop_front() {
                 l.running = Some(start_lease(shared, &api, lease));
-            } else if l.draining && l.uploads.is_empty() {
+            } else if l.draining && l.uploads.is_empty() && l.joint.is_none() {
                 break None;
             }
         }
@@ -458,13 +543,17 @@ async fn session<S: Future<Output = ()>>(
                     reason: format!("render task panicked: {e}"),
                     fatal: false,
                 });
-                l.on_rendered(&api, r, end);
+                l.on_rendered(r.lease_id, r.job_id, end);
+            }
+            end = async { l.flushing.as_mut().expect("guarded").wait().await }, if l.flushing.is_some() => {
+                let f = l.flushing.take().expect("guarded");
+                l.on_flushed(&api, f.lease_ids, f.job_id, end);
             }
             Some(done) = l.uploads.join_next(), if !l.uploads.is_empty() => {
-                let (id, job, end) = done.unwrap_or_else(|e| {
-                    (0, String::new(), UploadEnd::Failed(format!("upload task: {e}")))
+                let (ids, job, end) = done.unwrap_or_else(|e| {
+                    (Vec::new(), String::new(), UploadEnd::Failed(format!("upload task: {e}")))
                 });
-                l.on_uploaded(id, job, end);
+                l.on_uploaded(ids, job, end);
             }
             msg = inbound.message() => match msg {
                 Ok(Some(m)) => l.on_message(m),
@@ -474,7 +563,7 @@ async fn session<S: Future<Output = ()>>(
         }
     };
     let draining = l.draining;
-    l.finish(&api, lost.is_some()).await;
+    l.finish(shared, &api, lost.is_some()).await;
     match lost {
         Some(m) if !draining => Err(SessionEnd::Lost(m)),
         Some(_) if !*stop => Err(SessionEnd::Lost("drained by the coordinator".into())),
@@ -576,58 +665,9 @@ async fn do_lease(
         }
     };
     if cancelled.load(Ordering::SeqCst) {
-        return LeaseEnd::Cancelled;
+        return LeaseEnd::CancelledRendered(tile);
     }
     LeaseEnd::Rendered(tile)
-}
-
-/// Uploads lease `id`'s tile in the background; its outcome arrives on `uploads`.
-fn spawn_upload(uploads: &mut Uploads, api: &Api, id: u64, job: String, tile: RenderedTile) {
-    let api = api.clone();
-    uploads.spawn(async move { (id, job, upload(api, tile).await) });
-}
-
-/// Uploads in progress: (lease, job) and the outcome.
-type Uploads = tokio::task::JoinSet<(u64, String, UploadEnd)>;
-
-/// Uploads a rendered tile: the header, then its pixels and statistics in chunks.
-async fn upload(mut api: Api, tile: RenderedTile) -> UploadEnd {
-    let msgs = upload_messages(tile.header, &tile.pixels, &tile.stats, MAX_CHUNK_BYTES);
-    match api.upload_tile(tokio_stream::iter(msgs)).await {
-        Ok(ack) => UploadEnd::Acked(ack.into_inner()),
-        Err(s) => UploadEnd::Failed(format!("upload failed: {} ({:?})", s.message(), s.code())),
-    }
-}
-
-/// The upload of one tile: the header, then the pixels and then the statistics in data parts
-/// of at most `max` bytes (a part may hold the end of one payload and the start of the next).
-pub fn upload_messages(
-    header: v1::TileHeader,
-    pixels: &[u8],
-    stats: &[u8],
-    max: usize,
-) -> Vec<v1::TileUpload> {
-    use v1::tile_upload::Part;
-    let mut out = vec![v1::TileUpload {
-        part: Some(Part::Header(header)),
-    }];
-    let total = pixels.len() + stats.len();
-    let mut at = 0;
-    while at < total {
-        let end = (at + max.max(1)).min(total);
-        let mut part = Vec::with_capacity(end - at);
-        if at < pixels.len() {
-            part.extend_from_slice(&pixels[at..end.min(pixels.len())]);
-        }
-        if end > pixels.len() {
-            part.extend_from_slice(&stats[at.max(pixels.len()) - pixels.len()..end - pixels.len()]);
-        }
-        out.push(v1::TileUpload {
-            part: Some(Part::Data(part)),
-        });
-        at = end;
-    }
-    out
 }
 
 /// Everything a lease's render needs, fetched.
@@ -640,12 +680,6 @@ struct Prepared {
     estimate_blob: Option<Arc<Vec<u8>>>,
     /// Seconds spent fetching the blobs.
     fetch_seconds: f64,
-}
-
-struct RenderedTile {
-    header: v1::TileHeader,
-    pixels: Vec<u8>,
-    stats: Vec<u8>,
 }
 
 fn blob_path(cache: &Path, d: &Digest) -> PathBuf {
@@ -880,6 +914,19 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
             && cached
                 .as_ref()
                 .is_some_and(|t| !t.fractions_digest.is_empty()));
+    if let Some(t) = cached.as_ref().filter(|t| t.recording.is_some()) {
+        if stale || t.recording != Some(pass.unit) {
+            // Another unit's records wait in this tree for their upload (the session loop
+            // uploads them before it starts another unit's lease; this is a guard).
+            let unit = t.recording;
+            let mut c = shared.caches.lock().expect("cache lock");
+            c.trees
+                .insert(p.lease.job_id.clone(), cached.expect("checked"));
+            return Err(retryable(format!(
+                "the tree still holds unit {unit:?}'s records"
+            )));
+        }
+    }
     let mut jt = match cached {
         Some(t) if !stale => t,
         _ => {
@@ -896,6 +943,7 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
                 tree_digest: want_tree.clone(),
                 fractions_digest: Vec::new(),
                 tree,
+                recording: None,
             }
         }
     };
@@ -974,11 +1022,10 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     };
     let seconds = t0.elapsed().as_secs_f64();
     let serialize_start = Instant::now();
-    let stats = if spec.record() {
-        jt.tree.take_stats().encode()
-    } else {
-        Vec::new()
-    };
+    if spec.record() {
+        // The statistics stay in the tree: taken once for this unit's joint upload.
+        jt.recording = Some(spec.unit);
+    }
     shared
         .caches
         .lock()
@@ -987,7 +1034,6 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .insert(job.clone(), jt);
     let pixels = codec::encode_pixels(&out.film);
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
-    let stats_digest = blake3::hash(&stats).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();
     tracing::info!(
         "lease {} (job {}): rendered unit {} in {:.3} s (inputs {:.3} s, serialising {:.3} s, {} bytes)",
@@ -997,12 +1043,10 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         seconds,
         prepare_seconds,
         serialize_seconds,
-        pixels.len() + stats.len()
+        pixels.len()
     );
-    let header = v1::TileHeader {
+    let part = v1::UploadedTile {
         lease_id: p.lease.lease_id,
-        job_id: job,
-        unit: pass.unit,
         tile: Some(rect.clone()),
         counters: Some(v1::TileCounters {
             render_seconds: seconds,
@@ -1011,50 +1055,20 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
             ..codec::tile_counters(&out)
         }),
         pixels_size: pixels.len() as u64,
-        stats_size: stats.len() as u64,
         pixels_digest,
-        stats_digest,
     };
     Ok(RenderedTile {
-        header,
+        job_id: job,
+        unit: pass.unit,
+        record: spec.record(),
+        part,
         pixels,
-        stats,
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn data(m: &[v1::TileUpload]) -> Vec<Vec<u8>> {
-        m[1..]
-            .iter()
-            .map(|u| match &u.part {
-                Some(v1::tile_upload::Part::Data(d)) => d.clone(),
-                _ => panic!("not data"),
-            })
-            .collect()
-    }
-
-    #[test]
-    fn upload_is_header_then_parts_of_at_most_max() {
-        let pixels: Vec<u8> = (0..10u8).collect();
-        let stats: Vec<u8> = (100..107u8).collect();
-        let m = upload_messages(v1::TileHeader::default(), &pixels, &stats, 4);
-        assert!(matches!(m[0].part, Some(v1::tile_upload::Part::Header(_))));
-        let parts = data(&m);
-        assert!(parts.iter().all(|p| !p.is_empty() && p.len() <= 4));
-        let all: Vec<u8> = parts.concat();
-        assert_eq!(all, [pixels.clone(), stats.clone()].concat());
-        // a part spans the end of the pixels and the start of the statistics
-        assert_eq!(parts[2], vec![8, 9, 100, 101]);
-        let m = upload_messages(v1::TileHeader::default(), &pixels, &[], MAX_CHUNK_BYTES);
-        assert_eq!(data(&m), vec![pixels]);
-        let big = vec![1u8; MAX_CHUNK_BYTES + 1];
-        let m = upload_messages(v1::TileHeader::default(), &big, &[2, 3], MAX_CHUNK_BYTES);
-        let lens: Vec<usize> = data(&m).iter().map(|p| p.len()).collect();
-        assert_eq!(lens, [MAX_CHUNK_BYTES, 3]);
-    }
 
     #[test]
     fn job_dir_names_are_safe() {
