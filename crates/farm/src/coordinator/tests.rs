@@ -432,26 +432,9 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let first = watch.message().await.unwrap().unwrap();
     assert_eq!(first.state, v1::JobState::Queued as i32);
 
-    let (tx, rx) = tokio::sync::mpsc::channel(16);
     let send = |m| v1::WorkerMessage { msg: Some(m) };
     use v1::worker_message::Msg as W;
-    tx.send(send(W::Register(v1::Register {
-        protocol_version: pathfarm_proto::PROTOCOL_VERSION,
-        build_id: crate::build::build_id().to_string(),
-        threads: 1,
-        host_name: "test".into(),
-        worker_name: "fake".into(),
-    })))
-    .await
-    .unwrap();
-    tx.send(send(W::RequestWork(v1::RequestWork { slots: 2 })))
-        .await
-        .unwrap();
-    let (mut inbound, m) = open_control(&mut workers, rx).await;
-    assert!(matches!(
-        m.msg,
-        Some(v1::coordinator_message::Msg::Registered(_))
-    ));
+    let (tx, mut inbound) = fake_worker(&mut workers, 2).await;
     // a registered worker makes the services SERVING
     let mut health = tonic_health::pb::health_client::HealthClient::new(c.channel().await);
     let check = tonic_health::pb::HealthCheckRequest {
