@@ -9,9 +9,12 @@ use std::sync::OnceLock;
 pub fn build_id() -> &'static str {
     static ID: OnceLock<String> = OnceLock::new();
     ID.get_or_init(|| {
+        // Streamed, not read whole: the executable is about 100 MB with its debug info, and
+        // every process (coordinator, each worker, each client) computes this at start-up.
         let digest = std::env::current_exe()
-            .and_then(std::fs::read)
-            .map(|b| blake3::hash(&b).to_hex()[..16].to_string())
+            .and_then(std::fs::File::open)
+            .and_then(|f| blake3::Hasher::new().update_reader(f).map(|h| h.finalize()))
+            .map(|h| h.to_hex()[..16].to_string())
             .unwrap_or_else(|_| "unknown".to_string());
         format!("pathfarm {} {digest}", env!("CARGO_PKG_VERSION"))
     })

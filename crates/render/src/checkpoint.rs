@@ -8,6 +8,8 @@
 //! iteration's film and a published tree once. Decoding checks every length (a checkpoint is
 //! read back from disk, which may be damaged).
 
+use std::sync::Arc;
+
 use pathfarm_guide::schedule::IterationOutcome;
 use pathfarm_guide::SdTree;
 
@@ -179,6 +181,26 @@ pub struct Checkpoint {
     pub state: Vec<u8>,
     /// The iteration films in order, then the path fallback's film ([`encode_film`]).
     pub films: Vec<Vec<u8>>,
+}
+
+/// A [`Checkpoint`] whose films are not encoded yet: the session's own films, shared
+/// ([`crate::session::Session::checkpoint_parts`]).
+#[derive(Clone, Debug)]
+pub struct CheckpointParts {
+    /// Everything but the films and the tree, as in [`Checkpoint::state`].
+    pub state: Vec<u8>,
+    /// The iteration films in order, then the path fallback's film.
+    pub films: Vec<Arc<Film>>,
+}
+
+impl CheckpointParts {
+    /// The checkpoint with every film encoded ([`encode_film`]).
+    pub fn encode(self) -> Checkpoint {
+        Checkpoint {
+            state: self.state,
+            films: self.films.iter().map(|f| encode_film(f)).collect(),
+        }
+    }
 }
 
 /// A film as checkpoint bytes: width, height, then every pixel's sums (exact bits).

@@ -28,7 +28,9 @@ use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, It
 use pathfarm_guide::{GradTarget, HeldSlot, IterationStats, SdTree, StatsError};
 use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
 
-use crate::checkpoint::{self, Checkpoint, CheckpointError, In, Out};
+use std::sync::Arc;
+
+use crate::checkpoint::{self, Checkpoint, CheckpointError, CheckpointParts, In, Out};
 use crate::film::Film;
 use crate::guided::{
     combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
@@ -116,8 +118,9 @@ pub enum TileError {
 #[derive(Clone, Debug)]
 struct Fallback {
     enabled: bool,
-    /// Film of the unguided passes (probes, then the fallback's rendering).
-    path_film: Film,
+    /// Film of the unguided passes (probes, then the fallback's rendering). Shared with
+    /// checkpoints being written (copied on write, [`Arc::make_mut`]).
+    path_film: Arc<Film>,
     path_seconds: f64,
     /// Rays of the probe passes.
     path_rays: u64,
@@ -182,6 +185,26 @@ struct Pending {
     rays: u64,
 }
 
+/// The image so far ([`Session::preview`]): the finished iterations' films, shared with the
+/// session, and their weights in the final combination.
+#[derive(Clone, Debug)]
+pub struct Preview {
+    films: Vec<Arc<Film>>,
+    weights: Vec<f64>,
+}
+
+impl Preview {
+    /// The films combined as the final image would combine them (the last film alone while
+    /// no film has a weight yet).
+    pub fn film(&self) -> Film {
+        if self.weights.iter().all(|&w| !(w > 0.0)) {
+            return (**self.films.last().expect("a preview has a film")).clone();
+        }
+        let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
+        combine_films(&refs, &self.weights)
+    }
+}
+
 /// A guided job's training session. See the module documentation.
 pub struct Session {
     params: GuidedParams,
@@ -209,7 +232,9 @@ pub struct Session {
     training_spp: u64,
     prev_secs: Option<f64>,
     iterations: Vec<GuidedIteration>,
-    films: Vec<Film>,
+    /// The finished iterations' films: never changed once pushed (but for a fallback's
+    /// end), so checkpoints and previews share them instead of copying.
+    films: Vec<Arc<Film>>,
     history: Vec<IterationOutcome>,
     kept: Option<usize>,
     /// Films of iterations rendered before the tree was built: unguided, so on a fallback
@@ -273,7 +298,7 @@ impl Session {
             estimate_version: 0,
             fallback: Fallback {
                 enabled: params.path_fallback,
-                path_film: Film::new(width, height),
+                path_film: Arc::new(Film::new(width, height)),
                 path_seconds: 0.0,
                 path_rays: 0,
                 path_spp: 0,
@@ -508,17 +533,17 @@ impl Session {
     /// The image as it stands: the finished iterations' films combined as the final image
     /// would combine them (`None` before the first iteration ends). A farm shows it as a
     /// preview while the job runs.
-    pub fn preview(&self) -> Option<Film> {
-        let n = self.films.len();
-        if n == 0 {
+    ///
+    /// Cheap: the [`Preview`] shares the films, and [`Preview::film`] combines them, which a
+    /// driver can do off its critical path.
+    pub fn preview(&self) -> Option<Preview> {
+        if self.films.is_empty() {
             return None;
         }
-        let weights = self.weights();
-        if weights.iter().all(|&w| !(w > 0.0)) {
-            return Some(self.films[n - 1].clone());
-        }
-        let refs: Vec<&Film> = self.films.iter().collect();
-        Some(combine_films(&refs, &weights))
+        Some(Preview {
+            films: self.films.clone(),
+            weights: self.weights(),
+        })
     }
 
     /// The final film, the statistics and the trained tree, once [`Session::next`] said
@@ -529,10 +554,11 @@ impl Session {
         let film = if n == 0 {
             Film::new(self.width, self.height)
         } else if self.params.sample_combination == GuidedCombination::InverseVar {
-            let refs: Vec<&Film> = self.films.iter().collect();
+            let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
             combine_films(&refs, &weights)
         } else {
-            self.films.swap_remove(self.kept.unwrap_or(n - 1))
+            let kept = self.films.swap_remove(self.kept.unwrap_or(n - 1));
+            Arc::try_unwrap(kept).unwrap_or_else(|shared| (*shared).clone())
         };
         let spp = self.spp_done;
         let stats = GuidedStats {
@@ -750,7 +776,7 @@ impl Session {
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
-                f.path_film.merge(&p.film);
+                Arc::make_mut(&mut f.path_film).merge(&p.film);
                 f.path_seconds += seconds;
                 f.path_rays += p.rays;
                 f.path_spp += spec.unit_spp();
@@ -759,7 +785,7 @@ impl Session {
                 self.end_probe(now);
             }
             Phase::Rest { .. } => {
-                self.fallback.path_film.merge(&p.film);
+                Arc::make_mut(&mut self.fallback.path_film).merge(&p.film);
                 self.fallback.path_spp += spec.unit_spp();
                 self.fallback.path_seconds += seconds;
             }
@@ -835,7 +861,7 @@ impl Session {
         }
         let checked = training && self.checks();
         let Iteration { film, .. } = *it;
-        self.films.push(film);
+        self.films.push(Arc::new(film));
         if !training {
             self.kept = Some(self.films.len() - 1);
             self.phase = Phase::Done;
@@ -968,8 +994,8 @@ impl Session {
         // its random streams): they join the film instead of being weighed apart (a 1-spp
         // iteration has no variance estimate, so inverse-variance weighting drops it).
         for &i in &self.unguided {
-            self.fallback.path_film.merge(&self.films[i]);
-            self.films[i] = Film::new(w, h);
+            Arc::make_mut(&mut self.fallback.path_film).merge(&self.films[i]);
+            self.films[i] = Arc::new(Film::new(w, h));
         }
         let f = &self.fallback;
         self.iterations.push(GuidedIteration {
@@ -983,7 +1009,7 @@ impl Session {
             rays_per_sample: f.path_rays as f64 / (f.probe_spp as f64 * npix as f64).max(1.0),
             training: false,
         });
-        let film = std::mem::replace(&mut self.fallback.path_film, Film::new(w, h));
+        let film = std::mem::replace(&mut self.fallback.path_film, Arc::new(Film::new(w, h)));
         self.films.push(film);
         self.kept = Some(self.films.len() - 1);
         self.phase = Phase::Done;
@@ -1060,6 +1086,14 @@ impl Session {
     /// in flight and the next iteration is not planned yet): `None` otherwise. The tree is
     /// not in it: keep [`Session::tree`]'s encoding with it (a farm publishes that anyway).
     pub fn checkpoint(&self) -> Option<Checkpoint> {
+        self.checkpoint_parts().map(CheckpointParts::encode)
+    }
+
+    /// [`Session::checkpoint`] with the films shared, not encoded: cheap, so a driver can
+    /// take it on its critical path and encode the films ([`CheckpointParts::encode`], or
+    /// one by one, skipping films it stored before: a finished iteration's film is the same
+    /// `Arc` in every later checkpoint) off it.
+    pub fn checkpoint_parts(&self) -> Option<CheckpointParts> {
         if !self.pending.is_empty() || !matches!(self.phase, Phase::Plan) {
             return None;
         }
@@ -1109,9 +1143,9 @@ impl Session {
             o.u64(v);
         }
         let films = self.films.iter().chain([&self.fallback.path_film]);
-        Some(Checkpoint {
+        Some(CheckpointParts {
             state: o.0,
-            films: films.map(checkpoint::encode_film).collect(),
+            films: films.cloned().collect(),
         })
     }
 
@@ -1169,7 +1203,7 @@ impl Session {
             .map(|f| checkpoint::decode_film(f, width, height))
             .collect::<Result<Vec<_>, _>>()?;
         let path_film = films.pop().expect("checked");
-        s.films = films;
+        s.films = films.into_iter().map(Arc::new).collect();
         s.history = (0..i.len(32)?)
             .map(|_| i.outcome())
             .collect::<Result<_, _>>()?;
@@ -1185,7 +1219,7 @@ impl Session {
             .collect::<Result<_, _>>()?;
         s.estimate_version = i.u32()?;
         s.restore_fallback(&mut i)?;
-        s.fallback.path_film = path_film;
+        s.fallback.path_film = Arc::new(path_film);
         for v in [
             &mut s.rays,
             &mut s.invalid,

@@ -13,14 +13,16 @@
 //! unless some job (identical jobs share blobs) still refers to them.
 
 use std::collections::HashSet;
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 use std::time::Instant;
 
 use pathfarm_render::checkpoint::{self, Checkpoint};
+use pathfarm_render::film::Film;
 use pathfarm_render::guided::{FallbackPolicy, Session};
 use pathfarm_render::Region;
 
 use super::db::JobRecord;
+use super::store::BlobStore;
 use super::{job_name, Prepared, Shared, State};
 use crate::bundle::Digest;
 
@@ -59,6 +61,45 @@ impl Parts {
     }
 }
 
+/// A checkpoint taken on the critical path, to be written in the background: the films are
+/// the session's own (shared), encoded there unless an earlier checkpoint stored them.
+struct Unwritten {
+    state: Vec<u8>,
+    films: Vec<FilmPart>,
+    tree: Digest,
+}
+
+/// One film of an [`Unwritten`] checkpoint, with the digest it was stored under by an
+/// earlier checkpoint of the job, if any.
+struct FilmPart {
+    film: Arc<Film>,
+    stored: Option<Digest>,
+}
+
+impl FilmPart {
+    /// Looks `film` up among the films earlier checkpoints stored. The cache holds `Weak`s:
+    /// they keep an allocation from being reused while they exist, so the same address is
+    /// the same film (a film the session changes moves to a new allocation,
+    /// [`Arc::make_mut`]).
+    fn of(film: Arc<Film>, stored: &[(Weak<Film>, Digest)]) -> FilmPart {
+        let same = stored
+            .iter()
+            .find(|(w, _)| std::ptr::eq(w.as_ptr(), Arc::as_ptr(&film)));
+        FilmPart {
+            stored: same.map(|(_, d)| *d),
+            film,
+        }
+    }
+
+    /// The film's blob: the stored one if it is still there, else encoded and stored now.
+    fn write(&self, blobs: &BlobStore) -> std::io::Result<Digest> {
+        match self.stored {
+            Some(d) if blobs.has(&d) => Ok(d),
+            _ => blobs.put(&checkpoint::encode_film(&self.film)),
+        }
+    }
+}
+
 /// Removes the checkpoint a record names, returning its parts (garbage candidates).
 pub(crate) fn take_parts(record: &mut JobRecord) -> Vec<Digest> {
     let parts = Parts::of(record);
@@ -77,7 +118,7 @@ impl Shared {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
             return 0.0;
         };
-        let Some(cp) = a.session.checkpoint() else {
+        let Some(cp) = a.session.checkpoint_parts() else {
             return 0.0;
         };
         let version = a.session.tree_version();
@@ -98,24 +139,37 @@ impl Shared {
         };
         a.checkpoint_seq += 1;
         let seq = a.checkpoint_seq;
+        let films = cp
+            .films
+            .into_iter()
+            .map(|f| FilmPart::of(f, &a.film_digests));
+        let parts = Unwritten {
+            state: cp.state,
+            films: films.collect(),
+            tree,
+        };
         let shared = self.clone();
-        tokio::task::spawn_blocking(move || shared.write_checkpoint(n, seq, cp, tree));
+        tokio::task::spawn_blocking(move || shared.write_checkpoint(n, seq, parts));
         t0.elapsed().as_secs_f64()
     }
 
     /// Writes a checkpoint's parts durably and records them, unless the job has ended or a
     /// later checkpoint was recorded meanwhile.
-    fn write_checkpoint(&self, n: u64, seq: u64, cp: Checkpoint, tree: Digest) {
+    fn write_checkpoint(&self, n: u64, seq: u64, cp: Unwritten) {
         let t0 = Instant::now();
         let written = (|| -> std::io::Result<Parts> {
             let films = cp
                 .films
                 .iter()
-                .map(|f| self.blobs.put(f))
+                .map(|f| f.write(&self.blobs))
                 .collect::<std::io::Result<Vec<_>>>()?;
-            self.blobs.sync(&tree)?;
+            self.blobs.sync(&cp.tree)?;
             let state = self.blobs.put(&cp.state)?;
-            Ok(Parts { state, films, tree })
+            Ok(Parts {
+                state,
+                films,
+                tree: cp.tree,
+            })
         })();
         let mut st = self.lock();
         let parts = match written {
@@ -139,6 +193,10 @@ impl Shared {
         }
         let old = take_parts(&mut job.record);
         parts.set(&mut job.record);
+        if let Some(a) = job.active.as_mut() {
+            let films = cp.films.iter().zip(&parts.films);
+            a.film_digests = films.map(|(f, &d)| (Arc::downgrade(&f.film), d)).collect();
+        }
         if let Err(e) = self.db.put(n, &job.record) {
             tracing::error!(job = %job_name(n), "checkpoint not recorded: {e}");
         }
@@ -225,4 +283,46 @@ fn referenced(st: &State) -> HashSet<Digest> {
         live.extend(job.active.iter().flat_map(|a| a.blobs()));
     }
     live
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn film_with(x: f32) -> Film {
+        let mut f = Film::new(2, 1);
+        f.pixels[0].add(1.0, glam::Vec3::splat(x));
+        f
+    }
+
+    #[test]
+    fn a_film_is_stored_again_only_when_it_is_another_allocation() {
+        let dir = std::env::temp_dir().join(format!("pathfarm-cp-test-{}", std::process::id()));
+        let blobs = BlobStore::open(&dir).unwrap();
+        let kept = Arc::new(film_with(1.0));
+        let d = FilmPart::of(kept.clone(), &[]).write(&blobs).unwrap();
+        let stored = vec![(Arc::downgrade(&kept), d)];
+        // The same allocation is known; an equal film elsewhere is not (it is encoded anew,
+        // and the store finds the same digest).
+        assert_eq!(FilmPart::of(kept.clone(), &stored).stored, Some(d));
+        let twin = Arc::new(film_with(1.0));
+        assert_eq!(FilmPart::of(twin.clone(), &stored).stored, None);
+        assert_eq!(FilmPart::of(twin, &stored).write(&blobs).unwrap(), d);
+        // A film changed in place moves to a new allocation while a checkpoint knows it.
+        let mut changed = kept;
+        Arc::make_mut(&mut changed).merge(&film_with(2.0));
+        let part = FilmPart::of(changed.clone(), &stored);
+        assert_eq!(part.stored, None);
+        assert_ne!(part.write(&blobs).unwrap(), d);
+        // A known film whose blob was collected since is written again.
+        let held = Arc::new(film_with(3.0));
+        let d3 = FilmPart::of(held.clone(), &[]).write(&blobs).unwrap();
+        let stored = vec![(Arc::downgrade(&held), d3)];
+        std::fs::remove_file(blobs.path(&d3)).unwrap();
+        let again = FilmPart::of(held, &stored);
+        assert_eq!(again.stored, Some(d3));
+        assert_eq!(again.write(&blobs).unwrap(), d3);
+        assert!(blobs.has(&d3));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -36,11 +36,12 @@ use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
+use pathfarm_render::film::Film;
 use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session};
 use pathfarm_render::pass::{PassKind, PassSpec};
 use pathfarm_render::{Purpose, Region, Scene};
@@ -199,6 +200,8 @@ pub(crate) struct Active {
     pub(crate) checkpoint_seq: u64,
     /// The PNG preview of the image so far (updated at every iteration's end).
     pub(crate) preview: Option<Digest>,
+    /// The films the last recorded checkpoint stored, so the next one stores only new films.
+    pub(crate) film_digests: Vec<(Weak<Film>, Digest)>,
     pub(crate) tree_digest: Option<(u32, Digest)>,
     /// The fractions of the last two units issued (the units in flight are among them).
     pub(crate) fractions_digests: Vec<((u32, u32), Digest)>,
@@ -493,7 +496,7 @@ impl Shared {
 
     /// Renders job `n`'s image so far as its PNG preview, in the background.
     fn update_preview(self: &Arc<Self>, st: &mut State, n: u64) {
-        let Some(film) = st
+        let Some(preview) = st
             .jobs
             .get(&n)
             .and_then(|j| j.active.as_ref())
@@ -503,7 +506,7 @@ impl Shared {
         };
         let shared = self.clone();
         tokio::task::spawn_blocking(move || {
-            let png = match pathfarm_render::output::encode_png(&film) {
+            let png = match pathfarm_render::output::encode_png(&preview.film()) {
                 Ok(p) => p,
                 Err(e) => return tracing::warn!(job = %job_name(n), "preview: {e}"),
             };
@@ -571,6 +574,7 @@ impl Shared {
             cost: CostMap::new(p.width, p.height),
             checkpoint_seq: 0,
             preview: None,
+            film_digests: Vec::new(),
             tree_digest: None,
             fractions_digests: Vec::new(),
             estimate_digest: None,
