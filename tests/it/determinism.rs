@@ -1,6 +1,10 @@
 //! The same job and seed give the same bits however the work is split.
 
-use pathfarm_render::{render, RenderSettings, Scene};
+use pathfarm_render::{
+    path_estimator, render, render_into, sample_region, Film, Region, RenderSettings, Scene,
+    UnitSplat,
+};
+use pathfarm_testkit::TestRng;
 
 use crate::common::*;
 
@@ -50,6 +54,64 @@ fn image_is_bit_identical_across_threads_and_work_splits() {
         film_bits(&render(&scene, &other_seed, &|_| {}).0),
         "a different seed changes the image"
     );
+}
+
+#[test]
+fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bits() {
+    // The farm's few-spp units travel as samples: each tile renders its own pixels' samples
+    // (no halo), a UnitSplat gathers each tile's pixels out of its neighbours' reach as it
+    // arrives and the bands along the tiles' edges at the end. That must be the film a
+    // whole-image render gives, bit for bit, however the image was cut and in whatever
+    // order the tiles arrive, also with several render calls (passes) and when the samples
+    // are splatted in several passes of a call (a small pass size).
+    let scene = build_scene(
+        &shared_scene("cornell-box"),
+        &[("resx", "37"), ("resy", "23")],
+    );
+    let (w, h) = (scene.width, scene.height);
+    let est = path_estimator(&scene);
+    for (spp, calls, pass_spp) in [(1, 1, None), (3, 1, None), (3, 1, Some(2)), (2, 3, None)] {
+        let settings = RenderSettings {
+            pass_spp,
+            ..RenderSettings::new(Some(spp), None, 5)
+        };
+        let firsts: Vec<u64> = (0..calls).map(|c| 100 + c * spp as u64).collect();
+        let mut whole = Film::new(w, h);
+        for &first in &firsts {
+            render_into(&scene, &settings, &|_| {}, first, &mut whole, &est);
+        }
+        for (tile, order_seed) in [(5, 1), (16, 2), (64, 3), (7, 4)] {
+            let mut tiles = Region::tiles(w, h, tile);
+            TestRng::new(order_seed).shuffle(&mut tiles);
+            let new =
+                |firsts: &[u64]| UnitSplat::new(scene.filter, (w, h), (&settings, spp), firsts);
+            let (mut splat, mut shifted) = (new(&firsts), new(&[firsts[0] + 1]));
+            for &r in &tiles {
+                let mut values = Vec::new();
+                for &first in &firsts {
+                    let (v, stats) = sample_region(&scene, &settings, &|_| {}, first, r, &est);
+                    assert_eq!((v.len(), stats.spp), (r.pixels() * spp as usize, spp));
+                    values.extend(v);
+                }
+                splat.add(r, &values);
+                if calls == 1 {
+                    shifted.add(r, &values);
+                }
+            }
+            let what =
+                format!("{spp} spp x {calls} calls, passes {pass_spp:?}, {tile}-pixel tiles");
+            assert_eq!(
+                film_bits(&splat.finish(&tiles)),
+                film_bits(&whole),
+                "{what}"
+            );
+            if calls == 1 {
+                // positions drawn from other streams give another film: they are really drawn
+                let other = shifted.finish(&tiles);
+                assert_ne!(film_bits(&other), film_bits(&whole), "{what}");
+            }
+        }
+    }
 }
 
 #[test]

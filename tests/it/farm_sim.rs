@@ -16,7 +16,7 @@ use pathfarm_guide::fraction::FractionState;
 use pathfarm_guide::SdTree;
 use pathfarm_render::guided::{
     guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
-    Session,
+    Session, Splatting,
 };
 use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
@@ -169,8 +169,11 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 &params,
                 Budget::Spp(*spp),
                 tree,
-                scene.width,
-                scene.height,
+                (scene.width, scene.height),
+                Splatting {
+                    filter: scene.filter,
+                    seed: *seed,
+                },
                 tiles,
                 policy_of(n as u64),
             );

@@ -10,9 +10,9 @@ use pathfarm_guide::SdTree;
 use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
     guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
-    Session,
+    Session, Splatting,
 };
-use pathfarm_render::pass::{render_unit, PassKind, PassSpec, UnitInputs};
+use pathfarm_render::pass::{render_unit, PassKind, PassSpec, TilePixels, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
 use pathfarm_scene::{GuidedCombination, GuidedNee, GuidedParams, GuidedSpatialFilter};
 
@@ -94,7 +94,7 @@ fn render_tiled(
 ) -> Driven {
     let (w, h) = (scene.width, scene.height);
     let budget = Budget::Spp(spp);
-    let (mut session, _) = new_session(scene, params, spp, tile.max(1), policy);
+    let (mut session, _) = new_session(scene, params, (spp, seed), tile.max(1), policy);
     let mut restored = 0;
     let mut worker = WorkerTree {
         version: None,
@@ -155,7 +155,9 @@ fn render_tiled(
             let bytes = cp.to_bytes(&session.tree().encode());
             let (cp, tree) = Checkpoint::from_bytes(&bytes).expect("read back");
             let tiles = Region::tiles(w, h, tile.max(1));
-            session = Session::restore(params, budget, tiles, policy, &cp, tree).expect("restore");
+            let splatting = splatting(scene, seed);
+            session = Session::restore(params, budget, tiles, splatting, policy, &cp, tree)
+                .expect("restore");
             worker = WorkerTree {
                 version: None,
                 tree: None,
@@ -178,12 +180,20 @@ fn render_tiled(
     }
 }
 
-/// A fresh session of `scene` with `params` (an untrained tree of the scene's bounds) over
-/// `tile`-pixel tiles, and those tiles.
+/// What a session of `scene` splats sample-form units with, for a job of `seed`.
+fn splatting(scene: &Scene, seed: u64) -> Splatting {
+    Splatting {
+        filter: scene.filter,
+        seed,
+    }
+}
+
+/// A fresh session of `scene` with `params` (an untrained tree of the scene's bounds) for
+/// `spp` samples per pixel with `seed`, over `tile`-pixel tiles, and those tiles.
 fn new_session(
     scene: &Scene,
     params: &GuidedParams,
-    spp: u32,
+    (spp, seed): (u32, u64),
     tile: u32,
     policy: FallbackPolicy,
 ) -> (Session, Vec<Region>) {
@@ -191,7 +201,9 @@ fn new_session(
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
     let tiles = Region::tiles(w, h, tile);
-    let session = Session::new(params, Budget::Spp(spp), tree, w, h, tiles.clone(), policy);
+    let budget = Budget::Spp(spp);
+    let splat = splatting(scene, seed);
+    let session = Session::new(params, budget, tree, (w, h), splat, tiles.clone(), policy);
     (session, tiles)
 }
 
@@ -313,7 +325,7 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
 fn damaged_checkpoints_are_refused() {
     let scene = door_ajar((8, 8));
     let params = scene.guided.clone().expect("guided");
-    let (s, tiles) = new_session(&scene, &params, 8, 8, FallbackPolicy::Rule);
+    let (s, tiles) = new_session(&scene, &params, (8, 1), 8, FallbackPolicy::Rule);
     let cp = s.checkpoint().expect("a fresh session can be checkpointed");
     let bytes = cp.to_bytes(&s.tree().encode());
     let restore = |b: &[u8]| {
@@ -322,6 +334,7 @@ fn damaged_checkpoints_are_refused() {
             &params,
             Budget::Spp(8),
             tiles.clone(),
+            splatting(&scene, 1),
             FallbackPolicy::Rule,
             &cp,
             tree,
@@ -340,7 +353,7 @@ fn damaged_checkpoints_are_refused() {
 fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
     let scene = door_ajar((16, 16));
     let params = scene.guided.clone().expect("guided");
-    let (mut s, tiles) = new_session(&scene, &params, 8, 8, FallbackPolicy::Rule);
+    let (mut s, tiles) = new_session(&scene, &params, (8, 1), 8, FallbackPolicy::Rule);
     let Next::Render(spec) = s.next(0.0) else {
         panic!("a first unit")
     };
@@ -371,6 +384,28 @@ fn session_rejects_duplicate_foreign_and_misplaced_tiles() {
         s.add_tile(spec.unit, 9, &out0, None, 0.0),
         Err(pathfarm_render::session::TileError::NoSuchTile(9))
     ));
+    // iteration 0 renders 1 spp: its tiles are samples, not sums
+    assert!(spec.sample_form());
+    let sums = pathfarm_render::pass::TileOutput {
+        pixels: TilePixels::Sums(Film::new(tiles[0].width(), tiles[0].height())),
+        ..out0.clone()
+    };
+    assert!(matches!(
+        s.add_tile(spec.unit, 0, &sums, None, 0.0),
+        Err(pathfarm_render::session::TileError::WrongPixels { index: 0, .. })
+    ));
+    let TilePixels::Samples(mut short) = out0.pixels.clone() else {
+        panic!("samples")
+    };
+    short.pop();
+    let short = pathfarm_render::pass::TileOutput {
+        pixels: TilePixels::Samples(short),
+        ..out0.clone()
+    };
+    assert!(matches!(
+        s.add_tile(spec.unit, 0, &short, None, 0.0),
+        Err(pathfarm_render::session::TileError::WrongPixels { index: 0, .. })
+    ));
     s.add_tile(spec.unit, 0, &out0, None, 0.0).expect("first");
     assert_eq!(
         s.add_tile(spec.unit, 0, &out0, None, 0.0),
@@ -385,7 +420,7 @@ fn a_unit_whose_tiles_are_all_in_first_waits_for_the_unit_before_it() {
     let scene = door_ajar((12, 8));
     let mut params = scene.guided.clone().expect("guided");
     params.path_fallback = false;
-    let (mut s, tiles) = new_session(&scene, &params, 16, 4, FallbackPolicy::Rule);
+    let (mut s, tiles) = new_session(&scene, &params, (16, 1), 4, FallbackPolicy::Rule);
     let mut worker = WorkerTree {
         version: None,
         tree: None,

@@ -771,6 +771,12 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
             ],
         )?;
         cluster.children.push(("the coordinator".into(), c));
+        // The scene is bundled (loaded to find its files) while the coordinator and the
+        // workers start.
+        let collecting = tokio::spawn(client::Collected::of_owned(
+            args.scene.clone(),
+            opts.defines.clone(),
+        ));
         let work = async {
             // Wait until the coordinator answers.
             let start = Instant::now();
@@ -808,7 +814,8 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
                 )?;
                 cluster.children.push((format!("worker {i}"), c));
             }
-            let job = client.submit(&args.scene, &opts).await?;
+            let collected = collecting.await.context("bundling the scene")??;
+            let job = client.submit_collected(&collected, &opts).await?;
             tracing::info!(
                 "submitted job {job} to a cluster of {} workers",
                 args.workers

@@ -299,6 +299,38 @@ pub fn chunks(data: &[u8], max: usize) -> impl Iterator<Item = &[u8]> {
     data.chunks(max.max(1))
 }
 
+/// A scene bundled for submission ([`Collected::of`]): its manifest and the local file of
+/// each entry.
+#[derive(Clone, Debug)]
+pub struct Collected {
+    manifest: bundle::Manifest,
+    locals: Vec<std::path::PathBuf>,
+}
+
+impl Collected {
+    /// Bundles `scene` as loaded with `defines` (the scene is loaded to find every file it
+    /// reads, which takes as long as loading it: a caller that can do this while it waits for
+    /// something else, as `pathfarm cluster` does while the coordinator starts, should).
+    pub async fn of(scene: &Path, defines: &[(String, String)]) -> Result<Collected, ClientError> {
+        let scene_path = scene.to_path_buf();
+        let defines = defines.to_vec();
+        let (manifest, locals) = tokio::task::spawn_blocking(move || {
+            bundle::collect(&scene_path, &defines, &Limits::default())
+        })
+        .await
+        .map_err(|e| ClientError::Usage(format!("bundling task failed: {e}")))??;
+        Ok(Collected { manifest, locals })
+    }
+
+    /// [`Collected::of`] taking its arguments, for a task of its own.
+    pub async fn of_owned(
+        scene: std::path::PathBuf,
+        defines: Vec<(String, String)>,
+    ) -> Result<Collected, ClientError> {
+        Self::of(&scene, &defines).await
+    }
+}
+
 impl Client {
     /// Bundles `scene`, uploads the blobs the coordinator lacks and submits the job; returns
     /// its id.
@@ -307,13 +339,17 @@ impl Client {
         scene: &Path,
         opts: &SubmitOptions,
     ) -> Result<String, ClientError> {
-        let scene_path = scene.to_path_buf();
-        let defines = opts.defines.clone();
-        let (manifest, locals) = tokio::task::spawn_blocking(move || {
-            bundle::collect(&scene_path, &defines, &Limits::default())
-        })
-        .await
-        .map_err(|e| ClientError::Usage(format!("bundling task failed: {e}")))??;
+        let collected = Collected::of(scene, &opts.defines).await?;
+        self.submit_collected(&collected, opts).await
+    }
+
+    /// [`Client::submit`] of a scene bundled already (with `opts.defines`).
+    pub async fn submit_collected(
+        &mut self,
+        collected: &Collected,
+        opts: &SubmitOptions,
+    ) -> Result<String, ClientError> {
+        let Collected { manifest, locals } = collected;
         let digests: Vec<Vec<u8>> = manifest.files.iter().map(|e| e.digest.0.to_vec()).collect();
         let bundle = bundle_proto(&manifest);
         let mut missing = Vec::new();

@@ -1,14 +1,15 @@
 //! Binary forms of what travels between the coordinator and workers besides the guide's own
 //! wire forms (trees: [`pathfarm_guide::SdTree::encode`], statistics:
 //! [`pathfarm_guide::IterationStats::encode`]): the learned fractions of a pass, the pixel
-//! estimate, a tile's pixel sums, and the pass spec in its proto form. All little-endian,
+//! estimate, a tile's pixels (sums, or samples for a unit of few samples per pixel), and the
+//! pass spec in its proto form. All little-endian,
 //! each with a 4-byte magic and a version byte, decoded with length checks (a payload comes
 //! from the network).
 
 use pathfarm_guide::fraction::FractionState;
 use pathfarm_proto::v1;
 use pathfarm_render::film::PixelStats;
-use pathfarm_render::pass::{PassKind, PassSpec, TileOutput};
+use pathfarm_render::pass::{PassKind, PassSpec, TileOutput, TilePixels};
 use pathfarm_render::{Film, Region};
 
 /// A payload that does not decode.
@@ -26,6 +27,8 @@ pub enum CodecError {
     Kind(i32),
     #[error("tile region {0:?} is empty or not inside the image")]
     Region(Region),
+    #[error("tile samples: sample {0} is not finite")]
+    NonFinite(usize),
 }
 
 const VERSION: u8 = 1;
@@ -136,6 +139,55 @@ pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
         *p = PixelStats::read_le(c.try_into().unwrap());
     }
     Ok(film)
+}
+
+/// A tile's pixels: its sums ([`encode_pixels`]) or its samples (`PFSM`: the count, then
+/// three f32 a sample, raw bits).
+pub fn encode_tile_pixels(pixels: &TilePixels) -> Vec<u8> {
+    match pixels {
+        TilePixels::Sums(film) => encode_pixels(film),
+        TilePixels::Samples(values) => {
+            let mut v = header(b"PFSM");
+            v.reserve(4 + values.len() * 12);
+            v.extend_from_slice(&(values.len() as u32).to_le_bytes());
+            for x in values.iter().flat_map(|s| s.to_array()) {
+                v.extend_from_slice(&x.to_le_bytes());
+            }
+            v
+        }
+    }
+}
+
+/// The pixels of a tile of `region` of `spec` from [`encode_tile_pixels`], in the form the
+/// unit's tiles have ([`PassSpec::sample_form`]); samples must be finite (a renderer
+/// writes zero for a non-finite estimate).
+pub fn decode_tile_pixels(
+    bytes: &[u8],
+    spec: &PassSpec,
+    region: Region,
+) -> Result<TilePixels, CodecError> {
+    if !spec.sample_form() {
+        return decode_pixels(bytes, region).map(TilePixels::Sums);
+    }
+    let (b, n) = body(bytes, b"PFSM", "tile samples", 12)?;
+    let expected = region.pixels() * spec.unit_spp() as usize;
+    if n != expected {
+        return Err(CodecError::Length {
+            what: "tile samples (sample count)",
+            got: n,
+            expected,
+        });
+    }
+    let f = |c: &[u8], k: usize| f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap());
+    let mut values = Vec::with_capacity(n);
+    for (i, c) in b.chunks_exact(12).enumerate() {
+        let v = glam::Vec3::new(f(c, 0), f(c, 1), f(c, 2));
+        if !v.is_finite() {
+            return Err(CodecError::NonFinite(i));
+        }
+        values.push(v);
+    }
+    Ok(TilePixels::Samples(values))
 }
 
 /// A rendered tile's counters (the worker fills in its timings).
@@ -266,6 +318,51 @@ mod tests {
             decode_pixels(&bad, region),
             Err(CodecError::Header { .. })
         ));
+    }
+
+    #[test]
+    fn tile_pixels_travel_in_their_units_form() {
+        let region = Region {
+            x0: 0,
+            y0: 0,
+            x1: 2,
+            y1: 1,
+        };
+        let spec = |spp, passes| PassSpec {
+            unit: 1,
+            iteration: 1,
+            kind: PassKind::Record,
+            first_sample: 0,
+            spp,
+            passes,
+            spp_before: 0,
+            split: false,
+            tree_version: 1,
+            fraction_version: 0,
+        };
+        // 2 pixels x 3 spp: samples, bit for bit
+        let few = spec(1, 3);
+        let values: Vec<_> = (0..6)
+            .map(|i| glam::Vec3::new(i as f32, 1e-30, 7e30))
+            .collect();
+        let enc = encode_tile_pixels(&TilePixels::Samples(values.clone()));
+        assert_eq!(enc.len(), 9 + 6 * 12, "12 bytes a sample");
+        let got = decode_tile_pixels(&enc, &few, region).unwrap();
+        assert_eq!(got, TilePixels::Samples(values.clone()));
+        assert!(got.fits(&few, region));
+        // the wrong count, the wrong form, a non-finite sample: refused
+        assert!(decode_tile_pixels(&enc, &spec(1, 2), region).is_err());
+        assert!(decode_tile_pixels(&enc, &spec(8, 1), region).is_err());
+        let sums = encode_tile_pixels(&TilePixels::Sums(Film::new(2, 1)));
+        assert!(decode_tile_pixels(&sums, &few, region).is_err());
+        assert!(decode_tile_pixels(&sums, &spec(8, 1), region).is_ok());
+        let mut nan = values;
+        nan[4].y = f32::NAN;
+        let enc = encode_tile_pixels(&TilePixels::Samples(nan));
+        assert_eq!(
+            decode_tile_pixels(&enc, &few, region),
+            Err(CodecError::NonFinite(4))
+        );
     }
 
     #[test]

@@ -28,7 +28,7 @@ pub const TAIL_TILES: usize = 24;
 
 /// No tile is planned below this much work (seconds on one thread): lease, upload and the
 /// statistics of a tile cost tens of milliseconds.
-pub const MIN_TILE_SECONDS: f64 = 0.2;
+pub const MIN_TILE_SECONDS: f64 = 0.05;
 
 /// Edge of the cells a [`CostMap`] keeps one cost density for, in pixels.
 pub const CELL: u32 = 16;

@@ -39,7 +39,7 @@ use crate::render::{Progress, Region, RenderSettings};
 use crate::scene::Scene;
 
 pub use crate::pass::{KICKSTART_SPP, PATH_STREAM};
-pub use crate::session::{FallbackPolicy, Next, Session};
+pub use crate::session::{FallbackPolicy, Next, Session, Splatting};
 
 /// One iteration of a guided render.
 #[derive(Clone, Debug)]
@@ -276,7 +276,11 @@ pub fn render_guided(
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
     let whole = Region::full(w, h);
-    let mut session = Session::new(params, budget, tree, w, h, vec![whole], policy);
+    let splatting = Splatting {
+        filter: scene.filter,
+        seed: settings.seed,
+    };
+    let mut session = Session::new(params, budget, tree, (w, h), splatting, vec![whole], policy);
     let npix = whole.pixels() as u64;
     let mut reported = 0;
     while let Next::Render(spec) = session.next(start.elapsed().as_secs_f64()) {

@@ -29,14 +29,16 @@ pub mod rng;
 pub mod sampling;
 pub mod scene;
 pub mod session;
+pub mod splat;
 pub mod texture;
 
 pub use film::Film;
 pub use render::{
-    path_estimator, render, render_into, render_region_into, CameraSample, Estimator,
-    PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
+    path_estimator, render, render_into, render_region_into, sample_region, CameraSample,
+    Estimator, PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
 };
 pub use scene::{Purpose, Scene};
+pub use splat::UnitSplat;
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).
 #[derive(Debug, thiserror::Error)]

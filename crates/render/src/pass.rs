@@ -11,7 +11,8 @@ use crate::counter::ShardedCounter;
 use crate::film::Film;
 use crate::integrator::guided_path::{self, GuideCtx};
 use crate::render::{
-    path_estimator, render_region_into, CameraSample, Estimator, Progress, Region, RenderSettings,
+    path_estimator, render_region_into, sample_region, CameraSample, Estimator, Progress, Region,
+    RenderSettings,
 };
 use crate::rng::Rng;
 use crate::scene::Scene;
@@ -81,17 +82,69 @@ impl PassSpec {
     pub fn unit_spp(&self) -> u64 {
         self.spp as u64 * self.passes as u64
     }
+
+    /// Whether the unit's tiles come back as samples ([`TilePixels::Samples`]) rather than
+    /// pixel sums: for units of at most [`SAMPLES_MAX_SPP`] samples per pixel.
+    pub fn sample_form(&self) -> bool {
+        self.unit_spp() <= SAMPLES_MAX_SPP
+    }
+
+    /// The unit's render calls: how many, and the samples per pixel of each. Each is
+    /// rendered and splatted on its own, the `p`-th from random stream `first_sample + p x
+    /// spp`: the plain path tracer renders the whole unit in one call, the guided integrator
+    /// one call a pass.
+    pub fn render_calls(&self) -> (u32, u32) {
+        match self.kind {
+            PassKind::Path => (1, self.spp * self.passes),
+            _ => (self.passes, self.spp),
+        }
+    }
 }
 
-/// What rendering a unit over a region gives: the region's pixel sums and counters of its
-/// own samples. (The guide statistics of a [`PassKind::Record`] unit went into the tree it
-/// was rendered with; a worker takes them out with [`SdTree::take_stats`].)
+/// Units of at most this many samples per pixel travel as samples: 12 bytes a sample (its
+/// radiance; its film position is drawn again from its random stream) against 92 bytes a
+/// pixel of sums, and a tile of samples needs no filter halo.
+pub const SAMPLES_MAX_SPP: u64 = 7;
+
+/// A tile's pixels as rendering gives them back.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TilePixels {
+    /// The region's pixel sums (a `region`-sized film): its own samples and its filter
+    /// halo's, splatted.
+    Sums(Film),
+    /// The radiance of the region's own samples, for a unit whose [`PassSpec::sample_form`]
+    /// holds: for each of the unit's render calls ([`PassSpec::render_calls`]), every pixel of
+    /// the region row-major, its samples in index order. The session splats the whole
+    /// image once every tile is in ([`crate::splat_samples`]), which gives the bits a
+    /// whole-image render gives.
+    Samples(Vec<glam::Vec3>),
+}
+
+impl TilePixels {
+    /// Whether this is the form a tile of `region` of `spec` has (the right film size, or the
+    /// right number of samples).
+    pub fn fits(&self, spec: &PassSpec, region: Region) -> bool {
+        match self {
+            TilePixels::Sums(f) => {
+                !spec.sample_form() && (f.width, f.height) == (region.width(), region.height())
+            }
+            TilePixels::Samples(v) => {
+                spec.sample_form() && v.len() as u64 == region.pixels() as u64 * spec.unit_spp()
+            }
+        }
+    }
+}
+
+/// What rendering a unit over a region gives: the region's pixels (sums or samples) and
+/// counters of its own samples. (The guide statistics of a [`PassKind::Record`] unit went
+/// into the tree it was rendered with; a worker takes them out with
+/// [`SdTree::take_stats`].)
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileOutput {
     /// The region of the image the tile covers, in whole-image pixel coordinates.
     pub region: Region,
-    /// `region`-sized film.
-    pub film: Film,
+    /// The region's pixels, in the form [`PassSpec::sample_form`] says.
+    pub pixels: TilePixels,
     /// Rays traced (camera, continuation and shadow rays) by guided-integrator samples.
     pub rays: u64,
     /// Camera samples with a non-finite value (counted as zero).
@@ -129,22 +182,12 @@ pub fn render_unit(
     region: Region,
     progress: &(dyn Fn(Progress) + Sync),
 ) -> TileOutput {
-    let mut film = Film::new(region.width(), region.height());
     let counters = Counters::default();
-    let mut invalid = 0u64;
+    let mut out = RegionOut::new(spec, region);
     if spec.kind == PassKind::Path {
         let settings = settings(inputs, spec.spp * spec.passes);
         let est = path_estimator(inputs.scene);
-        let st = render_region_into(
-            inputs.scene,
-            &settings,
-            progress,
-            spec.first_sample,
-            region,
-            &mut film,
-            &est,
-        );
-        invalid += st.invalid_samples;
+        out.render(inputs.scene, &settings, progress, spec.first_sample, &est);
     } else {
         let settings = settings(inputs, spec.spp);
         let npix = region.pixels() as u64;
@@ -162,26 +205,66 @@ pub fn render_unit(
                     samples_total: spec.unit_spp() * npix,
                 })
             };
-            let st = render_region_into(
-                inputs.scene,
-                &settings,
-                &pass_progress,
-                spec.first_sample + done,
-                region,
-                &mut film,
-                &est,
-            );
-            invalid += st.invalid_samples;
+            let first = spec.first_sample + done;
+            out.render(inputs.scene, &settings, &pass_progress, first, &est);
         }
     }
+    let invalid = out.invalid;
     TileOutput {
         region,
-        film,
+        pixels: out.pixels,
         rays: counters.rays.total(),
         invalid_samples: invalid,
         nonfinite_records: inputs.tree.take_nonfinite_records(),
         split_paths: counters.splits.total(),
         extra_light_samples: counters.light_splits.total(),
+    }
+}
+
+/// A tile's pixels as its render calls fill them in.
+struct RegionOut {
+    region: Region,
+    pixels: TilePixels,
+    invalid: u64,
+}
+
+impl RegionOut {
+    fn new(spec: &PassSpec, region: Region) -> Self {
+        let pixels = if spec.sample_form() {
+            TilePixels::Samples(Vec::with_capacity(
+                region.pixels() * spec.unit_spp() as usize,
+            ))
+        } else {
+            TilePixels::Sums(Film::new(region.width(), region.height()))
+        };
+        Self {
+            region,
+            pixels,
+            invalid: 0,
+        }
+    }
+
+    /// One render call of the unit: splatted into the sums, or its samples appended.
+    fn render<E: Estimator + ?Sized>(
+        &mut self,
+        scene: &Scene,
+        settings: &RenderSettings,
+        progress: &(dyn Fn(Progress) + Sync),
+        first_sample: u64,
+        est: &E,
+    ) {
+        let region = self.region;
+        let st = match &mut self.pixels {
+            TilePixels::Sums(film) => {
+                render_region_into(scene, settings, progress, first_sample, region, film, est)
+            }
+            TilePixels::Samples(values) => {
+                let (v, st) = sample_region(scene, settings, progress, first_sample, region, est);
+                values.extend_from_slice(&v);
+                st
+            }
+        };
+        self.invalid += st.invalid_samples;
     }
 }
 

@@ -8,11 +8,11 @@ use glam::Vec2;
 use rayon::prelude::*;
 
 use crate::film::Film;
-use crate::filter::Filter;
 use crate::geometry::Ray;
 use crate::integrator::wavefront::PathWavefront;
 use crate::rng::Rng;
 use crate::scene::Scene;
+use crate::splat::{SampleRec, Splat};
 
 /// Default edge length of a square tile, in pixels.
 pub const DEFAULT_TILE: u32 = 16;
@@ -77,14 +77,6 @@ impl RenderStats {
     pub fn nonfinite(&self) -> u64 {
         self.invalid_samples + self.nonfinite_records
     }
-}
-
-/// One camera sample, kept until it has been splatted: its film position
-/// within its pixel and its radiance estimate.
-#[derive(Clone, Copy, Default)]
-struct SampleRec {
-    offset: Vec2,
-    value: glam::Vec3,
 }
 
 /// Upper bound on the sample buffer of one pass (bytes).
@@ -186,22 +178,6 @@ impl crate::integrator::Specialise for Batch<'_, '_> {
     fn call<const ENV: bool, const ANALYTIC: bool>(self) {
         let wavefront = PathWavefront::<ENV, ANALYTIC> { scene: self.scene };
         wavefront.estimate(self.samples, self.rngs, self.out)
-    }
-}
-
-/// The filter weights of a sample at `offset` in its pixel `(qx, qy)` towards the pixels
-/// `(qx - reach + k, ...)`: `out[k]` along x and `out[span + k]` along y, `span = 2 reach + 1`.
-/// The offset from a target pixel's centre is `(qx - px) - 0.5 + offset`, which is exactly the
-/// `q - (p + 0.5) + offset` of a per-pair evaluation (small integers and halves are exact in
-/// f32), so the weights are the same bits.
-#[inline]
-fn axis_weights(filter: &Filter, reach: i32, offset: Vec2, out: &mut [f32]) {
-    let span = 2 * reach as usize + 1;
-    for k in 0..span {
-        // target p = q - reach + k, so q - p = reach - k
-        let base = (reach - k as i32) as f32 - 0.5;
-        out[k] = filter.eval(base + offset.x);
-        out[span + k] = filter.eval(base + offset.y);
     }
 }
 
@@ -355,12 +331,7 @@ where
     let reach = scene.filter.reach();
     let halo = region.grown(reach as u32, scene.width, scene.height);
     let npix = region.pixels();
-    // Sample-range splits depend on the image size only, never on the region: a pixel's
-    // additions then come in the same order whichever tile it is rendered in.
-    let image_pixels = scene.width as usize * scene.height as usize;
-    let max_pass = ((PASS_BUFFER_BYTES / (image_pixels.max(1) * std::mem::size_of::<SampleRec>()))
-        as u32)
-        .max(1);
+    let max_pass = max_pass_spp(scene.width, scene.height);
     let mut ctx = PassCtx {
         scene,
         settings,
@@ -414,6 +385,84 @@ where
         invalid_samples: ctx.invalid.load(Ordering::Relaxed),
         nonfinite_records: 0,
     }
+}
+
+/// The most samples per pixel one pass of [`render_region_into`] buffers before it splats
+/// them. It depends on the image size only, never on the region: a pixel's additions then
+/// come in the same order whichever tile it is rendered in.
+pub(crate) fn max_pass_spp(width: u32, height: u32) -> u32 {
+    let image_pixels = width as usize * height as usize;
+    ((PASS_BUFFER_BYTES / (image_pixels.max(1) * std::mem::size_of::<SampleRec>())) as u32).max(1)
+}
+
+/// The sample ranges `s0..s1` in which [`render_region_into`] renders and splats `spp`
+/// samples per pixel with `settings` (an spp budget, no time limit).
+pub(crate) fn pass_ranges(
+    width: u32,
+    height: u32,
+    settings: &RenderSettings,
+    spp: u32,
+) -> Vec<(u32, u32)> {
+    let pass = settings
+        .pass_spp
+        .unwrap_or(spp)
+        .clamp(1, max_pass_spp(width, height));
+    (0..spp)
+        .step_by(pass as usize)
+        .map(|s0| (s0, s0.saturating_add(pass).min(spp)))
+        .collect()
+}
+
+/// Phase 1 of [`render_region_into`] alone, without a halo: the radiance of samples
+/// `0..settings.spp` of every pixel of `region` (all of them owned), row-major within the
+/// region, a pixel's samples in index order. Handed to a [`crate::splat::UnitSplat`] with
+/// every other region's, they give the film [`render_region_into`] gives the whole image,
+/// bit for bit: a sample's value depends on its own random stream only. A tile's samples are fewer bytes than its pixel sums for a few
+/// samples per pixel, and need no halo.
+pub fn sample_region<E>(
+    scene: &Scene,
+    settings: &RenderSettings,
+    progress: &(dyn Fn(Progress) + Sync),
+    first_sample: u64,
+    region: Region,
+    estimator: &E,
+) -> (Vec<glam::Vec3>, RenderStats)
+where
+    E: Estimator + ?Sized,
+{
+    assert!(region.is_valid_in(scene.width, scene.height), "{region:?}");
+    let start = Instant::now();
+    let spp = settings.spp.unwrap_or(scene.sample_count);
+    let npix = region.pixels();
+    let mut ctx = PassCtx {
+        scene,
+        settings,
+        progress,
+        first_sample,
+        region,
+        halo: region,
+        done: AtomicU64::new(0),
+        invalid: AtomicU64::new(0),
+        buffer: Vec::new(),
+        weights: Vec::new(),
+    };
+    let n = spp as usize;
+    let mut values = vec![glam::Vec3::ZERO; npix * n];
+    for (s0, s1) in pass_ranges(scene.width, scene.height, settings, spp) {
+        ctx.sample(s0, s1, npix as u64 * spp as u64, estimator);
+        let k = (s1 - s0) as usize;
+        for (p, recs) in ctx.buffer.chunks_exact(k).enumerate() {
+            let out = &mut values[p * n + s0 as usize..p * n + s1 as usize];
+            out.iter_mut().zip(recs).for_each(|(o, r)| *o = r.value);
+        }
+    }
+    let stats = RenderStats {
+        spp,
+        wall: start.elapsed(),
+        invalid_samples: ctx.invalid.load(Ordering::Relaxed),
+        nonfinite_records: 0,
+    };
+    (values, stats)
 }
 
 /// State of one [`render_region_into`] call: the sample buffer of the halo's pixels and
@@ -495,95 +544,14 @@ impl PassCtx<'_> {
     /// per pair cost 5x the exponentials; door-ajar path tracing spent about a quarter of
     /// its time here). Same operands as a per-pair evaluation, so the same bits.
     fn splat(&mut self, n: u32, film: &mut Film) {
-        let n = n as usize;
-        let tile = self.settings.tile_size.max(1) as usize;
-        let filter = self.scene.filter;
-        let reach = filter.reach();
-        let span = 2 * reach as usize + 1;
-        // (every entry is written below: resizing keeps old values instead of zeroing)
-        self.weights.resize(self.halo.pixels() * n * 2 * span, 0.0);
-        self.weights
-            .par_chunks_mut(tile * n * 2 * span)
-            .zip(self.buffer.par_chunks(tile * n))
-            .for_each(|(out, recs)| {
-                for (wt, rec) in out.chunks_mut(2 * span).zip(recs) {
-                    axis_weights(&filter, reach, rec.offset, wt);
-                }
-            });
-        let (buf, wts) = (&self.buffer, &self.weights);
-        let (region, halo) = (self.region, self.halo);
-        let (h, hw) = (self.scene.height as i32, halo.width() as usize);
-        let w = self.scene.width as i32;
-        film.pixels
-            .par_chunks_mut(region.width() as usize)
-            .enumerate()
-            .for_each(|(row, pixels)| {
-                let y = region.y0 as i32 + row as i32;
-                for (i, stats) in pixels.iter_mut().enumerate() {
-                    let x = region.x0 as i32 + i as i32;
-                    stats.count += n as u32;
-                    for qy in (y - reach).max(0)..=(y + reach).min(h - 1) {
-                        let ky = span + (y - qy + reach) as usize;
-                        let row_q = (qy - halo.y0 as i32) as usize * hw;
-                        for qx in (x - reach).max(0)..=(x + reach).min(w - 1) {
-                            let kx = (x - qx + reach) as usize;
-                            let q = row_q + (qx - halo.x0 as i32) as usize;
-                            let recs = &buf[q * n..(q + 1) * n];
-                            let ws = wts[q * n * 2 * span..(q + 1) * n * 2 * span]
-                                .chunks_exact(2 * span);
-                            for (rec, wt) in recs.iter().zip(ws) {
-                                // Added even at weight zero (it adds exact zeros: the sums
-                                // are unchanged), which is cheaper than a branch that the
-                                // random sample positions make unpredictable.
-                                stats.add(wt[kx] * wt[ky], rec.value);
-                            }
-                        }
-                    }
-                }
-            });
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn separable_splat_weights_equal_the_per_pair_filter_bits() {
-        // Deterministic identity (no significance level): for every filter, random sample
-        // offsets and every (source, target) pixel pair in reach, the product of the
-        // precomputed axis weights is bit for bit the per-pair `eval(d.x) * eval(d.y)`.
-        let filters = [
-            Filter::Box { radius: 0.5 },
-            Filter::Box { radius: 1.5 },
-            Filter::Tent { radius: 1.0 },
-            Filter::Tent { radius: 2.5 },
-            Filter::Gaussian { stddev: 0.5 },
-            Filter::Gaussian { stddev: 0.8 },
-        ];
-        let mut rng = Rng::new(31, 7);
-        let mut nonzero = 0;
-        for filter in filters {
-            let reach = filter.reach();
-            let span = 2 * reach as usize + 1;
-            let mut wt = vec![0.0f32; 2 * span];
-            for _ in 0..500 {
-                let offset = rng.next_2d();
-                let (qx, qy) = (7i32, 9i32);
-                axis_weights(&filter, reach, offset, &mut wt);
-                for py in qy - reach..=qy + reach {
-                    for px in qx - reach..=qx + reach {
-                        let centre = Vec2::new(px as f32 + 0.5, py as f32 + 0.5);
-                        let d = Vec2::new(qx as f32, qy as f32) - centre + offset;
-                        let per_pair = filter.eval(d.x) * filter.eval(d.y);
-                        let (kx, ky) = ((px - qx + reach) as usize, (py - qy + reach) as usize);
-                        let separable = wt[kx] * wt[span + ky];
-                        assert_eq!(separable.to_bits(), per_pair.to_bits(), "{filter:?}");
-                        nonzero += (per_pair != 0.0) as u32;
-                    }
-                }
-            }
-        }
-        assert!(nonzero > 10_000, "weights must not all vanish ({nonzero})");
+        let pass = Splat {
+            filter: &self.scene.filter,
+            size: (self.scene.width, self.scene.height),
+            region: self.region,
+            halo: self.halo,
+            tile: self.settings.tile_size.max(1) as usize,
+            buffer: &self.buffer,
+        };
+        pass.add_to(n as usize, &mut self.weights, film, self.region);
     }
 }

@@ -32,12 +32,14 @@ use std::sync::Arc;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, CheckpointParts, In, Out};
 use crate::film::Film;
+use crate::filter::Filter;
 use crate::guided::{
     combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
     GuidedStats,
 };
-use crate::pass::{PassKind, PassSpec, TileOutput, PATH_STREAM};
-use crate::render::Region;
+use crate::pass::{PassKind, PassSpec, TileOutput, TilePixels, PATH_STREAM};
+use crate::render::{Region, RenderSettings, DEFAULT_TILE};
+use crate::splat::UnitSplat;
 
 /// How the path fallback decides.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -87,7 +89,7 @@ pub enum TileError {
     /// The tile was already accepted (a repeated result).
     #[error("tile {0} was already accepted")]
     Duplicate(usize),
-    /// The output's region, or its film's pixel count, does not match the tile's region.
+    /// The output's region does not match the tile's region.
     #[error("tile {index}: region {got:?} is not the tile's {expected:?}")]
     WrongRegion {
         /// The tile's index in the unit's tiling.
@@ -96,6 +98,16 @@ pub enum TileError {
         got: Region,
         /// The region of tile `index`.
         expected: Region,
+    },
+    /// The output's pixels are not what a tile of the unit has: pixel sums of the tile's
+    /// size, or, for a unit of few samples per pixel ([`PassSpec::sample_form`]), its
+    /// samples.
+    #[error("tile {index}: its pixels are not {expected}")]
+    WrongPixels {
+        /// The tile's index in the unit's tiling.
+        index: usize,
+        /// What the unit's tiles hold.
+        expected: &'static str,
     },
     /// [`Session::retile`] refused: the message says why.
     #[error("the unit cannot be re-tiled: {0}")]
@@ -177,7 +189,7 @@ struct Pending {
     spec: PassSpec,
     /// The unit's tiles (the session's default tiling unless the driver re-tiled it).
     tiles: Vec<Region>,
-    film: Film,
+    pixels: UnitPixels,
     done: Vec<bool>,
     left: usize,
     issued_at: f64,
@@ -205,6 +217,27 @@ impl Preview {
     }
 }
 
+/// A unit's pixels while its tiles come in.
+#[derive(Clone, Debug)]
+enum UnitPixels {
+    /// Pixel sums: each tile's are copied into place.
+    Sums(Film),
+    /// Samples: each tile's pixels out of its neighbours' reach are splatted as it arrives,
+    /// the rest when the unit ends.
+    Samples(Box<UnitSplat>),
+}
+
+/// What a session needs to splat units whose tiles come back as samples
+/// ([`PassSpec::sample_form`]): the scene's reconstruction filter and the job's seed, which
+/// give every sample's film position again.
+#[derive(Clone, Copy, Debug)]
+pub struct Splatting {
+    /// The scene's reconstruction filter.
+    pub filter: Filter,
+    /// The job's seed (the units' [`crate::pass::UnitInputs::seed`]).
+    pub seed: u64,
+}
+
 /// A guided job's training session. See the module documentation.
 pub struct Session {
     params: GuidedParams,
@@ -212,6 +245,9 @@ pub struct Session {
     policy: FallbackPolicy,
     width: u32,
     height: u32,
+    splatting: Splatting,
+    /// Buffers of ended units, reused by the next ones.
+    spares: Spares,
     spp_per_pass: u32,
     tiles: Vec<Region>,
     tree: SdTree,
@@ -261,8 +297,8 @@ impl Session {
         params: &GuidedParams,
         budget: Budget,
         tree: SdTree,
-        width: u32,
-        height: u32,
+        (width, height): (u32, u32),
+        splatting: Splatting,
         tiles: Vec<Region>,
         policy: FallbackPolicy,
     ) -> Self {
@@ -272,6 +308,8 @@ impl Session {
             policy,
             width,
             height,
+            splatting,
+            spares: Spares::default(),
             spp_per_pass: params.spp_per_pass.max(1),
             tiles,
             tree,
@@ -511,7 +549,7 @@ impl Session {
                 })?;
         }
         for &(index, out) in tiles {
-            copy_region(&mut p.film, &out.film, p.tiles[index]);
+            p.pixels.put(&out.pixels, p.tiles[index], self.width);
             p.done[index] = true;
             p.left -= 1;
             p.rays += out.rays;
@@ -664,7 +702,12 @@ impl Session {
         self.pending.push(Pending {
             spec,
             tiles: self.tiles.clone(),
-            film: Film::new(self.width, self.height),
+            pixels: UnitPixels::new(
+                &spec,
+                (self.width, self.height),
+                &self.splatting,
+                &mut self.spares,
+            ),
             done: vec![false; self.tiles.len()],
             left: self.tiles.len(),
             issued_at: now,
@@ -759,11 +802,12 @@ impl Session {
 
     fn end_unit(&mut self, p: Pending, now: f64) {
         let spec = p.spec;
+        let film = p.pixels.film(&p.tiles, &mut self.spares);
         let seconds = now - p.issued_at.max(self.last_end);
         self.last_end = now;
         match &mut self.phase {
             Phase::Iterate(it) => {
-                it.film.merge(&p.film);
+                it.film.merge(&film);
                 if spec.record() {
                     self.deferred.push(spec.unit);
                 }
@@ -776,7 +820,7 @@ impl Session {
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
-                Arc::make_mut(&mut f.path_film).merge(&p.film);
+                Arc::make_mut(&mut f.path_film).merge(&film);
                 f.path_seconds += seconds;
                 f.path_rays += p.rays;
                 f.path_spp += spec.unit_spp();
@@ -785,12 +829,13 @@ impl Session {
                 self.end_probe(now);
             }
             Phase::Rest { .. } => {
-                Arc::make_mut(&mut self.fallback.path_film).merge(&p.film);
+                Arc::make_mut(&mut self.fallback.path_film).merge(&film);
                 self.fallback.path_spp += spec.unit_spp();
                 self.fallback.path_seconds += seconds;
             }
             Phase::Plan | Phase::Done => unreachable!("a unit completed outside an iteration"),
         }
+        self.spares.keep(film);
     }
 
     /// The iteration's passes are done. Automatic combination may turn a training
@@ -1063,21 +1108,109 @@ fn check_tile(p: &Pending, index: usize, out: &TileOutput) -> Result<(), TileErr
     if p.done[index] {
         return Err(TileError::Duplicate(index));
     }
-    if out.region != tile || out.film.pixels.len() != tile.pixels() {
+    if out.region != tile {
         return Err(TileError::WrongRegion {
             index,
             got: out.region,
             expected: tile,
         });
     }
+    if !out.pixels.fits(&p.spec, tile) {
+        let expected = if p.spec.sample_form() {
+            "the samples of its pixels"
+        } else {
+            "pixel sums of its size"
+        };
+        return Err(TileError::WrongPixels { index, expected });
+    }
     Ok(())
 }
 
-fn copy_region(dst: &mut Film, src: &Film, region: Region) {
-    let (rw, w) = (region.width() as usize, dst.width as usize);
-    for (row, line) in src.pixels.chunks_exact(rw).enumerate() {
-        let start = (region.y0 as usize + row) * w + region.x0 as usize;
-        dst.pixels[start..start + rw].copy_from_slice(line);
+/// Buffers of ended units, for the next ones (a unit's film and samples are tens of
+/// megabytes: allocated anew for every unit, their pages were faulted in again every time,
+/// a fifth of the farm coordinator's page faults).
+#[derive(Default)]
+struct Spares {
+    films: Vec<Film>,
+    /// (Two units are in flight at a time.)
+    splats: Vec<Box<UnitSplat>>,
+}
+
+impl Spares {
+    /// An all-zero film of `w x h` pixels.
+    fn film(&mut self, (w, h): (u32, u32)) -> Film {
+        match self.films.pop() {
+            Some(mut f) if (f.width, f.height) == (w, h) => {
+                f.pixels.fill(Default::default());
+                f
+            }
+            _ => Film::new(w, h),
+        }
+    }
+
+    fn keep(&mut self, film: Film) {
+        if self.films.len() < 2 {
+            self.films.push(film);
+        }
+    }
+}
+
+impl UnitPixels {
+    fn new(spec: &PassSpec, size: (u32, u32), splatting: &Splatting, spares: &mut Spares) -> Self {
+        if !spec.sample_form() {
+            return UnitPixels::Sums(spares.film(size));
+        }
+        let (calls, spp) = spec.render_calls();
+        // the settings crate::pass::render_unit renders with (the pass sizes matter)
+        let settings = RenderSettings {
+            tile_size: DEFAULT_TILE,
+            ..RenderSettings::new(Some(spp), None, splatting.seed)
+        };
+        let firsts: Vec<u64> = (0..calls as u64)
+            .map(|c| spec.first_sample + c * spp as u64)
+            .collect();
+        let splat = match spares.splats.pop() {
+            Some(mut s) => {
+                s.reuse((&settings, spp), &firsts, spares.film(size));
+                s
+            }
+            None => Box::new(UnitSplat::new(
+                splatting.filter,
+                size,
+                (&settings, spp),
+                &firsts,
+            )),
+        };
+        UnitPixels::Samples(splat)
+    }
+
+    /// Puts a tile's pixels (checked to fit, [`TilePixels::fits`]) in place.
+    fn put(&mut self, tile: &TilePixels, region: Region, w: u32) {
+        match (self, tile) {
+            (UnitPixels::Sums(dst), TilePixels::Sums(src)) => {
+                let (rw, w) = (region.width() as usize, w as usize);
+                for (row, line) in src.pixels.chunks_exact(rw).enumerate() {
+                    let start = (region.y0 as usize + row) * w + region.x0 as usize;
+                    dst.pixels[start..start + rw].copy_from_slice(line);
+                }
+            }
+            (UnitPixels::Samples(dst), TilePixels::Samples(src)) => dst.add(region, src),
+            _ => unreachable!("checked by check_tile"),
+        }
+    }
+
+    /// The unit's film, once every one of its `tiles` is in.
+    fn film(self, tiles: &[Region], spares: &mut Spares) -> Film {
+        match self {
+            UnitPixels::Sums(film) => film,
+            UnitPixels::Samples(mut splat) => {
+                let film = splat.finish(tiles);
+                if spares.splats.len() < 2 {
+                    spares.splats.push(splat);
+                }
+                film
+            }
+        }
     }
 }
 
@@ -1169,6 +1302,7 @@ impl Session {
         params: &GuidedParams,
         budget: Budget,
         tiles: Vec<Region>,
+        splatting: Splatting,
         policy: FallbackPolicy,
         checkpoint: &Checkpoint,
         tree: SdTree,
@@ -1178,7 +1312,15 @@ impl Session {
         let (width, height) = (i.u32()?, i.u32()?);
         let (tree_version, fraction_version, k) = (i.u32()?, i.u32()?, i.u32()?);
         let dummy = SdTree::new(glam::Vec3::ZERO, glam::Vec3::ONE, Default::default());
-        let mut s = Session::new(params, budget, dummy, width, height, tiles, policy);
+        let mut s = Session::new(
+            params,
+            budget,
+            dummy,
+            (width, height),
+            splatting,
+            tiles,
+            policy,
+        );
         s.tree_version = tree_version;
         s.fraction_version = fraction_version;
         s.k = k;

@@ -229,6 +229,7 @@ impl Shared {
                 &p.params,
                 p.budget,
                 tiles.to_vec(),
+                p.splatting,
                 FallbackPolicy::Rule,
                 &cp,
                 tree,

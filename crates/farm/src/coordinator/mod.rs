@@ -42,7 +42,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
 use pathfarm_render::film::Film;
-use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session};
+use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session, Splatting};
 use pathfarm_render::pass::{PassKind, PassSpec};
 use pathfarm_render::{Purpose, Region, Scene};
 use pathfarm_scene::{GuidedParams, Limits};
@@ -299,6 +299,8 @@ pub(crate) struct Prepared {
     seed: u64,
     width: u32,
     height: u32,
+    /// What the session splats units of few samples per pixel with.
+    splatting: Splatting,
     tree: SdTree,
     tile: Option<u32>,
 }
@@ -471,6 +473,10 @@ impl Shared {
             seed,
             width: scene.width,
             height: scene.height,
+            splatting: Splatting {
+                filter: scene.filter,
+                seed,
+            },
             tree,
             tile,
         })
@@ -553,8 +559,8 @@ impl Shared {
                 &p.params,
                 p.budget,
                 p.tree,
-                p.width,
-                p.height,
+                (p.width, p.height),
+                p.splatting,
                 tiles.clone(),
                 FallbackPolicy::Rule,
             ),
@@ -586,7 +592,12 @@ impl Shared {
     /// Advances job `n`'s session: offers the units it issues (two at once when training
     /// passes overlap), or finishes the job.
     pub(crate) fn drive(self: &Arc<Self>, st: &mut State, n: u64) {
-        while self.drive_once(st, n) {}
+        // Each unit's leases go out as soon as it is issued: issuing the next one (a new
+        // iteration's second unit, after its fraction step) took tens of milliseconds that
+        // the workers spent waiting at every iteration's start.
+        while self.drive_once(st, n) {
+            self.dispatch(st);
+        }
     }
 
     /// One [`Session::next`] of job `n`; true if it issued a unit (ask again).

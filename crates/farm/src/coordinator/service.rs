@@ -976,10 +976,10 @@ impl Svc {
                 .jobs
                 .get(&n)
                 .and_then(|j| j.active.as_ref())
-                .filter(|a| a.flight(info.key.unit).is_some())
-                .and_then(|a| a.session.tiles_of(info.key.unit))
-                .and_then(|tiles| tiles.get(info.key.tile as usize).copied());
-            let Some(region) = current else {
+                .and_then(|a| Some((a.flight(info.key.unit)?.spec, a)))
+                .and_then(|(spec, a)| Some((spec, a.session.tiles_of(info.key.unit)?)))
+                .and_then(|(spec, tiles)| Some((spec, *tiles.get(info.key.tile as usize)?)));
+            let Some((spec, region)) = current else {
                 return Err(ack(
                     false,
                     v1::TileRejectReason::Superseded,
@@ -993,7 +993,7 @@ impl Svc {
                     info.key
                 )));
             }
-            let film = codec::decode_pixels(bytes, region)
+            let pixels = codec::decode_tile_pixels(bytes, &spec, region)
                 .map_err(|e| corrupt_ack(format!("lease {lease_id}: pixels: {e}")))?;
             let c = t.counters.unwrap_or_default();
             out.push(Accepting {
@@ -1001,7 +1001,7 @@ impl Svc {
                 index: info.key.tile as usize,
                 out: TileOutput {
                     region,
-                    film,
+                    pixels,
                     rays: c.rays,
                     invalid_samples: c.invalid_samples,
                     nonfinite_records: c.nonfinite_records,

@@ -521,7 +521,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
         } else {
             Vec::new()
         };
-        let pixels = codec::encode_pixels(&out.film);
+        let pixels = codec::encode_tile_pixels(&out.pixels);
         let header = v1::TileHeader {
             job_id: lease.job_id.clone(),
             unit: pass.unit,

@@ -1036,7 +1036,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .expect("cache lock")
         .trees
         .insert(job.clone(), jt);
-    let pixels = codec::encode_pixels(&out.film);
+    let pixels = codec::encode_tile_pixels(&out.pixels);
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();
     tracing::info!(
