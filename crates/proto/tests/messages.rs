@@ -258,6 +258,6 @@ fn wire_form_is_stable() {
 
 #[test]
 fn constants() {
-    assert_eq!(PROTOCOL_VERSION, 2);
+    assert_eq!(PROTOCOL_VERSION, 3);
     assert_eq!(MAX_CHUNK_BYTES, 1_048_576);
 }
