@@ -648,7 +648,13 @@ async fn do_lease(
         return LeaseEnd::Cancelled;
     }
     let sh = shared.clone();
-    let rendered = tokio::task::spawn_blocking(move || render(&sh, prepared)).await;
+    // On the render pool's threads, decoding included: glibc gives each thread an arena of
+    // its own and frees memory into the arena it came from, so a tree decoded on whichever
+    // blocking thread picked the task faulted in fresh pages while its predecessor's went
+    // back to another arena.
+    let rendered =
+        tokio::task::spawn_blocking(move || sh.pool.install(|| render(&sh, prepared)))
+            .await;
     let tile = match rendered {
         Ok(Ok(t)) => t,
         Ok(Err(f)) => {
