@@ -227,8 +227,13 @@ impl Scene {
 /// temporaries), an upper estimate.
 const BVH_BYTES_PER_TRIANGLE: u64 = 256;
 /// Films a render keeps at once (the guided driver keeps an image per iteration it combines,
-/// the pixel estimate and the fallback's films; a path render one).
-const GUIDED_FILMS: u64 = 8;
+/// the pixel estimate, the fallback's films and the films of two units in flight and two
+/// ended ones kept for reuse; a path render one).
+const GUIDED_FILMS: u64 = 10;
+/// Bytes a pixel of the samples of two few-spp units (in flight, or kept for reuse) that a
+/// guided session splats itself: `SAMPLES_MAX_SPP` records of a position and a value.
+const GUIDED_SAMPLE_BYTES: u64 =
+    2 * crate::pass::SAMPLES_MAX_SPP * std::mem::size_of::<crate::splat::SampleRec>() as u64;
 /// The renderer's pass buffer cap (`render::PASS_BUFFER_BYTES`) and other per-render scratch.
 const SCRATCH_BYTES: u64 = 512 << 20;
 
@@ -237,11 +242,12 @@ const SCRATCH_BYTES: u64 = 512 << 20;
 fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {
     let film = &desc.sensor.film;
     let pixels = film.width as u64 * film.height as u64;
-    let films = match desc.integrator {
-        IntegratorDesc::Path(_) => 1,
-        IntegratorDesc::GuidedPath(_) => GUIDED_FILMS,
+    let sums = std::mem::size_of::<crate::film::PixelStats>() as u64;
+    let per_pixel = match desc.integrator {
+        IntegratorDesc::Path(_) => sums,
+        IntegratorDesc::GuidedPath(_) => GUIDED_FILMS * sums + GUIDED_SAMPLE_BYTES,
     };
-    let film_bytes = pixels * std::mem::size_of::<crate::film::PixelStats>() as u64 * films;
+    let film_bytes = pixels * per_pixel;
     let bvh_bytes = triangles as u64 * BVH_BYTES_PER_TRIANGLE;
     let data_bytes = desc.data_bytes();
     let total = film_bytes + bvh_bytes + data_bytes + SCRATCH_BYTES;

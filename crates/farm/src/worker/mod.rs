@@ -653,8 +653,7 @@ async fn do_lease(
     // blocking thread picked the task faulted in fresh pages while its predecessor's went
     // back to another arena.
     let rendered =
-        tokio::task::spawn_blocking(move || sh.pool.install(|| render(&sh, prepared)))
-            .await;
+        tokio::task::spawn_blocking(move || sh.pool.install(|| render(&sh, prepared))).await;
     let tile = match rendered {
         Ok(Ok(t)) => t,
         Ok(Err(f)) => {
