@@ -332,18 +332,7 @@ where
     let halo = region.grown(reach as u32, scene.width, scene.height);
     let npix = region.pixels();
     let max_pass = max_pass_spp(scene.width, scene.height);
-    let mut ctx = PassCtx {
-        scene,
-        settings,
-        progress,
-        first_sample,
-        region,
-        halo,
-        done: AtomicU64::new(0),
-        invalid: AtomicU64::new(0),
-        buffer: Vec::new(),
-        weights: Vec::new(),
-    };
+    let mut ctx = PassCtx::new(scene, settings, progress, first_sample, (region, halo));
     let mut spp_done = 0u32;
     let mut pass = if settings.time_limit.is_some() {
         1
@@ -434,18 +423,7 @@ where
     let start = Instant::now();
     let spp = settings.spp.unwrap_or(scene.sample_count);
     let npix = region.pixels();
-    let mut ctx = PassCtx {
-        scene,
-        settings,
-        progress,
-        first_sample,
-        region,
-        halo: region,
-        done: AtomicU64::new(0),
-        invalid: AtomicU64::new(0),
-        buffer: Vec::new(),
-        weights: Vec::new(),
-    };
+    let mut ctx = PassCtx::new(scene, settings, progress, first_sample, (region, region));
     let n = spp as usize;
     let mut values = vec![glam::Vec3::ZERO; npix * n];
     for (s0, s1) in pass_ranges(scene.width, scene.height, settings, spp) {
@@ -480,7 +458,31 @@ struct PassCtx<'a> {
     weights: Vec<f32>,
 }
 
-impl PassCtx<'_> {
+impl<'a> PassCtx<'a> {
+    /// A render call's state for the pixels of `region` from the samples of `halo` (the
+    /// region grown by the filter's reach, or the region itself when it only samples).
+    fn new(
+        scene: &'a Scene,
+        settings: &'a RenderSettings,
+        progress: &'a (dyn Fn(Progress) + Sync),
+        first_sample: u64,
+        (region, halo): (Region, Region),
+    ) -> Self {
+        PassCtx {
+            scene,
+            settings,
+            progress,
+            first_sample,
+            region,
+            halo,
+            done: AtomicU64::new(0),
+            invalid: AtomicU64::new(0),
+            buffer: Vec::new(),
+            weights: Vec::new(),
+        }
+    }
+
+
     /// Phase 1: samples `s0..s1` of every halo pixel, in chunks of `tile` pixels.
     fn sample<E: Estimator + ?Sized>(&mut self, s0: u32, s1: u32, total: u64, estimator: &E) {
         let n = (s1 - s0) as usize;
