@@ -482,7 +482,6 @@ impl<'a> PassCtx<'a> {
         }
     }
 
-
     /// Phase 1: samples `s0..s1` of every halo pixel, in chunks of `tile` pixels.
     fn sample<E: Estimator + ?Sized>(&mut self, s0: u32, s1: u32, total: u64, estimator: &E) {
         let n = (s1 - s0) as usize;
