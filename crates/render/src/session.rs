@@ -24,11 +24,11 @@
 //! step once per recorded unit, on the gradients of the units up to it, before the unit two
 //! after it is issued. Time budgets depend on `now` by nature.
 
+use std::sync::Arc;
+
 use pathfarm_guide::schedule::{self, Budget, GuidingVerdict, IterationLength, IterationOutcome};
 use pathfarm_guide::{GradTarget, HeldSlot, IterationStats, SdTree, StatsError};
 use pathfarm_scene::{GuidedCombination, GuidedParams, GuidedRoulette};
-
-use std::sync::Arc;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, CheckpointParts, In, Out};
 use crate::film::Film;
@@ -37,9 +37,11 @@ use crate::guided::{
     combine_films, film_relative_variance, film_variance, pixel_estimate, GuidedIteration,
     GuidedStats,
 };
-use crate::pass::{PassKind, PassSpec, TileOutput, TilePixels, PATH_STREAM};
-use crate::render::{Region, RenderSettings, DEFAULT_TILE};
-use crate::splat::UnitSplat;
+use crate::pass::{PassKind, PassSpec, TileOutput, PATH_STREAM};
+use crate::render::Region;
+
+mod pixels;
+use pixels::{Spares, UnitPixels};
 
 /// How the path fallback decides.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -215,16 +217,6 @@ impl Preview {
         let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
         combine_films(&refs, &self.weights)
     }
-}
-
-/// A unit's pixels while its tiles come in.
-#[derive(Clone, Debug)]
-enum UnitPixels {
-    /// Pixel sums: each tile's are copied into place.
-    Sums(Film),
-    /// Samples: each tile's pixels out of its neighbours' reach are splatted as it arrives,
-    /// the rest when the unit ends.
-    Samples(Box<UnitSplat>),
 }
 
 /// What a session needs to splat units whose tiles come back as samples
@@ -1124,94 +1116,6 @@ fn check_tile(p: &Pending, index: usize, out: &TileOutput) -> Result<(), TileErr
         return Err(TileError::WrongPixels { index, expected });
     }
     Ok(())
-}
-
-/// Buffers of ended units, for the next ones (a unit's film and samples are tens of
-/// megabytes: allocated anew for every unit, their pages were faulted in again every time,
-/// a fifth of the farm coordinator's page faults).
-#[derive(Default)]
-struct Spares {
-    films: Vec<Film>,
-    /// (Two units are in flight at a time.)
-    splats: Vec<Box<UnitSplat>>,
-}
-
-impl Spares {
-    /// An all-zero film of `w x h` pixels.
-    fn film(&mut self, (w, h): (u32, u32)) -> Film {
-        match self.films.pop() {
-            Some(mut f) if (f.width, f.height) == (w, h) => {
-                f.pixels.fill(Default::default());
-                f
-            }
-            _ => Film::new(w, h),
-        }
-    }
-
-    fn keep(&mut self, film: Film) {
-        if self.films.len() < 2 {
-            self.films.push(film);
-        }
-    }
-}
-
-impl UnitPixels {
-    fn new(spec: &PassSpec, size: (u32, u32), splatting: &Splatting, spares: &mut Spares) -> Self {
-        if !spec.sample_form() {
-            return UnitPixels::Sums(spares.film(size));
-        }
-        let (calls, spp) = spec.render_calls();
-        // the settings crate::pass::render_unit renders with (the pass sizes matter)
-        let settings = RenderSettings {
-            tile_size: DEFAULT_TILE,
-            ..RenderSettings::new(Some(spp), None, splatting.seed)
-        };
-        let firsts: Vec<u64> = (0..calls as u64)
-            .map(|c| spec.first_sample + c * spp as u64)
-            .collect();
-        let splat = match spares.splats.pop() {
-            Some(mut s) => {
-                s.reuse((&settings, spp), &firsts, spares.film(size));
-                s
-            }
-            None => Box::new(UnitSplat::new(
-                splatting.filter,
-                size,
-                (&settings, spp),
-                &firsts,
-            )),
-        };
-        UnitPixels::Samples(splat)
-    }
-
-    /// Puts a tile's pixels (checked to fit, [`TilePixels::fits`]) in place.
-    fn put(&mut self, tile: &TilePixels, region: Region, w: u32) {
-        match (self, tile) {
-            (UnitPixels::Sums(dst), TilePixels::Sums(src)) => {
-                let (rw, w) = (region.width() as usize, w as usize);
-                for (row, line) in src.pixels.chunks_exact(rw).enumerate() {
-                    let start = (region.y0 as usize + row) * w + region.x0 as usize;
-                    dst.pixels[start..start + rw].copy_from_slice(line);
-                }
-            }
-            (UnitPixels::Samples(dst), TilePixels::Samples(src)) => dst.add(region, src),
-            _ => unreachable!("checked by check_tile"),
-        }
-    }
-
-    /// The unit's film, once every one of its `tiles` is in.
-    fn film(self, tiles: &[Region], spares: &mut Spares) -> Film {
-        match self {
-            UnitPixels::Sums(film) => film,
-            UnitPixels::Samples(mut splat) => {
-                let film = splat.finish(tiles);
-                if spares.splats.len() < 2 {
-                    spares.splats.push(splat);
-                }
-                film
-            }
-        }
-    }
 }
 
 impl Session {
