@@ -378,6 +378,21 @@ fn three_worker_cluster_renders_bit_identical_to_render() {
     for w in &mut farm.workers {
         assert!(w.poll().is_none(), "a worker exited");
     }
+    // The job came to an idle farm: every worker built its scene on the coordinator's
+    // Prefetch while the job was validated, and its first lease took that scene (the
+    // image above is bit-identical all the same). The bundle's files were laid out only
+    // to be read: nothing is left of them in the workers' caches.
+    for (i, w) in farm.workers.iter().enumerate() {
+        let log = w.stderr_text();
+        assert!(
+            log.contains("built ahead in") && log.contains("its scene was built ahead"),
+            "worker {i} built the scene ahead and used it:\n{}",
+            farm.logs()
+        );
+        let bundles = farm.data.join(format!("worker-{i}")).join("bundles");
+        let left: Vec<_> = fs::read_dir(&bundles).unwrap().collect();
+        assert!(left.is_empty(), "{}: {left:?}", bundles.display());
+    }
 }
 
 #[test]

@@ -387,6 +387,43 @@ impl Shared {
 
     /// Validates a submission and loads its scene (from a temporary materialisation that is
     /// removed again). Slow: call off the async executor.
+    /// Advises the workers to build a just-submitted job's scene while it is validated
+    /// ([`v1::Prefetch`]; see the worker's `prefetch` module): only when no other job is
+    /// under way or waiting (a worker idle at another job's iteration boundary must not be
+    /// made busy with a scene that may wait its turn) and when the bundle passes the cheap
+    /// checks, with every blob here. Nothing depends on it: a lease builds what it needs.
+    pub(crate) fn advise_prefetch(&self, req: &v1::SubmitJobRequest) {
+        let Some(bundle) = &req.bundle else { return };
+        let complete = manifest_from_proto(bundle).is_ok_and(|m| {
+            m.validate(&self.cfg.bundle_limits).is_ok()
+                && m.files.iter().all(|e| self.blobs.has(&e.digest))
+        });
+        if !complete {
+            return;
+        }
+        let scene = req.settings.as_ref().and_then(|s| s.scene.clone());
+        let settings = v1::SceneSettings {
+            seed: None,
+            ..scene.unwrap_or_default()
+        };
+        let prefetch = v1::Prefetch {
+            bundle: Some(bundle.clone()),
+            settings: Some(settings),
+        };
+        let msg = v1::CoordinatorMessage {
+            msg: Some(v1::coordinator_message::Msg::Prefetch(prefetch)),
+        };
+        let st = self.lock();
+        if st.jobs.values().any(|j| !is_terminal(j.record.state)) {
+            return;
+        }
+        for w in st.workers.values().filter(|w| !w.draining) {
+            if let Some(tx) = &w.tx {
+                let _ = tx.send(Ok(msg.clone()));
+            }
+        }
+    }
+
     pub(crate) fn prepare(&self, req: &v1::SubmitJobRequest) -> Result<Prepared, Status> {
         let bundle = req.bundle.as_ref().ok_or_else(|| bad("bundle: missing"))?;
         let manifest = manifest_from_proto(bundle)?;

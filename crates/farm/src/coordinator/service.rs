@@ -302,6 +302,7 @@ impl Jobs for Svc {
         req: Request<v1::SubmitJobRequest>,
     ) -> Result<Response<v1::SubmitJobResponse>, Status> {
         let req = req.into_inner();
+        self.shared.advise_prefetch(&req);
         let shared = self.shared.clone();
         let (req, prepared) = tokio::task::spawn_blocking(move || {
             let p = shared.prepare(&req);

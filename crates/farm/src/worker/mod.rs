@@ -30,6 +30,7 @@ use crate::bundle::{self, Digest, Manifest, ManifestEntry};
 use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote};
 use crate::codec;
 
+mod prefetch;
 mod upload;
 
 pub use upload::MAX_JOINT_TILES;
@@ -174,6 +175,8 @@ struct Caches {
     /// decoded once and superseded within an iteration (writing a tree of tens of MB to
     /// disk and reading it back cost a worker more than fetching it).
     inputs: Vec<(Digest, Arc<Vec<u8>>)>,
+    /// The scene the coordinator's last `Prefetch` asked for, built or being built.
+    prefetched: Option<prefetch::Prefetched>,
 }
 
 const INPUT_CACHE: usize = 4;
@@ -390,7 +393,8 @@ impl Leases {
                     self.send(Msg::Draining(v1::Draining {}));
                 }
             }
-            Some(C::Registered(_)) | Some(C::Refused(_)) | None => {}
+            // Prefetch is taken by the session loop, which has the API to fetch with.
+            Some(C::Registered(_)) | Some(C::Refused(_)) | Some(C::Prefetch(_)) | None => {}
         }
     }
 
@@ -536,7 +540,10 @@ async fn session<S: Future<Output = ()>>(
                 *stop = true;
                 l.on_shutdown();
             }
-            _ = heartbeat.tick() => l.heartbeat(),
+            _ = heartbeat.tick() => {
+                l.heartbeat();
+                prefetch::expire(shared);
+            }
             end = async { (&mut l.running.as_mut().expect("guarded").handle).await }, if l.running.is_some() => {
                 let r = l.running.take().expect("guarded");
                 let end = end.unwrap_or_else(|e| LeaseEnd::Failed {
@@ -556,6 +563,11 @@ async fn session<S: Future<Output = ()>>(
                 l.on_uploaded(ids, job, end);
             }
             msg = inbound.message() => match msg {
+                Ok(Some(v1::CoordinatorMessage { msg: Some(v1::coordinator_message::Msg::Prefetch(p)) })) => {
+                    if !l.draining {
+                        prefetch::start(shared, &api, p);
+                    }
+                }
                 Ok(Some(m)) => l.on_message(m),
                 Ok(None) => break Some("the control stream ended".to_string()),
                 Err(s) => break Some(format!("{} ({:?})", s.message(), s.code())),
@@ -679,7 +691,6 @@ async fn do_lease(
 struct Prepared {
     lease: v1::Lease,
     manifest: Manifest,
-    defines: Vec<(String, String)>,
     tree_blob: Option<Arc<Vec<u8>>>,
     fractions_blob: Option<Arc<Vec<u8>>>,
     estimate_blob: Option<Arc<Vec<u8>>>,
@@ -755,6 +766,22 @@ async fn pass_input(
     Ok(Some(data))
 }
 
+/// The manifest of a bundle message.
+fn manifest_of(bundle: &v1::Bundle) -> Result<Manifest, Fail> {
+    let mut files = Vec::with_capacity(bundle.files.len());
+    for f in &bundle.files {
+        files.push(ManifestEntry {
+            path: f.path.clone(),
+            digest: digest_of_field(&f.digest, &f.path)?,
+            size: f.size,
+        });
+    }
+    Ok(Manifest {
+        root: bundle.root.clone(),
+        files,
+    })
+}
+
 async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Prepared, Fail> {
     let bundle = match &lease.scene {
         Some(v1::lease::Scene::Bundle(b)) => b.clone(),
@@ -768,25 +795,21 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
         }
         None => return Err(fatal("the lease names no scene bundle")),
     };
-    let mut files = Vec::with_capacity(bundle.files.len());
-    for f in &bundle.files {
-        files.push(ManifestEntry {
-            path: f.path.clone(),
-            digest: digest_of_field(&f.digest, &f.path)?,
-            size: f.size,
-        });
+    let manifest = manifest_of(&bundle)?;
+    let job = &lease.job_id;
+    let caches = || shared.caches.lock().expect("cache lock");
+    let mut have_scene = caches().scenes.iter().any(|(j, _)| j == job);
+    if !have_scene {
+        let key = prefetch::scene_key(&bundle, lease.settings.as_ref());
+        if let Some(js) = prefetch::take(shared, &key).await {
+            tracing::info!(
+                "lease {} (job {job}): its scene was built ahead",
+                lease.lease_id
+            );
+            cache_scene(&mut caches(), job, js);
+            have_scene = true;
+        }
     }
-    let manifest = Manifest {
-        root: bundle.root.clone(),
-        files,
-    };
-    let have_scene = shared
-        .caches
-        .lock()
-        .expect("cache lock")
-        .scenes
-        .iter()
-        .any(|(j, _)| j == &lease.job_id);
     if !have_scene {
         for e in &manifest.files {
             ensure_blob(shared, api, &e.digest).await?;
@@ -800,20 +823,9 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
     let fractions_blob =
         pass_input(shared, api, &pass.fractions_digest, "fractions_digest").await?;
     let estimate_blob = pass_input(shared, api, &pass.estimate_digest, "estimate_digest").await?;
-    let defines = lease
-        .settings
-        .as_ref()
-        .map(|s| {
-            s.defines
-                .iter()
-                .map(|d| (d.name.clone(), d.value.clone()))
-                .collect()
-        })
-        .unwrap_or_default();
     Ok(Prepared {
         lease: lease.clone(),
         manifest,
-        defines,
         tree_blob,
         fractions_blob,
         estimate_blob,
@@ -835,43 +847,96 @@ fn job_dir_name(job: &str) -> String {
     }
 }
 
+/// The lease's job's scene: from the cache, or built and cached.
 fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> {
     let job = &p.lease.job_id;
-    {
-        let mut c = shared.caches.lock().expect("cache lock");
-        if let Some(s) = most_recent(&mut c.scenes, job) {
-            return Ok(s);
+    let cached = most_recent(&mut shared.caches.lock().expect("cache lock").scenes, job);
+    let js = match cached {
+        Some(js) => js,
+        None => {
+            let settings = p.lease.settings.as_ref();
+            let js = Arc::new(build_scene(
+                shared,
+                &p.manifest,
+                settings,
+                &job_dir_name(job),
+            )?);
+            cache_scene(
+                &mut shared.caches.lock().expect("cache lock"),
+                job,
+                js.clone(),
+            );
+            js
+        }
+    };
+    if let Some(img) = &p.lease.image {
+        if (img.width, img.height) != (js.scene.width, js.scene.height) {
+            return Err(fatal(format!(
+                "the scene built at {}x{}, the lease says {}x{}",
+                js.scene.width, js.scene.height, img.width, img.height
+            )));
         }
     }
-    let dest = shared.cache_dir.join("bundles").join(job_dir_name(job));
+    Ok(js)
+}
+
+/// Keeps `js` as `job`'s scene, dropping the least recently used beyond [`SCENE_CACHE`]
+/// with their jobs' trees and estimates.
+fn cache_scene(c: &mut Caches, job: &str, js: Arc<JobScene>) {
+    c.scenes.push((job.to_string(), js));
+    while c.scenes.len() > SCENE_CACHE {
+        let (old, _) = c.scenes.remove(0);
+        c.trees.remove(&old);
+        c.estimates.remove(&old);
+    }
+}
+
+/// Builds the scene of `manifest` with `settings` (integrator, defines, resolution; not the
+/// seed) from the blobs in the disk cache, laid out in `bundles/<dir_name>` and removed again
+/// once built (the scene holds everything it read).
+fn build_scene(
+    shared: &Shared,
+    manifest: &Manifest,
+    settings: Option<&v1::SceneSettings>,
+    dir_name: &str,
+) -> Result<JobScene, Fail> {
+    let dest = shared.cache_dir.join("bundles").join(dir_name);
     if dest.exists() {
         std::fs::remove_dir_all(&dest)
             .map_err(|e| retryable(format!("{}: {e}", dest.display())))?;
     }
     let cache = shared.cache_dir.clone();
-    bundle::materialize(&p.manifest, |d| blob_path(&cache, d), &dest)
-        .map_err(|e| retryable(format!("materialising the bundle: {e}")))?;
+    let built = bundle::materialize(manifest, |d| blob_path(&cache, d), &dest)
+        .map_err(|e| retryable(format!("materialising the bundle: {e}")))
+        .and_then(|_| build_in(&dest, manifest, settings));
+    let _ = std::fs::remove_dir_all(&dest);
+    built
+}
+
+fn build_in(
+    dest: &Path,
+    manifest: &Manifest,
+    settings: Option<&v1::SceneSettings>,
+) -> Result<JobScene, Fail> {
     let limits = Limits {
         confine_files: true,
         ..Default::default()
     };
-    let mut desc = bundle::check(&p.manifest, &dest, &p.defines, &limits)
+    let defines: Vec<(String, String)> = settings
+        .map(|s| {
+            s.defines
+                .iter()
+                .map(|d| (d.name.clone(), d.value.clone()))
+                .collect()
+        })
+        .unwrap_or_default();
+    let mut desc = bundle::check(manifest, dest, &defines, &limits)
         .map_err(|e| fatal(format!("loading the scene: {e}")))?;
-    if let Some(r) = p
-        .lease
-        .settings
-        .as_ref()
-        .and_then(|s| s.resolution.as_ref())
-    {
+    if let Some(r) = settings.and_then(|s| s.resolution.as_ref()) {
         bundle::override_resolution(&mut desc, r.width, r.height, &limits).map_err(fatal)?;
     }
     let mut scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;
-    match p
-        .lease
-        .settings
-        .as_ref()
-        .and_then(|s| s.integrator.as_deref())
-    {
+    match settings.and_then(|s| s.integrator.as_deref()) {
         None => {}
         Some("path") => scene.guided = None,
         Some("guided_path") => {
@@ -881,25 +946,8 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
         }
         Some(other) => return Err(fatal(format!("unknown integrator override {other:?}"))),
     }
-    if let Some(img) = &p.lease.image {
-        if (img.width, img.height) != (scene.width, scene.height) {
-            return Err(fatal(format!(
-                "the scene built at {}x{}, the lease says {}x{}",
-                scene.width, scene.height, img.width, img.height
-            )));
-        }
-    }
     let params = scene.guided.clone().unwrap_or_default();
-    let js = Arc::new(JobScene { scene, params });
-    let mut c = shared.caches.lock().expect("cache lock");
-    c.scenes.push((job.clone(), js.clone()));
-    while c.scenes.len() > SCENE_CACHE {
-        let (old, _) = c.scenes.remove(0);
-        c.trees.remove(&old);
-        c.estimates.remove(&old);
-        let _ = std::fs::remove_dir_all(shared.cache_dir.join("bundles").join(job_dir_name(&old)));
-    }
-    Ok(js)
+    Ok(JobScene { scene, params })
 }
 
 /// The job's tree copy (from the cache), refreshed for the lease's tree version and
