@@ -235,6 +235,7 @@ fn key_messages_keep_their_field_numbers() {
             ("lease_offer", 3),
             ("cancel_lease", 4),
             ("drain", 5),
+            ("prefetch", 6),
         ])
     );
     assert_eq!(
