@@ -439,6 +439,31 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_stor
     );
     assert!(!out.exists());
     assert_eq!(farm.blob_count(), 0, "nothing was stored");
+
+    // A mesh with a NaN position: the client bundles without decoding meshes, so the
+    // coordinator's validation refuses it, naming the mesh by the scene's own path for it
+    // and not by the coordinator's directory; its uploaded blobs are not kept.
+    let nan = write_scene(
+        "farm-nan-mesh",
+        r#"<scene version="3.0.0">
+  <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+  <shape type="obj"><string name="filename" value="meshes/nan.obj"/></shape>
+</scene>"#,
+    );
+    let mesh = nan.with_file_name("meshes").join("nan.obj");
+    fs::create_dir_all(mesh.parent().unwrap()).unwrap();
+    fs::write(&mesh, "v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n").unwrap();
+    let argv = ["submit", path_str(&nan), "--coordinator", &url];
+    let r = with_token(&argv);
+    assert!(!r.status.success(), "a NaN mesh must be refused");
+    let coordinator_dir = farm.data.join("coordinator");
+    assert!(
+        r.stderr.contains("'meshes/nan.obj'")
+            && !r.stderr.contains(coordinator_dir.to_str().unwrap()),
+        "the error names the mesh by its bundle path: {}",
+        r.stderr
+    );
+    assert_eq!(farm.blob_count(), 0, "nothing of the refused bundle was kept");
 }
 
 #[test]

@@ -24,7 +24,7 @@ use std::io::{self, Read, Write};
 use std::path::{Component, Path, PathBuf};
 
 use pathfarm_scene::limits::format_bytes;
-use pathfarm_scene::{load_scene_with_limits, Limits, SceneDesc, SceneError};
+use pathfarm_scene::{load_scene_with_limits, scene_files, Limits, SceneDesc, SceneError};
 
 /// The blake3 digest (32 bytes) of a file's contents: the name of its blob.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -376,10 +376,13 @@ fn confined(limits: &Limits) -> Limits {
     }
 }
 
-/// Bundle the scene `scene` (loaded with `overrides` and `limits`, confined to its
-/// directory): the manifest of every file the loader read, paths relative to the scene's
-/// directory, the root (the scene file's name) first, and the local file of each entry, in
-/// the same order. Digests are computed by streaming each file.
+/// Bundle the scene `scene` (its files learned with `overrides` and `limits`, confined to its
+/// directory, by [`scene_files`]: the XML checked, meshes and images not decoded): the
+/// manifest of every file the scene reads, paths relative to the scene's directory, the root
+/// (the scene file's name) first, and the local file of each entry, in the same order.
+/// Digests are computed by streaming each file. A file whose contents are bad (a mesh with
+/// NaN positions, a corrupt image) is bundled: the coordinator's validation refuses the job,
+/// naming the file by its bundle path.
 ///
 /// A scene that reads a file outside its directory (an absolute name, `..`, a symbolic link
 /// leading out) cannot be bundled: [`BundleError::Collect`] names the file and line.
@@ -388,7 +391,7 @@ pub fn collect(
     overrides: &[(String, String)],
     limits: &Limits,
 ) -> Result<(Manifest, Vec<PathBuf>), BundleError> {
-    let desc = load_scene_with_limits(scene, overrides, &confined(limits)).map_err(|error| {
+    let names = scene_files(scene, overrides, &confined(limits)).map_err(|error| {
         BundleError::Collect {
             scene: scene.to_path_buf(),
             error,
@@ -396,9 +399,9 @@ pub fn collect(
     })?;
     let base = scene.parent().unwrap_or(Path::new(""));
     let mut seen = HashSet::new();
-    let mut files = Vec::with_capacity(desc.files.len());
-    let mut locals = Vec::with_capacity(desc.files.len());
-    for file in desc.files {
+    let mut files = Vec::with_capacity(names.len());
+    let mut locals = Vec::with_capacity(names.len());
+    for file in names {
         let path = manifest_path(&file, base)?;
         if !seen.insert(path.clone()) {
             continue;

@@ -12,6 +12,16 @@ use crate::limits::{format_bytes, Limits};
 use crate::props::Props;
 use crate::xml::{invalid, Node};
 
+/// What a load reads of the files a scene names.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Reading {
+    /// Everything: meshes and images decoded (a scene to render).
+    Contents,
+    /// Only what names and checks them: each file opened, an image's header (its size, for
+    /// the limits); meshes and images are not decoded ([`crate::scene_files`]).
+    Names,
+}
+
 /// Build state. Objects are cached by node identity, so an `id`'d BSDF or
 /// texture referenced from many places is built once.
 pub(crate) struct Ctx {
@@ -26,6 +36,8 @@ pub(crate) struct Ctx {
     default_bsdf: Option<usize>,
     /// Resource limits of this load.
     pub limits: Limits,
+    /// What the load reads of the files the scene names.
+    pub reading: Reading,
     /// Bytes of mesh and texture data loaded so far (checked against
     /// `limits.max_memory_bytes` before each allocation, see [`Ctx::reserve_memory`]).
     pub memory_bytes: u64,
@@ -38,7 +50,12 @@ pub(crate) struct Ctx {
 }
 
 impl Ctx {
-    pub(crate) fn new(ids: HashMap<String, Rc<Node>>, base_dir: PathBuf, limits: Limits) -> Self {
+    pub(crate) fn new(
+        ids: HashMap<String, Rc<Node>>,
+        base_dir: PathBuf,
+        limits: Limits,
+        reading: Reading,
+    ) -> Self {
         Self {
             ids,
             base_dir,
@@ -50,6 +67,7 @@ impl Ctx {
             warnings: Vec::new(),
             default_bsdf: None,
             limits,
+            reading,
             memory_bytes: 0,
             files: Vec::new(),
             files_seen: HashSet::new(),

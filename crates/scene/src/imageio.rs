@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 
-use crate::context::Ctx;
+use crate::context::{Ctx, Reading};
 use crate::desc::{Location, Texels};
 use crate::error::SceneError;
 use crate::xml::invalid;
@@ -53,6 +53,14 @@ pub(crate) fn load_checked(
     }
     // Decoded bytes plus our texels (up to 16 bytes a pixel for float images).
     ctx.reserve_memory(pixels * 24, &format!("{name} ({w}x{h})"), loc)?;
+    if ctx.reading == Reading::Names {
+        // The header read, the pixels not decoded: one black texel stands in.
+        return Ok(LoadedImage {
+            width: 1,
+            height: 1,
+            texels: Texels::Float(Arc::new(vec![Vec3::ZERO])),
+        });
+    }
     load_image(path, raw, pixels * 24).map_err(fail)
 }
 

@@ -40,7 +40,7 @@ pub use limits::Limits;
 use std::path::Path;
 use std::rc::Rc;
 
-use context::Ctx;
+use context::{Ctx, Reading};
 use xml::{invalid, Category};
 
 /// Load a Mitsuba 3 XML scene. `overrides` are `-D name=value` pairs; they
@@ -63,8 +63,32 @@ pub fn load_scene_with_limits(
     overrides: &[(String, String)],
     limits: &Limits,
 ) -> Result<SceneDesc, SceneError> {
+    load(path, overrides, limits, Reading::Contents)
+}
+
+/// The files the scene `path` reads ([`SceneDesc::files`]: the scene file first), learned
+/// without decoding them: the XML is parsed and checked as [`load_scene_with_limits`] checks
+/// it, each file it names is resolved (confined with `limits.confine_files`) and opened, and
+/// an image's header is read for its size limits; meshes and images are not decoded. A
+/// bundler needs only the names, and decoding is most of a load's time
+/// (docs/farm-performance.md); what the contents may still get wrong, the full load at the
+/// other end finds.
+pub fn scene_files(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+) -> Result<Vec<std::path::PathBuf>, SceneError> {
+    Ok(load(path, overrides, limits, Reading::Names)?.files)
+}
+
+fn load(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    reading: Reading,
+) -> Result<SceneDesc, SceneError> {
     let parsed = xml::parse_file(path, overrides, limits)?;
-    let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone());
+    let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
     ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;

@@ -8,7 +8,9 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::*;
-use pathfarm_scene::{load_scene, load_scene_with_limits, Limits, SceneDesc, SceneError};
+use pathfarm_scene::{
+    load_scene, load_scene_with_limits, scene_files, Limits, SceneDesc, SceneError,
+};
 
 const TRI_OBJ: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf 1/1 2/2 3/3\n";
 const TRI_PLY: &str =
@@ -75,6 +77,8 @@ fn files_lists_every_file_read_once_root_first_in_first_read_order() {
     ];
     let s = load_scene(&p, &[]).unwrap();
     assert_eq!(s.files, expected);
+    // Learning the names without decoding finds the same files, in the same order.
+    assert_eq!(scene_files(&p, &[], &confined()).unwrap(), expected);
     assert_eq!(s.shapes.len(), 3);
     assert_eq!(s.textures.len(), 2);
     // Confinement changes nothing for a self-contained scene.
@@ -228,4 +232,32 @@ fn confinement_reports_a_missing_file_by_name_and_line() {
 #[test]
 fn confinement_is_off_by_default() {
     assert!(!Limits::default().confine_files);
+}
+
+#[test]
+fn scene_files_opens_each_file_but_leaves_decoding_to_the_full_load() {
+    let d = temp_dir("files-names");
+    // A mesh whose contents are broken (only the full load reads them), and an image
+    // (only its header is read).
+    write(&d.join("bad.obj"), b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    write_png(&d.join("sky.png"));
+    let body = format!(
+        "{}\n<emitter type=\"envmap\">\n  <string name=\"filename\" value=\"sky.png\"/>\n</emitter>",
+        mesh_shape("obj", "bad.obj")
+    );
+    let (p, _) = write_scene_in(&d, &body);
+    assert!(load_confined(&p).is_err(), "the full load reads the bad mesh");
+    assert_eq!(
+        scene_files(&p, &[], &confined()).unwrap(),
+        vec![p.clone(), d.join("bad.obj"), d.join("sky.png")]
+    );
+    // A missing file, the XML's mistakes and confinement are still errors at their line.
+    let (p, xml) = write_scene_in(&d.join("missing"), &mesh_shape("ply", "gone.ply"));
+    let err = scene_files(&p, &[], &confined()).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "filename"), &["gone.ply", "cannot read"]);
+    let (p, xml) = write_scene_in(&d.join("outside"), &mesh_shape("obj", "../bad.obj"));
+    let err = scene_files(&p, &[], &confined()).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "filename"), &["'..'"]);
+    let (p, _) = write_scene_in(&d.join("typo"), "<shape type=\"cube\"><float name=\"radius\" value=\"x\"/></shape>");
+    assert!(scene_files(&p, &[], &confined()).is_err(), "a bad value is an error");
 }

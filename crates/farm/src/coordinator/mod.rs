@@ -453,14 +453,19 @@ impl Shared {
                 confine_files: true,
                 ..self.cfg.limits.clone()
             };
-            let mut desc = bundle::check(&manifest, &dir, &overrides, &limits)
-                .map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))?;
+            // The client bundled the scene without decoding it: a bad mesh or image is
+            // found here, and named by its bundle path, not by this coordinator's.
+            let refuse = |e: &dyn std::fmt::Display| {
+                let msg = e.to_string().replace(&format!("{}/", dir.display()), "");
+                bad(format!("scene {:?}: {msg}", manifest.root))
+            };
+            let mut desc =
+                bundle::check(&manifest, &dir, &overrides, &limits).map_err(|e| refuse(&e))?;
             if let Some(r) = &scene_settings.resolution {
                 bundle::override_resolution(&mut desc, r.width, r.height, &limits)
                     .map_err(|e| bad(format!("settings.scene.resolution: {e}")))?;
             }
-            Scene::build_for(&desc, Purpose::Inspect)
-                .map_err(|e| bad(format!("scene {:?}: {e}", manifest.root)))
+            Scene::build_for(&desc, Purpose::Inspect).map_err(|e| refuse(&e))
         })();
         let _ = std::fs::remove_dir_all(&dir);
         let scene = result?;

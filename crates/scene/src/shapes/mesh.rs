@@ -404,6 +404,7 @@ pub(crate) fn load_alone(
         std::collections::HashMap::new(),
         std::path::PathBuf::new(),
         limits,
+        crate::context::Reading::Contents,
     );
     // (a made-up scene file line for the errors to name)
     let loc = Location {

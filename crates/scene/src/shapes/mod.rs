@@ -7,10 +7,10 @@ pub(crate) mod primitives;
 
 use std::sync::Arc;
 
-use glam::{DVec3, Vec3};
+use glam::{DMat4, DVec3, Vec3};
 
 use crate::bsdfs::bsdf;
-use crate::context::Ctx;
+use crate::context::{Ctx, Reading};
 use crate::desc::{Geometry, ShapeDesc};
 use crate::emitters::area_emitter;
 use crate::error::SceneError;
@@ -65,6 +65,13 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
                 loc: name_loc.clone(),
                 flip_tex_coords,
             };
+            if ctx.reading == Reading::Names {
+                // Opened, not decoded: a stand-in that no renderer sees.
+                input.open()?;
+                let stand_in = primitives::rectangle();
+                let m = mesh::finalize(stand_in, DMat4::IDENTITY, false, false, "", &loc, &loc)?;
+                return Ok(Geometry::Mesh(Arc::new(m)));
+            }
             let mut budget = mesh::Budget::new(ctx, &name_loc);
             // A parser (ply-rs's in particular) must not take the process down on a bad file.
             let local = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
