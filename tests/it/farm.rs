@@ -463,7 +463,11 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_stor
         "the error names the mesh by its bundle path: {}",
         r.stderr
     );
-    assert_eq!(farm.blob_count(), 0, "nothing of the refused bundle was kept");
+    assert_eq!(
+        farm.blob_count(),
+        0,
+        "nothing of the refused bundle was kept"
+    );
 }
 
 #[test]

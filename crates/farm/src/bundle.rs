@@ -391,12 +391,11 @@ pub fn collect(
     overrides: &[(String, String)],
     limits: &Limits,
 ) -> Result<(Manifest, Vec<PathBuf>), BundleError> {
-    let names = scene_files(scene, overrides, &confined(limits)).map_err(|error| {
-        BundleError::Collect {
+    let names =
+        scene_files(scene, overrides, &confined(limits)).map_err(|error| BundleError::Collect {
             scene: scene.to_path_buf(),
             error,
-        }
-    })?;
+        })?;
     let base = scene.parent().unwrap_or(Path::new(""));
     let mut seen = HashSet::new();
     let mut files = Vec::with_capacity(names.len());

@@ -239,14 +239,20 @@ fn scene_files_opens_each_file_but_leaves_decoding_to_the_full_load() {
     let d = temp_dir("files-names");
     // A mesh whose contents are broken (only the full load reads them), and an image
     // (only its header is read).
-    write(&d.join("bad.obj"), b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    write(
+        &d.join("bad.obj"),
+        b"v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    );
     write_png(&d.join("sky.png"));
     let body = format!(
         "{}\n<emitter type=\"envmap\">\n  <string name=\"filename\" value=\"sky.png\"/>\n</emitter>",
         mesh_shape("obj", "bad.obj")
     );
     let (p, _) = write_scene_in(&d, &body);
-    assert!(load_confined(&p).is_err(), "the full load reads the bad mesh");
+    assert!(
+        load_confined(&p).is_err(),
+        "the full load reads the bad mesh"
+    );
     assert_eq!(
         scene_files(&p, &[], &confined()).unwrap(),
         vec![p.clone(), d.join("bad.obj"), d.join("sky.png")]
@@ -254,10 +260,21 @@ fn scene_files_opens_each_file_but_leaves_decoding_to_the_full_load() {
     // A missing file, the XML's mistakes and confinement are still errors at their line.
     let (p, xml) = write_scene_in(&d.join("missing"), &mesh_shape("ply", "gone.ply"));
     let err = scene_files(&p, &[], &confined()).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "filename"), &["gone.ply", "cannot read"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "filename"),
+        &["gone.ply", "cannot read"],
+    );
     let (p, xml) = write_scene_in(&d.join("outside"), &mesh_shape("obj", "../bad.obj"));
     let err = scene_files(&p, &[], &confined()).unwrap_err();
     assert_invalid_at(&err, &p, line_of(&xml, "filename"), &["'..'"]);
-    let (p, _) = write_scene_in(&d.join("typo"), "<shape type=\"cube\"><float name=\"radius\" value=\"x\"/></shape>");
-    assert!(scene_files(&p, &[], &confined()).is_err(), "a bad value is an error");
+    let (p, _) = write_scene_in(
+        &d.join("typo"),
+        "<shape type=\"cube\"><float name=\"radius\" value=\"x\"/></shape>",
+    );
+    assert!(
+        scene_files(&p, &[], &confined()).is_err(),
+        "a bad value is an error"
+    );
 }
