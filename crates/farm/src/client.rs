@@ -308,14 +308,19 @@ pub struct Collected {
 }
 
 impl Collected {
-    /// Bundles `scene` as loaded with `defines` (the scene is loaded to find every file it
-    /// reads, which takes as long as loading it: a caller that can do this while it waits for
-    /// something else, as `pathfarm cluster` does while the coordinator starts, should).
+    /// Bundles `scene` as loaded with `defines`: its XML is parsed and every file it names
+    /// opened and digested, meshes and images not decoded ([`bundle::collect`]); a caller
+    /// that can do this while it waits for something else, as `pathfarm cluster` does while
+    /// the coordinator starts, should.
     pub async fn of(scene: &Path, defines: &[(String, String)]) -> Result<Collected, ClientError> {
         let scene_path = scene.to_path_buf();
         let defines = defines.to_vec();
         let (manifest, locals) = tokio::task::spawn_blocking(move || {
-            bundle::collect(&scene_path, &defines, &Limits::default())
+            let t0 = std::time::Instant::now();
+            let collected = bundle::collect(&scene_path, &defines, &Limits::default());
+            let seconds = t0.elapsed().as_secs_f64();
+            tracing::debug!(seconds, "bundled {}", scene_path.display());
+            collected
         })
         .await
         .map_err(|e| ClientError::Usage(format!("bundling task failed: {e}")))??;
