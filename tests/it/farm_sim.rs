@@ -115,6 +115,7 @@ fn drive_once(
             true
         }
         Next::Wait => false,
+        Next::Records => panic!("the coordinator's sessions take records with the tiles"),
         Next::Done => {
             j.done = true;
             false

@@ -10,7 +10,7 @@ use pathfarm_guide::SdTree;
 use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
     guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
-    Session, Splatting,
+    Records, RecordsError, Session, Splatting,
 };
 use pathfarm_render::pass::{render_unit, PassKind, PassSpec, TilePixels, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
@@ -59,6 +59,17 @@ enum Restarts {
     AtEveryCheckpoint,
 }
 
+/// Where the tiled driver's workers send their quadtree records.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum RecordsAt {
+    /// With every tile (`take_stats`).
+    Tiles,
+    /// Once an iteration ([`Records::PerIteration`]): each tile's gradients with it
+    /// (`take_gradients`), the records when the session asks, from each of this many
+    /// workers, whose trees each get a random share of the tiles.
+    Iteration { workers: usize },
+}
+
 /// What a tiled drive gave: the image, the tree, the kinds of the units in issue order, and
 /// how many units were issued while another was in flight.
 struct Driven {
@@ -91,22 +102,66 @@ fn render_tiled(
     order_seed: u64,
     policy: FallbackPolicy,
     restarts: Restarts,
+    records: RecordsAt,
 ) -> Driven {
     let (w, h) = (scene.width, scene.height);
     let budget = Budget::Spp(spp);
     let (mut session, _) = new_session(scene, params, (spp, seed), tile.max(1), policy);
-    let mut restored = 0;
-    let mut worker = WorkerTree {
-        version: None,
-        tree: None,
+    let (nworkers, per_iteration) = match records {
+        RecordsAt::Tiles => (1, false),
+        RecordsAt::Iteration { workers } => (workers, true),
     };
+    let records_mode = |s: &mut Session| {
+        if per_iteration {
+            s.set_records(Records::PerIteration);
+        }
+    };
+    records_mode(&mut session);
+    let fresh = || -> Vec<WorkerTree> {
+        (0..nworkers)
+            .map(|_| WorkerTree {
+                version: None,
+                tree: None,
+            })
+            .collect()
+    };
+    // A coordinator restarted between iterations continues from the checkpoint alone.
+    let restart = |session: &mut Session| -> bool {
+        let Some(cp) = session.checkpoint() else {
+            return false;
+        };
+        let bytes = cp.to_bytes(&session.tree().encode());
+        let (cp, tree) = Checkpoint::from_bytes(&bytes).expect("read back");
+        let tiles = Region::tiles(w, h, tile.max(1));
+        let splatting = splatting(scene, seed);
+        *session =
+            Session::restore(params, budget, tiles, splatting, policy, &cp, tree).expect("restore");
+        records_mode(session);
+        true
+    };
+    let mut restored = 0;
+    let mut collected = 0;
+    let mut workers = fresh();
     let mut kinds = Vec::new();
     let mut overlapped = 0;
     let mut flights: Vec<Flight> = Vec::new();
     let mut pick = TestRng::new(order_seed);
     let mut clock = 0.0;
     loop {
-        while let Next::Render(spec) = session.next(clock) {
+        loop {
+            let spec = match session.next(clock) {
+                Next::Render(spec) => spec,
+                Next::Records => {
+                    collect_records(&mut session, &mut workers, &mut pick);
+                    collected += 1;
+                    if restarts == Restarts::AtEveryCheckpoint && restart(&mut session) {
+                        workers = fresh();
+                        restored += 1;
+                    }
+                    continue;
+                }
+                Next::Wait | Next::Done => break,
+            };
             kinds.push(spec.kind);
             overlapped += usize::from(!flights.is_empty());
             if tile == 0 {
@@ -132,7 +187,7 @@ fn render_tiled(
         let flight = &mut flights[f];
         let index = flight.order.pop().expect("a flight has tiles left");
         let spec = flight.spec;
-        let wt = worker.get(session.tree(), flight);
+        let wt = workers[pick.index(nworkers)].get(session.tree(), flight);
         let inputs = UnitInputs {
             scene,
             params,
@@ -142,7 +197,10 @@ fn render_tiled(
             tile_size: 5,
         };
         let out = render_unit(&inputs, &spec, flight.tiles[index], &|_| {});
-        let stats = spec.record().then(|| wt.take_stats());
+        let stats = match per_iteration {
+            false => spec.record().then(|| wt.take_stats()),
+            true => spec.record().then(|| wt.take_gradients()),
+        };
         if flight.order.is_empty() {
             flights.remove(f);
         }
@@ -150,19 +208,20 @@ fn render_tiled(
         session
             .add_tile(spec.unit, index, &out, stats.as_ref(), clock)
             .expect("tile accepted");
-        // A coordinator restarted between iterations continues from the checkpoint alone.
-        if let (Restarts::AtEveryCheckpoint, Some(cp)) = (restarts, session.checkpoint()) {
-            let bytes = cp.to_bytes(&session.tree().encode());
-            let (cp, tree) = Checkpoint::from_bytes(&bytes).expect("read back");
-            let tiles = Region::tiles(w, h, tile.max(1));
-            let splatting = splatting(scene, seed);
-            session = Session::restore(params, budget, tiles, splatting, policy, &cp, tree)
-                .expect("restore");
-            worker = WorkerTree {
-                version: None,
-                tree: None,
-            };
+        if restarts == Restarts::AtEveryCheckpoint && restart(&mut session) {
+            workers = fresh();
             restored += 1;
+        }
+    }
+    if per_iteration {
+        // one collection before every refinement, and one at the end when the last
+        // training iteration was not refined (restarts aside: a restored session starts
+        // counting again from its checkpoint's version)
+        let refined = session.tree_version() as usize;
+        assert!(collected >= 1, "records were collected");
+        if restarts == Restarts::Never {
+            let expected = refined..=refined + 1;
+            assert!(expected.contains(&collected), "{collected} for {refined}");
         }
     }
     if restarts == Restarts::AtEveryCheckpoint {
@@ -178,6 +237,32 @@ fn render_tiled(
         kinds,
         overlapped,
     }
+}
+
+/// Hands the session every worker's records of the iteration (those whose tree is the
+/// session's version: a worker that took no tile of the iteration has none), in a random
+/// order, then says they are in.
+fn collect_records(session: &mut Session, workers: &mut [WorkerTree], pick: &mut TestRng) {
+    let mut order: Vec<usize> = (0..workers.len()).collect();
+    pick.shuffle(&mut order);
+    let version = session.tree_version();
+    for i in order {
+        let w = &mut workers[i];
+        if w.version.map(|v| v.0) != Some(version) {
+            continue;
+        }
+        let records = w
+            .tree
+            .as_mut()
+            .expect("a versioned worker has a tree")
+            .take_stats();
+        session.add_records(&records).expect("records accepted");
+    }
+    session.records_in().expect("collecting");
+    assert!(
+        session.add_records(&Default::default()) == Err(RecordsError::NotCollecting),
+        "records outside a collection are refused"
+    );
 }
 
 /// What a session of `scene` splats sample-form units with, for a job of `seed`.
@@ -242,14 +327,44 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 24, 7, policy);
-    let d = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never);
+    let d = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        8,
+        1,
+        policy,
+        Restarts::Never,
+        RecordsAt::Tiles,
+    );
     assert!(d.kinds.contains(&PassKind::Record) && d.kinds.contains(&PassKind::Guided));
     assert_same(&(d.film, d.tree), &single, "pathfarm preset, 8-pixel tiles");
     // another tiling and another arrival order: the same bits
-    let d = render_tiled(&scene, &params, 24, 7, 13, 99, policy, Restarts::Never);
+    let d = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        13,
+        99,
+        policy,
+        Restarts::Never,
+        RecordsAt::Tiles,
+    );
     assert_same(&(d.film, d.tree), &single, "13-pixel tiles");
     // every unit tiled differently
-    let d = render_tiled(&scene, &params, 24, 7, 0, 5, policy, Restarts::Never);
+    let d = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        0,
+        5,
+        policy,
+        Restarts::Never,
+        RecordsAt::Tiles,
+    );
     assert_same(&(d.film, d.tree), &single, "a tiling per unit");
     // restarted from a checkpoint after every iteration: the same bits
     let d = render_tiled(
@@ -261,6 +376,7 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
         3,
         policy,
         Restarts::AtEveryCheckpoint,
+        RecordsAt::Tiles,
     );
     assert_same(&(d.film, d.tree), &single, "restarted at every checkpoint");
     // the tree learned something (the test would be vacuous on an empty tree)
@@ -268,12 +384,70 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     // guiding kept (no fallback at this budget): the training passes overlap
     let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
     let single = one_process(&scene, &params, 24, 7, keep);
-    let d = render_tiled(&scene, &params, 24, 7, 8, 4, keep, Restarts::Never);
+    let d = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        8,
+        4,
+        keep,
+        Restarts::Never,
+        RecordsAt::Tiles,
+    );
     d.assert_overlapped(2);
     assert_same(
         &(d.film, d.tree),
         &single,
         "guiding kept, passes overlapping",
+    );
+}
+
+#[test]
+fn records_collected_once_an_iteration_from_several_workers_give_one_process_bits() {
+    // Workers ship each tile's fraction gradients with it and their quadtree records once
+    // an iteration, when the session asks (Records::PerIteration), in any order.
+    let scene = door_ajar((37, 23));
+    let params = scene.guided.clone().expect("guided");
+    let policy = FallbackPolicy::Rule;
+    let three = RecordsAt::Iteration { workers: 3 };
+    let single = one_process(&scene, &params, 24, 7, policy);
+    let d = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never, three);
+    assert_same(&(d.film, d.tree), &single, "records per iteration");
+    let d = render_tiled(
+        &scene,
+        &params,
+        24,
+        7,
+        0,
+        6,
+        policy,
+        Restarts::AtEveryCheckpoint,
+        three,
+    );
+    assert_same(
+        &(d.film, d.tree),
+        &single,
+        "records per iteration, restarted",
+    );
+    let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
+    let single = one_process(&scene, &params, 24, 7, keep);
+    let d = render_tiled(&scene, &params, 24, 7, 8, 4, keep, Restarts::Never, three);
+    d.assert_overlapped(2);
+    assert_same(
+        &(d.film, d.tree),
+        &single,
+        "records per iteration, overlapping",
+    );
+    let fall = FallbackPolicy::Force(GuidingVerdict::FallBack);
+    let single = one_process(&scene, &params, 24, 3, fall);
+    let two = RecordsAt::Iteration { workers: 2 };
+    let d = render_tiled(&scene, &params, 24, 3, 6, 5, fall, Restarts::Never, two);
+    assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
+    assert_same(
+        &(d.film, d.tree),
+        &single,
+        "records per iteration, fallback",
     );
 }
 
@@ -293,6 +467,7 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
         5,
         policy,
         Restarts::AtEveryCheckpoint,
+        RecordsAt::Tiles,
     );
     assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
     assert!(d.kinds.contains(&PassKind::Path), "{:?}", d.kinds);
@@ -312,7 +487,17 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
     params.path_fallback = false;
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 40, 11, policy);
-    let d = render_tiled(&scene, &params, 40, 11, 7, 2, policy, Restarts::Never);
+    let d = render_tiled(
+        &scene,
+        &params,
+        40,
+        11,
+        7,
+        2,
+        policy,
+        Restarts::Never,
+        RecordsAt::Tiles,
+    );
     d.assert_overlapped(4);
     assert_same(
         &(d.film, d.tree),

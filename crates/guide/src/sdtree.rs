@@ -215,6 +215,19 @@ impl TouchedLeaves {
         }
     }
 
+    /// The leaves in the set, ascending, leaving it as it is.
+    fn list(&self) -> Vec<u32> {
+        let mut out = Vec::new();
+        for (w, word) in self.0.iter().enumerate() {
+            let mut bits = word.load(Relaxed);
+            while bits != 0 {
+                out.push(w as u32 * 64 + bits.trailing_zeros());
+                bits &= bits - 1;
+            }
+        }
+        out
+    }
+
     /// The leaves in the set, ascending, emptying it.
     fn drain(&self) -> Vec<u32> {
         let mut out = Vec::new();
@@ -864,32 +877,59 @@ impl SdTree {
     /// counter moves into the statistics too. Call it before [`SdTree::refine`] (the building
     /// trees must not have been built or reset since the records were taken).
     pub fn take_stats(&mut self) -> IterationStats {
+        self.take_part(StatsPart::All)
+    }
+
+    /// Moves only the pending fraction gradients out of the tree (what a pass end's Adam
+    /// steps need), leaving the building statistics (quadtree sums, W, light-sample sums)
+    /// and the overflow counter for a later [`SdTree::take_stats`]. The two takes together
+    /// are exactly one `take_stats`: merged, they are equal to it, bit for bit. A farm
+    /// worker ships each pass's gradients and an iteration's quadtree records once.
+    pub fn take_gradients(&mut self) -> IterationStats {
+        self.take_part(StatsPart::Gradients)
+    }
+
+    fn take_part(&mut self, part: StatsPart) -> IterationStats {
+        let all = part == StatsPart::All;
         let mut out = IterationStats {
             structure_hash: self.structure_hash(),
-            overflow_events: self.overflow.swap(0, Relaxed),
+            overflow_events: if all {
+                self.overflow.swap(0, Relaxed)
+            } else {
+                0
+            },
             leaves: Vec::new(),
+        };
+        // The touched set stays for the building statistics' take when only the gradients
+        // go now.
+        let touched = if all {
+            self.touched.drain()
+        } else {
+            self.touched.list()
         };
         // Only leaves recorded into can hold statistics; within them most nodes are zero,
         // so nodes are read first and written only when they hold something.
-        for i in self.touched.drain() {
+        for i in touched {
             let Some(l) = self.leaves.get(i as usize) else {
                 continue;
             };
             let grad = l.grad_of(self.grad_target);
             let mut ls = LeafStats {
                 leaf: i,
-                weight: take_nonzero(&l.building.weight),
                 grad_pos: std::array::from_fn(|k| take_nonzero(&grad.pos[k])),
                 grad_neg: std::array::from_fn(|k| take_nonzero(&grad.neg[k])),
                 grad_weight: take_nonzero(&grad.weight),
-                light: l.light.take(),
-                nodes: Vec::new(),
+                ..LeafStats::default()
             };
             grad.stepped.set(0);
-            for (ni, n) in l.building.nodes.iter().enumerate() {
-                let s = n.sums.each_ref().map(take_nonzero);
-                if s.iter().any(|&x| x != 0) {
-                    ls.nodes.push((ni as u32, s));
+            if all {
+                ls.weight = take_nonzero(&l.building.weight);
+                ls.light = l.light.take();
+                for (ni, n) in l.building.nodes.iter().enumerate() {
+                    let s = n.sums.each_ref().map(take_nonzero);
+                    if s.iter().any(|&x| x != 0) {
+                        ls.nodes.push((ni as u32, s));
+                    }
                 }
             }
             if ls.weight != 0
@@ -951,6 +991,15 @@ impl SdTree {
         self.overflow.fetch_add(of + s.overflow_events, Relaxed);
         Ok(())
     }
+}
+
+/// What [`SdTree::take_part`] moves out of a tree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum StatsPart {
+    /// Everything recorded: [`SdTree::take_stats`].
+    All,
+    /// The fraction gradients alone: [`SdTree::take_gradients`].
+    Gradients,
 }
 
 /// The accumulator's value, leaving zero (written only if it was not zero already).

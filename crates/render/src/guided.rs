@@ -39,7 +39,7 @@ use crate::render::{Progress, Region, RenderSettings};
 use crate::scene::Scene;
 
 pub use crate::pass::{KICKSTART_SPP, PATH_STREAM};
-pub use crate::session::{FallbackPolicy, Next, Session, Splatting};
+pub use crate::session::{FallbackPolicy, Next, Records, RecordsError, Session, Splatting};
 
 /// One iteration of a guided render.
 #[derive(Clone, Debug)]

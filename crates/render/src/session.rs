@@ -72,6 +72,36 @@ pub enum Next {
     Wait,
     /// The job is done: take the result with [`Session::finish`].
     Done,
+    /// The iteration's passes are in and its quadtree records are wanted (only with
+    /// [`Records::PerIteration`]): hand them to [`Session::add_records`], then call
+    /// [`Session::records_in`]. Until then `next` says this again.
+    Records,
+}
+
+/// Where a session's quadtree records (the building statistics refinement reads) come
+/// from. The fraction gradients come with each unit's tiles either way: every pass end's
+/// Adam steps need them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Records {
+    /// With each unit's tiles ([`Session::add_tiles`]' statistics, or recorded into
+    /// [`Session::tree`] directly): the one-process render.
+    #[default]
+    WithTiles,
+    /// Once an iteration, before refinement: the session says [`Next::Records`] and waits.
+    /// A farm whose workers keep an iteration's records ship them once, not with every
+    /// unit ([`pathfarm_guide::SdTree::take_gradients`] per unit).
+    PerIteration,
+}
+
+/// Why records were not accepted.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RecordsError {
+    /// The session is not collecting records (it did not say [`Next::Records`]).
+    #[error("the session is not collecting an iteration's records")]
+    NotCollecting,
+    /// The records do not fit the session's tree.
+    #[error("records: {0}")]
+    Stats(#[from] StatsError),
 }
 
 /// Why a tile was not accepted.
@@ -182,7 +212,20 @@ enum Phase {
         after: u32,
         t0: f64,
     },
+    /// Records are being collected ([`Records::PerIteration`]), then this follows.
+    Records(AfterRecords),
     Done,
+}
+
+/// What follows a collection of records.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum AfterRecords {
+    /// Refinement after training iteration `k`.
+    Refine(u32),
+    /// The end of the job: the last training iteration's records were not refined (the
+    /// path fallback took over, or automatic combination stopped training), and the
+    /// trained tree keeps them, as the one-process render's does.
+    Finish,
 }
 
 /// The unit being rendered and the tiles that are in.
@@ -246,6 +289,10 @@ pub struct Session {
     tree_version: u32,
     fraction_version: u32,
     phase: Phase,
+    /// Where the quadtree records come from.
+    records: Records,
+    /// Recording units ended since the last collection of records.
+    uncollected: bool,
     k: u32,
     next_unit: u64,
     /// Units in flight, oldest first: at most two, both recording units of one iteration.
@@ -308,6 +355,8 @@ impl Session {
             tree_version: 0,
             fraction_version: 0,
             phase: Phase::Plan,
+            records: Records::WithTiles,
+            uncollected: false,
             k: 0,
             next_unit: 0,
             pending: Vec::new(),
@@ -477,6 +526,14 @@ impl Session {
                         Some(spec) => return self.issue(spec, now),
                         None => self.end_rest(after, t0, now),
                     }
+                }
+                Phase::Records(then) => {
+                    self.phase = Phase::Records(then);
+                    return Next::Records;
+                }
+                Phase::Done if self.uncollected => {
+                    self.phase = Phase::Records(AfterRecords::Finish);
+                    return Next::Records;
                 }
                 Phase::Done => {
                     if self.finished_at == 0.0 {
@@ -802,6 +859,7 @@ impl Session {
                 it.film.merge(&film);
                 if spec.record() {
                     self.deferred.push(spec.unit);
+                    self.uncollected = self.records == Records::PerIteration;
                 }
                 it.last_pass = seconds / spec.passes.max(1) as f64;
                 if it.passes == 0 && it.record && !spec.record() && !it.stopped {
@@ -825,7 +883,9 @@ impl Session {
                 self.fallback.path_spp += spec.unit_spp();
                 self.fallback.path_seconds += seconds;
             }
-            Phase::Plan | Phase::Done => unreachable!("a unit completed outside an iteration"),
+            Phase::Plan | Phase::Records(_) | Phase::Done => {
+                unreachable!("a unit completed outside an iteration")
+            }
         }
         self.spares.keep(film);
     }
@@ -975,7 +1035,43 @@ impl Session {
         self.refine(k);
     }
 
+    /// Refines after training iteration `k`, once its records are in.
     fn refine(&mut self, k: u32) {
+        match self.records {
+            Records::WithTiles => self.refine_now(k),
+            Records::PerIteration => self.phase = Phase::Records(AfterRecords::Refine(k)),
+        }
+    }
+
+    /// Where the quadtree records come from from now on (the default: with the tiles).
+    pub fn set_records(&mut self, records: Records) {
+        self.records = records;
+    }
+
+    /// Adds quadtree records of the iteration being collected (after [`Next::Records`]):
+    /// each worker's, in any order (exact sums). Nothing changes on an error.
+    pub fn add_records(&mut self, records: &IterationStats) -> Result<(), RecordsError> {
+        if !matches!(self.phase, Phase::Records(_)) {
+            return Err(RecordsError::NotCollecting);
+        }
+        self.tree.apply_stats(records, GradTarget::Batch)?;
+        Ok(())
+    }
+
+    /// Every worker's records are in: refine, and plan the next iteration.
+    pub fn records_in(&mut self) -> Result<(), RecordsError> {
+        let Phase::Records(then) = self.phase else {
+            return Err(RecordsError::NotCollecting);
+        };
+        self.uncollected = false;
+        match then {
+            AfterRecords::Refine(k) => self.refine_now(k),
+            AfterRecords::Finish => self.phase = Phase::Done,
+        }
+        Ok(())
+    }
+
+    fn refine_now(&mut self, k: u32) {
         self.tree.refine(k);
         self.tree_version += 1;
         self.fraction_version = 0;

@@ -650,6 +650,13 @@ impl Shared {
         let now = a.clock.elapsed().as_secs_f64();
         match a.session.next(now) {
             Next::Wait => false,
+            Next::Records => {
+                // The coordinator's sessions take records with the tiles (the default): a
+                // session never asks. Defensive: a job must not wait forever.
+                let reason = "the session asked for per-iteration records".to_string();
+                self.fail_job(st, n, reason);
+                false
+            }
             Next::Render(spec) => {
                 let publish_start = Instant::now();
                 match self.publish(a, &spec) {

@@ -1054,7 +1054,9 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .ok_or_else(|| fatal("the lease has no tile"))?;
     let region = codec::region_from_proto(rect, scene.width, scene.height).map_err(fatal)?;
     let job = p.lease.job_id.clone();
+    let tree_start = Instant::now();
     let mut jt = lease_tree(shared, &p, &js)?;
+    let tree_seconds = tree_start.elapsed().as_secs_f64();
     let estimate = lease_estimate(shared, &p)?;
     let seed = p
         .lease
@@ -1093,14 +1095,16 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();
     tracing::info!(
-        "lease {} (job {}): rendered unit {} in {:.3} s (inputs {:.3} s, serialising {:.3} s, {} bytes)",
+        "lease {} (job {}): rendered unit {} in {:.3} s (inputs {:.3} s, serialising {:.3} s, {} bytes; fetching {:.3} s, tree {:.3} s)",
         p.lease.lease_id,
         job,
         spec.unit,
         seconds,
         prepare_seconds,
         serialize_seconds,
-        pixels.len()
+        pixels.len(),
+        p.fetch_seconds,
+        tree_seconds,
     );
     let part = v1::UploadedTile {
         lease_id: p.lease.lease_id,

@@ -110,3 +110,42 @@ fn gradients_held_by_unit_and_folded_equal_gradients_recorded_into_the_batch() {
     assert_eq!(held.encode(), one.encode());
     assert_eq!(shipped.encode(), one.encode());
 }
+
+#[test]
+fn gradients_taken_per_pass_and_records_taken_once_merge_to_one_take() {
+    let cfg = GuideConfig {
+        bsdf_sampling_fraction: FractionMode::Learned {
+            loss: FractionLoss::Var,
+        },
+        carry_over: 0.5,
+        ..GuideConfig::default()
+    };
+    let base = warmed_tree(cfg, 81, 4000, 2);
+    let passes = [det_records(5_000, 82), det_records(5_000, 83)];
+    let mut whole = base.clone();
+    passes.iter().for_each(|p| record_all(&whole, p));
+    let whole = whole.take_stats();
+    // a worker: each pass's gradients shipped at its end, the records once at the end
+    let mut split = base.clone();
+    let mut shipped = Vec::new();
+    for p in &passes {
+        record_all(&split, p);
+        let g = split.take_gradients();
+        assert!(!g.leaves.is_empty(), "the pass recorded gradients");
+        assert!(g
+            .leaves
+            .iter()
+            .all(|l| l.weight == 0 && l.nodes.is_empty() && l.light == [0; 3]));
+        assert_eq!(g.overflow_events, 0);
+        shipped.push(g);
+    }
+    let records = split.take_stats();
+    assert!(records
+        .leaves
+        .iter()
+        .all(|l| l.grad_weight == 0 && l.grad_pos == [0; 8] && l.grad_neg == [0; 8]));
+    assert!(records.leaves.iter().any(|l| !l.nodes.is_empty()));
+    shipped.push(records);
+    assert_eq!(IterationStats::merge_all(shipped.iter()).unwrap(), whole);
+    assert!(split.take_stats().leaves.is_empty(), "nothing is left");
+}
