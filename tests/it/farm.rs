@@ -141,6 +141,11 @@ impl Farm {
     }
 
     fn add_worker(&mut self) {
+        self.add_worker_env(&[]);
+    }
+
+    /// Starts another worker, with `extra_env` in its environment.
+    fn add_worker_env(&mut self, extra_env: &[(&str, &str)]) {
         let n = self.workers.len();
         let cache = self.data.join(format!("worker-{n}"));
         let args = [
@@ -152,7 +157,7 @@ impl Farm {
             "--cache",
             path_str(&cache),
         ];
-        let worker = self.start_client(&args, &[]);
+        let worker = self.start_client(&args, extra_env);
         self.workers.push(worker);
     }
 
@@ -410,6 +415,36 @@ fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     farm.add_worker();
     wait_for_job(run, &farm);
     assert_same_exr(&out, &reference, &farm);
+}
+
+#[test]
+fn a_worker_that_lost_its_records_rolls_the_job_back_and_the_image_stays_bit_identical() {
+    // Worker 0 answers its first FlushRecords with "lost" (fault injection), as a worker
+    // whose kept quadtree records were spoiled would: the coordinator starts the job again
+    // from its last checkpoint under a new records epoch, and the result is still exact.
+    let mut farm = Farm::start("lose", 0);
+    farm.add_worker_env(&[("PATHFARM_FAULT_LOSE_RECORDS", "1")]);
+    farm.add_worker();
+    let reference = render_reference(&farm.data, 24);
+    let out = farm.data.join("lose.exr");
+    wait_for_job(submit(&farm, 24, &out, &[]), &farm);
+    assert_same_exr(&out, &reference, &farm);
+    let c = farm.coordinator.as_ref().expect("a running coordinator");
+    assert!(
+        c.stderr_text()
+            .contains("rolling back to the last checkpoint"),
+        "the job rolled back\n{}",
+        farm.logs()
+    );
+    let w = farm.workers[0].stderr_text();
+    assert!(
+        w.contains("told the coordinator the records are lost"),
+        "{w}"
+    );
+    assert!(
+        w.contains("records uploaded"),
+        "later flushes were answered\n{w}"
+    );
 }
 
 #[test]

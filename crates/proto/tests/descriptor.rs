@@ -159,6 +159,7 @@ fn descriptor_set_holds_the_two_services_and_their_rpcs() {
             ("Control", "WorkerMessage", "CoordinatorMessage", true, true),
             ("FetchBlob", "BlobRequest", "DataChunk", false, true),
             ("UploadTile", "TileUpload", "TileAck", true, false),
+            ("UploadRecords", "RecordsUpload", "RecordsAck", true, false),
         ])
     );
 }
@@ -199,6 +200,8 @@ fn key_messages_keep_their_field_numbers() {
             ("spp_before", 15),
             ("tree_version", 16),
             ("fraction_version", 17),
+            ("hold_records", 18),
+            ("records_epoch", 19),
         ])
     );
     assert_eq!(
@@ -236,6 +239,7 @@ fn key_messages_keep_their_field_numbers() {
             ("cancel_lease", 4),
             ("drain", 5),
             ("prefetch", 6),
+            ("flush_records", 7),
         ])
     );
     assert_eq!(

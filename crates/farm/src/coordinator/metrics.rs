@@ -49,6 +49,8 @@ pub(crate) struct Metrics {
     tiles: Family<OutcomeLabel, Counter>,
     units: Counter,
     unit_seconds: Family<PhaseLabel, Seconds>,
+    records_bytes: Counter,
+    roll_backs: Counter,
 }
 
 impl Default for Metrics {
@@ -64,6 +66,8 @@ impl Default for Metrics {
         let tiles = registered(on, "tiles", "Tile uploads by outcome (accepted, rejected)");
         let units = registered(on, "units", "Units (passes of a job) finished");
         let unit_seconds = registered(on, "unit_seconds", UNIT_SECONDS_HELP);
+        let records_bytes = registered(on, "records_bytes_received", RECORDS_BYTES_HELP);
+        let roll_backs = registered(on, "roll_backs", ROLL_BACKS_HELP);
         Metrics {
             registry: r,
             jobs,
@@ -75,9 +79,16 @@ impl Default for Metrics {
             tiles,
             units,
             unit_seconds,
+            records_bytes,
+            roll_backs,
         }
     }
 }
+
+const RECORDS_BYTES_HELP: &str =
+    "Bytes of quadtree records received (once per worker and tree version)";
+const ROLL_BACKS_HELP: &str =
+    "Jobs rolled back to their last checkpoint: a worker holding records was lost";
 
 const IN_FLIGHT_HELP: &str = "Tiles leased to workers and not yet in";
 const BLOB_BYTES_HELP: &str =
@@ -106,6 +117,16 @@ impl Metrics {
         self.tile_bytes_uploaded.inc_by(bytes);
         let outcome = if accepted { "accepted" } else { "rejected" };
         self.tiles.get_or_create(&OutcomeLabel { outcome }).inc();
+    }
+
+    /// Counts a records upload of `bytes`.
+    pub(crate) fn records_upload(&self, bytes: u64) {
+        self.records_bytes.inc_by(bytes);
+    }
+
+    /// Counts a job rolled back to its checkpoint.
+    pub(crate) fn roll_back(&self) {
+        self.roll_backs.inc();
     }
 
     /// Adds a finished unit's accounts.

@@ -31,18 +31,18 @@ mod store;
 #[cfg(test)]
 mod tests;
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
 use pathfarm_render::film::Film;
-use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Session, Splatting};
+use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Records, Session, Splatting};
 use pathfarm_render::pass::{PassKind, PassSpec};
 use pathfarm_render::{Purpose, Region, Scene};
 use pathfarm_scene::{GuidedParams, Limits};
@@ -161,6 +161,10 @@ pub(crate) struct Shared {
     pub(crate) epoch: Instant,
     pub(crate) serving: AtomicBool,
     pub(crate) metrics: Metrics,
+    /// The next job session's records epoch: unique for the coordinator's data (seeded
+    /// with the clock at start, so a restarted coordinator's epochs differ from its
+    /// predecessor's).
+    pub(crate) next_epoch: AtomicU64,
 }
 
 pub(crate) type Outbox = mpsc::UnboundedSender<Result<v1::CoordinatorMessage, Status>>;
@@ -207,6 +211,18 @@ pub(crate) struct Active {
     pub(crate) fractions_digests: Vec<((u32, u32), Digest)>,
     pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
     pub(crate) samples_total: u64,
+    /// What the job was started from: a roll back starts it again
+    /// ([`Shared::roll_back`]).
+    pub(crate) prepared: Prepared,
+    /// The records epoch of this session's leases (`PassSpec.records_epoch`).
+    pub(crate) records_epoch: u64,
+    /// Workers whose uploads of the current tree version's recording units were accepted:
+    /// they keep those tiles' quadtree records until asked (`FlushRecords`).
+    pub(crate) holders: BTreeSet<u64>,
+    /// While the session collects records: the holders asked and not answered yet, and
+    /// since when.
+    pub(crate) collecting: Option<BTreeSet<u64>>,
+    pub(crate) collecting_since: Instant,
 }
 
 /// A unit whose tiles are not all in.
@@ -305,6 +321,22 @@ pub(crate) struct Prepared {
     tile: Option<u32>,
 }
 
+impl Prepared {
+    /// A copy (the tree through its wire form: a fresh tree is a few hundred bytes).
+    fn duplicate(&self) -> Prepared {
+        Prepared {
+            params: self.params.clone(),
+            budget: self.budget,
+            seed: self.seed,
+            width: self.width,
+            height: self.height,
+            splatting: self.splatting,
+            tree: SdTree::decode(&self.tree.encode()).expect("a tree decodes its own encoding"),
+            tile: self.tile,
+        }
+    }
+}
+
 impl Shared {
     fn open(cfg: CoordinatorConfig) -> Result<Arc<Shared>, CoordinatorError> {
         let dir = cfg.data_dir.clone();
@@ -335,6 +367,7 @@ impl Shared {
             epoch: Instant::now(),
             serving: AtomicBool::new(false),
             metrics: Metrics::default(),
+            next_epoch: AtomicU64::new(unix_ms()),
         });
         {
             let mut st = shared.lock();
@@ -595,7 +628,8 @@ impl Shared {
             Budget::Seconds(_) => 0,
         };
         let job = st.jobs.get_mut(&n).expect("inserted by the caller");
-        let session = match self.resume(n, &job.record, &p, &tiles) {
+        let prepared = p.duplicate();
+        let mut session = match self.resume(n, &job.record, &p, &tiles) {
             Some(s) => s,
             None => Session::new(
                 &p.params,
@@ -607,6 +641,9 @@ impl Shared {
                 FallbackPolicy::Rule,
             ),
         };
+        // Workers keep a tree version's quadtree records and ship them once, before
+        // refinement (`docs/decisions/records-per-iteration.md`).
+        session.set_records(Records::PerIteration);
         job.record.width = p.width;
         job.record.height = p.height;
         job.record.state = v1::JobState::Queued as i32;
@@ -627,8 +664,94 @@ impl Shared {
             fractions_digests: Vec::new(),
             estimate_digest: None,
             samples_total,
+            prepared,
+            records_epoch: self.next_epoch.fetch_add(1, Ordering::Relaxed),
+            holders: BTreeSet::new(),
+            collecting: None,
+            collecting_since: Instant::now(),
         });
         self.drive(st, n);
+    }
+
+    /// Starts job `n` again from its last durable checkpoint (or from the start): a worker
+    /// holding quadtree records of the iteration in progress was lost, or lost them. The
+    /// job is deterministic, so only time is lost; its leases are cancelled and the
+    /// workers' records of the old epoch are never added.
+    pub(crate) fn roll_back(self: &Arc<Self>, st: &mut State, n: u64, why: &str) {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.take()) else {
+            return;
+        };
+        tracing::warn!(job = %job_name(n), iteration = a.session.iteration(), "rolling back to the last checkpoint: {why}");
+        self.metrics.roll_back();
+        st.garbage.extend(a.blobs());
+        let leases: Vec<(u64, WorkerId)> = st
+            .leases
+            .iter()
+            .filter(|(_, l)| l.key.job == JobId(n) && !l.done)
+            .map(|(&id, l)| (id, l.worker))
+            .collect();
+        for (id, worker) in leases {
+            send_cancel(
+                st,
+                worker,
+                LeaseId(id),
+                "the job rolls back to its checkpoint",
+            );
+        }
+        st.leases.retain(|_, l| l.key.job != JobId(n));
+        let _ = st.sched.remove_job(JobId(n));
+        self.start_job(st, n, a.prepared);
+    }
+
+    /// The session wants the iteration's records: asks every holder once, or goes on at
+    /// once if none holds any. True if the session can go on now.
+    fn collect_records(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+            return false;
+        };
+        if a.collecting.is_some() {
+            return false;
+        }
+        if !a.holders.is_empty() {
+            let Some((_, tree)) = a.tree_digest else {
+                self.roll_back(st, n, "records held of no published tree");
+                return false;
+            };
+            let flush = v1::FlushRecords {
+                job_id: job_name(n),
+                tree_digest: tree.0.to_vec(),
+                records_epoch: a.records_epoch,
+            };
+            tracing::debug!(job = %job_name(n), holders = ?a.holders, "collecting records");
+            a.collecting = Some(a.holders.clone());
+            a.collecting_since = Instant::now();
+            for w in &a.holders {
+                if let Some(tx) = st.workers.get(w).and_then(|w| w.tx.as_ref()) {
+                    let msg = v1::coordinator_message::Msg::FlushRecords(flush.clone());
+                    let _ = tx.send(Ok(v1::CoordinatorMessage { msg: Some(msg) }));
+                }
+            }
+            return false;
+        }
+        self.records_in(st, n)
+    }
+
+    /// Every holder's records are in: the session refines (or finishes), and the
+    /// checkpoint of the iteration's end is taken. True if the session went on.
+    pub(crate) fn records_in(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+            return false;
+        };
+        a.holders.clear();
+        a.collecting = None;
+        if let Err(e) = a.session.records_in() {
+            self.fail_job(st, n, format!("records: {e}"));
+            return false;
+        }
+        if self.save_checkpoint(st, n) > 0.0 {
+            self.update_preview(st, n);
+        }
+        true
     }
 
     /// Advances job `n`'s session: offers the units it issues (two at once when training
@@ -650,13 +773,7 @@ impl Shared {
         let now = a.clock.elapsed().as_secs_f64();
         match a.session.next(now) {
             Next::Wait => false,
-            Next::Records => {
-                // The coordinator's sessions take records with the tiles (the default): a
-                // session never asks. Defensive: a job must not wait forever.
-                let reason = "the session asked for per-iteration records".to_string();
-                self.fail_job(st, n, reason);
-                false
-            }
+            Next::Records => self.collect_records(st, n),
             Next::Render(spec) => {
                 let publish_start = Instant::now();
                 match self.publish(a, &spec) {
@@ -941,6 +1058,8 @@ impl Shared {
         let tiles = a.session.tiles_of(lease.key.unit)?;
         let region = *tiles.get(lease.key.tile as usize)?;
         let mut pass = codec::spec_to_proto(spec);
+        pass.hold_records = spec.record();
+        pass.records_epoch = a.records_epoch;
         if spec.guide() || spec.record() {
             pass.tree_digest = a.tree_digest.map(|(_, d)| d.0.to_vec()).unwrap_or_default();
             pass.fractions_digest = a
@@ -981,18 +1100,25 @@ impl Shared {
     }
 
     /// Acts on scheduler events.
-    pub(crate) fn handle_events(&self, st: &mut State, events: Vec<Event>) {
+    pub(crate) fn handle_events(self: &Arc<Self>, st: &mut State, events: Vec<Event>) {
         for e in events {
             match e {
                 Event::LeaseExpired { worker, lease, key } => {
                     tracing::warn!(job = %job_name(key.job.0), lease = lease.0, worker = worker.0, "lease expired");
                     send_cancel(st, worker, lease, "lease expired");
                 }
-                Event::WorkerLost { worker, returned } if returned.is_empty() => {
-                    tracing::info!(worker = worker.0, "worker gone (it held no leases)");
-                }
                 Event::WorkerLost { worker, returned } => {
-                    tracing::warn!(worker = worker.0, returned = returned.len(), "worker lost");
+                    match returned.is_empty() {
+                        true => {
+                            tracing::info!(worker = worker.0, "worker gone (it held no leases)")
+                        }
+                        false => tracing::warn!(
+                            worker = worker.0,
+                            returned = returned.len(),
+                            "worker lost"
+                        ),
+                    }
+                    self.lost_holder(st, worker);
                 }
                 Event::JobFailed { job, reason } => {
                     self.fail_job(st, job.0, reason.to_string());
@@ -1005,12 +1131,51 @@ impl Shared {
         }
     }
 
+    /// Worker `worker` is gone: every job it held records for rolls back.
+    pub(crate) fn lost_holder(self: &Arc<Self>, st: &mut State, worker: WorkerId) {
+        let jobs: Vec<u64> = st
+            .jobs
+            .iter()
+            .filter(|(_, j)| {
+                j.active
+                    .as_ref()
+                    .is_some_and(|a| a.holders.contains(&worker.0))
+            })
+            .map(|(&n, _)| n)
+            .collect();
+        for n in jobs {
+            let why = format!(
+                "worker {} held records of the iteration and is gone",
+                worker.0
+            );
+            self.roll_back(st, n, &why);
+        }
+    }
+
     /// The periodic tick: expiries, waiting sessions, dispatch.
     pub(crate) fn tick(self: &Arc<Self>) {
         let mut st = self.lock();
         let now = self.now();
         let events = st.sched.tick(now);
         self.handle_events(&mut st, events);
+        // A holder that heartbeats but never answers a flush (a bug, or a wedged worker)
+        // must not stall its job: after a lease's lifetime the job rolls back.
+        let timeout = self.cfg.scheduler.lease_timeout;
+        let stalled: Vec<u64> = (st.jobs.iter())
+            .filter(|(_, j)| {
+                j.active.as_ref().is_some_and(|a| {
+                    a.collecting.is_some() && a.collecting_since.elapsed() > timeout
+                })
+            })
+            .map(|(&n, _)| n)
+            .collect();
+        for n in stalled {
+            self.roll_back(
+                &mut st,
+                n,
+                "a holder did not answer for its records in time",
+            );
+        }
         let waiting: Vec<u64> = st
             .jobs
             .iter()

@@ -613,8 +613,10 @@ impl Svc {
             w.credits = 0;
         }
         tracing::info!(worker = id, "worker disconnected");
-        if let Ok(events) = st.sched.worker_lost(WorkerId(id)) {
-            self.shared.handle_events(&mut st, events);
+        match st.sched.worker_lost(WorkerId(id)) {
+            Ok(events) => self.shared.handle_events(&mut st, events),
+            // already declared lost (silent): its jobs rolled back then, if it held records
+            Err(_) => self.shared.lost_holder(&mut st, WorkerId(id)),
         }
         self.shared.dispatch(&mut st);
     }
@@ -779,6 +781,105 @@ impl Workers for Svc {
         self.shared.metrics.tile_upload(total, accepted);
         ack
     }
+
+    async fn upload_records(
+        &self,
+        req: Request<Streaming<v1::RecordsUpload>>,
+    ) -> Result<Response<v1::RecordsAck>, Status> {
+        let mut stream = req.into_inner();
+        let first = stream.message().await?.and_then(|m| m.part);
+        let Some(v1::records_upload::Part::Header(header)) = first else {
+            return Ok(records_ack(
+                false,
+                "the first message must be a RecordsHeader",
+            ));
+        };
+        if header.size > 1 << 32 {
+            return Ok(records_ack(false, "records of over 4 GiB"));
+        }
+        let mut bytes = Vec::with_capacity(header.size as usize);
+        while let Some(part) = stream.message().await? {
+            match part.part {
+                Some(v1::records_upload::Part::Data(d)) if d.len() <= MAX_CHUNK_BYTES => {
+                    if bytes.len() as u64 + d.len() as u64 > header.size {
+                        return Ok(records_ack(false, "more data than the header's size"));
+                    }
+                    bytes.extend_from_slice(&d);
+                }
+                Some(v1::records_upload::Part::Data(_)) => {
+                    return Ok(records_ack(false, "data part over 1 MiB"))
+                }
+                _ => return Ok(records_ack(false, "a second header")),
+            }
+        }
+        self.shared.metrics.records_upload(bytes.len() as u64);
+        Ok(self.take_records(header, bytes))
+    }
+}
+
+fn records_ack(accepted: bool, detail: impl Into<String>) -> Response<v1::RecordsAck> {
+    Response::new(v1::RecordsAck {
+        accepted,
+        detail: detail.into(),
+    })
+}
+
+impl Svc {
+    /// A holder's answer to FlushRecords: its records added to the session (decoded off
+    /// the lock), or, if it lost them, the job rolled back.
+    fn take_records(&self, header: v1::RecordsHeader, bytes: Vec<u8>) -> Response<v1::RecordsAck> {
+        let Some(n) = parse_job(&header.job_id) else {
+            return records_ack(false, format!("no job {:?}", header.job_id));
+        };
+        let records = match header.lost {
+            true => None,
+            false => {
+                if bytes.len() as u64 != header.size
+                    || digest_of(&bytes).0.as_slice() != header.digest.as_slice()
+                {
+                    return records_ack(false, "size or digest does not match the records");
+                }
+                match IterationStats::decode(&bytes) {
+                    Ok(r) => Some(r),
+                    Err(e) => return records_ack(false, format!("records: {e}")),
+                }
+            }
+        };
+        let shared = &self.shared;
+        let mut st = shared.lock();
+        let st = &mut *st;
+        let w = header.worker_id;
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+            return records_ack(false, "the job is not running");
+        };
+        let current = a.records_epoch == header.records_epoch
+            && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
+        let asked = a.collecting.as_ref().is_some_and(|c| c.contains(&w));
+        if !current || !asked {
+            return records_ack(
+                false,
+                "records not asked for (another epoch, version or worker)",
+            );
+        }
+        let Some(records) = records else {
+            let why = format!("worker {w} lost the records it held");
+            shared.roll_back(st, n, &why);
+            return records_ack(true, "");
+        };
+        if let Err(e) = a.session.add_records(&records) {
+            let reason = format!("worker {w}'s records were refused by the session: {e}");
+            shared.fail_job(st, n, reason);
+            return records_ack(false, e.to_string());
+        }
+        let left = a.collecting.as_mut().expect("asked");
+        left.remove(&w);
+        tracing::debug!(job = %job_name(n), worker = w, bytes = bytes.len(), left = left.len(), "records in");
+        if left.is_empty() && shared.records_in(st, n) {
+            shared.drive(st, n);
+            shared.dispatch(st);
+        }
+        records_ack(true, "")
+    }
 }
 
 /// The most tiles one upload may carry.
@@ -902,6 +1003,10 @@ impl Svc {
             let reason = format!("tiles {ids:?} rejected by the session: {e}");
             shared.fail_job(&mut st, n, reason);
             return Ok(ack(false, v1::TileRejectReason::Superseded, e.to_string()));
+        }
+        if spec.record() {
+            // The tiles' quadtree records stay in the worker's tree copy until asked for.
+            a.holders.insert(worker.0);
         }
         let merge_s = merge_start.elapsed().as_secs_f64();
         let mut samples = 0;

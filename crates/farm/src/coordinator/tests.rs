@@ -434,7 +434,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
 
     let send = |m| v1::WorkerMessage { msg: Some(m) };
     use v1::worker_message::Msg as W;
-    let (tx, mut inbound) = fake_worker(&mut workers, 2).await;
+    let (tx, mut inbound, worker_id) = fake_worker(&mut workers, 2).await;
     // a registered worker makes the services SERVING
     let mut health = tonic_health::pb::health_client::HealthClient::new(c.channel().await);
     let check = tonic_health::pb::HealthCheckRequest {
@@ -461,8 +461,18 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let mut scene: Option<Scene> = None;
     let mut tiles = 0;
     let (mut saw_preview, mut saw_eta) = (false, false);
+    // the quadtree records of hold_records leases, kept until FlushRecords
+    let mut held: Option<pathfarm_guide::IterationStats> = None;
+    let mut flushes = 0;
     loop {
         let m = inbound.message().await.unwrap().unwrap();
+        if let Some(v1::coordinator_message::Msg::FlushRecords(f)) = &m.msg {
+            let records = held.take().expect("records held when asked for");
+            let ack = upload_records(&mut workers, worker_id, f, &records.encode()).await;
+            assert!(ack.accepted, "{ack:?}");
+            flushes += 1;
+            continue;
+        }
         let Some(v1::coordinator_message::Msg::LeaseOffer(offer)) = m.msg else {
             continue;
         };
@@ -516,10 +526,18 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             tile_size: 4,
         };
         let out = render_unit(&inputs, &spec, region, &|_| {});
-        let stats = if spec.record() {
-            tree.take_stats().encode()
-        } else {
-            Vec::new()
+        let stats = match (spec.record(), pass.hold_records) {
+            (false, _) => Vec::new(),
+            (true, false) => tree.take_stats().encode(),
+            (true, true) => {
+                let gradients = tree.take_gradients();
+                let records = tree.take_stats();
+                match &mut held {
+                    Some(h) => h.merge(&records).unwrap(),
+                    None => held = Some(records),
+                }
+                gradients.encode()
+            }
         };
         let pixels = codec::encode_tile_pixels(&out.pixels);
         let header = v1::TileHeader {
@@ -573,6 +591,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             .unwrap();
     }
     assert!(tiles >= 4);
+    assert!(flushes >= 1, "records collected once an iteration");
     assert!(
         saw_preview,
         "a preview of the image so far while the job ran"
@@ -684,6 +703,7 @@ async fn fake_worker(
 ) -> (
     tokio::sync::mpsc::Sender<v1::WorkerMessage>,
     tonic::Streaming<v1::CoordinatorMessage>,
+    u64,
 ) {
     use v1::worker_message::Msg as W;
     let (tx, rx) = tokio::sync::mpsc::channel(16);
@@ -699,11 +719,42 @@ async fn fake_worker(
     let more = W::RequestWork(v1::RequestWork { slots });
     tx.send(send(more)).await.unwrap();
     let (inbound, m) = open_control(workers, rx).await;
-    assert!(matches!(
-        m.msg,
-        Some(v1::coordinator_message::Msg::Registered(_))
-    ));
-    (tx, inbound)
+    let Some(v1::coordinator_message::Msg::Registered(r)) = m.msg else {
+        panic!("registered: {m:?}");
+    };
+    (tx, inbound, r.worker_id)
+}
+
+/// Answers `FlushRecords` `f` with `records`.
+async fn upload_records(
+    workers: &mut WorkersClient<Channel>,
+    worker_id: u64,
+    f: &v1::FlushRecords,
+    records: &[u8],
+) -> v1::RecordsAck {
+    use v1::records_upload::Part;
+    let header = v1::RecordsHeader {
+        worker_id,
+        job_id: f.job_id.clone(),
+        tree_digest: f.tree_digest.clone(),
+        records_epoch: f.records_epoch,
+        lost: false,
+        size: records.len() as u64,
+        digest: digest_of(records).0.to_vec(),
+    };
+    let mut parts = vec![v1::RecordsUpload {
+        part: Some(Part::Header(header)),
+    }];
+    for c in records.chunks(1000) {
+        parts.push(v1::RecordsUpload {
+            part: Some(Part::Data(c.to_vec())),
+        });
+    }
+    workers
+        .upload_records(tokio_stream::iter(parts))
+        .await
+        .unwrap()
+        .into_inner()
 }
 
 /// The next lease offered on `inbound` (within 10 s).
@@ -767,7 +818,7 @@ async fn malformed_joint_uploads_are_corrupt_and_a_rejected_one_returns_its_vali
     let mut jobs = JobsClient::new(ch.clone());
     let mut workers = WorkersClient::new(ch);
     let id = submit_scene(&mut jobs).await;
-    let (tx, mut inbound) = fake_worker(&mut workers, 1).await;
+    let (tx, mut inbound, _) = fake_worker(&mut workers, 1).await;
     let lease = next_offer(&mut inbound).await;
     let unit = lease.pass.as_ref().unwrap().unit;
     let corrupt = v1::TileRejectReason::Corrupt as i32;

@@ -31,10 +31,13 @@ use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote};
 use crate::codec;
 
 mod prefetch;
+mod records;
 mod upload;
 
 pub use upload::MAX_JOINT_TILES;
-use upload::{spawn_upload, FlushEnd, Flushing, Joint, RenderedTile, Spoiled, UploadEnd, Uploads};
+use upload::{
+    spawn_upload, FlushEnd, Flushing, Joint, RenderedTile, Spoiled, UploadEnd, UploadOf, Uploads,
+};
 
 /// How a worker runs.
 #[derive(Clone, Debug)]
@@ -160,6 +163,31 @@ struct JobTree {
     tree: SdTree,
     /// The unit whose tiles' records are in the tree, not yet taken (see [`upload::Joint`]).
     recording: Option<u64>,
+    /// The records epoch of the leases that rendered into this copy (`PassSpec.records_epoch`).
+    epoch: u64,
+    /// Quadtree records of `hold_records` leases are in the copy, waiting for `FlushRecords`.
+    holds: bool,
+    /// Some of those records are of tiles the coordinator did not take from this worker (a
+    /// rejected or failed upload, a tile cancelled after it rendered): they are lost.
+    poisoned: bool,
+    /// A copy for one tree-less lease (probe, path) while the job's real copy, holding
+    /// records, stays in the cache: not put back.
+    transient: bool,
+}
+
+impl JobTree {
+    fn new(tree_digest: Vec<u8>, tree: SdTree, epoch: u64) -> JobTree {
+        JobTree {
+            tree_digest,
+            fractions_digest: Vec::new(),
+            tree,
+            recording: None,
+            epoch,
+            holds: false,
+            poisoned: false,
+            transient: false,
+        }
+    }
 }
 
 #[derive(Default)]
@@ -208,6 +236,8 @@ enum LeaseEnd {
 struct Running {
     lease_id: u64,
     job_id: String,
+    /// The records epoch, for a `hold_records` lease.
+    hold: Option<u64>,
     cancelled: Arc<AtomicBool>,
     handle: tokio::task::JoinHandle<LeaseEnd>,
 }
@@ -231,6 +261,13 @@ struct Leases {
     uploads: Uploads,
     /// Leases being serialised or uploaded.
     uploading: Vec<u64>,
+    /// The job of each upload in progress (a job's records are flushed after its uploads).
+    upload_jobs: Vec<String>,
+    /// `FlushRecords` waiting for their job's renders and uploads to end.
+    flushes: Vec<v1::FlushRecords>,
+    /// This connection's worker id (`Registered.worker_id`).
+    worker_id: u64,
+    shared: Arc<Shared>,
     draining: bool,
 }
 
@@ -264,7 +301,7 @@ impl Leases {
     }
 
     /// The running lease's render ended: it joins its unit's tiles, or is reported.
-    fn on_rendered(&mut self, id: u64, job: String, end: LeaseEnd) {
+    fn on_rendered(&mut self, id: u64, job: String, hold: Option<u64>, end: LeaseEnd) {
         use v1::worker_message::Msg;
         match end {
             LeaseEnd::Rendered(tile) => self.join(tile, Spoiled::No),
@@ -277,6 +314,13 @@ impl Leases {
             }
             LeaseEnd::Failed { reason, fatal } => {
                 tracing::error!("lease {id} (job {job}) failed: {reason}");
+                // It may have recorded part of its tile before it failed.
+                let of = UploadOf {
+                    ids: Vec::new(),
+                    job: job.clone(),
+                    hold,
+                };
+                self.poison(&of);
                 let failed = v1::LeaseFailed {
                     lease_id: id,
                     reason,
@@ -317,18 +361,67 @@ impl Leases {
     }
 
     /// The joint tiles are serialised: upload them, or give their leases back.
-    fn on_flushed(&mut self, api: &Api, ids: Vec<u64>, job: String, end: FlushEnd) {
+    fn on_flushed(&mut self, api: &Api, of: UploadOf, end: FlushEnd) {
         use v1::worker_message::Msg;
         match end {
-            FlushEnd::Ready(upload) => spawn_upload(&mut self.uploads, api, ids, job, upload),
+            FlushEnd::Ready(upload) => {
+                self.upload_jobs.push(of.job.clone());
+                spawn_upload(&mut self.uploads, api, of, upload)
+            }
             FlushEnd::Discarded => {
-                self.uploading.retain(|l| !ids.contains(l));
-                self.send(Msg::HandBack(v1::HandBack { lease_ids: ids }));
+                self.uploading.retain(|l| !of.ids.contains(l));
+                self.send(Msg::HandBack(v1::HandBack { lease_ids: of.ids }));
             }
             FlushEnd::Failed(reason) => {
-                self.uploading.retain(|l| !ids.contains(l));
-                self.fail_all(ids, &job, reason);
+                self.uploading.retain(|l| !of.ids.contains(l));
+                self.poison(&of);
+                self.fail_all(of.ids, &of.job, reason);
             }
+        }
+    }
+
+    /// Tiles of `of` rendered into the job's tree copy and the coordinator did not take
+    /// them: if their quadtree records stayed in the copy, its records are lost.
+    fn poison(&self, of: &UploadOf) {
+        let Some(epoch) = of.hold else {
+            return;
+        };
+        let mut c = self.shared.caches.lock().expect("cache lock");
+        if let Some(t) = (c.trees.get_mut(&of.job)).filter(|t| t.holds && t.epoch == epoch) {
+            tracing::warn!("job {}: the records this worker holds are lost", of.job);
+            t.poisoned = true;
+        }
+    }
+
+    /// An upload task panicked: which leases and job it was of is unknown, so every
+    /// record this worker holds is lost (the coordinator rolls those jobs back) and no
+    /// flush waits for it.
+    fn on_upload_task_lost(&mut self, e: tokio::task::JoinError) {
+        tracing::error!("upload task: {e}");
+        self.upload_jobs.clear();
+        let mut c = self.shared.caches.lock().expect("cache lock");
+        c.trees
+            .values_mut()
+            .filter(|t| t.holds)
+            .for_each(|t| t.poisoned = true);
+    }
+
+    /// Starts answering the `FlushRecords` whose job has nothing rendering, waiting for a
+    /// joint upload, being serialised or uploading here (every tile's outcome is known).
+    fn start_due_flushes(&mut self, api: &Api) {
+        let busy = |job: &str, l: &Leases| {
+            l.running.as_ref().is_some_and(|r| r.job_id == job)
+                || l.joint.as_ref().is_some_and(|j| j.job_id() == job)
+                || l.flushing.as_ref().is_some_and(|f| f.job_id == job)
+                || l.upload_jobs.iter().any(|j| j == job)
+        };
+        let (due, waiting): (Vec<_>, Vec<_>) = std::mem::take(&mut self.flushes)
+            .into_iter()
+            .partition(|f| !busy(&f.job_id, self));
+        self.flushes = waiting;
+        for f in due {
+            let (shared, api) = (self.shared.clone(), api.clone());
+            tokio::spawn(records::send(shared, api, self.worker_id, f));
         }
     }
 
@@ -345,8 +438,15 @@ impl Leases {
         }
     }
 
-    fn on_uploaded(&mut self, ids: Vec<u64>, job: String, end: UploadEnd) {
-        self.uploading.retain(|l| !ids.contains(l));
+    fn on_uploaded(&mut self, of: UploadOf, end: UploadEnd) {
+        if let Some(i) = self.upload_jobs.iter().position(|j| *j == of.job) {
+            self.upload_jobs.remove(i);
+        }
+        self.uploading.retain(|l| !of.ids.contains(l));
+        if !matches!(&end, UploadEnd::Acked(a) if a.accepted) {
+            self.poison(&of);
+        }
+        let UploadOf { ids, job, .. } = of;
         match end {
             UploadEnd::Acked(ack) if ack.accepted => {
                 let dup = if ack.duplicate { " (duplicate)" } else { "" };
@@ -393,6 +493,13 @@ impl Leases {
                     self.send(Msg::Draining(v1::Draining {}));
                 }
             }
+            Some(C::FlushRecords(f)) => {
+                tracing::info!(
+                    "job {}: the coordinator asks for the records held",
+                    f.job_id
+                );
+                self.flushes.push(f);
+            }
             // Prefetch is taken by the session loop, which has the API to fetch with.
             Some(C::Registered(_)) | Some(C::Refused(_)) | Some(C::Prefetch(_)) | None => {}
         }
@@ -438,16 +545,16 @@ impl Leases {
                 tracing::info!("lease {id} (job {job}): finishing after the stream broke");
             }
             let end = r.handle.await.unwrap_or(LeaseEnd::Cancelled);
-            self.on_rendered(r.lease_id, r.job_id, end);
+            self.on_rendered(r.lease_id, r.job_id, r.hold, end);
         }
         if let Some(f) = self.flushing.take() {
-            let (ids, job, end) = f.finish().await;
-            self.on_flushed(api, ids, job, end);
+            let (ids, job, hold, end) = f.finish().await;
+            self.on_flushed(api, UploadOf { ids, job, hold }, end);
         }
         if self.joint.is_some() {
             self.start_flush(shared);
-            let (ids, job, end) = self.flushing.take().expect("started").finish().await;
-            self.on_flushed(api, ids, job, end);
+            let (ids, job, hold, end) = self.flushing.take().expect("started").finish().await;
+            self.on_flushed(api, UploadOf { ids, job, hold }, end);
         }
         while self.uploads.join_next().await.is_some() {}
     }
@@ -513,8 +620,20 @@ async fn session<S: Future<Output = ()>>(
         flushing: None,
         uploads: Uploads::new(),
         uploading: Vec::new(),
+        upload_jobs: Vec::new(),
+        flushes: Vec::new(),
+        worker_id: registered.worker_id,
+        shared: shared.clone(),
         draining: *stop,
     };
+    // Records kept under an earlier connection are not asked for again: the coordinator
+    // rolled their jobs back when that connection ended (or it restarted).
+    shared
+        .caches
+        .lock()
+        .expect("cache lock")
+        .trees
+        .retain(|_, t| !t.holds && !t.poisoned);
     if l.draining {
         l.send(Msg::Draining(v1::Draining {}));
     } else {
@@ -534,6 +653,9 @@ async fn session<S: Future<Output = ()>>(
                 break None;
             }
         }
+        if !l.flushes.is_empty() {
+            l.start_due_flushes(&api);
+        }
         tokio::select! {
             _ = shutdown.as_mut(), if !shutdown_seen => {
                 shutdown_seen = true;
@@ -550,17 +672,18 @@ async fn session<S: Future<Output = ()>>(
                     reason: format!("render task panicked: {e}"),
                     fatal: false,
                 });
-                l.on_rendered(r.lease_id, r.job_id, end);
+                l.on_rendered(r.lease_id, r.job_id, r.hold, end);
             }
             end = async { l.flushing.as_mut().expect("guarded").wait().await }, if l.flushing.is_some() => {
                 let f = l.flushing.take().expect("guarded");
-                l.on_flushed(&api, f.lease_ids, f.job_id, end);
+                let of = UploadOf { ids: f.lease_ids, job: f.job_id, hold: f.hold };
+                l.on_flushed(&api, of, end);
             }
             Some(done) = l.uploads.join_next(), if !l.uploads.is_empty() => {
-                let (ids, job, end) = done.unwrap_or_else(|e| {
-                    (Vec::new(), String::new(), UploadEnd::Failed(format!("upload task: {e}")))
-                });
-                l.on_uploaded(ids, job, end);
+                match done {
+                    Ok((of, end)) => l.on_uploaded(of, end),
+                    Err(e) => l.on_upload_task_lost(e),
+                }
             }
             msg = inbound.message() => match msg {
                 Ok(Some(v1::CoordinatorMessage { msg: Some(v1::coordinator_message::Msg::Prefetch(p)) })) => {
@@ -599,6 +722,9 @@ fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
     let cancelled = Arc::new(AtomicBool::new(false));
     let lease_id = lease.lease_id;
     let job_id = lease.job_id.clone();
+    let hold = (lease.pass.as_ref())
+        .filter(|p| p.hold_records)
+        .map(|p| p.records_epoch);
     let shared = shared.clone();
     let api = api.clone();
     let flag = cancelled.clone();
@@ -607,6 +733,7 @@ fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
     Running {
         lease_id,
         job_id,
+        hold,
         cancelled,
         handle,
     }
@@ -962,7 +1089,24 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
         .trees
         .remove(&p.lease.job_id);
     let want_tree = &pass.tree_digest;
+    if want_tree.is_empty() && cached.as_ref().is_some_and(|t| t.holds) {
+        if let Some(t) = cached {
+            // A tree-less pass between a version's recording units and its records'
+            // flush: the copy holding them stays.
+            let mut c = shared.caches.lock().expect("cache lock");
+            c.trees.insert(p.lease.job_id.clone(), t);
+            let (lo, hi) = js.scene.accel.bounds();
+            let tree = SdTree::new(lo, hi, guide_config(&js.params, &js.scene));
+            let mut jt = JobTree::new(Vec::new(), tree, pass.records_epoch);
+            jt.transient = true;
+            return Ok(jt);
+        }
+    }
     let stale = cached.as_ref().is_none_or(|t| &t.tree_digest != want_tree)
+        || (pass.hold_records
+            && cached
+                .as_ref()
+                .is_some_and(|t| t.epoch != pass.records_epoch))
         || (pass.fractions_digest.is_empty()
             && cached
                 .as_ref()
@@ -996,12 +1140,7 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
                     SdTree::new(lo, hi, guide_config(&js.params, &js.scene))
                 }
             };
-            JobTree {
-                tree_digest: want_tree.clone(),
-                fractions_digest: Vec::new(),
-                tree,
-                recording: None,
-            }
+            JobTree::new(want_tree.clone(), tree, pass.records_epoch)
         }
     };
     if jt.fractions_digest != pass.fractions_digest {
@@ -1082,15 +1221,19 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     let seconds = t0.elapsed().as_secs_f64();
     let serialize_start = Instant::now();
     if spec.record() {
-        // The statistics stay in the tree: taken once for this unit's joint upload.
+        // The statistics stay in the tree: taken once for this unit's joint upload (the
+        // quadtree records, with `hold_records`, until the coordinator asks for them).
         jt.recording = Some(spec.unit);
+        jt.holds |= pass.hold_records;
     }
-    shared
-        .caches
-        .lock()
-        .expect("cache lock")
-        .trees
-        .insert(job.clone(), jt);
+    if !jt.transient {
+        shared
+            .caches
+            .lock()
+            .expect("cache lock")
+            .trees
+            .insert(job.clone(), jt);
+    }
     let pixels = codec::encode_tile_pixels(&out.pixels);
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();
@@ -1122,6 +1265,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         job_id: job,
         unit: pass.unit,
         record: spec.record(),
+        hold: (spec.record() && pass.hold_records).then_some(pass.records_epoch),
         part,
         pixels,
     })

@@ -27,6 +27,9 @@ pub(super) struct RenderedTile {
     pub(super) unit: u64,
     /// Whether the unit records into the tree (the joint then carries statistics).
     pub(super) record: bool,
+    /// With `PassSpec.hold_records`, the records epoch: the quadtree records stay in the
+    /// tree, and the joint carries the fraction gradients alone.
+    pub(super) hold: Option<u64>,
     pub(super) part: v1::UploadedTile,
     pub(super) pixels: Vec<u8>,
 }
@@ -43,6 +46,7 @@ pub(super) struct Joint {
     job_id: String,
     unit: u64,
     record: bool,
+    hold: Option<u64>,
     tiles: Vec<RenderedTile>,
     /// A lease of it was cancelled: nothing of it is uploaded.
     spoiled: bool,
@@ -54,6 +58,7 @@ impl Joint {
             job_id: first.job_id.clone(),
             unit: first.unit,
             record: first.record,
+            hold: first.hold,
             tiles: Vec::new(),
             spoiled: false,
         }
@@ -71,6 +76,7 @@ impl Joint {
     pub(super) fn push(&mut self, tile: RenderedTile, spoiled: Spoiled) {
         self.spoiled |= spoiled == Spoiled::Yes;
         self.record |= tile.record;
+        self.hold = self.hold.or(tile.hold);
         if spoiled == Spoiled::No {
             self.tiles.push(tile);
         }
@@ -109,6 +115,8 @@ pub(super) enum FlushEnd {
 pub(super) struct Flushing {
     pub(super) lease_ids: Vec<u64>,
     pub(super) job_id: String,
+    /// The joint's quadtree records stay in the tree ([`RenderedTile::hold`]).
+    pub(super) hold: Option<u64>,
     handle: tokio::task::JoinHandle<FlushEnd>,
 }
 
@@ -116,11 +124,13 @@ impl Flushing {
     pub(super) fn start(shared: &Arc<Shared>, joint: Joint) -> Flushing {
         let lease_ids = joint.lease_ids().collect();
         let job_id = joint.job_id.clone();
+        let hold = joint.hold;
         let shared = shared.clone();
         let handle = tokio::task::spawn_blocking(move || flush(&shared, joint));
         Flushing {
             lease_ids,
             job_id,
+            hold,
             handle,
         }
     }
@@ -131,9 +141,9 @@ impl Flushing {
             .unwrap_or_else(|e| FlushEnd::Failed(format!("serialising panicked: {e}")))
     }
 
-    pub(super) async fn finish(mut self) -> (Vec<u64>, String, FlushEnd) {
+    pub(super) async fn finish(mut self) -> (Vec<u64>, String, Option<u64>, FlushEnd) {
         let end = self.wait().await;
-        (self.lease_ids, self.job_id, end)
+        (self.lease_ids, self.job_id, self.hold, end)
     }
 }
 
@@ -200,7 +210,13 @@ fn take_stats(shared: &Shared, joint: &Joint) -> Result<Vec<u8>, Fail> {
         let jt = jt.filter(|jt| jt.recording == Some(joint.unit));
         jt.map(|jt| {
             jt.recording = None;
-            jt.tree.take_stats()
+            if joint.hold.is_none() {
+                return jt.tree.take_stats();
+            }
+            // The quadtree records stay for FlushRecords; a spoiled joint's are mixed in
+            // with them and cannot be taken out: the copy's records are lost.
+            jt.poisoned |= joint.spoiled;
+            jt.tree.take_gradients()
         })
     };
     let stats = taken.ok_or_else(|| {
@@ -222,19 +238,21 @@ pub(super) enum UploadEnd {
     Failed(String),
 }
 
-/// Uploads in progress: (leases, job) and the outcome.
-pub(super) type Uploads = tokio::task::JoinSet<(Vec<u64>, String, UploadEnd)>;
+/// An upload's leases, job, and the records epoch if their quadtree records stay in the
+/// job's tree.
+pub(super) struct UploadOf {
+    pub(super) ids: Vec<u64>,
+    pub(super) job: String,
+    pub(super) hold: Option<u64>,
+}
 
-/// Uploads leases `ids`' tiles in the background; the outcome arrives on `uploads`.
-pub(super) fn spawn_upload(
-    uploads: &mut Uploads,
-    api: &Api,
-    ids: Vec<u64>,
-    job: String,
-    upload: Upload,
-) {
+/// Uploads in progress: what each is of, and the outcome.
+pub(super) type Uploads = tokio::task::JoinSet<(UploadOf, UploadEnd)>;
+
+/// Uploads leases' tiles in the background; the outcome arrives on `uploads`.
+pub(super) fn spawn_upload(uploads: &mut Uploads, api: &Api, of: UploadOf, upload: Upload) {
     let api = api.clone();
-    uploads.spawn(async move { (ids, job, send(api, upload).await) });
+    uploads.spawn(async move { (of, send(api, upload).await) });
 }
 
 async fn send(mut api: Api, u: Upload) -> UploadEnd {
@@ -300,6 +318,7 @@ mod tests {
             job_id: "job-1".into(),
             unit,
             record: true,
+            hold: None,
             part: v1::UploadedTile {
                 lease_id,
                 ..Default::default()
