@@ -97,6 +97,42 @@ impl IterationStats {
         Ok(())
     }
 
+    /// Splits the statistics into the fraction gradients and the rest (W, light-sample sums,
+    /// quadtree nodes, overflow events): what a pass end's Adam steps need, and what only
+    /// refinement does. Merged again, the two are `self`.
+    pub fn split_gradients(self) -> (IterationStats, IterationStats) {
+        let empty = |overflow_events| IterationStats {
+            structure_hash: self.structure_hash,
+            overflow_events,
+            leaves: Vec::new(),
+        };
+        let (mut grads, mut rest) = (empty(0), empty(self.overflow_events));
+        for l in self.leaves {
+            let has_grads =
+                l.grad_weight != 0 || l.grad_pos.iter().chain(&l.grad_neg).any(|&x| x != 0);
+            let has_rest = l.weight != 0 || l.light.iter().any(|&x| x != 0) || !l.nodes.is_empty();
+            if has_grads {
+                grads.leaves.push(LeafStats {
+                    leaf: l.leaf,
+                    grad_pos: l.grad_pos,
+                    grad_neg: l.grad_neg,
+                    grad_weight: l.grad_weight,
+                    ..LeafStats::default()
+                });
+            }
+            if has_rest {
+                rest.leaves.push(LeafStats {
+                    leaf: l.leaf,
+                    weight: l.weight,
+                    light: l.light,
+                    nodes: l.nodes,
+                    ..LeafStats::default()
+                });
+            }
+        }
+        (grads, rest)
+    }
+
     /// Merges many statistics (e.g. one per worker) into one.
     pub fn merge_all<'a>(
         parts: impl IntoIterator<Item = &'a IterationStats>,

@@ -36,7 +36,8 @@ mod upload;
 
 pub use upload::MAX_JOINT_TILES;
 use upload::{
-    spawn_upload, FlushEnd, Flushing, Joint, RenderedTile, Spoiled, UploadEnd, UploadOf, Uploads,
+    spawn_upload, FlushEnd, Flushing, HeldKey, Joint, RenderedTile, Spoiled, UploadEnd, UploadOf,
+    Uploads,
 };
 
 /// How a worker runs.
@@ -163,31 +164,6 @@ struct JobTree {
     tree: SdTree,
     /// The unit whose tiles' records are in the tree, not yet taken (see [`upload::Joint`]).
     recording: Option<u64>,
-    /// The records epoch of the leases that rendered into this copy (`PassSpec.records_epoch`).
-    epoch: u64,
-    /// Quadtree records of `hold_records` leases are in the copy, waiting for `FlushRecords`.
-    holds: bool,
-    /// Some of those records are of tiles the coordinator did not take from this worker (a
-    /// rejected or failed upload, a tile cancelled after it rendered): they are lost.
-    poisoned: bool,
-    /// A copy for one tree-less lease (probe, path) while the job's real copy, holding
-    /// records, stays in the cache: not put back.
-    transient: bool,
-}
-
-impl JobTree {
-    fn new(tree_digest: Vec<u8>, tree: SdTree, epoch: u64) -> JobTree {
-        JobTree {
-            tree_digest,
-            fractions_digest: Vec::new(),
-            tree,
-            recording: None,
-            epoch,
-            holds: false,
-            poisoned: false,
-            transient: false,
-        }
-    }
 }
 
 #[derive(Default)]
@@ -236,8 +212,6 @@ enum LeaseEnd {
 struct Running {
     lease_id: u64,
     job_id: String,
-    /// The records epoch, for a `hold_records` lease.
-    hold: Option<u64>,
     cancelled: Arc<AtomicBool>,
     handle: tokio::task::JoinHandle<LeaseEnd>,
 }
@@ -263,11 +237,13 @@ struct Leases {
     uploading: Vec<u64>,
     /// The job of each upload in progress (a job's records are flushed after its uploads).
     upload_jobs: Vec<String>,
+    /// Per job, the quadtree records of this connection's accepted recording uploads of
+    /// one tree version and epoch, until the coordinator asks for them.
+    held: HashMap<String, records::Held>,
     /// `FlushRecords` waiting for their job's renders and uploads to end.
     flushes: Vec<v1::FlushRecords>,
     /// This connection's worker id (`Registered.worker_id`).
     worker_id: u64,
-    shared: Arc<Shared>,
     draining: bool,
 }
 
@@ -301,7 +277,7 @@ impl Leases {
     }
 
     /// The running lease's render ended: it joins its unit's tiles, or is reported.
-    fn on_rendered(&mut self, id: u64, job: String, hold: Option<u64>, end: LeaseEnd) {
+    fn on_rendered(&mut self, id: u64, job: String, end: LeaseEnd) {
         use v1::worker_message::Msg;
         match end {
             LeaseEnd::Rendered(tile) => self.join(tile, Spoiled::No),
@@ -314,13 +290,6 @@ impl Leases {
             }
             LeaseEnd::Failed { reason, fatal } => {
                 tracing::error!("lease {id} (job {job}) failed: {reason}");
-                // It may have recorded part of its tile before it failed.
-                let of = UploadOf {
-                    ids: Vec::new(),
-                    job: job.clone(),
-                    hold,
-                };
-                self.poison(&of);
                 let failed = v1::LeaseFailed {
                     lease_id: id,
                     reason,
@@ -361,67 +330,22 @@ impl Leases {
     }
 
     /// The joint tiles are serialised: upload them, or give their leases back.
-    fn on_flushed(&mut self, api: &Api, of: UploadOf, end: FlushEnd) {
+    fn on_flushed(&mut self, api: &Api, ids: Vec<u64>, job: String, end: FlushEnd) {
         use v1::worker_message::Msg;
         match end {
-            FlushEnd::Ready(upload) => {
-                self.upload_jobs.push(of.job.clone());
+            FlushEnd::Ready(upload, held) => {
+                self.upload_jobs.push(job.clone());
+                let of = UploadOf { ids, job, held };
                 spawn_upload(&mut self.uploads, api, of, upload)
             }
             FlushEnd::Discarded => {
-                self.uploading.retain(|l| !of.ids.contains(l));
-                self.send(Msg::HandBack(v1::HandBack { lease_ids: of.ids }));
+                self.uploading.retain(|l| !ids.contains(l));
+                self.send(Msg::HandBack(v1::HandBack { lease_ids: ids }));
             }
             FlushEnd::Failed(reason) => {
-                self.uploading.retain(|l| !of.ids.contains(l));
-                self.poison(&of);
-                self.fail_all(of.ids, &of.job, reason);
+                self.uploading.retain(|l| !ids.contains(l));
+                self.fail_all(ids, &job, reason);
             }
-        }
-    }
-
-    /// Tiles of `of` rendered into the job's tree copy and the coordinator did not take
-    /// them: if their quadtree records stayed in the copy, its records are lost.
-    fn poison(&self, of: &UploadOf) {
-        let Some(epoch) = of.hold else {
-            return;
-        };
-        let mut c = self.shared.caches.lock().expect("cache lock");
-        if let Some(t) = (c.trees.get_mut(&of.job)).filter(|t| t.holds && t.epoch == epoch) {
-            tracing::warn!("job {}: the records this worker holds are lost", of.job);
-            t.poisoned = true;
-        }
-    }
-
-    /// An upload task panicked: which leases and job it was of is unknown, so every
-    /// record this worker holds is lost (the coordinator rolls those jobs back) and no
-    /// flush waits for it.
-    fn on_upload_task_lost(&mut self, e: tokio::task::JoinError) {
-        tracing::error!("upload task: {e}");
-        self.upload_jobs.clear();
-        let mut c = self.shared.caches.lock().expect("cache lock");
-        c.trees
-            .values_mut()
-            .filter(|t| t.holds)
-            .for_each(|t| t.poisoned = true);
-    }
-
-    /// Starts answering the `FlushRecords` whose job has nothing rendering, waiting for a
-    /// joint upload, being serialised or uploading here (every tile's outcome is known).
-    fn start_due_flushes(&mut self, api: &Api) {
-        let busy = |job: &str, l: &Leases| {
-            l.running.as_ref().is_some_and(|r| r.job_id == job)
-                || l.joint.as_ref().is_some_and(|j| j.job_id() == job)
-                || l.flushing.as_ref().is_some_and(|f| f.job_id == job)
-                || l.upload_jobs.iter().any(|j| j == job)
-        };
-        let (due, waiting): (Vec<_>, Vec<_>) = std::mem::take(&mut self.flushes)
-            .into_iter()
-            .partition(|f| !busy(&f.job_id, self));
-        self.flushes = waiting;
-        for f in due {
-            let (shared, api) = (self.shared.clone(), api.clone());
-            tokio::spawn(records::send(shared, api, self.worker_id, f));
         }
     }
 
@@ -443,10 +367,18 @@ impl Leases {
             self.upload_jobs.remove(i);
         }
         self.uploading.retain(|l| !of.ids.contains(l));
-        if !matches!(&end, UploadEnd::Acked(a) if a.accepted) {
-            self.poison(&of);
+        let UploadOf { ids, job, held } = of;
+        match (&end, held) {
+            // Kept only for tiles the coordinator took from this worker; a rejected
+            // upload's records go with it (its tiles are rendered again elsewhere).
+            (UploadEnd::Acked(ack), Some((key, stats))) if ack.accepted && !ack.duplicate => {
+                records::keep(&mut self.held, &job, key, stats)
+            }
+            // Whether the coordinator took it is unknown: the records kept cannot be
+            // vouched for.
+            (UploadEnd::Failed(_), Some((key, _))) => records::lose(&mut self.held, &job, key),
+            _ => {}
         }
-        let UploadOf { ids, job, .. } = of;
         match end {
             UploadEnd::Acked(ack) if ack.accepted => {
                 let dup = if ack.duplicate { " (duplicate)" } else { "" };
@@ -535,6 +467,35 @@ impl Leases {
         }
     }
 
+    /// Starts answering the `FlushRecords` whose job has nothing rendering, waiting for a
+    /// joint upload, being serialised or uploading here: every tile's outcome is known, so
+    /// the records kept are those of exactly the tiles the coordinator took.
+    fn start_due_flushes(&mut self, api: &Api) {
+        let busy = |job: &str, l: &Leases| {
+            l.running.as_ref().is_some_and(|r| r.job_id == job)
+                || l.joint.as_ref().is_some_and(|j| j.job_id() == job)
+                || l.flushing.as_ref().is_some_and(|f| f.job_id == job)
+                || l.upload_jobs.iter().any(|j| j == job)
+        };
+        let (due, waiting): (Vec<_>, Vec<_>) = std::mem::take(&mut self.flushes)
+            .into_iter()
+            .partition(|f| !busy(&f.job_id, self));
+        self.flushes = waiting;
+        for f in due {
+            let held = records::take(&mut self.held, &f);
+            tokio::spawn(records::send(api.clone(), self.worker_id, f, held));
+        }
+    }
+
+    /// An upload task panicked: which leases and job it was of is unknown, so no record
+    /// kept here can be vouched for (a flush then answers `lost`, and the coordinator rolls
+    /// those jobs back), and no flush waits for it.
+    fn on_upload_task_lost(&mut self, e: tokio::task::JoinError) {
+        tracing::error!("upload task: {e}");
+        self.upload_jobs.clear();
+        self.held.clear();
+    }
+
     /// The stream broke (or the worker drained): leases not started are abandoned (the
     /// coordinator re-queues them); the one rendering is finished, and the rendered tiles
     /// are uploaded if they can be.
@@ -545,16 +506,16 @@ impl Leases {
                 tracing::info!("lease {id} (job {job}): finishing after the stream broke");
             }
             let end = r.handle.await.unwrap_or(LeaseEnd::Cancelled);
-            self.on_rendered(r.lease_id, r.job_id, r.hold, end);
+            self.on_rendered(r.lease_id, r.job_id, end);
         }
         if let Some(f) = self.flushing.take() {
-            let (ids, job, hold, end) = f.finish().await;
-            self.on_flushed(api, UploadOf { ids, job, hold }, end);
+            let (ids, job, end) = f.finish().await;
+            self.on_flushed(api, ids, job, end);
         }
         if self.joint.is_some() {
             self.start_flush(shared);
-            let (ids, job, hold, end) = self.flushing.take().expect("started").finish().await;
-            self.on_flushed(api, UploadOf { ids, job, hold }, end);
+            let (ids, job, end) = self.flushing.take().expect("started").finish().await;
+            self.on_flushed(api, ids, job, end);
         }
         while self.uploads.join_next().await.is_some() {}
     }
@@ -621,19 +582,11 @@ async fn session<S: Future<Output = ()>>(
         uploads: Uploads::new(),
         uploading: Vec::new(),
         upload_jobs: Vec::new(),
+        held: HashMap::new(),
         flushes: Vec::new(),
         worker_id: registered.worker_id,
-        shared: shared.clone(),
         draining: *stop,
     };
-    // Records kept under an earlier connection are not asked for again: the coordinator
-    // rolled their jobs back when that connection ended (or it restarted).
-    shared
-        .caches
-        .lock()
-        .expect("cache lock")
-        .trees
-        .retain(|_, t| !t.holds && !t.poisoned);
     if l.draining {
         l.send(Msg::Draining(v1::Draining {}));
     } else {
@@ -672,12 +625,11 @@ async fn session<S: Future<Output = ()>>(
                     reason: format!("render task panicked: {e}"),
                     fatal: false,
                 });
-                l.on_rendered(r.lease_id, r.job_id, r.hold, end);
+                l.on_rendered(r.lease_id, r.job_id, end);
             }
             end = async { l.flushing.as_mut().expect("guarded").wait().await }, if l.flushing.is_some() => {
                 let f = l.flushing.take().expect("guarded");
-                let of = UploadOf { ids: f.lease_ids, job: f.job_id, hold: f.hold };
-                l.on_flushed(&api, of, end);
+                l.on_flushed(&api, f.lease_ids, f.job_id, end);
             }
             Some(done) = l.uploads.join_next(), if !l.uploads.is_empty() => {
                 match done {
@@ -722,9 +674,6 @@ fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
     let cancelled = Arc::new(AtomicBool::new(false));
     let lease_id = lease.lease_id;
     let job_id = lease.job_id.clone();
-    let hold = (lease.pass.as_ref())
-        .filter(|p| p.hold_records)
-        .map(|p| p.records_epoch);
     let shared = shared.clone();
     let api = api.clone();
     let flag = cancelled.clone();
@@ -733,7 +682,6 @@ fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
     Running {
         lease_id,
         job_id,
-        hold,
         cancelled,
         handle,
     }
@@ -1089,24 +1037,7 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
         .trees
         .remove(&p.lease.job_id);
     let want_tree = &pass.tree_digest;
-    if want_tree.is_empty() && cached.as_ref().is_some_and(|t| t.holds) {
-        if let Some(t) = cached {
-            // A tree-less pass between a version's recording units and its records'
-            // flush: the copy holding them stays.
-            let mut c = shared.caches.lock().expect("cache lock");
-            c.trees.insert(p.lease.job_id.clone(), t);
-            let (lo, hi) = js.scene.accel.bounds();
-            let tree = SdTree::new(lo, hi, guide_config(&js.params, &js.scene));
-            let mut jt = JobTree::new(Vec::new(), tree, pass.records_epoch);
-            jt.transient = true;
-            return Ok(jt);
-        }
-    }
     let stale = cached.as_ref().is_none_or(|t| &t.tree_digest != want_tree)
-        || (pass.hold_records
-            && cached
-                .as_ref()
-                .is_some_and(|t| t.epoch != pass.records_epoch))
         || (pass.fractions_digest.is_empty()
             && cached
                 .as_ref()
@@ -1140,7 +1071,12 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
                     SdTree::new(lo, hi, guide_config(&js.params, &js.scene))
                 }
             };
-            JobTree::new(want_tree.clone(), tree, pass.records_epoch)
+            JobTree {
+                tree_digest: want_tree.clone(),
+                fractions_digest: Vec::new(),
+                tree,
+                recording: None,
+            }
         }
     };
     if jt.fractions_digest != pass.fractions_digest {
@@ -1221,19 +1157,15 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     let seconds = t0.elapsed().as_secs_f64();
     let serialize_start = Instant::now();
     if spec.record() {
-        // The statistics stay in the tree: taken once for this unit's joint upload (the
-        // quadtree records, with `hold_records`, until the coordinator asks for them).
+        // The statistics stay in the tree: taken once for this unit's joint upload.
         jt.recording = Some(spec.unit);
-        jt.holds |= pass.hold_records;
     }
-    if !jt.transient {
-        shared
-            .caches
-            .lock()
-            .expect("cache lock")
-            .trees
-            .insert(job.clone(), jt);
-    }
+    shared
+        .caches
+        .lock()
+        .expect("cache lock")
+        .trees
+        .insert(job.clone(), jt);
     let pixels = codec::encode_tile_pixels(&out.pixels);
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();
@@ -1265,7 +1197,10 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         job_id: job,
         unit: pass.unit,
         record: spec.record(),
-        hold: (spec.record() && pass.hold_records).then_some(pass.records_epoch),
+        hold: (spec.record() && pass.hold_records).then(|| HeldKey {
+            tree_digest: pass.tree_digest.clone(),
+            epoch: pass.records_epoch,
+        }),
         part,
         pixels,
     })

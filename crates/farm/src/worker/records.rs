@@ -1,46 +1,78 @@
-//! The answer to `FlushRecords`: the quadtree records a job's tree copy kept for a tree
-//! version (`PassSpec.hold_records` leases), uploaded once, or word that they are lost.
+//! The quadtree records a worker keeps for the coordinator (`PassSpec.hold_records`): the
+//! sums over its accepted recording tiles of one tree version and records epoch, uploaded
+//! once when the coordinator asks (`FlushRecords`), instead of with every unit.
 //!
-//! Invariant: the records a worker uploads are the sums over exactly the tiles the
-//! coordinator accepted from it in the flushed version and epoch. Records of any other
-//! tile that rendered into the copy (rejected, failed, cancelled after rendering) poison it
-//! ([`super::JobTree::poisoned`]), and the session loop answers a flush only once every
-//! upload of the job has its outcome.
+//! Invariant: what a worker uploads for a version and epoch is the merge of exactly the
+//! records of its uploads the coordinator accepted (a joint's records leave the tree with
+//! it and are kept only once its upload is acknowledged); when it cannot vouch for that (an
+//! upload whose outcome it never learned, a lost upload task) it answers `lost`, and the
+//! coordinator starts the job again from its checkpoint under a new epoch. The session loop
+//! answers a flush only once every upload of the job has its outcome.
 
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
 
+use pathfarm_guide::IterationStats;
 use pathfarm_proto::v1;
 use pathfarm_proto::MAX_CHUNK_BYTES;
 
-use super::{Api, Shared};
+use super::upload::HeldKey;
+use super::Api;
 
-/// Takes the records asked for by `f` (on a blocking thread) and uploads them.
-pub(super) async fn send(shared: Arc<Shared>, mut api: Api, worker_id: u64, f: v1::FlushRecords) {
-    let job = f.job_id.clone();
-    let sh = shared.clone();
-    let (header, bytes) = match tokio::task::spawn_blocking(move || take(&sh, worker_id, f)).await {
-        Ok(taken) => taken,
-        Err(e) => return tracing::error!("job {job}: taking the records: {e}"),
-    };
-    let lost = header.lost;
-    let size = bytes.len();
-    let msgs = messages(header, &bytes);
-    match api.upload_records(tokio_stream::iter(msgs)).await {
-        Ok(ack) if ack.get_ref().accepted => match lost {
-            true => tracing::warn!("job {job}: told the coordinator the records are lost"),
-            false => tracing::info!("job {job}: records uploaded ({size} bytes)"),
-        },
-        Ok(ack) => tracing::warn!("job {job}: records refused: {}", ack.get_ref().detail),
-        // The coordinator notices: the control stream breaks with the connection, or it
-        // was restarted; either way the job rolls back.
-        Err(s) => tracing::warn!("job {job}: records upload failed: {}", s.message()),
+/// One job's kept records.
+pub(super) struct Held {
+    key: HeldKey,
+    /// `None`: lost (some of them cannot be vouched for).
+    records: Option<IterationStats>,
+}
+
+/// Adds an accepted upload's records to those kept for `job` (replacing records of an older
+/// version or epoch, which the coordinator no longer wants).
+pub(super) fn keep(held: &mut HashMap<String, Held>, job: &str, key: HeldKey, r: IterationStats) {
+    match held.get_mut(job) {
+        Some(h) if h.key == key => {
+            if let Some(mine) = &mut h.records {
+                if mine.merge(&r).is_err() {
+                    tracing::error!("job {job}: records of another tree structure: lost");
+                    h.records = None;
+                }
+            }
+        }
+        _ => {
+            let h = Held {
+                key,
+                records: Some(r),
+            };
+            held.insert(job.to_string(), h);
+        }
     }
 }
 
+/// Marks `job`'s records of `key` lost.
+pub(super) fn lose(held: &mut HashMap<String, Held>, job: &str, key: HeldKey) {
+    tracing::warn!("job {job}: an upload's outcome is unknown: the records kept are lost");
+    held.insert(job.to_string(), Held { key, records: None });
+}
+
+/// The records `f` asks for, if kept and intact (they leave the worker either way).
+pub(super) fn take(
+    held: &mut HashMap<String, Held>,
+    f: &v1::FlushRecords,
+) -> Option<IterationStats> {
+    if injected_loss() {
+        return None;
+    }
+    let h = held.remove(&f.job_id)?;
+    let wanted = HeldKey {
+        tree_digest: f.tree_digest.clone(),
+        epoch: f.records_epoch,
+    };
+    (h.key == wanted).then_some(h.records).flatten()
+}
+
 /// Fault injection for tests: with `PATHFARM_FAULT_LOSE_RECORDS=N` in its environment a
-/// worker answers its first N flushes with `lost`, as one whose records were spoiled would,
-/// so a test can make the coordinator roll a job back at a known point.
+/// worker answers its first N flushes with `lost`, as one that cannot vouch for its records
+/// would, so a test can make the coordinator roll a job back at a known point.
 fn injected_loss() -> bool {
     static ASKED: AtomicU64 = AtomicU64::new(0);
     let n: u64 = std::env::var("PATHFARM_FAULT_LOSE_RECORDS")
@@ -50,38 +82,42 @@ fn injected_loss() -> bool {
     ASKED.fetch_add(1, Ordering::Relaxed) < n
 }
 
-/// The header and bytes answering `f`: the copy's records if it holds them for `f`'s tree
-/// version and epoch, unpoisoned, with no joint upload's records in it; else `lost`.
-fn take(shared: &Shared, worker_id: u64, f: v1::FlushRecords) -> (v1::RecordsHeader, Vec<u8>) {
-    let taken = if injected_loss() {
-        None
-    } else {
-        let mut c = shared.caches.lock().expect("cache lock");
-        c.trees
-            .get_mut(&f.job_id)
-            .filter(|t| {
-                t.tree_digest == f.tree_digest
-                    && t.epoch == f.records_epoch
-                    && t.holds
-                    && !t.poisoned
-                    && t.recording.is_none()
-            })
-            .map(|t| {
-                t.holds = false;
-                t.tree.take_stats()
-            })
+/// Uploads `records` in answer to `f` (`None`: lost), encoding them on a blocking thread.
+pub(super) async fn send(
+    mut api: Api,
+    worker_id: u64,
+    f: v1::FlushRecords,
+    records: Option<IterationStats>,
+) {
+    let job = f.job_id.clone();
+    let lost = records.is_none();
+    let bytes = match tokio::task::spawn_blocking(move || records.map(|r| r.encode())).await {
+        Ok(b) => b.unwrap_or_default(),
+        Err(e) => return tracing::error!("job {job}: encoding the records: {e}"),
     };
-    let bytes = taken.as_ref().map(|r| r.encode()).unwrap_or_default();
     let header = v1::RecordsHeader {
         worker_id,
         job_id: f.job_id,
         tree_digest: f.tree_digest,
         records_epoch: f.records_epoch,
-        lost: taken.is_none(),
+        lost,
         size: bytes.len() as u64,
         digest: blake3::hash(&bytes).as_bytes().to_vec(),
     };
-    (header, bytes)
+    let size = bytes.len();
+    match api
+        .upload_records(tokio_stream::iter(messages(header, &bytes)))
+        .await
+    {
+        Ok(ack) if ack.get_ref().accepted => match lost {
+            true => tracing::warn!("job {job}: told the coordinator the records are lost"),
+            false => tracing::info!("job {job}: records uploaded ({size} bytes)"),
+        },
+        Ok(ack) => tracing::warn!("job {job}: records refused: {}", ack.get_ref().detail),
+        // The coordinator notices: the control stream breaks with the connection, or it
+        // restarted; either way the job rolls back, or the holder times out.
+        Err(s) => tracing::warn!("job {job}: records upload failed: {}", s.message()),
+    }
 }
 
 /// The header, then `bytes` in data parts of at most [`MAX_CHUNK_BYTES`].

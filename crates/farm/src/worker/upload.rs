@@ -3,7 +3,9 @@
 //! uploaded in one call.
 //!
 //! Invariant: the records in a job's tree copy ([`super::JobTree::recording`]) are exactly
-//! those of the tiles held in the [`Joint`] (or being serialised from it). The session loop
+//! those of the tiles held in the [`Joint`] (or being serialised from it). With held records
+//! (`PassSpec.hold_records`) a joint's quadtree records leave the tree with it, as always,
+//! and wait beside its upload: kept ([`super::records`]) only if the upload is accepted. The session loop
 //! keeps it by serialising the joint before it starts any lease of another unit, and a tile
 //! cancelled after it rendered spoils its joint (the records are taken and thrown away, the
 //! other leases handed back) rather than leaving its records behind.
@@ -11,6 +13,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use pathfarm_guide::IterationStats;
 use pathfarm_proto::v1;
 use pathfarm_proto::MAX_CHUNK_BYTES;
 
@@ -27,11 +30,19 @@ pub(super) struct RenderedTile {
     pub(super) unit: u64,
     /// Whether the unit records into the tree (the joint then carries statistics).
     pub(super) record: bool,
-    /// With `PassSpec.hold_records`, the records epoch: the quadtree records stay in the
-    /// tree, and the joint carries the fraction gradients alone.
-    pub(super) hold: Option<u64>,
+    /// With `PassSpec.hold_records`: the tree version and epoch whose quadtree records the
+    /// worker keeps until `FlushRecords` (the joint then carries the fraction gradients).
+    pub(super) hold: Option<HeldKey>,
     pub(super) part: v1::UploadedTile,
     pub(super) pixels: Vec<u8>,
+}
+
+/// Which records a worker keeps: those of one tree version (its blob's digest) under one
+/// records epoch of the job.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(super) struct HeldKey {
+    pub(super) tree_digest: Vec<u8>,
+    pub(super) epoch: u64,
 }
 
 /// Whether a tile's lease was cancelled after it rendered.
@@ -46,7 +57,7 @@ pub(super) struct Joint {
     job_id: String,
     unit: u64,
     record: bool,
-    hold: Option<u64>,
+    hold: Option<HeldKey>,
     tiles: Vec<RenderedTile>,
     /// A lease of it was cancelled: nothing of it is uploaded.
     spoiled: bool,
@@ -58,7 +69,7 @@ impl Joint {
             job_id: first.job_id.clone(),
             unit: first.unit,
             record: first.record,
-            hold: first.hold,
+            hold: first.hold.clone(),
             tiles: Vec::new(),
             spoiled: false,
         }
@@ -76,7 +87,9 @@ impl Joint {
     pub(super) fn push(&mut self, tile: RenderedTile, spoiled: Spoiled) {
         self.spoiled |= spoiled == Spoiled::Yes;
         self.record |= tile.record;
-        self.hold = self.hold.or(tile.hold);
+        if self.hold.is_none() {
+            self.hold = tile.hold.clone();
+        }
         if spoiled == Spoiled::No {
             self.tiles.push(tile);
         }
@@ -103,8 +116,9 @@ impl Joint {
 
 /// What serialising a joint came to.
 pub(super) enum FlushEnd {
-    /// The upload to send.
-    Ready(Upload),
+    /// The upload to send, and the quadtree records the worker keeps if the coordinator
+    /// accepts it.
+    Ready(Upload, Option<(HeldKey, IterationStats)>),
     /// The joint was spoiled: its records were thrown away; hand its leases back.
     Discarded,
     /// The statistics could not be taken: the leases failed.
@@ -115,8 +129,6 @@ pub(super) enum FlushEnd {
 pub(super) struct Flushing {
     pub(super) lease_ids: Vec<u64>,
     pub(super) job_id: String,
-    /// The joint's quadtree records stay in the tree ([`RenderedTile::hold`]).
-    pub(super) hold: Option<u64>,
     handle: tokio::task::JoinHandle<FlushEnd>,
 }
 
@@ -124,13 +136,11 @@ impl Flushing {
     pub(super) fn start(shared: &Arc<Shared>, joint: Joint) -> Flushing {
         let lease_ids = joint.lease_ids().collect();
         let job_id = joint.job_id.clone();
-        let hold = joint.hold;
         let shared = shared.clone();
         let handle = tokio::task::spawn_blocking(move || flush(&shared, joint));
         Flushing {
             lease_ids,
             job_id,
-            hold,
             handle,
         }
     }
@@ -141,9 +151,9 @@ impl Flushing {
             .unwrap_or_else(|e| FlushEnd::Failed(format!("serialising panicked: {e}")))
     }
 
-    pub(super) async fn finish(mut self) -> (Vec<u64>, String, Option<u64>, FlushEnd) {
+    pub(super) async fn finish(mut self) -> (Vec<u64>, String, FlushEnd) {
         let end = self.wait().await;
-        (self.lease_ids, self.job_id, self.hold, end)
+        (self.lease_ids, self.job_id, end)
     }
 }
 
@@ -158,17 +168,27 @@ pub(super) struct Upload {
 /// encodes the upload.
 fn flush(shared: &Shared, joint: Joint) -> FlushEnd {
     let start = Instant::now();
-    let stats = if joint.record {
+    let taken = if joint.record {
         match take_stats(shared, &joint) {
-            Ok(s) => s,
+            Ok(s) => Some(s),
             Err(f) => return FlushEnd::Failed(f.reason),
         }
     } else {
-        Vec::new()
+        None
     };
     if joint.spoiled {
         return FlushEnd::Discarded;
     }
+    // With held records only the fraction gradients go up now; the rest waits for the
+    // coordinator's acceptance of this upload and then for its FlushRecords.
+    let (stats, held) = match (taken, joint.hold.clone()) {
+        (None, _) => (Vec::new(), None),
+        (Some(s), None) => (s.encode(), None),
+        (Some(s), Some(key)) => {
+            let (gradients, records) = s.split_gradients();
+            (gradients.encode(), Some((key, records)))
+        }
+    };
     let mut tiles: Vec<v1::UploadedTile> = Vec::with_capacity(joint.tiles.len());
     let mut pixels = Vec::with_capacity(joint.tiles.len());
     for t in joint.tiles {
@@ -194,41 +214,33 @@ fn flush(shared: &Shared, joint: Joint) -> FlushEnd {
         stats_digest,
         tiles,
     };
-    FlushEnd::Ready(Upload {
-        header,
-        pixels,
-        stats,
-    })
+    FlushEnd::Ready(
+        Upload {
+            header,
+            pixels,
+            stats,
+        },
+        held,
+    )
 }
 
-/// The encoded statistics recorded into the job's tree by the joint's tiles; the tree
-/// records nothing more of them afterwards.
-fn take_stats(shared: &Shared, joint: &Joint) -> Result<Vec<u8>, Fail> {
+/// The statistics recorded into the job's tree by the joint's tiles; the tree records
+/// nothing more of them afterwards.
+fn take_stats(shared: &Shared, joint: &Joint) -> Result<IterationStats, Fail> {
     let taken = {
         let mut caches = shared.caches.lock().expect("cache lock");
         let jt = caches.trees.get_mut(&joint.job_id);
         let jt = jt.filter(|jt| jt.recording == Some(joint.unit));
         jt.map(|jt| {
             jt.recording = None;
-            if joint.hold.is_none() {
-                return jt.tree.take_stats();
-            }
-            // The quadtree records stay for FlushRecords; a spoiled joint's are mixed in
-            // with them and cannot be taken out: the copy's records are lost.
-            jt.poisoned |= joint.spoiled;
-            jt.tree.take_gradients()
+            jt.tree.take_stats()
         })
     };
-    let stats = taken.ok_or_else(|| {
+    taken.ok_or_else(|| {
         retryable(format!(
             "the tree holding unit {}'s records is gone",
             joint.unit
         ))
-    })?;
-    Ok(if joint.spoiled {
-        Vec::new()
-    } else {
-        stats.encode()
     })
 }
 
@@ -238,12 +250,12 @@ pub(super) enum UploadEnd {
     Failed(String),
 }
 
-/// An upload's leases, job, and the records epoch if their quadtree records stay in the
-/// job's tree.
+/// What an upload is of: its leases, its job, and the quadtree records the worker keeps if
+/// it is accepted.
 pub(super) struct UploadOf {
     pub(super) ids: Vec<u64>,
     pub(super) job: String,
-    pub(super) hold: Option<u64>,
+    pub(super) held: Option<(HeldKey, IterationStats)>,
 }
 
 /// Uploads in progress: what each is of, and the outcome.
@@ -252,7 +264,10 @@ pub(super) type Uploads = tokio::task::JoinSet<(UploadOf, UploadEnd)>;
 /// Uploads leases' tiles in the background; the outcome arrives on `uploads`.
 pub(super) fn spawn_upload(uploads: &mut Uploads, api: &Api, of: UploadOf, upload: Upload) {
     let api = api.clone();
-    uploads.spawn(async move { (of, send(api, upload).await) });
+    uploads.spawn(async move {
+        let end = send(api, upload).await;
+        (of, end)
+    });
 }
 
 async fn send(mut api: Api, u: Upload) -> UploadEnd {

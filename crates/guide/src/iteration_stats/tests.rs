@@ -148,4 +148,10 @@ fn gradients_taken_per_pass_and_records_taken_once_merge_to_one_take() {
     shipped.push(records);
     assert_eq!(IterationStats::merge_all(shipped.iter()).unwrap(), whole);
     assert!(split.take_stats().leaves.is_empty(), "nothing is left");
+    // the same split of statistics already taken: the gradients part is the passes' sum
+    let (grads, rest) = whole.clone().split_gradients();
+    let pass_grads = IterationStats::merge_all(shipped[..2].iter()).unwrap();
+    assert_eq!(grads, pass_grads);
+    assert_eq!(rest, shipped[2]);
+    assert_eq!(IterationStats::merge_all([&grads, &rest]).unwrap(), whole);
 }
