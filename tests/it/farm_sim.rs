@@ -2,24 +2,30 @@
 //! driven through the lease scheduler on an injected clock, by simulated workers that join,
 //! die, hang (stop heartbeating, so their leases expire) and deliver late (their results are
 //! then stale and rejected), in a seeded random schedule, with two units of a job in flight
-//! whenever its session overlaps training passes. Every job that is not cancelled must
-//! end with the image and tree of the one-process render, bit for bit (deterministic checks,
-//! no significance level); the cancelled job must take no more tiles.
+//! whenever its session overlaps training passes. The workers keep their quadtree records
+//! and hand them over once an iteration, as the farm's do (`Records::PerIteration`: only
+//! accepted results' records are kept; a job whose holder dies starts again from its last
+//! checkpoint under a new records epoch). Every job that is not cancelled must end with the
+//! image and tree of the one-process render, bit for bit (deterministic checks, no
+//! significance level); the cancelled job must take no more tiles.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::time::Duration;
 
 use pathfarm_farm::scheduler::{
     Event, JobId, LeaseId, Millis, Rejection, Scheduler, SchedulerConfig, WorkerId,
 };
 use pathfarm_guide::fraction::FractionState;
+use pathfarm_guide::IterationStats;
 use pathfarm_guide::SdTree;
+use pathfarm_render::checkpoint::Checkpoint;
 use pathfarm_render::guided::{
     guide_config, render_guided, Budget, FallbackPolicy, GuidedOptions, GuidingVerdict, Next,
-    Session, Splatting,
+    Records, Session, Splatting,
 };
 use pathfarm_render::pass::{render_unit, PassSpec, TileOutput, UnitInputs};
 use pathfarm_render::{Film, Region, RenderSettings, Scene};
+use pathfarm_scene::GuidedParams;
 
 use crate::common::*;
 
@@ -33,6 +39,9 @@ struct Flight {
 struct SimJob {
     seed: u64,
     spp: u32,
+    params: GuidedParams,
+    splatting: Splatting,
+    policy: FallbackPolicy,
     session: Session,
     flights: Vec<Flight>,
     /// Units issued while another was in flight.
@@ -42,7 +51,19 @@ struct SimJob {
     published: (u32, Vec<u8>),
     done: bool,
     cancelled: bool,
+    /// The workers whose recording results of the current tree version were accepted.
+    holders: BTreeSet<u64>,
+    /// The session asked for the iteration's records (`Next::Records`).
+    collecting: bool,
+    /// The records epoch of the session's results; a roll back starts a new one.
+    epoch: u64,
+    /// The last checkpoint (state and tree), as the coordinator stores it.
+    checkpoint: Option<Vec<u8>>,
+    rollbacks: usize,
 }
+
+/// Which records a result's are: the job's tree version and records epoch.
+type RecordsKey = (u32, u64);
 
 /// A result a worker computed and will deliver at `due`.
 struct Pending {
@@ -52,7 +73,10 @@ struct Pending {
     tile: u32,
     due: Millis,
     out: TileOutput,
-    stats: Option<pathfarm_guide::IterationStats>,
+    /// The fraction gradients, uploaded with the tile.
+    stats: Option<IterationStats>,
+    /// The quadtree records, kept by the worker if the result is accepted.
+    records: Option<(RecordsKey, IterationStats)>,
 }
 
 struct SimWorker {
@@ -61,6 +85,8 @@ struct SimWorker {
     pending: Vec<Pending>,
     /// A hung worker neither heartbeats nor delivers until it resumes.
     hung_until: Option<Millis>,
+    /// Per job, the records of its accepted results, by tree version and epoch.
+    held: HashMap<u64, (RecordsKey, IterationStats)>,
 }
 
 impl SimWorker {
@@ -115,12 +141,105 @@ fn drive_once(
             true
         }
         Next::Wait => false,
-        Next::Records => panic!("the coordinator's sessions take records with the tiles"),
+        Next::Records => {
+            j.collecting = true;
+            false
+        }
         Next::Done => {
             j.done = true;
             false
         }
     }
+}
+
+/// The session's records are wanted: once every holder is alive, awake and has no result
+/// of the job still to deliver (so every result's fate is known), each hands over what it
+/// kept for the job's version and epoch; then the session refines and is checkpointed.
+fn try_collect(
+    j: &mut SimJob,
+    job: u64,
+    workers: &mut BTreeMap<u64, SimWorker>,
+    now: Millis,
+) -> bool {
+    let ready = j.holders.iter().all(|h| {
+        workers.get(h).is_some_and(|w| {
+            w.hung_until.is_none_or(|t| now >= t) && w.pending.iter().all(|p| p.job.0 != job)
+        })
+    });
+    if !ready {
+        return false;
+    }
+    let key = (j.session.tree_version(), j.epoch);
+    for h in std::mem::take(&mut j.holders) {
+        let w = workers.get_mut(&h).expect("checked");
+        let (k, records) = w.held.remove(&job).expect("a holder keeps records");
+        assert_eq!(
+            k, key,
+            "a holder's records are of the version and epoch collected"
+        );
+        j.session.add_records(&records).expect("records accepted");
+    }
+    j.session.records_in().expect("collecting");
+    j.collecting = false;
+    checkpoint(j);
+    true
+}
+
+/// A worker keeps an accepted result's records: added to those of the same version and
+/// epoch, or replacing older ones.
+fn keep(
+    held: &mut HashMap<u64, (RecordsKey, IterationStats)>,
+    job: u64,
+    key: RecordsKey,
+    r: IterationStats,
+) {
+    match held.get_mut(&job) {
+        Some((k, mine)) if *k == key => mine.merge(&r).expect("one structure"),
+        _ => {
+            held.insert(job, (key, r));
+        }
+    }
+}
+
+/// Keeps the session's checkpoint, if it can be taken now (between iterations).
+fn checkpoint(j: &mut SimJob) {
+    if let Some(cp) = j.session.checkpoint() {
+        j.checkpoint = Some(cp.to_bytes(&j.session.tree().encode()));
+    }
+}
+
+/// A holder of job `id`'s records was lost: the job starts again from its last checkpoint
+/// (or from the start) under a new records epoch, with new leases.
+fn roll_back(sched: &mut Scheduler, j: &mut SimJob, id: JobId, fresh: Session, now: Millis) {
+    let session = match &j.checkpoint {
+        Some(bytes) => {
+            let (cp, tree) = Checkpoint::from_bytes(bytes).expect("read back");
+            let (w, h) = j.session.size();
+            let tiles = Region::tiles(w, h, 4);
+            let mut s = Session::restore(
+                &j.params,
+                Budget::Spp(j.spp),
+                tiles,
+                j.splatting,
+                j.policy,
+                &cp,
+                tree,
+            )
+            .expect("restore");
+            s.set_records(Records::PerIteration);
+            s
+        }
+        None => fresh,
+    };
+    j.session = session;
+    j.flights.clear();
+    j.holders.clear();
+    j.collecting = false;
+    j.epoch += 1;
+    j.rollbacks += 1;
+    j.published = (u32::MAX, Vec::new());
+    sched.remove_job(id).expect("remove");
+    sched.add_job(id, 0, now).expect("add again");
 }
 
 fn one_process(scene: &Scene, spp: u32, seed: u64, policy: FallbackPolicy) -> (Film, SdTree) {
@@ -159,25 +278,33 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
         let mut sched = Scheduler::new(config.clone());
         let mut now = Millis(0);
         let mut jobs: BTreeMap<u64, SimJob> = BTreeMap::new();
+        let new_session = |n: u64, seed: u64, spp: u32| {
+            let (lo, hi) = scene.accel.bounds();
+            let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
+            let tiles = Region::tiles(scene.width, scene.height, 4);
+            let splatting = Splatting {
+                filter: scene.filter,
+                seed,
+            };
+            let size = (scene.width, scene.height);
+            let policy = policy_of(n);
+            let mut s = Session::new(
+                &params,
+                Budget::Spp(spp),
+                tree,
+                size,
+                splatting,
+                tiles,
+                policy,
+            );
+            s.set_records(Records::PerIteration);
+            s
+        };
         for (n, (seed, spp)) in [(3u64, 12u32), (7, 16), (11, 8), (13, 12)]
             .iter()
             .enumerate()
         {
-            let (lo, hi) = scene.accel.bounds();
-            let tree = SdTree::new(lo, hi, guide_config(&params, &scene));
-            let tiles = Region::tiles(scene.width, scene.height, 4);
-            let session = Session::new(
-                &params,
-                Budget::Spp(*spp),
-                tree,
-                (scene.width, scene.height),
-                Splatting {
-                    filter: scene.filter,
-                    seed: *seed,
-                },
-                tiles,
-                policy_of(n as u64),
-            );
+            let session = new_session(n as u64, *seed, *spp);
             let id = JobId(n as u64);
             sched
                 .add_job(id, rng.below(3) as i32, now)
@@ -185,12 +312,23 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
             let mut j = SimJob {
                 seed: *seed,
                 spp: *spp,
+                params: params.clone(),
+                splatting: Splatting {
+                    filter: scene.filter,
+                    seed: *seed,
+                },
+                policy: policy_of(n as u64),
                 session,
                 flights: Vec::new(),
                 overlapped: 0,
                 published: (0, Vec::new()),
                 done: false,
                 cancelled: false,
+                holders: BTreeSet::new(),
+                collecting: false,
+                epoch: 0,
+                checkpoint: None,
+                rollbacks: 0,
             };
             drive(&mut sched, &mut j, id, now, &mut tiling);
             jobs.insert(n as u64, j);
@@ -215,6 +353,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                     trees: HashMap::new(),
                     pending: Vec::new(),
                     hung_until: None,
+                    held: HashMap::new(),
                 };
                 workers.insert(id.0, w);
             }
@@ -224,6 +363,14 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                 workers.remove(&victim);
                 let _ = sched.worker_lost(WorkerId(victim));
                 deaths += 1;
+                // its kept records died with it
+                for (&n, j) in jobs.iter_mut() {
+                    if !j.done && !j.cancelled && j.holders.contains(&victim) {
+                        let fresh = new_session(n, j.seed, j.spp);
+                        roll_back(&mut sched, j, JobId(n), fresh, now);
+                        drive(&mut sched, j, JobId(n), now, &mut tiling);
+                    }
+                }
             }
             // a worker hangs for a while (no heartbeats: its leases expire)
             if rng.chance(0.04) {
@@ -259,6 +406,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                     let region = tiles[lease.key.tile as usize];
                     let estimate = j.session.estimate().to_vec();
                     let seed = j.seed;
+                    let key = (spec.tree_version, j.epoch);
                     let tree = w.tree(job.0, j, unit);
                     let inputs = UnitInputs {
                         scene: &scene,
@@ -269,7 +417,14 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                         tile_size: 4,
                     };
                     let out = render_unit(&inputs, &spec, region, &|_| {});
-                    let stats = spec.record().then(|| tree.take_stats());
+                    // the gradients go with the tile, the records stay with the worker
+                    let (stats, records) = match spec.record() {
+                        false => (None, None),
+                        true => {
+                            let (g, r) = tree.take_stats().split_gradients();
+                            (Some(g), Some((key, r)))
+                        }
+                    };
                     // mostly prompt, sometimes later than the lease lives
                     let delay = if rng.chance(0.15) {
                         500 + rng.below(800)
@@ -284,6 +439,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                         due: Millis(now.0 + delay),
                         out,
                         stats,
+                        records,
                     });
                 }
                 let (due, later): (Vec<Pending>, Vec<Pending>) =
@@ -303,6 +459,10 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                                     now.0 as f64 * 1e-3,
                                 )
                                 .expect("the session takes what the scheduler accepted");
+                            if let Some((key, r)) = p.records {
+                                keep(&mut w.held, p.job.0, key, r);
+                                j.holders.insert(wid);
+                            }
                             if c.unit_done {
                                 j.flights.retain(|f| f.spec.unit != p.unit);
                                 drive(&mut sched, j, p.job, now, &mut tiling);
@@ -323,12 +483,22 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
                     panic!("seed {sim_seed}: {job} failed: {reason}");
                 }
             }
+            for (&n, j) in jobs.iter_mut() {
+                if j.collecting && !j.cancelled && try_collect(j, n, &mut workers, now) {
+                    drive(&mut sched, j, JobId(n), now, &mut tiling);
+                }
+            }
         }
         assert!(
             deaths >= 1 && stale >= 1,
             "seed {sim_seed}: the schedule had faults ({deaths} deaths, {stale} stale results)"
         );
         assert_eq!(accepted_after_cancel, 0, "a cancelled job takes no tiles");
+        let rollbacks: usize = jobs.values().map(|j| j.rollbacks).sum();
+        assert!(
+            rollbacks >= 1,
+            "seed {sim_seed}: a job rolled back after a holder died"
+        );
         let overlapped: usize = jobs.values().map(|j| j.overlapped).sum();
         assert!(
             overlapped >= 2,
