@@ -71,6 +71,8 @@ fn sample_lease() -> v1::Lease {
             spp_before: 60,
             tree_version: 3,
             fraction_version: 1,
+            hold_records: true,
+            records_epoch: 1_733_333_333_333,
         }),
     }
 }
@@ -114,6 +116,27 @@ fn control_messages_round_trip() {
         msg: Some(coordinator_message::Msg::Drain(v1::Drain::default())),
     };
     round_trip(&drain);
+    round_trip(&v1::CoordinatorMessage {
+        msg: Some(coordinator_message::Msg::FlushRecords(v1::FlushRecords {
+            job_id: "job-4".into(),
+            tree_digest: digest(1),
+            records_epoch: 9,
+        })),
+    });
+    round_trip(&v1::RecordsUpload {
+        part: Some(v1::records_upload::Part::Header(v1::RecordsHeader {
+            worker_id: 3,
+            job_id: "job-4".into(),
+            tree_digest: digest(1),
+            records_epoch: 9,
+            lost: false,
+            size: 3,
+            digest: digest(2),
+        })),
+    });
+    round_trip(&v1::RecordsUpload {
+        part: Some(v1::records_upload::Part::Data(vec![1, 2, 3])),
+    });
     assert!(matches!(
         v1::CoordinatorMessage::decode(drain.encode_to_vec().as_slice())
             .unwrap()
@@ -258,6 +281,6 @@ fn wire_form_is_stable() {
 
 #[test]
 fn constants() {
-    assert_eq!(PROTOCOL_VERSION, 3);
+    assert_eq!(PROTOCOL_VERSION, 4);
     assert_eq!(MAX_CHUNK_BYTES, 1_048_576);
 }

@@ -118,7 +118,10 @@ async fn reflection_lists_and_describes_the_services() {
         .find(|f| f.name() == "pathfarm/v1/workers.proto")
         .expect("workers.proto served");
     let rpcs: Vec<_> = workers.service[0].method.iter().map(|m| m.name()).collect();
-    assert_eq!(rpcs, ["Control", "FetchBlob", "UploadTile"]);
+    assert_eq!(
+        rpcs,
+        ["Control", "FetchBlob", "UploadTile", "UploadRecords"]
+    );
     // Its import is served by name (grpcurl asks for each dependency it lacks).
     assert_eq!(workers.dependency, ["pathfarm/v1/common.proto"]);
     let common = files(
