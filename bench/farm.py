@@ -23,8 +23,10 @@ summed over the iteration's units): wall seconds, rendering (the workers' second
 render calls / workers: a worker renders one tile at a time on all its threads), and the
 farm's own seconds: inputs (workers fetching and decoding trees, fractions, estimates; on
 the workers, divided by workers), serialise (workers), receive,
-decode and merge (coordinator), end (refinement at the iteration's end), checkpoint, publish
-(encoding the tree for broadcast), and the bytes uploaded and sent.
+decode and merge (coordinator), records (asking the workers for the iteration's quadtree
+records to the last one in: their encoding, transfer, the coordinator's decoding and
+adding), end (refinement at the iteration's end), checkpoint, publish (encoding the tree for
+broadcast), and the bytes uploaded (tiles and records) and sent.
 
 The machine is shared and noisy: compare the ratios of runs made side by side, never
 absolute seconds across sessions; quote medians and the CPU (printed).
@@ -48,6 +50,7 @@ ROOT = os.path.normpath(os.path.join(HERE, ".."))
 SHARED = os.path.normpath(os.path.join(ROOT, "..", "shared", "scenes"))
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 UNIT_RE = re.compile(r"unit finished (.*)$")
+RECORDS_RE = re.compile(r"records collected (.*)$")
 FIELD_RE = re.compile(r'(\w+)=("[^"]*"|\S+)')
 ITER_RE = re.compile(r"iteration (\d+): spp=\d+ .* time=([\d.]+)s")
 PEAK_RE = re.compile(r"(coordinator|worker) exiting peak_rss_mb=([\d.]+)")
@@ -108,15 +111,23 @@ def job_flags(a):
             "--spp", str(a.spp), "--seed", str(a.seed)]
 
 
-def parse_units(text):
-    units = []
+def parse_lines(text, pattern):
+    found = []
     for line in ANSI.sub("", text).splitlines():
-        m = UNIT_RE.search(line)
+        m = pattern.search(line)
         if not m:
             continue
         f = {k: v.strip('"') for k, v in FIELD_RE.findall(m.group(1))}
-        units.append(f)
-    return units
+        found.append(f)
+    return found
+
+
+def parse_units(text):
+    return parse_lines(text, UNIT_RE)
+
+
+def parse_records(text):
+    return parse_lines(text, RECORDS_RE)
 
 
 def parse_peaks(text):
@@ -126,9 +137,11 @@ def parse_peaks(text):
     return peaks
 
 
-def per_iteration(units, workers):
+def per_iteration(units, workers, records=()):
     """Sums the unit lines of each iteration; its wall time is the span from its first unit's
-    offer to its last unit's end (units of an iteration overlap)."""
+    offer to its last unit's end (units of an iteration overlap), plus its records
+    collection (`records collected` lines: asking the workers, then refinement and the
+    checkpoint, which then happen there rather than at the last unit's end)."""
     its = {}
     for u in units:
         k = int(u["iteration"])
@@ -147,6 +160,17 @@ def per_iteration(units, workers):
         lo, hi = it.pop("span")
         if hi >= lo:
             it["wall_s"] = hi - lo
+        it.setdefault("records_s", 0.0)
+    for r in records:
+        it = its.get(int(r["iteration"]))
+        if it is None:
+            continue
+        wait, end, cp = float(r["wait_s"]), float(r["end_s"]), float(r["checkpoint_s"])
+        it["records_s"] += wait
+        it["end_s"] += end
+        it["checkpoint_s"] += cp
+        it["wall_s"] += wait + end + cp
+        it["bytes_up"] += float(r["bytes"])
     return its
 
 
@@ -320,13 +344,15 @@ def main():
                                             + job_flags(a) + ["-o", out], env=env,
                                             stderr_path=os.path.join(tmp, "cluster.log"))
                     runs["cluster"].append({"wall": wall, "image": open(out, "rb").read(),
-                                            "units": parse_units(err), "peaks": parse_peaks(err)})
+                                            "units": parse_units(err), "records": parse_records(err),
+                                            "peaks": parse_peaks(err)})
                 else:
                     d = int(kind[5:])
                     wall, clog, wlogs, out = run_farm_proxied(a, tmp, d, kind)
                     peaks = parse_peaks("\n".join([clog] + wlogs))
                     runs[kind].append({"wall": wall, "image": open(out, "rb").read(),
-                                       "units": parse_units(clog), "peaks": peaks})
+                                       "units": parse_units(clog), "records": parse_records(clog),
+                                       "peaks": peaks})
         # every farm image equals the render's
         for kind, rs in runs.items():
             for i, x in enumerate(rs):
@@ -375,10 +401,10 @@ def report(a, runs, threads):
             "the iteration's time in `pathfarm render` (its log line); wall / one process is the "
             "farm's cost of the iteration, e.g. the final pass's throughput is its inverse.")
         say("")
-        its = [per_iteration(x["units"], a.workers) for x in rs]
+        its = [per_iteration(x["units"], a.workers, x.get("records", [])) for x in rs]
         keys = sorted({k for it in its for k in it})
         cols = ["units", "wall_s", "render_s", "prepare_s", "serialize_s", "receive_s", "decode_s",
-                "merge_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"]
+                "merge_s", "records_s", "end_s", "checkpoint_s", "publish_s", "bytes_up", "bytes_down"]
         say("| iteration | one process s | " + " | ".join(c.replace("_s", "") for c in cols) + " | overhead |")
         say("|" + "---|" * (len(cols) + 3))
         tot = {c: 0.0 for c in cols}

@@ -16,6 +16,9 @@ coordinator's serial work, none of it assumed to overlap rendering (an upper bou
     joint uploads (runs whose ledger has `uploads`), a worker uploads a unit's statistics
     once: N uploads per unit; before them, each tile did: 3 tiles per worker thread per
     unit, the tiler's default before costs are known;
+  * records: since records come once an iteration (runs with `records collected` lines),
+    each worker hands in its quadtree records once per training iteration: N decodes and
+    additions per iteration, each costing the measured seconds per holder;
   * refine and publish: refinement at each iteration's end and encoding the new tree, as
     measured (they do not depend on N);
   * broadcast: every worker fetches each new tree: tree bytes x N / the coordinator's
@@ -51,7 +54,13 @@ def parts(run):
     # bytes of a tree: the first unit of an iteration fetches the new tree on every worker
     tree_bytes = [float(v[0]["bytes_down"]) for k, v in sorted(its.items()) if k > 0]
     render = sum(float(u["render_s"]) for u in units)
+    records = run.get("records", [])
+    holders = sum(int(r["holders"]) for r in records)
+    records_s = sum(float(r["decode_s"]) + float(r["merge_s"]) for r in records)
+    refine += sum(float(r["end_s"]) + float(r["checkpoint_s"]) for r in records)
     return {
+        "record_iterations": sum(1 for r in records if int(r["holders"]) > 0),
+        "records_per_holder": records_s / holders if holders else 0.0,
         "units": len(units),
         "tiles_per_unit": tiles / max(len(units), 1),
         "uploads_per_unit": uploads / max(len(units), 1),
@@ -73,7 +82,7 @@ def main():
     a = ap.parse_args()
     runs = json.load(open(a.json))["cluster"]
     ps = [parts(r) for r in runs]
-    keys = ("units", "tiles_per_unit", "uploads_per_unit", "uploads_per_worker_unit", "merge_per_unit",
+    keys = ("record_iterations", "records_per_holder", "units", "tiles_per_unit", "uploads_per_unit", "uploads_per_worker_unit", "merge_per_unit",
             "refine", "publish", "render")
     p = {k: med([x[k] for x in ps]) for k in keys}
     trees = [sum(x["tree_bytes"]) / a.workers for x in ps]
@@ -82,7 +91,8 @@ def main():
     print(f"measured ({a.workers} workers, medians): {p['units']:.0f} units, render {p['render']:.1f} CPU-s, "
           f"merge {p['merge_per_unit'] * 1e3:.0f} ms per unit of {p['tiles_per_unit']:.1f} tiles "
           f"in {p['uploads_per_unit']:.1f} uploads, "
-          f"refine+checkpoint {p['refine']:.2f} s, publish {p['publish']:.2f} s, "
+          f"records {p['records_per_holder'] * 1e3:.0f} ms per holder in {p['record_iterations']:.0f} "
+          f"iterations, refine+checkpoint {p['refine']:.2f} s, publish {p['publish']:.2f} s, "
           f"trees fetched per worker {tree_total / 1e6:.0f} MB")
     for scale in [float(x) for x in a.scale.split(",")]:
         def central(n):
@@ -90,6 +100,7 @@ def main():
             per_upload = 0.5 * p["merge_per_unit"] / p["uploads_per_unit"]
             uploads = p["uploads_per_worker_unit"] * n
             merge = p["units"] * (per_upload * uploads + 0.5 * p["merge_per_unit"] * scale)
+            merge += p["record_iterations"] * n * p["records_per_holder"]
             return merge + p["refine"] + p["publish"] + tree_total * n / bw, merge
 
         def share(n):

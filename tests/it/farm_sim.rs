@@ -186,7 +186,9 @@ fn try_collect(
 }
 
 /// A worker keeps an accepted result's records: added to those of the same version and
-/// epoch, or replacing older ones.
+/// epoch, or replacing older ones. The simulation's own copy of the worker's rule
+/// (`crates/farm/src/worker/records.rs` `keep`), written apart on purpose: a test that
+/// called the product's rule could not catch a mistake in it.
 fn keep(
     held: &mut HashMap<u64, (RecordsKey, IterationStats)>,
     job: u64,

@@ -70,6 +70,21 @@ enum RecordsAt {
     Iteration { workers: usize },
 }
 
+/// How [`render_tiled`] drives a session: the job (`spp`, `seed`, `policy`) and the ways
+/// the farm may split it (tile size, hand-in order, restarts, where records go).
+#[derive(Clone, Copy)]
+struct Drive {
+    spp: u32,
+    seed: u64,
+    /// Tile size in pixels; 0: each unit re-tiled with another size.
+    tile: u32,
+    /// Scrambles the order tiles are handed in.
+    order_seed: u64,
+    policy: FallbackPolicy,
+    restarts: Restarts,
+    records: RecordsAt,
+}
+
 /// What a tiled drive gave: the image, the tree, the kinds of the units in issue order, and
 /// how many units were issued while another was in flight.
 struct Driven {
@@ -93,17 +108,16 @@ impl Driven {
 /// once (two when training passes overlap), the tiles of the units in flight handed in
 /// interleaved in a scrambled order (`order_seed`: the later unit's tiles may all be in
 /// first), each tile rendered on a worker copy of the tree.
-fn render_tiled(
-    scene: &Scene,
-    params: &GuidedParams,
-    spp: u32,
-    seed: u64,
-    tile: u32,
-    order_seed: u64,
-    policy: FallbackPolicy,
-    restarts: Restarts,
-    records: RecordsAt,
-) -> Driven {
+fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
+    let Drive {
+        spp,
+        seed,
+        tile,
+        order_seed,
+        policy,
+        restarts,
+        records,
+    } = drive;
     let (w, h) = (scene.width, scene.height);
     let budget = Budget::Spp(spp);
     let (mut session, _) = new_session(scene, params, (spp, seed), tile.max(1), policy);
@@ -327,80 +341,66 @@ fn tiled_session_with_worker_trees_equals_the_one_process_render() {
     let params = scene.guided.clone().expect("guided");
     let policy = FallbackPolicy::Rule;
     let single = one_process(&scene, &params, 24, 7, policy);
-    let d = render_tiled(
-        &scene,
-        &params,
-        24,
-        7,
-        8,
-        1,
+    let base = Drive {
+        spp: 24,
+        seed: 7,
+        tile: 8,
+        order_seed: 1,
         policy,
-        Restarts::Never,
-        RecordsAt::Tiles,
-    );
+        restarts: Restarts::Never,
+        records: RecordsAt::Tiles,
+    };
+    let d = render_tiled(&scene, &params, base);
     assert!(d.kinds.contains(&PassKind::Record) && d.kinds.contains(&PassKind::Guided));
     assert_same(&(d.film, d.tree), &single, "pathfarm preset, 8-pixel tiles");
     // another tiling and another arrival order: the same bits
     let d = render_tiled(
         &scene,
         &params,
-        24,
-        7,
-        13,
-        99,
-        policy,
-        Restarts::Never,
-        RecordsAt::Tiles,
+        Drive {
+            tile: 13,
+            order_seed: 99,
+            ..base
+        },
     );
     assert_same(&(d.film, d.tree), &single, "13-pixel tiles");
     // every unit tiled differently
     let d = render_tiled(
         &scene,
         &params,
-        24,
-        7,
-        0,
-        5,
-        policy,
-        Restarts::Never,
-        RecordsAt::Tiles,
+        Drive {
+            tile: 0,
+            order_seed: 5,
+            ..base
+        },
     );
     assert_same(&(d.film, d.tree), &single, "a tiling per unit");
     // restarted from a checkpoint after every iteration: the same bits
-    let d = render_tiled(
-        &scene,
-        &params,
-        24,
-        7,
-        8,
-        3,
-        policy,
-        Restarts::AtEveryCheckpoint,
-        RecordsAt::Tiles,
-    );
+    let restarted = Drive {
+        order_seed: 3,
+        restarts: Restarts::AtEveryCheckpoint,
+        ..base
+    };
+    let d = render_tiled(&scene, &params, restarted);
     assert_same(&(d.film, d.tree), &single, "restarted at every checkpoint");
     // the tree learned something (the test would be vacuous on an empty tree)
     assert!(single.1.stats().leaves > 1, "{:?}", single.1.stats());
-    // guiding kept (no fallback at this budget): the training passes overlap
+    overlapping_passes_keep_the_bits(&scene, &params, base, "guiding kept, overlapping");
+}
+
+/// Guiding kept (no fallback at `base`'s budget): the training passes overlap, and the
+/// tiled drive still gives the one-process bits.
+fn overlapping_passes_keep_the_bits(scene: &Scene, params: &GuidedParams, base: Drive, what: &str) {
     let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
-    let single = one_process(&scene, &params, 24, 7, keep);
-    let d = render_tiled(
-        &scene,
-        &params,
-        24,
-        7,
-        8,
-        4,
-        keep,
-        Restarts::Never,
-        RecordsAt::Tiles,
-    );
+    let single = one_process(scene, params, base.spp, base.seed, keep);
+    let overlapping = Drive {
+        order_seed: 4,
+        policy: keep,
+        ..base
+    };
+    let d = render_tiled(scene, params, overlapping);
     d.assert_overlapped(2);
-    assert_same(
-        &(d.film, d.tree),
-        &single,
-        "guiding kept, passes overlapping",
-    );
+    assert_same(&(d.film, d.tree), &single, what);
 }
 
 #[test]
@@ -412,37 +412,43 @@ fn records_collected_once_an_iteration_from_several_workers_give_one_process_bit
     let policy = FallbackPolicy::Rule;
     let three = RecordsAt::Iteration { workers: 3 };
     let single = one_process(&scene, &params, 24, 7, policy);
-    let d = render_tiled(&scene, &params, 24, 7, 8, 1, policy, Restarts::Never, three);
-    assert_same(&(d.film, d.tree), &single, "records per iteration");
-    let d = render_tiled(
-        &scene,
-        &params,
-        24,
-        7,
-        0,
-        6,
+    let base = Drive {
+        spp: 24,
+        seed: 7,
+        tile: 8,
+        order_seed: 1,
         policy,
-        Restarts::AtEveryCheckpoint,
-        three,
-    );
+        restarts: Restarts::Never,
+        records: three,
+    };
+    let d = render_tiled(&scene, &params, base);
+    assert_same(&(d.film, d.tree), &single, "records per iteration");
+    let restarted = Drive {
+        tile: 0,
+        order_seed: 6,
+        restarts: Restarts::AtEveryCheckpoint,
+        ..base
+    };
+    let d = render_tiled(&scene, &params, restarted);
     assert_same(
         &(d.film, d.tree),
         &single,
         "records per iteration, restarted",
     );
-    let keep = FallbackPolicy::Force(GuidingVerdict::Keep);
-    let single = one_process(&scene, &params, 24, 7, keep);
-    let d = render_tiled(&scene, &params, 24, 7, 8, 4, keep, Restarts::Never, three);
-    d.assert_overlapped(2);
-    assert_same(
-        &(d.film, d.tree),
-        &single,
-        "records per iteration, overlapping",
-    );
+    let what = "records per iteration, overlapping";
+    overlapping_passes_keep_the_bits(&scene, &params, base, what);
     let fall = FallbackPolicy::Force(GuidingVerdict::FallBack);
     let single = one_process(&scene, &params, 24, 3, fall);
     let two = RecordsAt::Iteration { workers: 2 };
-    let d = render_tiled(&scene, &params, 24, 3, 6, 5, fall, Restarts::Never, two);
+    let fallen = Drive {
+        seed: 3,
+        tile: 6,
+        order_seed: 5,
+        policy: fall,
+        records: two,
+        ..base
+    };
+    let d = render_tiled(&scene, &params, fallen);
     assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
     assert_same(
         &(d.film, d.tree),
@@ -461,13 +467,15 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
     let d = render_tiled(
         &scene,
         &params,
-        24,
-        3,
-        6,
-        5,
-        policy,
-        Restarts::AtEveryCheckpoint,
-        RecordsAt::Tiles,
+        Drive {
+            spp: 24,
+            seed: 3,
+            tile: 6,
+            order_seed: 5,
+            policy,
+            restarts: Restarts::AtEveryCheckpoint,
+            records: RecordsAt::Tiles,
+        },
     );
     assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
     assert!(d.kinds.contains(&PassKind::Path), "{:?}", d.kinds);
@@ -490,13 +498,15 @@ fn tiled_session_equals_one_process_with_stochastic_filter_kickstart_and_automat
     let d = render_tiled(
         &scene,
         &params,
-        40,
-        11,
-        7,
-        2,
-        policy,
-        Restarts::Never,
-        RecordsAt::Tiles,
+        Drive {
+            spp: 40,
+            seed: 11,
+            tile: 7,
+            order_seed: 2,
+            policy,
+            restarts: Restarts::Never,
+            records: RecordsAt::Tiles,
+        },
     );
     d.assert_overlapped(4);
     assert_same(

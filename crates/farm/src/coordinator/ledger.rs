@@ -129,3 +129,70 @@ impl UnitLedger {
         metrics.observe_unit(self);
     }
 }
+
+/// The accounts of one iteration's records collection, from asking the holders to the
+/// refined and checkpointed tree: logged as one `records collected` line (read by
+/// `bench/farm.py`) and added to the metrics. Refinement happens here, not at the unit's
+/// end, when records come once an iteration.
+#[derive(Clone, Debug)]
+pub(crate) struct RecordsLedger {
+    /// When the holders were asked, and how many.
+    pub(crate) started: Instant,
+    pub(crate) holders: usize,
+    /// Bytes of records received; the coordinator's seconds decoding them (off the state
+    /// lock) and adding them to the tree.
+    pub(crate) bytes: u64,
+    pub(crate) decode_s: f64,
+    pub(crate) merge_s: f64,
+}
+
+impl RecordsLedger {
+    pub(crate) fn start(holders: usize) -> Self {
+        Self {
+            started: Instant::now(),
+            holders,
+            bytes: 0,
+            decode_s: 0.0,
+            merge_s: 0.0,
+        }
+    }
+
+    /// One holder's records are in.
+    pub(crate) fn add(&mut self, bytes: u64, decode_s: f64, merge_s: f64) {
+        self.bytes += bytes;
+        self.decode_s += decode_s;
+        self.merge_s += merge_s;
+    }
+
+    /// Logs the collection: `wait_s` from asking to the last records in, then the
+    /// refinement (`end_s`) and the checkpoint.
+    pub(crate) fn finish(&self, job: &str, iteration: u32, ended: RecordsEnd, metrics: &Metrics) {
+        let wait_s = self.started.elapsed().as_secs_f64() - ended.end_s - ended.checkpoint_s;
+        tracing::info!(
+            job,
+            iteration,
+            holders = self.holders,
+            bytes = self.bytes,
+            wait_s,
+            decode_s = self.decode_s,
+            merge_s = self.merge_s,
+            end_s = ended.end_s,
+            checkpoint_s = ended.checkpoint_s,
+            "records collected"
+        );
+        metrics.observe_records(&[
+            ("wait", wait_s),
+            ("decode", self.decode_s),
+            ("merge", self.merge_s),
+            ("end", ended.end_s),
+            ("checkpoint", ended.checkpoint_s),
+        ]);
+    }
+}
+
+/// What followed the last records in: seconds refining and checkpointing.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RecordsEnd {
+    pub(crate) end_s: f64,
+    pub(crate) checkpoint_s: f64,
+}

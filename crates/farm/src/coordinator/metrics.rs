@@ -49,6 +49,7 @@ pub(crate) struct Metrics {
     tiles: Family<OutcomeLabel, Counter>,
     units: Counter,
     unit_seconds: Family<PhaseLabel, Seconds>,
+    records_seconds: Family<PhaseLabel, Seconds>,
     records_bytes: Counter,
     roll_backs: Counter,
 }
@@ -66,6 +67,7 @@ impl Default for Metrics {
         let tiles = registered(on, "tiles", "Tile uploads by outcome (accepted, rejected)");
         let units = registered(on, "units", "Units (passes of a job) finished");
         let unit_seconds = registered(on, "unit_seconds", UNIT_SECONDS_HELP);
+        let records_seconds = registered(on, "records_seconds", RECORDS_SECONDS_HELP);
         let records_bytes = registered(on, "records_bytes_received", RECORDS_BYTES_HELP);
         let roll_backs = registered(on, "roll_backs", ROLL_BACKS_HELP);
         Metrics {
@@ -79,11 +81,16 @@ impl Default for Metrics {
             tiles,
             units,
             unit_seconds,
+            records_seconds,
             records_bytes,
             roll_backs,
         }
     }
 }
+
+const RECORDS_SECONDS_HELP: &str = "Seconds spent collecting iterations' quadtree records \
+     by phase: wait (asking the holders to the last records in), decode, merge, end \
+     (refinement), checkpoint";
 
 const RECORDS_BYTES_HELP: &str =
     "Bytes of quadtree records received (once per worker and tree version)";
@@ -127,6 +134,15 @@ impl Metrics {
     /// Counts a job rolled back to its checkpoint.
     pub(crate) fn roll_back(&self) {
         self.roll_backs.inc();
+    }
+
+    /// Adds an iteration's records collection, by phase.
+    pub(crate) fn observe_records(&self, phases: &[(&'static str, f64)]) {
+        for &(phase, s) in phases {
+            self.records_seconds
+                .get_or_create(&PhaseLabel { phase })
+                .inc_by(s.max(0.0));
+        }
     }
 
     /// Adds a finished unit's accounts.

@@ -23,6 +23,7 @@
 //! workers' channels; it is never held across an `.await`.
 
 mod checkpoints;
+mod chunked;
 mod db;
 mod ledger;
 mod metrics;
@@ -58,7 +59,7 @@ use crate::scheduler::{
 use crate::tiling::CostMap;
 
 use db::{Db, JobRecord};
-use ledger::UnitLedger;
+use ledger::{RecordsEnd, RecordsLedger, UnitLedger};
 use metrics::Metrics;
 use store::BlobStore;
 
@@ -220,9 +221,9 @@ pub(crate) struct Active {
     /// they keep those tiles' quadtree records until asked (`FlushRecords`).
     pub(crate) holders: BTreeSet<u64>,
     /// While the session collects records: the holders asked and not answered yet, and
-    /// since when.
+    /// the collection's accounts (since when, bytes, seconds).
     pub(crate) collecting: Option<BTreeSet<u64>>,
-    pub(crate) collecting_since: Instant,
+    pub(crate) records_ledger: RecordsLedger,
 }
 
 /// A unit whose tiles are not all in.
@@ -668,7 +669,7 @@ impl Shared {
             records_epoch: self.next_epoch.fetch_add(1, Ordering::Relaxed),
             holders: BTreeSet::new(),
             collecting: None,
-            collecting_since: Instant::now(),
+            records_ledger: RecordsLedger::start(0),
         });
         self.drive(st, n);
     }
@@ -724,7 +725,7 @@ impl Shared {
             };
             tracing::debug!(job = %job_name(n), holders = ?a.holders, "collecting records");
             a.collecting = Some(a.holders.clone());
-            a.collecting_since = Instant::now();
+            a.records_ledger = RecordsLedger::start(a.holders.len());
             for w in &a.holders {
                 if let Some(tx) = st.workers.get(w).and_then(|w| w.tx.as_ref()) {
                     let msg = v1::coordinator_message::Msg::FlushRecords(flush.clone());
@@ -733,6 +734,7 @@ impl Shared {
             }
             return false;
         }
+        a.records_ledger = RecordsLedger::start(0);
         self.records_in(st, n)
     }
 
@@ -744,13 +746,23 @@ impl Shared {
         };
         a.holders.clear();
         a.collecting = None;
+        let iteration = a.session.iteration();
+        let end_start = Instant::now();
         if let Err(e) = a.session.records_in() {
             self.fail_job(st, n, format!("records: {e}"));
             return false;
         }
-        if self.save_checkpoint(st, n) > 0.0 {
+        let end_s = end_start.elapsed().as_secs_f64();
+        let ledger = a.records_ledger.clone();
+        let checkpoint_s = self.save_checkpoint(st, n);
+        if checkpoint_s > 0.0 {
             self.update_preview(st, n);
         }
+        let ended = RecordsEnd {
+            end_s,
+            checkpoint_s,
+        };
+        ledger.finish(&job_name(n), iteration, ended, &self.metrics);
         true
     }
 
@@ -1164,7 +1176,7 @@ impl Shared {
         let stalled: Vec<u64> = (st.jobs.iter())
             .filter(|(_, j)| {
                 j.active.as_ref().is_some_and(|a| {
-                    a.collecting.is_some() && a.collecting_since.elapsed() > timeout
+                    a.collecting.is_some() && a.records_ledger.started.elapsed() > timeout
                 })
             })
             .map(|(&n, _)| n)

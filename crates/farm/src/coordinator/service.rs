@@ -18,6 +18,7 @@ use tokio_stream::Stream;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Response, Status, Streaming};
 
+use super::chunked::{self, UploadError};
 use super::ledger::TileTimes;
 use super::*;
 use crate::bundle::digest_of;
@@ -250,10 +251,9 @@ impl Jobs for Svc {
         req: Request<Streaming<v1::BlobChunk>>,
     ) -> Result<Response<v1::UploadBlobResponse>, Status> {
         let mut stream = req.into_inner();
-        let first = stream.message().await?.and_then(|m| m.part);
-        let Some(v1::blob_chunk::Part::Header(header)) = first else {
-            return Err(bad("the first message of UploadBlob must be a BlobHeader"));
-        };
+        let header = chunked::header(&mut stream, "UploadBlob")
+            .await
+            .map_err(upload_status)?;
         let digest = digest_from(&header.digest, "header.digest")?;
         let max = self.shared.cfg.bundle_limits.max_file_bytes;
         if header.size > max {
@@ -278,20 +278,9 @@ impl Jobs for Svc {
             .blobs
             .begin(digest, header.size)
             .map_err(|e| Status::internal(format!("cannot store the blob: {e}")))?;
-        while let Some(chunk) = stream.message().await? {
-            match chunk.part {
-                Some(v1::blob_chunk::Part::Data(data)) => {
-                    if data.len() > MAX_CHUNK_BYTES {
-                        return Err(bad(format!(
-                            "data part of {} bytes is more than {MAX_CHUNK_BYTES} bytes",
-                            data.len()
-                        )));
-                    }
-                    upload.write(&data).map_err(super::bad)?;
-                }
-                _ => return Err(bad("a BlobChunk after the first must be a data part")),
-            }
-        }
+        chunked::data(&mut stream, header.size, |d| upload.write(d))
+            .await
+            .map_err(upload_status)?;
         upload.finish().map_err(super::bad)?;
         tracing::debug!(blob = %digest.to_hex(), size = header.size, "blob stored");
         done(false)
@@ -747,34 +736,19 @@ impl Workers for Svc {
         req: Request<Streaming<v1::TileUpload>>,
     ) -> Result<Response<v1::TileAck>, Status> {
         let mut stream = req.into_inner();
-        let first = stream.message().await?.and_then(|m| m.part);
-        let Some(v1::tile_upload::Part::Header(header)) = first else {
-            return corrupt("the first message of UploadTile must be a TileHeader");
+        let header = match chunked::header(&mut stream, "UploadTile").await {
+            Ok(h) => h,
+            Err(e) => return upload_refused(e, corrupt_ack),
         };
         let received = std::time::Instant::now();
         let total = match payload_size(&header) {
             Ok(t) => t,
             Err(detail) => return corrupt(detail),
         };
-        let mut bytes = Vec::with_capacity(total as usize);
-        while let Some(part) = stream.message().await? {
-            match part.part {
-                Some(v1::tile_upload::Part::Data(d)) if d.len() <= MAX_CHUNK_BYTES => {
-                    if bytes.len() as u64 + d.len() as u64 > total {
-                        return corrupt("more data than the header's sizes");
-                    }
-                    bytes.extend_from_slice(&d);
-                }
-                Some(v1::tile_upload::Part::Data(_)) => return corrupt("data part over 1 MiB"),
-                _ => return corrupt("a second header"),
-            }
-        }
-        if bytes.len() as u64 != total {
-            return corrupt(format!(
-                "got {} payload bytes, the header says {total}",
-                bytes.len()
-            ));
-        }
+        let bytes = match chunked::data_to_vec(&mut stream, total).await {
+            Ok(b) => b,
+            Err(e) => return upload_refused(e, corrupt_ack),
+        };
         let receive_s = received.elapsed().as_secs_f64();
         let ack = self.upload_tile_inner(header, bytes, receive_s);
         let accepted = matches!(&ack, Ok(a) if a.get_ref().accepted);
@@ -787,31 +761,18 @@ impl Workers for Svc {
         req: Request<Streaming<v1::RecordsUpload>>,
     ) -> Result<Response<v1::RecordsAck>, Status> {
         let mut stream = req.into_inner();
-        let first = stream.message().await?.and_then(|m| m.part);
-        let Some(v1::records_upload::Part::Header(header)) = first else {
-            return Ok(records_ack(
-                false,
-                "the first message must be a RecordsHeader",
-            ));
+        let refused = |d: String| records_ack(false, d).into_inner();
+        let header = match chunked::header(&mut stream, "UploadRecords").await {
+            Ok(h) => h,
+            Err(e) => return upload_refused(e, refused),
         };
         if header.size > 1 << 32 {
             return Ok(records_ack(false, "records of over 4 GiB"));
         }
-        let mut bytes = Vec::with_capacity(header.size as usize);
-        while let Some(part) = stream.message().await? {
-            match part.part {
-                Some(v1::records_upload::Part::Data(d)) if d.len() <= MAX_CHUNK_BYTES => {
-                    if bytes.len() as u64 + d.len() as u64 > header.size {
-                        return Ok(records_ack(false, "more data than the header's size"));
-                    }
-                    bytes.extend_from_slice(&d);
-                }
-                Some(v1::records_upload::Part::Data(_)) => {
-                    return Ok(records_ack(false, "data part over 1 MiB"))
-                }
-                _ => return Ok(records_ack(false, "a second header")),
-            }
-        }
+        let bytes = match chunked::data_to_vec(&mut stream, header.size).await {
+            Ok(b) => b,
+            Err(e) => return upload_refused(e, refused),
+        };
         self.shared.metrics.records_upload(bytes.len() as u64);
         Ok(self.take_records(header, bytes))
     }
@@ -824,6 +785,23 @@ fn records_ack(accepted: bool, detail: impl Into<String>) -> Response<v1::Record
     })
 }
 
+/// A malformed upload as an `InvalidArgument` status.
+fn upload_status(e: UploadError) -> Status {
+    match e {
+        UploadError::Transport(s) => s,
+        UploadError::Malformed(detail) => bad(detail),
+    }
+}
+
+/// A malformed upload answered in the RPC's own reply (`ack` makes it from the detail); a
+/// broken stream as its status.
+fn upload_refused<T>(e: UploadError, ack: impl FnOnce(String) -> T) -> Result<Response<T>, Status> {
+    match e {
+        UploadError::Transport(s) => Err(s),
+        UploadError::Malformed(detail) => Ok(Response::new(ack(detail))),
+    }
+}
+
 impl Svc {
     /// A holder's answer to FlushRecords: its records added to the session (decoded off
     /// the lock), or, if it lost them, the job rolled back.
@@ -831,6 +809,7 @@ impl Svc {
         let Some(n) = parse_job(&header.job_id) else {
             return records_ack(false, format!("no job {:?}", header.job_id));
         };
+        let decode_start = std::time::Instant::now();
         let records = match header.lost {
             true => None,
             false => {
@@ -845,6 +824,8 @@ impl Svc {
                 }
             }
         };
+        // Decoding is timed apart from waiting for the state lock.
+        let decode_s = decode_start.elapsed().as_secs_f64();
         let shared = &self.shared;
         let mut st = shared.lock();
         let st = &mut *st;
@@ -866,11 +847,14 @@ impl Svc {
             shared.roll_back(st, n, &why);
             return records_ack(true, "");
         };
+        let merge_start = std::time::Instant::now();
         if let Err(e) = a.session.add_records(&records) {
             let reason = format!("worker {w}'s records were refused by the session: {e}");
             shared.fail_job(st, n, reason);
             return records_ack(false, e.to_string());
         }
+        let merge_s = merge_start.elapsed().as_secs_f64();
+        a.records_ledger.add(bytes.len() as u64, decode_s, merge_s);
         let left = a.collecting.as_mut().expect("asked");
         left.remove(&w);
         tracing::debug!(job = %job_name(n), worker = w, bytes = bytes.len(), left = left.len(), "records in");

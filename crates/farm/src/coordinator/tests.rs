@@ -863,3 +863,129 @@ async fn malformed_joint_uploads_are_corrupt_and_a_rejected_one_returns_its_vali
     c.stop().await;
     let _ = std::fs::remove_dir_all(&data);
 }
+
+/// The messages of a chunked upload: `header`, then one data part per entry of `data`.
+fn chunked<M>(header: M, data: &[Vec<u8>], part: impl Fn(Vec<u8>) -> M) -> Vec<M> {
+    std::iter::once(header)
+        .chain(data.iter().cloned().map(part))
+        .collect()
+}
+
+#[tokio::test]
+async fn chunked_uploads_refuse_oversized_parts_wrong_lengths_and_a_second_header() {
+    use v1::{blob_chunk, records_upload, tile_upload};
+    let data = temp_dir("chunked");
+    let c = Running::start(config(data.clone(), None)).await;
+    let ch = c.channel().await;
+    let mut jobs = JobsClient::new(ch.clone());
+    let mut workers = WorkersClient::new(ch);
+    let over = vec![0u8; pathfarm_proto::MAX_CHUNK_BYTES + 1];
+    // Each case: the data parts after a header announcing 3 bytes, and what the refusal
+    // must name.
+    let cases: [(Vec<Vec<u8>>, &str); 4] = [
+        (vec![over.clone()], "a data part of"),
+        (vec![vec![1, 2], vec![3, 4]], "more data than"),
+        (vec![vec![1, 2]], "2 bytes of data, the header says 3"),
+        (vec![], "0 bytes of data"),
+    ];
+    for (parts, names) in &cases {
+        // A blob: InvalidArgument, nothing stored.
+        let header = blob_chunk::Part::Header(v1::BlobHeader {
+            digest: digest_of(&[1, 2, 3]).0.to_vec(),
+            size: 3,
+        });
+        let msgs = chunked(v1::BlobChunk { part: Some(header) }, parts, |d| {
+            v1::BlobChunk {
+                part: Some(blob_chunk::Part::Data(d)),
+            }
+        });
+        let e = jobs
+            .upload_blob(tokio_stream::iter(msgs))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+        assert!(e.message().contains(names), "blob {names:?}: {e:?}");
+        // Tile pixels: a corrupt ack.
+        let tile = v1::UploadedTile {
+            lease_id: 1,
+            pixels_size: 3,
+            pixels_digest: digest_of(&[1, 2, 3]).0.to_vec(),
+            ..Default::default()
+        };
+        let header = tile_upload::Part::Header(v1::TileHeader {
+            job_id: "job-1".into(),
+            stats_digest: digest_of(&[]).0.to_vec(),
+            tiles: vec![tile],
+            ..Default::default()
+        });
+        let msgs = chunked(v1::TileUpload { part: Some(header) }, parts, |d| {
+            v1::TileUpload {
+                part: Some(tile_upload::Part::Data(d)),
+            }
+        });
+        let ack = workers.upload_tile(tokio_stream::iter(msgs)).await;
+        let ack = ack.unwrap().into_inner();
+        let corrupt = v1::TileRejectReason::Corrupt as i32;
+        assert_eq!((ack.accepted, ack.reject_reason), (false, corrupt));
+        assert!(ack.detail.contains(names), "tile {names:?}: {ack:?}");
+        // Records: a refused ack.
+        let header = records_upload::Part::Header(v1::RecordsHeader {
+            job_id: "job-1".into(),
+            size: 3,
+            digest: digest_of(&[1, 2, 3]).0.to_vec(),
+            ..Default::default()
+        });
+        let msgs = chunked(v1::RecordsUpload { part: Some(header) }, parts, |d| {
+            v1::RecordsUpload {
+                part: Some(records_upload::Part::Data(d)),
+            }
+        });
+        let ack = workers.upload_records(tokio_stream::iter(msgs)).await;
+        let ack = ack.unwrap().into_inner();
+        assert!(
+            !ack.accepted && ack.detail.contains(names),
+            "records {names:?}: {ack:?}"
+        );
+    }
+    // A second header where data belongs, and a first message that is not a header.
+    let header = || v1::RecordsUpload {
+        part: Some(records_upload::Part::Header(Default::default())),
+    };
+    let data_part = v1::RecordsUpload {
+        part: Some(records_upload::Part::Data(vec![1])),
+    };
+    for (msgs, names) in [
+        (vec![header(), header()], "not a data part"),
+        (vec![data_part], "must be its header"),
+    ] {
+        let ack = workers.upload_records(tokio_stream::iter(msgs)).await;
+        let ack = ack.unwrap().into_inner();
+        assert!(
+            !ack.accepted && ack.detail.contains(names),
+            "{names:?}: {ack:?}"
+        );
+    }
+    // The three bytes exactly: read, and refused only further on (they are no records).
+    let three = records_upload::Part::Header(v1::RecordsHeader {
+        job_id: "job-1".into(),
+        size: 3,
+        digest: digest_of(&[1, 2, 3]).0.to_vec(),
+        ..Default::default()
+    });
+    let ok = chunked(
+        v1::RecordsUpload { part: Some(three) },
+        &[vec![1, 2, 3]],
+        |d| v1::RecordsUpload {
+            part: Some(records_upload::Part::Data(d)),
+        },
+    );
+    let ack = workers.upload_records(tokio_stream::iter(ok)).await;
+    let ack = ack.unwrap().into_inner();
+    assert!(
+        !ack.accepted && ack.detail.starts_with("records: "),
+        "{ack:?}"
+    );
+    assert_eq!(std::fs::read_dir(data.join("blobs")).unwrap().count(), 0);
+    c.stop().await;
+    let _ = std::fs::remove_dir_all(&data);
+}

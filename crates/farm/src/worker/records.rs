@@ -27,7 +27,8 @@ pub(super) struct Held {
 }
 
 /// Adds an accepted upload's records to those kept for `job` (replacing records of an older
-/// version or epoch, which the coordinator no longer wants).
+/// version or epoch, which the coordinator no longer wants). `tests/it/farm_sim.rs` has its
+/// own copy of this rule for the seeded simulation.
 pub(super) fn keep(held: &mut HashMap<String, Held>, job: &str, key: HeldKey, r: IterationStats) {
     match held.get_mut(job) {
         Some(h) if h.key == key => {
