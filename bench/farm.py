@@ -50,6 +50,7 @@ ROOT = os.path.normpath(os.path.join(HERE, ".."))
 SHARED = os.path.normpath(os.path.join(ROOT, "..", "shared", "scenes"))
 ANSI = re.compile(r"\x1b\[[0-9;]*m")
 UNIT_RE = re.compile(r"unit finished (.*)$")
+EMPTY = "''"  # how an empty --delays is written in a command line
 RECORDS_RE = re.compile(r"records collected (.*)$")
 FIELD_RE = re.compile(r'(\w+)=("[^"]*"|\S+)')
 ITER_RE = re.compile(r"iteration (\d+): spp=\d+ .* time=([\d.]+)s")
@@ -373,7 +374,7 @@ def report(a, runs, threads):
         f"of {a.threads_per_worker} thread(s). Every farm image was byte-identical to the render's.")
     say("")
     say(f"Command: `python3 bench/farm.py --scene {a.scene} --res {a.res} --spp {a.spp} --reps {a.reps} "
-        f"--workers {a.workers} --threads-per-worker {a.threads_per_worker} --delays {a.delays}`")
+        f"--workers {a.workers} --threads-per-worker {a.threads_per_worker} --delays {a.delays or EMPTY}`")
     say("")
     rw = [x["wall"] for x in runs["render"]]
     say("| run | wall s (median) | per repetition | ratio to render (median of paired) | peak memory MB |")
