@@ -10,6 +10,7 @@
 
 pub mod build;
 pub mod bundle;
+mod chunked;
 pub mod client;
 pub mod codec;
 pub mod coordinator;

@@ -23,7 +23,6 @@
 //! workers' channels; it is never held across an `.await`.
 
 mod checkpoints;
-mod chunked;
 mod db;
 mod ledger;
 mod metrics;

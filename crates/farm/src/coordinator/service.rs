@@ -18,10 +18,10 @@ use tokio_stream::Stream;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Response, Status, Streaming};
 
-use super::chunked::{self, UploadError};
 use super::ledger::TileTimes;
 use super::*;
 use crate::bundle::digest_of;
+use crate::chunked::{self, UploadError};
 use crate::scheduler::Rejection;
 
 type ChunkStream = Pin<Box<dyn Stream<Item = Result<v1::DataChunk, Status>> + Send>>;

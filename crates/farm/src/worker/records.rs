@@ -18,6 +18,7 @@ use pathfarm_proto::MAX_CHUNK_BYTES;
 
 use super::upload::HeldKey;
 use super::Api;
+use crate::chunked;
 
 /// One job's kept records.
 pub(super) struct Held {
@@ -106,10 +107,8 @@ pub(super) async fn send(
         digest: blake3::hash(&bytes).as_bytes().to_vec(),
     };
     let size = bytes.len();
-    match api
-        .upload_records(tokio_stream::iter(messages(header, &bytes)))
-        .await
-    {
+    let messages = chunked::messages::<v1::RecordsUpload>(header, &[&bytes], MAX_CHUNK_BYTES);
+    match api.upload_records(tokio_stream::iter(messages)).await {
         Ok(ack) if ack.get_ref().accepted => match lost {
             true => tracing::warn!("job {job}: told the coordinator the records are lost"),
             false => tracing::info!("job {job}: records uploaded ({size} bytes)"),
@@ -119,16 +118,4 @@ pub(super) async fn send(
         // restarted; either way the job rolls back, or the holder times out.
         Err(s) => tracing::warn!("job {job}: records upload failed: {}", s.message()),
     }
-}
-
-/// The header, then `bytes` in data parts of at most [`MAX_CHUNK_BYTES`].
-fn messages(header: v1::RecordsHeader, bytes: &[u8]) -> Vec<v1::RecordsUpload> {
-    use v1::records_upload::Part;
-    let mut out = vec![v1::RecordsUpload {
-        part: Some(Part::Header(header)),
-    }];
-    out.extend(bytes.chunks(MAX_CHUNK_BYTES).map(|c| v1::RecordsUpload {
-        part: Some(Part::Data(c.to_vec())),
-    }));
-    out
 }

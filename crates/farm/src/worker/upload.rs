@@ -18,6 +18,7 @@ use pathfarm_proto::v1;
 use pathfarm_proto::MAX_CHUNK_BYTES;
 
 use super::{retryable, Api, Fail, Shared};
+use crate::chunked;
 
 /// The most tiles one upload carries (the coordinator takes up to
 /// `coordinator::MAX_UPLOAD_TILES`): bounds what a worker holds in memory and what it
@@ -273,50 +274,17 @@ pub(super) fn spawn_upload(uploads: &mut Uploads, api: &Api, of: UploadOf, uploa
 async fn send(mut api: Api, u: Upload) -> UploadEnd {
     let mut payloads: Vec<&[u8]> = u.pixels.iter().map(Vec::as_slice).collect();
     payloads.push(&u.stats);
-    let msgs = upload_messages(u.header, &payloads, MAX_CHUNK_BYTES);
+    let msgs = chunked::messages::<v1::TileUpload>(u.header, &payloads, MAX_CHUNK_BYTES);
     match api.upload_tile(tokio_stream::iter(msgs)).await {
         Ok(ack) => UploadEnd::Acked(ack.into_inner()),
         Err(s) => UploadEnd::Failed(format!("upload failed: {} ({:?})", s.message(), s.code())),
     }
 }
 
-/// The messages of one upload: the header, then the payloads one after the other in data
-/// parts of at most `max` bytes (a part may hold the end of one payload and the start of
-/// the next).
-pub fn upload_messages(
-    header: v1::TileHeader,
-    payloads: &[&[u8]],
-    max: usize,
-) -> Vec<v1::TileUpload> {
-    use v1::tile_upload::Part;
-    let max = max.max(1);
-    let mut out = vec![v1::TileUpload {
-        part: Some(Part::Header(header)),
-    }];
-    let mut part: Vec<u8> = Vec::new();
-    for mut p in payloads.iter().copied() {
-        while !p.is_empty() {
-            let take = (max - part.len()).min(p.len());
-            part.extend_from_slice(&p[..take]);
-            p = &p[take..];
-            if part.len() == max {
-                out.push(v1::TileUpload {
-                    part: Some(Part::Data(std::mem::take(&mut part))),
-                });
-            }
-        }
-    }
-    if !part.is_empty() {
-        out.push(v1::TileUpload {
-            part: Some(Part::Data(part)),
-        });
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::chunked::messages;
 
     fn data(m: &[v1::TileUpload]) -> Vec<Vec<u8>> {
         m[1..]
@@ -373,7 +341,7 @@ mod tests {
         let a: Vec<u8> = (0..10u8).collect();
         let b: Vec<u8> = (50..53u8).collect();
         let stats: Vec<u8> = (100..107u8).collect();
-        let m = upload_messages(v1::TileHeader::default(), &[&a, &b, &stats], 4);
+        let m = messages::<v1::TileUpload>(v1::TileHeader::default(), &[&a, &b, &stats], 4);
         assert!(matches!(m[0].part, Some(v1::tile_upload::Part::Header(_))));
         let parts = data(&m);
         assert!(parts.iter().all(|p| !p.is_empty() && p.len() <= 4));
@@ -384,10 +352,14 @@ mod tests {
         // parts span the ends of payloads
         assert_eq!(parts[2], vec![8, 9, 50, 51]);
         assert_eq!(parts[3], vec![52, 100, 101, 102]);
-        let m = upload_messages(v1::TileHeader::default(), &[&a, &[]], MAX_CHUNK_BYTES);
+        let m = messages::<v1::TileUpload>(v1::TileHeader::default(), &[&a, &[]], MAX_CHUNK_BYTES);
         assert_eq!(data(&m), vec![a]);
         let big = vec![1u8; MAX_CHUNK_BYTES + 1];
-        let m = upload_messages(v1::TileHeader::default(), &[&big, &[2, 3]], MAX_CHUNK_BYTES);
+        let m = messages::<v1::TileUpload>(
+            v1::TileHeader::default(),
+            &[&big, &[2, 3]],
+            MAX_CHUNK_BYTES,
+        );
         let lens: Vec<usize> = data(&m).iter().map(|p| p.len()).collect();
         assert_eq!(lens, [MAX_CHUNK_BYTES, 3]);
     }

@@ -1,29 +1,55 @@
-//! Reading a client-streaming upload: one header message, then data parts of at most
+//! Client-streaming uploads: one header message, then data parts of at most
 //! [`MAX_CHUNK_BYTES`] each, exactly as many bytes in all as the header announces.
 //!
-//! `UploadBlob`, `UploadTile` and `UploadRecords` share this reader so that the three apply
-//! the same limits the same way; each maps a [`UploadError::Malformed`] to its own answer
-//! (an `InvalidArgument` status, a corrupt tile ack, a refused records ack).
+//! Senders build the messages with [`messages`]; the coordinator reads them with [`header`]
+//! and [`data`]. `UploadBlob`, `UploadTile` and `UploadRecords` share the reader so that the
+//! three apply the same limits the same way; each maps a [`UploadError::Malformed`] to its
+//! own answer (an `InvalidArgument` status, a corrupt tile ack, a refused records ack).
 
 use pathfarm_proto::{v1, MAX_CHUNK_BYTES};
 use tonic::{Status, Streaming};
 
 /// One message of a chunked upload, as the reader sees it.
-pub(super) enum Part<H> {
+pub(crate) enum Part<H> {
     Header(H),
     Data(Vec<u8>),
 }
 
 /// A message type of a chunked upload: a `oneof part { Header header; bytes data; }`.
-pub(super) trait Chunked {
+pub(crate) trait Chunked {
     type Header;
     /// The message's part; `None` when the oneof is unset.
     fn into_part(self) -> Option<Part<Self::Header>>;
+    /// The message of `part`.
+    fn from_part(part: Part<Self::Header>) -> Self;
+}
+
+/// The messages of one upload: the header, then the payloads one after the other in data
+/// parts of at most `max` bytes (a part may hold the end of one payload and the start of
+/// the next).
+pub(crate) fn messages<M: Chunked>(header: M::Header, payloads: &[&[u8]], max: usize) -> Vec<M> {
+    let max = max.max(1);
+    let mut out = vec![M::from_part(Part::Header(header))];
+    let mut part: Vec<u8> = Vec::new();
+    for mut p in payloads.iter().copied() {
+        while !p.is_empty() {
+            let take = (max - part.len()).min(p.len());
+            part.extend_from_slice(&p[..take]);
+            p = &p[take..];
+            if part.len() == max {
+                out.push(M::from_part(Part::Data(std::mem::take(&mut part))));
+            }
+        }
+    }
+    if !part.is_empty() {
+        out.push(M::from_part(Part::Data(part)));
+    }
+    out
 }
 
 /// Why an upload was not read.
 #[derive(Debug)]
-pub(super) enum UploadError {
+pub(crate) enum UploadError {
     /// The stream failed (the client went away, a transport error): answered as it is.
     Transport(Status),
     /// The messages break the upload's rules; the text says which.
@@ -37,7 +63,7 @@ impl From<Status> for UploadError {
 }
 
 /// The upload's first message, which must be its header.
-pub(super) async fn header<M: Chunked>(
+pub(crate) async fn header<M: Chunked>(
     stream: &mut Streaming<M>,
     rpc: &str,
 ) -> Result<M::Header, UploadError> {
@@ -52,7 +78,7 @@ pub(super) async fn header<M: Chunked>(
 /// Reads the data parts after the header, handing each to `sink`, until the stream ends.
 /// Refuses a part over [`MAX_CHUNK_BYTES`], a second header, more bytes than `size` (before
 /// they reach `sink`) and, at the end, fewer.
-pub(super) async fn data<M: Chunked>(
+pub(crate) async fn data<M: Chunked>(
     stream: &mut Streaming<M>,
     size: u64,
     mut sink: impl FnMut(&[u8]) -> Result<(), String>,
@@ -83,7 +109,7 @@ pub(super) async fn data<M: Chunked>(
 }
 
 /// [`data`] into memory; `size` is the caller's to bound before this allocates it.
-pub(super) async fn data_to_vec<M: Chunked>(
+pub(crate) async fn data_to_vec<M: Chunked>(
     stream: &mut Streaming<M>,
     size: u64,
 ) -> Result<Vec<u8>, UploadError> {
@@ -105,6 +131,13 @@ macro_rules! chunked {
                     v1::$module::Part::Header(h) => Some(Part::Header(h)),
                     v1::$module::Part::Data(d) => Some(Part::Data(d)),
                 }
+            }
+            fn from_part(part: Part<$header>) -> Self {
+                let part = match part {
+                    Part::Header(h) => v1::$module::Part::Header(h),
+                    Part::Data(d) => v1::$module::Part::Data(d),
+                };
+                Self { part: Some(part) }
             }
         }
     };
