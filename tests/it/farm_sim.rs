@@ -273,6 +273,7 @@ fn random_schedule_of_joins_deaths_hangs_and_late_results_gives_one_process_bits
         heartbeat_timeout: Duration::from_millis(1500),
         max_attempts: 1000,
         leases_per_worker: 3,
+        ..SchedulerConfig::default()
     };
     for sim_seed in [1u64, 2, 3] {
         let mut rng = TestRng::new(sim_seed * 0x1234_5678);

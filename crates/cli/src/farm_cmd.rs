@@ -44,6 +44,34 @@ pub struct CoordinatorArgs {
     /// Largest single file of a bundle, in bytes (default 1 GiB).
     #[arg(long, value_name = "BYTES")]
     pub max_file_bytes: Option<u64>,
+    /// Memory the running jobs' sessions may take together, in MiB (default: half the
+    /// machine's memory). Jobs wait QUEUED for room; a job that could never fit is refused.
+    #[arg(long, value_name = "MIB")]
+    pub job_memory_mb: Option<u64>,
+    /// Jobs queued or running at once (default 1000); more submissions are refused.
+    #[arg(long, value_name = "N")]
+    pub max_jobs_waiting: Option<usize>,
+    /// Upload payloads buffered at once, all workers together, in MiB (default 1024).
+    #[arg(long, value_name = "MIB")]
+    pub upload_memory_mb: Option<u64>,
+    /// Seconds an uploaded blob that no job refers to is kept (default 3600).
+    #[arg(long, value_name = "SECONDS")]
+    pub blob_grace_s: Option<f64>,
+    /// Seconds an upload stream may stay silent (default 60).
+    #[arg(long, value_name = "SECONDS")]
+    pub stream_idle_s: Option<f64>,
+    /// Rejected uploads after which a worker gets no more leases of that job (default 3).
+    #[arg(long, value_name = "N")]
+    pub bad_uploads_per_job: Option<u32>,
+    /// Seconds of silence after which a worker is declared lost (default 15).
+    #[arg(long, value_name = "SECONDS")]
+    pub heartbeat_timeout_s: Option<f64>,
+    /// Seconds a lease lives without a heartbeat listing it (default 60).
+    #[arg(long, value_name = "SECONDS")]
+    pub lease_timeout_s: Option<f64>,
+    /// Seconds a lease can live however often heartbeats list it (default 600).
+    #[arg(long, value_name = "SECONDS")]
+    pub max_lease_lifetime_s: Option<f64>,
 }
 
 #[derive(Args)]
@@ -277,6 +305,8 @@ async fn serve_coordinator(
         bundle_limits.max_file_bytes = b;
     }
     let cfg = CoordinatorConfig {
+        scheduler: scheduler_config(&args)?,
+        resources: resources(&args)?,
         listen: args.listen,
         data_dir: args.data,
         token: args.token,
@@ -284,11 +314,58 @@ async fn serve_coordinator(
         metrics: args.metrics,
         limits: Limits::default(),
         bundle_limits,
-        scheduler: Default::default(),
         default_tile: None,
     };
     coordinator::serve(cfg, shutdown).await?;
     Ok(())
+}
+
+/// A duration flag in seconds, checked.
+fn seconds(flag: &str, s: Option<f64>) -> Result<Option<std::time::Duration>> {
+    s.map(|s| {
+        std::time::Duration::try_from_secs_f64(s)
+            .ok()
+            .filter(|d| !d.is_zero())
+            .with_context(|| format!("--{flag} {s}: not a positive number of seconds"))
+    })
+    .transpose()
+}
+
+fn scheduler_config(args: &CoordinatorArgs) -> Result<pathfarm_farm::scheduler::SchedulerConfig> {
+    let mut c = pathfarm_farm::scheduler::SchedulerConfig::default();
+    if let Some(d) = seconds("heartbeat-timeout-s", args.heartbeat_timeout_s)? {
+        c.heartbeat_timeout = d;
+    }
+    if let Some(d) = seconds("lease-timeout-s", args.lease_timeout_s)? {
+        c.lease_timeout = d;
+    }
+    if let Some(d) = seconds("max-lease-lifetime-s", args.max_lease_lifetime_s)? {
+        c.max_lease_lifetime = d;
+    }
+    Ok(c)
+}
+
+fn resources(args: &CoordinatorArgs) -> Result<pathfarm_farm::coordinator::Resources> {
+    let mut r = pathfarm_farm::coordinator::Resources::default();
+    if let Some(m) = args.job_memory_mb {
+        r.job_memory_bytes = m.saturating_mul(1 << 20);
+    }
+    if let Some(n) = args.max_jobs_waiting {
+        r.max_jobs_waiting = n;
+    }
+    if let Some(m) = args.upload_memory_mb {
+        r.upload_memory_bytes = m.saturating_mul(1 << 20).max(1 << 20);
+    }
+    if let Some(d) = seconds("blob-grace-s", args.blob_grace_s)? {
+        r.blob_grace = d;
+    }
+    if let Some(d) = seconds("stream-idle-s", args.stream_idle_s)? {
+        r.stream_idle = d;
+    }
+    if let Some(n) = args.bad_uploads_per_job {
+        r.bad_uploads_per_job = n.max(1);
+    }
+    Ok(r)
 }
 
 fn default_cache() -> PathBuf {

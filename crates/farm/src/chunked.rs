@@ -6,8 +6,11 @@
 //! three apply the same limits the same way; each maps a [`UploadError::Malformed`] to its
 //! own answer (an `InvalidArgument` status, a corrupt tile ack, a refused records ack).
 
+use std::time::Duration;
+
 use pathfarm_proto::{v1, MAX_CHUNK_BYTES};
-use tonic::{Status, Streaming};
+use tokio_stream::{Stream, StreamExt};
+use tonic::Status;
 
 /// One message of a chunked upload, as the reader sees it.
 pub(crate) enum Part<H> {
@@ -54,6 +57,36 @@ pub(crate) enum UploadError {
     Transport(Status),
     /// The messages break the upload's rules; the text says which.
     Malformed(String),
+    /// No message came within the idle timeout.
+    Idle(Duration),
+}
+
+impl UploadError {
+    /// As a status: a malformed upload is `InvalidArgument`, an idle one `DeadlineExceeded`.
+    pub(crate) fn into_status(self) -> Status {
+        match self {
+            UploadError::Transport(s) => s,
+            UploadError::Malformed(detail) => Status::invalid_argument(detail),
+            UploadError::Idle(d) => Status::deadline_exceeded(format!(
+                "the upload sent nothing for {} s",
+                d.as_secs_f64()
+            )),
+        }
+    }
+}
+
+/// An upload's messages as the server receives them (`tonic::Streaming`, or any stream in
+/// tests).
+pub(crate) trait Messages<M>: Stream<Item = Result<M, Status>> + Unpin {}
+
+impl<M, S: Stream<Item = Result<M, Status>> + Unpin> Messages<M> for S {}
+
+/// The stream's next message, waiting at most `idle`.
+async fn next<M>(stream: &mut impl Messages<M>, idle: Duration) -> Result<Option<M>, UploadError> {
+    match tokio::time::timeout(idle, stream.next()).await {
+        Ok(m) => Ok(m.transpose()?),
+        Err(_) => Err(UploadError::Idle(idle)),
+    }
 }
 
 impl From<Status> for UploadError {
@@ -64,10 +97,11 @@ impl From<Status> for UploadError {
 
 /// The upload's first message, which must be its header.
 pub(crate) async fn header<M: Chunked>(
-    stream: &mut Streaming<M>,
+    stream: &mut impl Messages<M>,
     rpc: &str,
+    idle: Duration,
 ) -> Result<M::Header, UploadError> {
-    match stream.message().await?.and_then(M::into_part) {
+    match next(stream, idle).await?.and_then(M::into_part) {
         Some(Part::Header(h)) => Ok(h),
         _ => Err(UploadError::Malformed(format!(
             "the first message of {rpc} must be its header"
@@ -77,15 +111,16 @@ pub(crate) async fn header<M: Chunked>(
 
 /// Reads the data parts after the header, handing each to `sink`, until the stream ends.
 /// Refuses a part over [`MAX_CHUNK_BYTES`], a second header, more bytes than `size` (before
-/// they reach `sink`) and, at the end, fewer.
+/// they reach `sink`) and, at the end, fewer; gives up when no message comes within `idle`.
 pub(crate) async fn data<M: Chunked>(
-    stream: &mut Streaming<M>,
+    stream: &mut impl Messages<M>,
     size: u64,
+    idle: Duration,
     mut sink: impl FnMut(&[u8]) -> Result<(), String>,
 ) -> Result<(), UploadError> {
     let malformed = |s: String| Err(UploadError::Malformed(s));
     let mut got = 0u64;
-    while let Some(m) = stream.message().await? {
+    while let Some(m) = next(stream, idle).await? {
         let d = match m.into_part() {
             Some(Part::Data(d)) => d,
             _ => return malformed("a message after the header that is not a data part".into()),
@@ -108,13 +143,15 @@ pub(crate) async fn data<M: Chunked>(
     Ok(())
 }
 
-/// [`data`] into memory; `size` is the caller's to bound before this allocates it.
+/// [`data`] into memory; `size` is the caller's to bound (and reserve) before this reads
+/// it. The buffer grows with the data received, never ahead of it by more than a part.
 pub(crate) async fn data_to_vec<M: Chunked>(
-    stream: &mut Streaming<M>,
+    stream: &mut impl Messages<M>,
     size: u64,
+    idle: Duration,
 ) -> Result<Vec<u8>, UploadError> {
-    let mut bytes = Vec::with_capacity(size as usize);
-    data(stream, size, |d| {
+    let mut bytes = Vec::with_capacity(size.min(MAX_CHUNK_BYTES as u64) as usize);
+    data(stream, size, idle, |d| {
         bytes.extend_from_slice(d);
         Ok(())
     })
@@ -146,3 +183,78 @@ macro_rules! chunked {
 chunked!(v1::BlobChunk, blob_chunk, v1::BlobHeader);
 chunked!(v1::TileUpload, tile_upload, v1::TileHeader);
 chunked!(v1::RecordsUpload, records_upload, v1::RecordsHeader);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    type Msg = v1::RecordsUpload;
+
+    fn head(size: u64) -> Result<Msg, Status> {
+        let h = v1::RecordsHeader {
+            size,
+            ..Default::default()
+        };
+        Ok(Msg::from_part(Part::Header(h)))
+    }
+
+    fn data(d: Vec<u8>) -> Result<Msg, Status> {
+        Ok(Msg::from_part(Part::Data(d)))
+    }
+
+    const IDLE: Duration = Duration::from_secs(5);
+
+    /// Reads `msgs` as an upload of 3 bytes: its data, or the refusal's text.
+    async fn read(msgs: Vec<Result<Msg, Status>>) -> Result<Vec<u8>, String> {
+        let mut s = tokio_stream::iter(msgs);
+        let h = header_of(&mut s).await?;
+        data_to_vec(&mut s, h.size, IDLE)
+            .await
+            .map_err(|e| match e {
+                UploadError::Malformed(m) => m,
+                e => format!("{:?}", e.into_status()),
+            })
+    }
+
+    async fn header_of(s: &mut impl Messages<Msg>) -> Result<v1::RecordsHeader, String> {
+        super::header(s, "UploadRecords", IDLE)
+            .await
+            .map_err(|e| match e {
+                UploadError::Malformed(m) => m,
+                e => format!("{:?}", e.into_status()),
+            })
+    }
+
+    #[tokio::test]
+    async fn the_reader_refuses_oversized_parts_wrong_lengths_and_a_second_header() {
+        let over = vec![0u8; MAX_CHUNK_BYTES + 1];
+        let cases: [(Vec<Vec<u8>>, &str); 4] = [
+            (vec![over], "a data part of"),
+            (vec![vec![1, 2], vec![3, 4]], "more data than"),
+            (vec![vec![1, 2]], "2 bytes of data, the header says 3"),
+            (vec![], "0 bytes of data"),
+        ];
+        for (parts, names) in cases {
+            let msgs = std::iter::once(head(3)).chain(parts.into_iter().map(data));
+            let e = read(msgs.collect()).await.unwrap_err();
+            assert!(e.contains(names), "{names:?}: {e}");
+        }
+        let e = read(vec![head(3), head(3)]).await.unwrap_err();
+        assert!(e.contains("not a data part"), "{e}");
+        let e = read(vec![data(vec![1])]).await.unwrap_err();
+        assert!(e.contains("must be its header"), "{e}");
+        let ok = read(vec![head(3), data(vec![1, 2]), data(vec![3])]).await;
+        assert_eq!(ok, Ok(vec![1, 2, 3]));
+    }
+
+    #[tokio::test]
+    async fn a_silent_upload_is_given_up_after_the_idle_timeout() {
+        let idle = Duration::from_millis(200);
+        let first = tokio_stream::iter(vec![head(3), data(vec![1])]);
+        let mut s = first.chain(tokio_stream::pending());
+        super::header(&mut s, "UploadRecords", idle).await.unwrap();
+        let e = data_to_vec(&mut s, 3, idle).await.unwrap_err();
+        assert!(matches!(e, UploadError::Idle(d) if d == idle), "{e:?}");
+        assert_eq!(e.into_status().code(), tonic::Code::DeadlineExceeded);
+    }
+}

@@ -18,26 +18,62 @@ use crate::bundle::{self, BundleError};
 
 /// Adds `authorization: Bearer TOKEN` (nothing without a token) and the protocol version
 /// ([`pathfarm_proto::PROTOCOL_HEADER`]) to every call.
+/// A worker's calls also carry its control stream's upload key
+/// ([`pathfarm_proto::WORKER_KEY_HEADER`]) once it has one ([`Auth::with_worker_key`]).
 #[derive(Clone)]
-pub struct Auth(Option<MetadataValue<Ascii>>);
+pub struct Auth {
+    bearer: Option<MetadataValue<Ascii>>,
+    worker_key: Option<WorkerKey>,
+}
+
+/// The upload key a worker's calls carry: set at each registration.
+#[derive(Clone, Default)]
+pub struct WorkerKey(std::sync::Arc<std::sync::Mutex<Option<MetadataValue<Ascii>>>>);
+
+impl WorkerKey {
+    /// Sets the key (`Registered.upload_key`) the following calls carry.
+    pub fn set(&self, key: &[u8]) {
+        let hex: String = key.iter().map(|b| format!("{b:02x}")).collect();
+        let value = hex.parse().ok();
+        *self.0.lock().unwrap_or_else(|e| e.into_inner()) = value;
+    }
+
+    fn get(&self) -> Option<MetadataValue<Ascii>> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+}
 
 impl Auth {
     /// The interceptor for `token`; a token that is not valid header text is an error.
     pub fn new(token: Option<&str>) -> Result<Self, ClientError> {
-        match token {
-            None => Ok(Auth(None)),
-            Some(t) => format!("Bearer {t}")
-                .parse()
-                .map(|v| Auth(Some(v)))
-                .map_err(|_| ClientError::Usage("the token is not valid header text".into())),
-        }
+        let bearer =
+            match token {
+                None => None,
+                Some(t) => Some(format!("Bearer {t}").parse().map_err(|_| {
+                    ClientError::Usage("the token is not valid header text".into())
+                })?),
+            };
+        Ok(Auth {
+            bearer,
+            worker_key: None,
+        })
+    }
+
+    /// This interceptor, adding the upload key that `key` holds to every call.
+    pub fn with_worker_key(mut self, key: WorkerKey) -> Self {
+        self.worker_key = Some(key);
+        self
     }
 }
 
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
-        if let Some(v) = &self.0 {
+        if let Some(v) = &self.bearer {
             req.metadata_mut().insert("authorization", v.clone());
+        }
+        if let Some(v) = self.worker_key.as_ref().and_then(WorkerKey::get) {
+            req.metadata_mut()
+                .insert(pathfarm_proto::WORKER_KEY_HEADER, v);
         }
         req.metadata_mut().insert(
             pathfarm_proto::PROTOCOL_HEADER,

@@ -29,7 +29,16 @@ pub enum CodecError {
     Region(Region),
     #[error("tile samples: sample {0} is not finite")]
     NonFinite(usize),
+    #[error("tile samples: sample {index} has value {value:e}, beyond {MAX_SAMPLE_VALUE:e}")]
+    OutOfRange { index: usize, value: f32 },
+    #[error("tile pixels: pixel {index}: {why}")]
+    BadSums { index: usize, why: &'static str },
 }
+
+/// The largest sample value a tile may carry: orders of magnitude past any physically based
+/// scene's radiance (the sun is about 1e9 W/(m² sr)), far below where sums would lose their
+/// meaning. A larger value is a bug or a hostile peer, and the tile is refused.
+pub const MAX_SAMPLE_VALUE: f32 = 1e20;
 
 const VERSION: u8 = 1;
 
@@ -158,6 +167,17 @@ pub fn encode_tile_pixels(pixels: &TilePixels) -> Vec<u8> {
     }
 }
 
+/// The bytes [`encode_tile_pixels`] gives a tile of `region` of `spec`: what an upload of
+/// it must announce.
+pub fn tile_pixels_bytes(spec: &PassSpec, region: Region) -> u64 {
+    let pixels = region.pixels() as u64;
+    let body = match spec.sample_form() {
+        true => pixels * spec.unit_spp() * 12,
+        false => pixels * PixelStats::BYTES as u64,
+    };
+    9 + body
+}
+
 /// The pixels of a tile of `region` of `spec` from [`encode_tile_pixels`], in the form the
 /// unit's tiles have ([`PassSpec::sample_form`]); samples must be finite (a renderer
 /// writes zero for a non-finite estimate).
@@ -167,7 +187,11 @@ pub fn decode_tile_pixels(
     region: Region,
 ) -> Result<TilePixels, CodecError> {
     if !spec.sample_form() {
-        return decode_pixels(bytes, region).map(TilePixels::Sums);
+        let film = decode_pixels(bytes, region)?;
+        for (index, p) in film.pixels.iter().enumerate() {
+            check_sums(p).map_err(|why| CodecError::BadSums { index, why })?;
+        }
+        return Ok(TilePixels::Sums(film));
     }
     let (b, n) = body(bytes, b"PFSM", "tile samples", 12)?;
     let expected = region.pixels() * spec.unit_spp() as usize;
@@ -185,9 +209,45 @@ pub fn decode_tile_pixels(
         if !v.is_finite() {
             return Err(CodecError::NonFinite(i));
         }
+        let value = v.abs().max_element();
+        if value > MAX_SAMPLE_VALUE {
+            return Err(CodecError::OutOfRange { index: i, value });
+        }
         values.push(v);
     }
     Ok(TilePixels::Samples(values))
+}
+
+/// Whether a pixel's sums are ones that samples could have made: finite, the sums of squares
+/// not negative, consistent with each other (Cauchy-Schwarz: (Σw²L)² <= Σw² Σw²L²), and no
+/// sample beyond [`MAX_SAMPLE_VALUE`] (the weighted root mean square bounds the largest).
+fn check_sums(p: &PixelStats) -> Result<(), &'static str> {
+    let all = [p.sum_w, p.sum_w2]
+        .into_iter()
+        .chain(p.sum_wl)
+        .chain(p.sum_w2l)
+        .chain(p.sum_w2l2);
+    let mut all = all;
+    if !all.all(f64::is_finite) {
+        return Err("a sum is not finite");
+    }
+    if p.sum_w < 0.0 || p.sum_w2 < 0.0 || p.sum_w2l2.iter().any(|&x| x < 0.0) {
+        return Err("a sum of weights or squares is negative");
+    }
+    let max = MAX_SAMPLE_VALUE as f64;
+    for c in 0..3 {
+        let bound = p.sum_w2 * p.sum_w2l2[c];
+        if p.sum_w2l[c] * p.sum_w2l[c] > bound * (1.0 + 1e-9) + 1e-300 {
+            return Err("the sums are inconsistent (not the sums of any samples)");
+        }
+        if p.sum_w2 > 0.0 && p.sum_w2l2[c] / p.sum_w2 > max * max {
+            return Err("a sample is beyond the largest value a tile may carry");
+        }
+        if p.sum_w > 0.0 && (p.sum_wl[c] / p.sum_w).abs() > max {
+            return Err("the mean is beyond the largest value a tile may carry");
+        }
+    }
+    Ok(())
 }
 
 /// A rendered tile's counters (the worker fills in its timings).
@@ -343,7 +403,7 @@ mod tests {
         // 2 pixels x 3 spp: samples, bit for bit
         let few = spec(1, 3);
         let values: Vec<_> = (0..6)
-            .map(|i| glam::Vec3::new(i as f32, 1e-30, 7e30))
+            .map(|i| glam::Vec3::new(i as f32, 1e-30, 7e19))
             .collect();
         let enc = encode_tile_pixels(&TilePixels::Samples(values.clone()));
         assert_eq!(enc.len(), 9 + 6 * 12, "12 bytes a sample");
@@ -358,11 +418,67 @@ mod tests {
         assert!(decode_tile_pixels(&sums, &spec(8, 1), region).is_ok());
         let mut nan = values;
         nan[4].y = f32::NAN;
-        let enc = encode_tile_pixels(&TilePixels::Samples(nan));
+        let enc = encode_tile_pixels(&TilePixels::Samples(nan.clone()));
         assert_eq!(
             decode_tile_pixels(&enc, &few, region),
             Err(CodecError::NonFinite(4))
         );
+        let mut huge = nan;
+        huge[4].y = 1.0;
+        huge[2].x = 1e30;
+        let enc = encode_tile_pixels(&TilePixels::Samples(huge));
+        let e = decode_tile_pixels(&enc, &few, region);
+        assert!(
+            matches!(e, Err(CodecError::OutOfRange { index: 2, .. })),
+            "{e:?}"
+        );
+    }
+
+    #[test]
+    fn pixel_sums_are_refused_unless_samples_could_have_made_them() {
+        let region = Region {
+            x0: 0,
+            y0: 0,
+            x1: 2,
+            y1: 1,
+        };
+        let spec = PassSpec {
+            unit: 1,
+            iteration: 1,
+            kind: PassKind::Guided,
+            first_sample: 0,
+            spp: 8,
+            passes: 1,
+            spp_before: 0,
+            split: false,
+            tree_version: 1,
+            fraction_version: 0,
+        };
+        let mut film = Film::new(2, 1);
+        for k in 0..8 {
+            film.pixels[0].add(1.0, glam::Vec3::new(k as f32, 0.5, 1e3));
+            film.pixels[1].add(0.5, glam::Vec3::splat(2.0));
+        }
+        let good = encode_tile_pixels(&TilePixels::Sums(film.clone()));
+        assert_eq!(good.len() as u64, tile_pixels_bytes(&spec, region));
+        assert!(decode_tile_pixels(&good, &spec, region).is_ok());
+        let spoil = |f: &dyn Fn(&mut PixelStats)| {
+            let mut bad = film.clone();
+            f(&mut bad.pixels[1]);
+            decode_tile_pixels(&encode_tile_pixels(&TilePixels::Sums(bad)), &spec, region)
+        };
+        let bad = |r: Result<TilePixels, CodecError>| {
+            matches!(r, Err(CodecError::BadSums { index: 1, .. }))
+        };
+        assert!(bad(spoil(&|p| p.sum_wl[0] = f64::NAN)));
+        assert!(bad(spoil(&|p| p.sum_w2l2[1] = -1.0)));
+        // finite, but no samples sum to this
+        assert!(bad(spoil(&|p| p.sum_w2l[2] = 1e9)));
+        // a sample of 1e30, consistently summed
+        assert!(bad(spoil(&|p| {
+            *p = PixelStats::default();
+            p.add(1.0, glam::Vec3::new(1e30, 0.0, 0.0));
+        })));
     }
 
     #[test]

@@ -138,6 +138,9 @@ pub struct SchedulerConfig {
     /// upload in flight. The coordinator's offers follow the worker's requests; this is
     /// the ceiling.
     pub leases_per_worker: u32,
+    /// The longest a lease can live however often heartbeats list it (default 10 min): a
+    /// worker that heartbeats its leases but never uploads them cannot hold a job forever.
+    pub max_lease_lifetime: Duration,
 }
 
 impl Default for SchedulerConfig {
@@ -147,8 +150,18 @@ impl Default for SchedulerConfig {
             heartbeat_timeout: Duration::from_secs(15),
             max_attempts: 5,
             leases_per_worker: 24,
+            max_lease_lifetime: Duration::from_secs(600),
         }
     }
+}
+
+/// What the scheduler knows of a lease ([`Scheduler::lease`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct LeaseView {
+    pub worker: WorkerId,
+    pub key: TaskKey,
+    /// Not completed, reclaimed or cancelled yet.
+    pub live: bool,
 }
 
 /// A tile handed to a worker.
@@ -453,6 +466,8 @@ struct Worker {
     last_seen: Millis,
     held: BTreeSet<LeaseId>,
     tiles_done: u64,
+    /// Jobs this worker gets no leases of (it sent them bad tiles).
+    blocked: BTreeSet<JobId>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -475,6 +490,8 @@ struct LeaseRec {
     key: TaskKey,
     worker: WorkerId,
     state: LeaseState,
+    /// The latest deadline heartbeats can give it (issue + `max_lease_lifetime`).
+    last_deadline: Millis,
 }
 
 /// The scheduler. See the module documentation.
@@ -639,6 +656,7 @@ impl Scheduler {
             last_seen: now,
             held,
             tiles_done: 0,
+            blocked: BTreeSet::new(),
         };
         self.workers.insert(worker, record);
         Ok(())
@@ -713,18 +731,47 @@ impl Scheduler {
     // ----- leases -----
 
     /// The next tile for this worker, if it is registered, not draining, below its lease
-    /// limit, and some job has a ready tile: the highest-priority such job (ties: earliest
-    /// arrival), its returned tiles first (lowest first), then its untouched tiles in order.
+    /// limit, and some job it is not blocked from has a ready tile: the highest-priority
+    /// such job (ties: earliest arrival), its returned tiles first (lowest first), then its
+    /// untouched tiles in order.
+    ///
+    /// Not a sign of the worker's life: the driver offers, the worker has said nothing (a
+    /// worker that stopped reading is declared lost after `heartbeat_timeout` however often
+    /// it is offered work).
     pub fn next_lease(&mut self, worker: WorkerId, now: Millis) -> Option<Lease> {
-        if !self.touch(worker, now) {
-            return None;
-        }
-        let record = &self.workers[&worker];
+        let record = self.workers.get(&worker)?;
         if record.draining || record.held.len() >= self.config.leases_per_worker as usize {
             return None;
         }
-        let job = self.pick_job()?;
+        let job = self.pick_job(&record.blocked)?;
         Some(self.issue(worker, job, now))
+    }
+
+    /// The worker gets no more leases of `job` (it sent bad tiles); the leases of the job
+    /// it holds are returned to the queue without counting an attempt (their tiles are not
+    /// at fault) and listed for the driver to cancel.
+    pub fn block(&mut self, worker: WorkerId, job: JobId) -> Result<Vec<LeaseId>, SchedError> {
+        let record = self
+            .workers
+            .get_mut(&worker)
+            .ok_or(SchedError::UnknownWorker(worker))?;
+        record.blocked.insert(job);
+        let of_job: Vec<LeaseId> = (record.held.iter())
+            .copied()
+            .filter(|id| self.leases[id].key.job == job)
+            .collect();
+        for &id in &of_job {
+            let exhausted = self.reclaim(id, None);
+            debug_assert!(exhausted.is_none(), "a block counts no attempt");
+        }
+        Ok(of_job)
+    }
+
+    /// Whether `worker` is blocked from `job`.
+    pub fn is_blocked(&self, worker: WorkerId, job: JobId) -> bool {
+        self.workers
+            .get(&worker)
+            .is_some_and(|w| w.blocked.contains(&job))
     }
 
     /// Accepts the lease's result if the lease is live, this worker's, and before its
@@ -761,6 +808,21 @@ impl Scheduler {
         now: Millis,
     ) -> Result<Vec<Completion>, Rejection> {
         self.touch(worker, now);
+        self.check_all(worker, leases, now)?;
+        Ok(leases
+            .iter()
+            .map(|&id| self.complete(worker, id, now).expect("checked live"))
+            .collect())
+    }
+
+    /// What [`Scheduler::complete_all`] would answer, without accepting anything: a driver
+    /// validates the results between the two, and commits only what passed.
+    pub fn check_all(
+        &self,
+        worker: WorkerId,
+        leases: &[LeaseId],
+        now: Millis,
+    ) -> Result<(), Rejection> {
         let checks: Vec<Result<(), Rejection>> = leases
             .iter()
             .map(|&id| self.check(worker, id, now))
@@ -780,10 +842,7 @@ impl Scheduler {
         if leases.iter().any(|id| !seen.insert(*id)) {
             return Err(Rejection::UnknownLease);
         }
-        Ok(leases
-            .iter()
-            .map(|&id| self.complete(worker, id, now).expect("checked live"))
-            .collect())
+        Ok(())
     }
 
     /// The worker could not render the lease: its tile is queued again, counting an attempt.
@@ -851,6 +910,24 @@ impl Scheduler {
     }
 
     // ----- queries -----
+
+    /// The worker and tile of a lease the scheduler still knows (live, or ended in a unit
+    /// still offered), and whether it is live.
+    pub fn lease(&self, id: LeaseId) -> Option<LeaseView> {
+        let rec = self.leases.get(&id)?;
+        Some(LeaseView {
+            worker: rec.worker,
+            key: rec.key,
+            live: matches!(rec.state, LeaseState::Live { .. }),
+        })
+    }
+
+    /// The live leases `worker` holds, in id order (empty if unknown).
+    pub fn held_by(&self, worker: WorkerId) -> Vec<LeaseId> {
+        self.workers
+            .get(&worker)
+            .map_or(Vec::new(), |w| w.held.iter().copied().collect())
+    }
 
     /// Whether `unit` is one of the job's offered units and all its tiles are accepted.
     pub fn unit_complete(&self, job: JobId, unit: u64) -> bool {
@@ -941,9 +1018,9 @@ impl Scheduler {
         }
     }
 
-    fn pick_job(&self) -> Option<JobId> {
+    fn pick_job(&self, blocked: &BTreeSet<JobId>) -> Option<JobId> {
         let mut ids = self.order.iter().map(|&(_, _, job)| job);
-        ids.find(|job| self.jobs[job].ready() > 0)
+        ids.find(|job| !blocked.contains(job) && self.jobs[job].ready() > 0)
     }
 
     fn issue(&mut self, worker: WorkerId, job: JobId, now: Millis) -> Lease {
@@ -965,7 +1042,18 @@ impl Scheduler {
             tile,
         };
         let state = LeaseState::Live { deadline };
-        self.leases.insert(id, LeaseRec { key, worker, state });
+        let last_deadline = now
+            + self
+                .config
+                .max_lease_lifetime
+                .max(self.config.lease_timeout);
+        let rec = LeaseRec {
+            key,
+            worker,
+            state,
+            last_deadline,
+        };
+        self.leases.insert(id, rec);
         self.deadlines.insert((deadline, id));
         self.workers
             .get_mut(&worker)
@@ -1015,8 +1103,10 @@ impl Scheduler {
         let LeaseState::Live { deadline } = &mut rec.state else {
             unreachable!("checked live")
         };
-        // Never shorten: tolerates a driver clock that steps back a little.
-        let extended = (*deadline).max(now + self.config.lease_timeout);
+        // Never shorten (tolerates a driver clock that steps back a little), never past
+        // the lease's lifetime.
+        let wanted = (now + self.config.lease_timeout).min(rec.last_deadline);
+        let extended = (*deadline).max(wanted);
         self.deadlines.remove(&(*deadline, id));
         self.deadlines.insert((extended, id));
         *deadline = extended;
@@ -1369,6 +1459,83 @@ mod tests {
             Err(SchedError::UnknownWorker(W1))
         );
         assert_eq!(s.next_lease(W2, secs(15)).unwrap().attempt, 2);
+    }
+
+    #[test]
+    fn offering_leases_is_no_sign_of_life() {
+        // A worker that asked for work and then fell silent (stopped, partitioned) is lost
+        // after the heartbeat timeout even though the driver kept offering it leases.
+        let mut s = setup(&[W1], 4);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let b = s.next_lease(W1, secs(14)).unwrap();
+        let lost = Event::WorkerLost {
+            worker: W1,
+            returned: vec![a.key, b.key],
+        };
+        assert_eq!(s.tick(secs(15)), vec![lost]);
+    }
+
+    #[test]
+    fn heartbeats_extend_a_lease_only_within_its_lifetime() {
+        let config = SchedulerConfig {
+            max_lease_lifetime: Duration::from_secs(100),
+            ..SchedulerConfig::default()
+        };
+        let mut s = with_job(config, &[W1, W2], 1);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        for t in (10..=90).step_by(10) {
+            assert_eq!(s.heartbeat(W1, &[a.id], secs(t)).unwrap(), vec![]);
+            s.heartbeat(W2, &[], secs(t)).unwrap();
+        }
+        // listed every 10 s, it still ends at issue + 100 s, and the tile goes to W2
+        assert_eq!(s.tick(Millis(99_999)), vec![]);
+        let events = s.tick(secs(100));
+        assert!(
+            matches!(events[..], [Event::LeaseExpired { lease, .. }] if lease == a.id),
+            "{events:?}"
+        );
+        s.heartbeat(W1, &[], secs(100)).unwrap();
+        let again = s.next_lease(W2, secs(100)).unwrap();
+        assert_eq!((again.key, again.attempt), (a.key, 2));
+    }
+
+    #[test]
+    fn a_blocked_worker_gets_no_leases_of_the_job_and_returns_those_it_holds() {
+        let mut s = with_job(wide(), &[W1, W2], 3);
+        s.add_job(J2, 0, Millis(1)).unwrap();
+        s.offer_unit(J2, 0, 1).unwrap();
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        assert_eq!(a.key.job, J1);
+        assert_eq!(s.block(W1, J1), Ok(vec![a.id]));
+        assert!(s.is_blocked(W1, J1) && !s.is_blocked(W2, J1));
+        assert_eq!(s.complete(W1, a.id, Millis(1)), Err(Rejection::Expired));
+        // W1 now gets J2's tile although J1 comes first; J1's returned tile goes to W2
+        // without an attempt counted.
+        assert_eq!(s.next_lease(W1, Millis(2)).unwrap().key.job, J2);
+        assert_eq!(s.next_lease(W1, Millis(2)), None);
+        let b = s.next_lease(W2, Millis(2)).unwrap();
+        assert_eq!((b.key, b.attempt), (a.key, 1));
+    }
+
+    #[test]
+    fn check_all_answers_as_complete_all_and_changes_nothing() {
+        let mut s = setup(&[W1, W2], 2);
+        let a = s.next_lease(W1, Millis(0)).unwrap();
+        let b = s.next_lease(W1, Millis(0)).unwrap();
+        assert_eq!(
+            s.check_all(W2, &[a.id], Millis(1)),
+            Err(Rejection::WrongWorker)
+        );
+        assert_eq!(s.check_all(W1, &[a.id, b.id], Millis(1)), Ok(()));
+        assert!(s.lease(a.id).unwrap().live && s.lease(b.id).unwrap().live);
+        assert_eq!(s.held_by(W1), vec![a.id, b.id]);
+        s.complete_all(W1, &[a.id, b.id], Millis(1)).unwrap();
+        assert_eq!(
+            s.check_all(W1, &[a.id, b.id], Millis(2)),
+            Err(Rejection::Duplicate)
+        );
+        assert!(!s.lease(a.id).unwrap().live);
+        assert_eq!(s.held_by(W1), vec![]);
     }
 
     #[test]
@@ -2032,6 +2199,7 @@ mod tests {
                 heartbeat_timeout: Duration::from_secs(15),
                 max_attempts,
                 leases_per_worker: SLOTS as u32,
+                max_lease_lifetime: Duration::from_secs(1 << 30),
             };
             Sim {
                 s: Scheduler::new(config),

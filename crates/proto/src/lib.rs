@@ -25,12 +25,17 @@ pub const FILE_DESCRIPTOR_SET: &[u8] =
 /// The protocol version this build speaks: a worker sends it in `Register`, and the
 /// coordinator refuses versions it does not speak. Bumped on any change that an older peer
 /// would misread; adding fields or messages does not bump it (fields are never renumbered).
-pub const PROTOCOL_VERSION: u32 = 4;
+pub const PROTOCOL_VERSION: u32 = 5;
 
 /// gRPC metadata key in which pathfarm's clients and workers send [`PROTOCOL_VERSION`] on
 /// every call; the coordinator refuses a call naming another version (calls without it, from
 /// stock gRPC tools, are served).
 pub const PROTOCOL_HEADER: &str = "pathfarm-protocol";
+
+/// gRPC metadata key in which a worker sends its control stream's `Registered.upload_key`
+/// (hex) on its uploads: the coordinator takes an upload's sender from it, never from a field
+/// of the upload.
+pub const WORKER_KEY_HEADER: &str = "pathfarm-worker-key";
 
 /// The most payload bytes one chunk message carries (`DataChunk`, `BlobChunk`, `TileUpload`
 /// data parts): 1 MiB. Senders split payloads into parts of at most this size; receivers

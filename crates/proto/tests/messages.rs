@@ -281,6 +281,6 @@ fn wire_form_is_stable() {
 
 #[test]
 fn constants() {
-    assert_eq!(PROTOCOL_VERSION, 4);
+    assert_eq!(PROTOCOL_VERSION, 5);
     assert_eq!(MAX_CHUNK_BYTES, 1_048_576);
 }

@@ -237,6 +237,13 @@ const GUIDED_SAMPLE_BYTES: u64 =
 /// The renderer's pass buffer cap (`render::PASS_BUFFER_BYTES`) and other per-render scratch.
 const SCRATCH_BYTES: u64 = 512 << 20;
 
+/// What a guided session's films and samples take for a `width` x `height` image, an
+/// upper estimate: what a farm coordinator, which holds sessions but no scene, budgets a job.
+pub fn guided_session_bytes(width: u32, height: u32) -> u64 {
+    let sums = std::mem::size_of::<crate::film::PixelStats>() as u64;
+    width as u64 * height as u64 * (GUIDED_FILMS * sums + GUIDED_SAMPLE_BYTES)
+}
+
 /// Refuses, before the BVH or any film is allocated, a render whose estimated memory (the
 /// scene's meshes and textures, the BVH, the films) exceeds `Limits::max_memory_bytes`.
 fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {

@@ -269,7 +269,7 @@ impl Shared {
 
 /// Every blob some job refers to: its bundle's files, its results, its checkpoint, and the
 /// inputs its unit in flight publishes.
-fn referenced(st: &State) -> HashSet<Digest> {
+pub(crate) fn referenced(st: &State) -> HashSet<Digest> {
     let mut live = HashSet::new();
     let d = |b: &[u8]| <[u8; 32]>::try_from(b).ok().map(Digest);
     for job in st.jobs.values() {

@@ -52,6 +52,8 @@ pub(crate) struct Metrics {
     records_seconds: Family<PhaseLabel, Seconds>,
     records_bytes: Counter,
     roll_backs: Counter,
+    workers_blocked: Counter,
+    blobs_expired: Counter,
 }
 
 impl Default for Metrics {
@@ -70,6 +72,8 @@ impl Default for Metrics {
         let records_seconds = registered(on, "records_seconds", RECORDS_SECONDS_HELP);
         let records_bytes = registered(on, "records_bytes_received", RECORDS_BYTES_HELP);
         let roll_backs = registered(on, "roll_backs", ROLL_BACKS_HELP);
+        let workers_blocked = registered(on, "workers_blocked", BLOCKED_HELP);
+        let blobs_expired = registered(on, "blobs_expired", EXPIRED_HELP);
         Metrics {
             registry: r,
             jobs,
@@ -84,6 +88,8 @@ impl Default for Metrics {
             records_seconds,
             records_bytes,
             roll_backs,
+            workers_blocked,
+            blobs_expired,
         }
     }
 }
@@ -96,6 +102,11 @@ const RECORDS_BYTES_HELP: &str =
     "Bytes of quadtree records received (once per worker and tree version)";
 const ROLL_BACKS_HELP: &str =
     "Jobs rolled back to their last checkpoint: a worker holding records was lost";
+
+const BLOCKED_HELP: &str =
+    "Workers blocked from a job after sending it bad results (a worker and job counted once)";
+const EXPIRED_HELP: &str =
+    "Uploaded blobs deleted because no job referred to them within the grace period";
 
 const IN_FLIGHT_HELP: &str = "Tiles leased to workers and not yet in";
 const BLOB_BYTES_HELP: &str =
@@ -129,6 +140,16 @@ impl Metrics {
     /// Counts a records upload of `bytes`.
     pub(crate) fn records_upload(&self, bytes: u64) {
         self.records_bytes.inc_by(bytes);
+    }
+
+    /// Counts a worker blocked from a job.
+    pub(crate) fn worker_blocked(&self) {
+        self.workers_blocked.inc();
+    }
+
+    /// Counts unreferenced blobs deleted after the grace period.
+    pub(crate) fn blobs_expired(&self, n: u64) {
+        self.blobs_expired.inc_by(n);
     }
 
     /// Counts a job rolled back to its checkpoint.
@@ -186,7 +207,7 @@ pub(crate) fn render(shared: &Shared) -> String {
             };
             m.jobs.get_or_create(&label).set(count);
         }
-        let workers = st.workers.values().filter(|w| w.tx.is_some()).count();
+        let workers = st.workers.len();
         m.workers.set(workers as i64);
         m.tiles_in_flight.set(st.sched.in_flight_total() as i64);
         m.tiles_ready.set(st.sched.ready_total() as i64);

@@ -24,12 +24,18 @@
 
 mod checkpoints;
 mod db;
+#[cfg(test)]
+mod hardening_tests;
 mod ledger;
 mod metrics;
+mod resources;
 mod service;
 mod store;
+mod sweep;
 #[cfg(test)]
 mod tests;
+
+pub use resources::Resources;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::future::Future;
@@ -52,9 +58,7 @@ use tonic::Status;
 
 use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
 use crate::codec;
-use crate::scheduler::{
-    Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, TaskKey, WorkerId,
-};
+use crate::scheduler::{Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, WorkerId};
 use crate::tiling::CostMap;
 
 use db::{Db, JobRecord};
@@ -82,6 +86,8 @@ pub struct CoordinatorConfig {
     pub bundle_limits: BundleLimits,
     /// Lease timeouts and attempts.
     pub scheduler: SchedulerConfig,
+    /// What jobs, uploads and peers may take.
+    pub resources: Resources,
     /// Tile edge when a job does not set one; `None` (the default): a few tiles per
     /// worker thread, of equal cost as measured in the job's earlier units
     /// ([`crate::tiling`]).
@@ -165,26 +171,48 @@ pub(crate) struct Shared {
     /// with the clock at start, so a restarted coordinator's epochs differ from its
     /// predecessor's).
     pub(crate) next_epoch: AtomicU64,
+    /// Upload buffers, in KiB: an upload holds what its header announced while it is read
+    /// and decoded ([`Resources::upload_memory_bytes`]).
+    pub(crate) upload_kib: Arc<tokio::sync::Semaphore>,
+    /// A blob sweep is running ([`sweep`]), and when the last one started.
+    pub(crate) sweeping: AtomicBool,
+    pub(crate) last_sweep_ms: AtomicU64,
 }
 
-pub(crate) type Outbox = mpsc::UnboundedSender<Result<v1::CoordinatorMessage, Status>>;
+/// A worker's control stream, bounded ([`Resources::outbox_messages`]).
+pub(crate) type Outbox = mpsc::Sender<Result<v1::CoordinatorMessage, Status>>;
 
+/// A connected worker: one control stream. It is forgotten when the stream ends or the
+/// scheduler declares it lost (its stream is then ended, and a worker that comes back
+/// registers anew).
 pub(crate) struct WorkerConn {
-    pub(crate) tx: Option<Outbox>,
+    pub(crate) tx: Outbox,
     pub(crate) credits: u32,
     pub(crate) register: v1::Register,
     pub(crate) registered_unix_ms: u64,
     pub(crate) last_unix_ms: u64,
     pub(crate) tiles_done: u64,
     pub(crate) draining: bool,
+    /// `Registered.upload_key`: what its uploads name it by.
+    pub(crate) upload_key: [u8; 32],
+    /// Its outbox was full: it does not read its stream, and the next tick disconnects it.
+    pub(crate) overflowed: AtomicBool,
 }
 
-#[derive(Clone, Copy)]
-pub(crate) struct LeaseInfo {
-    pub(crate) worker: WorkerId,
-    pub(crate) key: TaskKey,
-    /// Its tile was accepted.
-    pub(crate) done: bool,
+impl WorkerConn {
+    /// Queues `msg` on the worker's stream; a full outbox marks the worker for
+    /// disconnection instead of growing (or blocking the state lock).
+    pub(crate) fn post(&self, msg: v1::coordinator_message::Msg) {
+        let m = v1::CoordinatorMessage { msg: Some(msg) };
+        if let Err(mpsc::error::TrySendError::Full(_)) = self.tx.try_send(Ok(m)) {
+            self.overflowed.store(true, Ordering::Relaxed);
+        }
+    }
+
+    /// "host/name", as blocklists and logs name a worker across reconnections.
+    pub(crate) fn identity(&self) -> String {
+        format!("{}/{}", self.register.host_name, self.register.worker_name)
+    }
 }
 
 /// A job being rendered.
@@ -223,6 +251,8 @@ pub(crate) struct Active {
     /// the collection's accounts (since when, bytes, seconds).
     pub(crate) collecting: Option<BTreeSet<u64>>,
     pub(crate) records_ledger: RecordsLedger,
+    /// The memory reserved for the session ([`Resources::job_memory_bytes`]).
+    pub(crate) memory: u64,
 }
 
 /// A unit whose tiles are not all in.
@@ -259,17 +289,66 @@ impl Active {
     }
 }
 
+/// A job not rendering yet: it holds its request and no memory until it is admitted.
+pub(crate) enum Pending {
+    /// Waiting for memory; what its submission was validated into, if this coordinator
+    /// validated it (a restarted coordinator validates it again when it starts).
+    Queued(Option<Box<Prepared>>),
+    /// Admitted with this much memory: its session is being built off the state lock.
+    Building(u64),
+}
+
 pub(crate) struct Job {
     pub(crate) record: JobRecord,
+    /// Set while the job waits to start (then `active` is `None`).
+    pub(crate) pending: Option<Pending>,
     pub(crate) active: Option<Active>,
     pub(crate) watch: watch::Sender<v1::JobStatus>,
+    /// Rejected uploads per worker identity ([`WorkerConn::identity`]).
+    pub(crate) bad_uploads: BTreeMap<String, u32>,
+    /// Workers that get no more of its leases, and why.
+    pub(crate) blocked: BTreeMap<String, String>,
+}
+
+impl Job {
+    pub(crate) fn new(record: JobRecord, pending: Option<Pending>, n: u64) -> Job {
+        let (watch, _) = watch::channel(status_of(n, &record, None));
+        let job = Job {
+            record,
+            pending,
+            active: None,
+            watch,
+            bad_uploads: BTreeMap::new(),
+            blocked: BTreeMap::new(),
+        };
+        job.watch.send_replace(job.status(n));
+        job
+    }
+
+    /// The memory the job holds now.
+    pub(crate) fn memory(&self) -> u64 {
+        match (&self.pending, &self.active) {
+            (Some(Pending::Building(m)), _) => *m,
+            (_, Some(a)) => a.memory,
+            _ => 0,
+        }
+    }
+
+    pub(crate) fn status(&self, n: u64) -> v1::JobStatus {
+        let mut s = status_of(n, &self.record, self.active.as_ref());
+        s.blocked_workers = (self.blocked.iter())
+            .map(|(who, why)| format!("{who}: {why}"))
+            .collect();
+        s
+    }
 }
 
 pub(crate) struct State {
     pub(crate) sched: Scheduler,
     pub(crate) jobs: BTreeMap<u64, Job>,
     pub(crate) workers: BTreeMap<u64, WorkerConn>,
-    pub(crate) leases: HashMap<u64, LeaseInfo>,
+    /// Connected workers by their upload key.
+    pub(crate) by_key: HashMap<[u8; 32], u64>,
     pub(crate) next_job: u64,
     pub(crate) next_worker: u64,
     /// Blobs that jobs stopped referring to, deleted by the next
@@ -282,10 +361,15 @@ pub(crate) struct State {
 pub(crate) fn slots(workers: &BTreeMap<u64, WorkerConn>) -> usize {
     let n: u64 = workers
         .values()
-        .filter(|w| w.tx.is_some() && !w.draining)
+        .filter(|w| !w.draining)
         .map(|w| w.register.threads.max(1) as u64)
         .sum();
     n.clamp(1, 1 << 16) as usize
+}
+
+/// The memory a job's session takes on the coordinator (its films and samples).
+pub(crate) fn session_memory(record: &JobRecord) -> u64 {
+    pathfarm_render::scene::guided_session_bytes(record.width, record.height)
 }
 
 pub(crate) fn unix_ms() -> u64 {
@@ -298,8 +382,14 @@ pub(crate) fn job_name(n: u64) -> String {
     format!("job-{n}")
 }
 
+/// The number of a job id `job-N` exactly as [`job_name`] writes it: no sign, no leading
+/// zero, no other spelling of the same number.
 pub(crate) fn parse_job(id: &str) -> Option<u64> {
-    id.strip_prefix("job-")?.parse().ok()
+    let digits = id.strip_prefix("job-")?;
+    let canonical = !digits.is_empty()
+        && digits.bytes().all(|b| b.is_ascii_digit())
+        && (digits == "0" || !digits.starts_with('0'));
+    canonical.then(|| digits.parse().ok())?
 }
 
 pub(crate) fn is_terminal(state: i32) -> bool {
@@ -354,12 +444,16 @@ impl Shared {
             sched: Scheduler::new(cfg.scheduler.clone()),
             jobs: BTreeMap::new(),
             workers: BTreeMap::new(),
-            leases: HashMap::new(),
+            by_key: HashMap::new(),
             next_job: 1,
             next_worker: 1,
             garbage: Vec::new(),
         };
+        let upload_kib = (cfg.resources.upload_memory_bytes >> 10).clamp(1, u32::MAX as u64 >> 3);
         let shared = Arc::new(Shared {
+            upload_kib: Arc::new(tokio::sync::Semaphore::new(upload_kib as usize)),
+            sweeping: AtomicBool::new(false),
+            last_sweep_ms: AtomicU64::new(0),
             cfg,
             blobs,
             db,
@@ -370,41 +464,19 @@ impl Shared {
             next_epoch: AtomicU64::new(unix_ms()),
         });
         {
+            // Jobs that were queued or running wait to be admitted again: nothing is
+            // validated or allocated here, so a restart with any number of big jobs queued
+            // costs no memory until each job's turn ([`Shared::admit`]).
             let mut st = shared.lock();
             for (n, mut record) in records {
                 st.next_job = st.next_job.max(n + 1);
-                let mut prepared = None;
-                if !is_terminal(record.state) {
-                    tracing::info!(job = %job_name(n), "restarting the job");
-                    let request = record.request.clone().unwrap_or_default();
-                    match shared.prepare(&request) {
-                        Ok(p) => prepared = Some(p),
-                        Err(status) => {
-                            record.state = v1::JobState::Failed as i32;
-                            record.failure_reason = format!(
-                                "cannot restart the job after a coordinator restart: {}",
-                                status.message()
-                            );
-                            record.finished_unix_ms = unix_ms();
-                            if let Err(e) = shared.db.put(n, &record) {
-                                tracing::error!(job = %job_name(n), "{e}");
-                            }
-                        }
-                    }
-                }
-                let status = status_of(n, &record, None);
-                let (watch, _) = watch::channel(status);
-                st.jobs.insert(
-                    n,
-                    Job {
-                        record,
-                        active: None,
-                        watch,
-                    },
-                );
-                if let Some(p) = prepared {
-                    shared.start_job(&mut st, n, p);
-                }
+                let pending = (!is_terminal(record.state)).then(|| {
+                    tracing::info!(job = %job_name(n), "the job waits to restart");
+                    record.state = v1::JobState::Queued as i32;
+                    record.started_unix_ms = 0;
+                    Pending::Queued(None)
+                });
+                st.jobs.insert(n, Job::new(record, pending, n));
             }
         }
         Ok(shared)
@@ -443,17 +515,13 @@ impl Shared {
             bundle: Some(bundle.clone()),
             settings: Some(settings),
         };
-        let msg = v1::CoordinatorMessage {
-            msg: Some(v1::coordinator_message::Msg::Prefetch(prefetch)),
-        };
+        let msg = v1::coordinator_message::Msg::Prefetch(prefetch);
         let st = self.lock();
         if st.jobs.values().any(|j| !is_terminal(j.record.state)) {
             return;
         }
         for w in st.workers.values().filter(|w| !w.draining) {
-            if let Some(tx) = &w.tx {
-                let _ = tx.send(Ok(msg.clone()));
-            }
+            w.post(msg.clone());
         }
     }
 
@@ -503,10 +571,8 @@ impl Shared {
         let _ = std::fs::remove_dir_all(&dir);
         let scene = result?;
         let Some(params) = scene.guided.clone() else {
-            let integrator = scene_settings
-                .integrator
-                .clone()
-                .unwrap_or_else(|| "of the scene".to_string());
+            let integrator = (scene_settings.integrator.as_deref())
+                .map_or_else(|| "of the scene".to_string(), resources::echo);
             return Err(bad(format!(
                 "integrator {integrator}: the farm renders guided_path jobs only"
             )));
@@ -523,9 +589,9 @@ impl Shared {
                 Budget::Spp(n)
             }
             Some(v1::job_settings::Budget::TimeSeconds(t)) => {
-                if !(t.is_finite() && t > 0.0 && t <= limits.max_time_seconds) {
+                if !(t.is_finite() && t >= MIN_TIME_SECONDS && t <= limits.max_time_seconds) {
                     return Err(bad(format!(
-                        "settings.time_seconds: {t} is not positive and at most {} \
+                        "settings.time_seconds: {t} is not between {MIN_TIME_SECONDS} and {} \
                          (Limits::max_time_seconds)",
                         limits.max_time_seconds
                     )));
@@ -609,27 +675,68 @@ impl Shared {
         });
     }
 
-    /// Adds a prepared job to the scheduler and starts its session.
-    pub(crate) fn start_job(self: &Arc<Self>, st: &mut State, n: u64, p: Prepared) {
-        let priority = st.jobs[&n]
-            .record
-            .request
-            .as_ref()
-            .map_or(0, |r| r.priority);
-        let now = self.now();
-        if let Err(e) = st.sched.add_job(JobId(n), priority, now) {
-            tracing::error!(job = %job_name(n), "{e}");
-            return;
+    /// Starts queued jobs while their memory fits [`Resources::job_memory_bytes`]: the
+    /// highest priority first, then the oldest; a job that does not fit yet holds back the
+    /// jobs behind it (so a big job is not starved by small ones). Each admitted job's
+    /// session is validated, built (films allocated) and resumed from its checkpoint off
+    /// the state lock ([`Shared::build`]).
+    pub(crate) fn admit(self: &Arc<Self>, st: &mut State) {
+        let budget = self.cfg.resources.job_memory_bytes;
+        let mut used: u64 = st.jobs.values().map(Job::memory).sum();
+        let mut queued: Vec<(std::cmp::Reverse<i32>, u64)> = (st.jobs.iter())
+            .filter(|(_, j)| matches!(j.pending, Some(Pending::Queued(_))))
+            .map(|(&n, j)| {
+                let priority = j.record.request.as_ref().map_or(0, |r| r.priority);
+                (std::cmp::Reverse(priority), n)
+            })
+            .collect();
+        queued.sort_unstable();
+        for (_, n) in queued {
+            let job = st.jobs.get_mut(&n).expect("listed");
+            let need = session_memory(&job.record);
+            if used.saturating_add(need) > budget {
+                return;
+            }
+            used += need;
+            let Some(Pending::Queued(prepared)) = job.pending.replace(Pending::Building(need))
+            else {
+                unreachable!("listed as queued")
+            };
+            let record = job.record.clone();
+            let shared = self.clone();
+            tracing::info!(job = %job_name(n), memory_mb = need >> 20, "starting the job");
+            tokio::task::spawn_blocking(move || {
+                let built = shared.build(n, &record, prepared.map(|p| *p));
+                shared.install(n, need, built);
+            });
         }
+    }
+
+    /// Job `n`'s session, from its validated submission (or validated again after a
+    /// restart), resumed from its checkpoint if it has one. Slow (films, checkpoint reads):
+    /// off the state lock and the async threads.
+    fn build(
+        &self,
+        n: u64,
+        record: &JobRecord,
+        prepared: Option<Prepared>,
+    ) -> Result<(Session, Prepared), String> {
+        let p = match prepared {
+            Some(p) => p,
+            None => {
+                let request = record.request.clone().unwrap_or_default();
+                self.prepare(&request).map_err(|status| {
+                    format!(
+                        "cannot restart the job after a coordinator restart: {}",
+                        status.message()
+                    )
+                })?
+            }
+        };
         // The session's default tiling; each unit is re-tiled as it is issued (`drive`).
         let tiles = Region::tiles(p.width, p.height, p.tile.unwrap_or(32));
-        let samples_total = match p.budget {
-            Budget::Spp(s) => s as u64 * p.width as u64 * p.height as u64,
-            Budget::Seconds(_) => 0,
-        };
-        let job = st.jobs.get_mut(&n).expect("inserted by the caller");
         let prepared = p.duplicate();
-        let mut session = match self.resume(n, &job.record, &p, &tiles) {
+        let mut session = match self.resume(n, record, &p, &tiles) {
             Some(s) => s,
             None => Session::new(
                 &p.params,
@@ -637,13 +744,47 @@ impl Shared {
                 p.tree,
                 (p.width, p.height),
                 p.splatting,
-                tiles.clone(),
+                tiles,
                 FallbackPolicy::Rule,
             ),
         };
         // Workers keep a tree version's quadtree records and ship them once, before
         // refinement (`docs/decisions/records-per-iteration.md`).
         session.set_records(Records::PerIteration);
+        Ok((session, prepared))
+    }
+
+    /// Installs job `n`'s built session (unless the job ended meanwhile) and offers its
+    /// first units.
+    fn install(self: &Arc<Self>, n: u64, memory: u64, built: Result<(Session, Prepared), String>) {
+        let mut st = self.lock();
+        let st = &mut *st;
+        let Some(job) = st.jobs.get_mut(&n) else {
+            return;
+        };
+        if !matches!(job.pending, Some(Pending::Building(_))) {
+            // cancelled while it was built: its memory is free again
+            self.admit(st);
+            return;
+        }
+        job.pending = None;
+        let (session, p) = match built {
+            Ok(b) => b,
+            Err(reason) => {
+                self.fail_job(st, n, reason);
+                self.admit(st);
+                return;
+            }
+        };
+        let priority = job.record.request.as_ref().map_or(0, |r| r.priority);
+        if let Err(e) = st.sched.add_job(JobId(n), priority, self.now()) {
+            self.fail_job(st, n, format!("scheduler: {e}"));
+            return;
+        }
+        let samples_total = match p.budget {
+            Budget::Spp(s) => s as u64 * p.width as u64 * p.height as u64,
+            Budget::Seconds(_) => 0,
+        };
         job.record.width = p.width;
         job.record.height = p.height;
         job.record.state = v1::JobState::Queued as i32;
@@ -664,13 +805,15 @@ impl Shared {
             fractions_digests: Vec::new(),
             estimate_digest: None,
             samples_total,
-            prepared,
+            prepared: p,
             records_epoch: self.next_epoch.fetch_add(1, Ordering::Relaxed),
             holders: BTreeSet::new(),
             collecting: None,
             records_ledger: RecordsLedger::start(0),
+            memory,
         });
         self.drive(st, n);
+        self.dispatch(st);
     }
 
     /// Starts job `n` again from its last durable checkpoint (or from the start): a worker
@@ -684,23 +827,15 @@ impl Shared {
         tracing::warn!(job = %job_name(n), iteration = a.session.iteration(), "rolling back to the last checkpoint: {why}");
         self.metrics.roll_back();
         st.garbage.extend(a.blobs());
-        let leases: Vec<(u64, WorkerId)> = st
-            .leases
-            .iter()
-            .filter(|(_, l)| l.key.job == JobId(n) && !l.done)
-            .map(|(&id, l)| (id, l.worker))
-            .collect();
-        for (id, worker) in leases {
-            send_cancel(
-                st,
-                worker,
-                LeaseId(id),
-                "the job rolls back to its checkpoint",
-            );
+        let leases = st.sched.remove_job(JobId(n)).unwrap_or_default();
+        for (worker, id) in leases {
+            send_cancel(st, worker, id, "the job rolls back to its checkpoint");
         }
-        st.leases.retain(|_, l| l.key.job != JobId(n));
-        let _ = st.sched.remove_job(JobId(n));
-        self.start_job(st, n, a.prepared);
+        if let Some(job) = st.jobs.get_mut(&n) {
+            job.pending = Some(Pending::Queued(Some(Box::new(a.prepared))));
+        }
+        self.publish_status(st, n);
+        self.admit(st);
     }
 
     /// The session wants the iteration's records: asks every holder once, or goes on at
@@ -726,9 +861,8 @@ impl Shared {
             a.collecting = Some(a.holders.clone());
             a.records_ledger = RecordsLedger::start(a.holders.len());
             for w in &a.holders {
-                if let Some(tx) = st.workers.get(w).and_then(|w| w.tx.as_ref()) {
-                    let msg = v1::coordinator_message::Msg::FlushRecords(flush.clone());
-                    let _ = tx.send(Ok(v1::CoordinatorMessage { msg: Some(msg) }));
+                if let Some(w) = st.workers.get(w) {
+                    w.post(v1::coordinator_message::Msg::FlushRecords(flush.clone()));
                 }
             }
             return false;
@@ -833,8 +967,9 @@ impl Shared {
                 job.record.nonfinite = a.session.nonfinite();
                 let released = a.blobs();
                 let _ = st.sched.remove_job(JobId(n));
-                st.leases.retain(|_, l| l.key.job != JobId(n));
                 self.publish_status(st, n);
+                // its memory is the films `finish` combines: given back once assembled
+                self.admit(st);
                 let (film, stats, tree) = a.session.finish();
                 tracing::info!(
                     job = %job_name(n),
@@ -851,7 +986,13 @@ impl Shared {
     /// Encodes and stores job `n`'s results (off the state lock: EXR and PNG encoding take
     /// a while) and marks it DONE, unless it was cancelled meanwhile. The session's blobs
     /// (`released`, and the checkpoint) become garbage once the results are durable.
-    fn assemble(&self, n: u64, film: pathfarm_render::Film, tree: SdTree, released: Vec<Digest>) {
+    fn assemble(
+        self: &Arc<Self>,
+        n: u64,
+        film: pathfarm_render::Film,
+        tree: SdTree,
+        released: Vec<Digest>,
+    ) {
         let encoded = (|| -> Result<[Vec<u8>; 3], String> {
             let exr =
                 pathfarm_render::output::encode_exr(&film, false).map_err(|e| e.to_string())?;
@@ -947,14 +1088,14 @@ impl Shared {
     }
 
     /// Marks job `n` FAILED (if not already terminal), cancelling its leases.
-    pub(crate) fn fail_job(&self, st: &mut State, n: u64, reason: String) {
+    pub(crate) fn fail_job(self: &Arc<Self>, st: &mut State, n: u64, reason: String) {
         self.end_job(st, n, v1::JobState::Failed, reason);
     }
 
     /// Ends job `n` in `state` (FAILED or CANCELLED) unless it is already terminal. Returns
     /// whether it did.
     pub(crate) fn end_job(
-        &self,
+        self: &Arc<Self>,
         st: &mut State,
         n: u64,
         state: v1::JobState,
@@ -970,6 +1111,7 @@ impl Shared {
         self.release_session_blobs(st, n);
         let job = st.jobs.get_mut(&n).expect("checked");
         job.active = None;
+        job.pending = None;
         job.record.state = state as i32;
         if state == v1::JobState::Failed {
             job.record.failure_reason = reason.clone();
@@ -979,10 +1121,10 @@ impl Shared {
         for (worker, lease) in cancelled {
             send_cancel(st, worker, lease, &reason);
         }
-        st.leases.retain(|_, l| l.key.job != JobId(n));
         self.persist(st, n);
         self.publish_status(st, n);
         self.collect_garbage(st);
+        self.admit(st);
         true
     }
 
@@ -996,8 +1138,7 @@ impl Shared {
 
     pub(crate) fn publish_status(&self, st: &State, n: u64) {
         if let Some(job) = st.jobs.get(&n) {
-            job.watch
-                .send_replace(status_of(n, &job.record, job.active.as_ref()));
+            job.watch.send_replace(job.status(n));
         }
     }
 
@@ -1007,7 +1148,7 @@ impl Shared {
         let mut ids: Vec<u64> = st
             .workers
             .iter()
-            .filter(|(_, w)| w.credits > 0 && w.tx.is_some() && !w.draining)
+            .filter(|(_, w)| w.credits > 0 && !w.draining)
             .map(|(&id, _)| id)
             .collect();
         // One lease per worker per round, every other round in reverse: a unit's tiles come
@@ -1031,21 +1172,11 @@ impl Shared {
         };
         let n = lease.key.job.0;
         let offer = self.offer(st, &lease, now);
-        st.leases.insert(
-            lease.id.0,
-            LeaseInfo {
-                worker: WorkerId(id),
-                key: lease.key,
-                done: false,
-            },
-        );
         let w = st.workers.get_mut(&id).expect("listed");
         w.credits -= 1;
         tracing::debug!(job = %job_name(n), lease = lease.id.0, worker = id, tile = lease.key.tile, unit = lease.key.unit, "lease offered");
-        if let (Some(tx), Some(offer)) = (&w.tx, offer) {
-            let _ = tx.send(Ok(v1::CoordinatorMessage {
-                msg: Some(v1::coordinator_message::Msg::LeaseOffer(offer)),
-            }));
+        if let Some(offer) = offer {
+            w.post(v1::coordinator_message::Msg::LeaseOffer(offer));
         }
         let job = st.jobs.get_mut(&n).expect("scheduled jobs exist");
         if job.record.started_unix_ms == 0 {
@@ -1119,16 +1250,19 @@ impl Shared {
                     send_cancel(st, worker, lease, "lease expired");
                 }
                 Event::WorkerLost { worker, returned } => {
-                    match returned.is_empty() {
-                        true => {
-                            tracing::info!(worker = worker.0, "worker gone (it held no leases)")
-                        }
-                        false => tracing::warn!(
-                            worker = worker.0,
-                            returned = returned.len(),
-                            "worker lost"
-                        ),
+                    if returned.is_empty() {
+                        tracing::info!(worker = worker.0, "worker gone (it held no leases)")
+                    } else {
+                        let returned = returned.len();
+                        tracing::warn!(worker = worker.0, returned, "worker lost");
                     }
+                    // Its stream (if still open) is ended: a worker that was only paused
+                    // reconnects and registers anew, and is offered work again.
+                    forget_worker(
+                        st,
+                        worker.0,
+                        "declared lost (silent past the heartbeat timeout)",
+                    );
                     self.lost_holder(st, worker);
                 }
                 Event::JobFailed { job, reason } => {
@@ -1139,6 +1273,49 @@ impl Shared {
                     send_cancel(st, worker, lease, "lease cancelled");
                 }
             }
+        }
+    }
+
+    /// Worker `id` sent job `n` something bad (an upload that is corrupt, out of range or
+    /// refused by the session; a report that the job cannot be rendered): it is counted
+    /// against the worker, never the job. Past [`Resources::bad_uploads_per_job`] (at once
+    /// for [`Blame::Unrenderable`]) the worker gets no more leases of the job, under its
+    /// identity, across reconnections; a job that every connected worker is blocked from
+    /// fails with the last reason (its scene, not a worker, is then at fault).
+    pub(crate) fn blame(self: &Arc<Self>, st: &mut State, n: u64, id: u64, why: &str, b: Blame) {
+        let Some(who) = st.workers.get(&id).map(WorkerConn::identity) else {
+            return;
+        };
+        let Some(job) = st.jobs.get_mut(&n) else {
+            return;
+        };
+        let count = job.bad_uploads.entry(who.clone()).or_default();
+        *count += 1;
+        let limit = self.cfg.resources.bad_uploads_per_job.max(1);
+        let reason = resources::truncate(why, 512);
+        tracing::warn!(job = %job_name(n), worker = id, identity = %who, count = *count, "bad result: {reason}");
+        if b == Blame::Bad && *count < limit {
+            return;
+        }
+        job.blocked.insert(who.clone(), reason.clone());
+        let blocked: Vec<u64> = (st.workers.iter())
+            .filter(|(_, w)| w.identity() == who)
+            .map(|(&w, _)| w)
+            .collect();
+        for w in blocked {
+            for lease in st.sched.block(WorkerId(w), JobId(n)).unwrap_or_default() {
+                send_cancel(st, WorkerId(w), lease, "blocked from the job");
+            }
+        }
+        self.metrics.worker_blocked();
+        let usable = (st.workers.iter())
+            .any(|(&w, c)| !c.draining && !st.sched.is_blocked(WorkerId(w), JobId(n)));
+        if !usable {
+            let reason =
+                format!("every connected worker was blocked from the job; last: {who}: {reason}");
+            self.fail_job(st, n, reason);
+        } else {
+            self.publish_status(st, n);
         }
     }
 
@@ -1169,6 +1346,22 @@ impl Shared {
         let now = self.now();
         let events = st.sched.tick(now);
         self.handle_events(&mut st, events);
+        // Workers that stopped reading their stream until their outbox filled.
+        let deaf: Vec<u64> = (st.workers.iter())
+            .filter(|(_, w)| w.overflowed.load(Ordering::Relaxed))
+            .map(|(&id, _)| id)
+            .collect();
+        for id in deaf {
+            tracing::warn!(
+                worker = id,
+                "worker disconnected: it does not read its stream"
+            );
+            let events = st.sched.worker_lost(WorkerId(id)).unwrap_or_default();
+            forget_worker(&mut st, id, "did not read its stream");
+            self.handle_events(&mut st, events);
+            self.lost_holder(&mut st, WorkerId(id));
+        }
+        self.admit(&mut st);
         // A holder that heartbeats but never answers a flush (a bug, or a wedged worker)
         // must not stall its job: after a lease's lifetime the job rolls back.
         let timeout = self.cfg.scheduler.lease_timeout;
@@ -1201,16 +1394,35 @@ impl Shared {
             self.drive(&mut st, n);
         }
         self.dispatch(&mut st);
+        drop(st);
+        self.maybe_sweep();
+    }
+}
+
+/// How bad a worker's result was ([`Shared::blame`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Blame {
+    /// A bad upload: counted, blocked past the limit.
+    Bad,
+    /// The worker says the job cannot be rendered: blocked at once.
+    Unrenderable,
+}
+
+/// Forgets connected worker `id` (if it still is): its stream ends with `why`, so a worker
+/// that is still running sees it and registers again.
+pub(crate) fn forget_worker(st: &mut State, id: u64, why: &str) {
+    if let Some(w) = st.workers.remove(&id) {
+        st.by_key.remove(&w.upload_key);
+        let status = Status::unavailable(format!("worker {id} {why}; register again"));
+        let _ = w.tx.try_send(Err(status));
     }
 }
 
 pub(crate) fn send_cancel(st: &State, worker: WorkerId, lease: LeaseId, reason: &str) {
-    if let Some(tx) = st.workers.get(&worker.0).and_then(|w| w.tx.as_ref()) {
-        let _ = tx.send(Ok(v1::CoordinatorMessage {
-            msg: Some(v1::coordinator_message::Msg::CancelLease(v1::CancelLease {
-                lease_id: lease.0,
-                reason: reason.to_string(),
-            })),
+    if let Some(w) = st.workers.get(&worker.0) {
+        w.post(v1::coordinator_message::Msg::CancelLease(v1::CancelLease {
+            lease_id: lease.0,
+            reason: resources::truncate(reason, 1024),
         }));
     }
 }
@@ -1247,12 +1459,50 @@ pub(crate) fn manifest_from_proto(b: &v1::Bundle) -> Result<Manifest, Status> {
     })
 }
 
+/// The shortest time budget a job may have, in seconds.
+const MIN_TIME_SECONDS: f64 = 0.01;
+
+/// The most defines a job may set, and the longest name and value of one.
+const MAX_DEFINES: usize = 256;
+const MAX_DEFINE_NAME_BYTES: usize = 128;
+const MAX_DEFINE_VALUE_BYTES: usize = 4096;
+
+/// A job's `-D name=value` overrides, each checked: a name is an identifier, a value has
+/// no surrounding whitespace or control characters (`resx=' 64'` is refused, not read as
+/// 64), and both are bounded; an error echoes at most a bounded part of the input.
 fn overrides_of(s: &v1::SceneSettings) -> Result<Vec<(String, String)>, Status> {
+    if s.defines.len() > MAX_DEFINES {
+        return Err(bad(format!(
+            "settings.scene.defines: {} defines, at most {MAX_DEFINES}",
+            s.defines.len()
+        )));
+    }
     let mut out = Vec::new();
     for (i, d) in s.defines.iter().enumerate() {
-        if d.name.is_empty() {
-            return Err(Status::invalid_argument(format!(
-                "settings.scene.defines[{i}]: empty name"
+        let field = format!("settings.scene.defines[{i}]");
+        let identifier =
+            d.name.bytes().enumerate().all(|(k, b)| {
+                b == b'_' || b.is_ascii_alphabetic() || (k > 0 && b.is_ascii_digit())
+            });
+        if d.name.is_empty() || d.name.len() > MAX_DEFINE_NAME_BYTES || !identifier {
+            return Err(bad(format!(
+                "{field}.name: {} is not an identifier of at most {MAX_DEFINE_NAME_BYTES} bytes",
+                resources::echo(&d.name)
+            )));
+        }
+        let v = &d.value;
+        if v.len() > MAX_DEFINE_VALUE_BYTES {
+            return Err(bad(format!(
+                "{field}.value ({}): {} bytes, at most {MAX_DEFINE_VALUE_BYTES}",
+                d.name,
+                v.len()
+            )));
+        }
+        if v.trim() != v || v.chars().any(char::is_control) {
+            return Err(bad(format!(
+                "{field}.value ({}): {} has surrounding whitespace or control characters",
+                d.name,
+                resources::echo(v)
             )));
         }
         out.push((d.name.clone(), d.value.clone()));
@@ -1331,7 +1581,7 @@ pub(crate) async fn update_health(
     shared: &Shared,
     reporter: &tonic_health::server::HealthReporter,
 ) {
-    let any = shared.lock().workers.values().any(|w| w.tx.is_some());
+    let any = !shared.lock().workers.is_empty();
     if shared.serving.swap(any, Ordering::SeqCst) == any {
         return;
     }

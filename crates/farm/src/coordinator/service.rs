@@ -13,10 +13,12 @@ use pathfarm_proto::MAX_CHUNK_BYTES;
 use pathfarm_render::pass::TileOutput;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::{ReceiverStream, UnboundedReceiverStream};
+use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Response, Status, Streaming};
+
+mod uploads;
 
 use super::ledger::TileTimes;
 use super::*;
@@ -55,6 +57,12 @@ pub(super) async fn run(
         // so that a stock client can describe the health service as well as call it
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1()
+        .map_err(|e| CoordinatorError::Reflection(e.to_string()))?;
+    // v1alpha too: Python's stock grpcio-reflection and older grpcurl speak only that.
+    let reflection_alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pathfarm_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()
         .map_err(|e| CoordinatorError::Reflection(e.to_string()))?;
     let svc = Svc {
         shared: shared.clone(),
@@ -96,14 +104,11 @@ pub(super) async fn run(
         tracing::info!("coordinator shutting down");
         // End the workers' control streams so the server can stop.
         let mut st = closer.lock();
-        for w in st.workers.values_mut() {
-            if let Some(tx) = w.tx.take() {
-                let _ = tx.send(Ok(v1::CoordinatorMessage {
-                    msg: Some(v1::coordinator_message::Msg::Drain(v1::Drain {
-                        reason: "the coordinator is shutting down".into(),
-                    })),
-                }));
-            }
+        st.by_key.clear();
+        for w in std::mem::take(&mut st.workers).into_values() {
+            w.post(v1::coordinator_message::Msg::Drain(v1::Drain {
+                reason: "the coordinator is shutting down".into(),
+            }));
         }
     };
     let mut builder = tonic::transport::Server::builder();
@@ -118,6 +123,7 @@ pub(super) async fn run(
         .initial_connection_window_size(crate::client::CONNECTION_WINDOW)
         .add_service(health_service)
         .add_service(reflection)
+        .add_service(reflection_alpha)
         .add_service(v1::jobs_server::JobsServer::with_interceptor(
             svc.clone(),
             auth.clone(),
@@ -147,27 +153,35 @@ struct Auth {
 
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        // The token first: an unauthenticated caller learns nothing, not even the protocol.
+        if let Some(expected) = &self.expected {
+            match req.metadata().get("authorization") {
+                None => {
+                    return Err(Status::unauthenticated(
+                        "missing token: send metadata \"authorization: Bearer <token>\"",
+                    ))
+                }
+                Some(v) if constant_time_eq(v.as_bytes(), expected.as_bytes()) => {}
+                Some(_) => return Err(Status::unauthenticated("wrong token")),
+            }
+        }
         // A pathfarm client names its protocol; stock gRPC clients (grpcurl) need not.
         if let Some(v) = req.metadata().get(pathfarm_proto::PROTOCOL_HEADER) {
             let ours = pathfarm_proto::PROTOCOL_VERSION.to_string();
             if v.as_bytes() != ours.as_bytes() {
+                let theirs = resources::echo(v.to_str().unwrap_or("?"));
                 return Err(Status::failed_precondition(format!(
-                    "protocol version mismatch: client protocol {}, coordinator {ours}",
-                    v.to_str().unwrap_or("?")
+                    "protocol version mismatch: client protocol {theirs}, coordinator {ours}"
                 )));
             }
         }
-        let Some(expected) = &self.expected else {
-            return Ok(req);
-        };
-        match req.metadata().get("authorization") {
-            None => Err(Status::unauthenticated(
-                "missing token: send metadata \"authorization: Bearer <token>\"",
-            )),
-            Some(v) if v.as_bytes() == expected.as_bytes() => Ok(req),
-            Some(_) => Err(Status::unauthenticated("wrong token")),
-        }
+        Ok(req)
     }
+}
+
+/// Whether `a == b`, in a time that does not depend on where they differ.
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 fn chunk_stream(path: PathBuf, digest: Vec<u8>) -> Result<ChunkStream, Status> {
@@ -214,12 +228,35 @@ fn chunk_stream(path: PathBuf, digest: Vec<u8>) -> Result<ChunkStream, Status> {
 
 impl Svc {
     fn job_number(&self, id: &str) -> Result<u64, Status> {
-        let n = parse_job(id).ok_or_else(|| Status::not_found(format!("no job {id:?}")))?;
+        let missing = || Status::not_found(format!("no job {}", resources::echo(id)));
+        let n = parse_job(id).ok_or_else(missing)?;
         if self.shared.lock().jobs.contains_key(&n) {
             Ok(n)
         } else {
-            Err(Status::not_found(format!("no job {id:?}")))
+            Err(missing())
         }
+    }
+
+    /// Refuses a submission while [`Resources::max_jobs_waiting`] jobs are queued or running.
+    fn room_for_a_job(&self) -> Result<(), Status> {
+        let max = self.shared.cfg.resources.max_jobs_waiting;
+        let st = self.shared.lock();
+        let waiting = st
+            .jobs
+            .values()
+            .filter(|j| !is_terminal(j.record.state))
+            .count();
+        if waiting >= max {
+            return Err(Status::resource_exhausted(format!(
+                "{waiting} jobs are queued or running, the most this coordinator takes \
+                 (--max-jobs-waiting); submit again when some have finished"
+            )));
+        }
+        Ok(())
+    }
+
+    fn idle(&self) -> std::time::Duration {
+        self.shared.cfg.resources.stream_idle
     }
 }
 
@@ -239,7 +276,7 @@ impl Jobs for Svc {
         let mut missing = Vec::new();
         for (i, d) in req.digests.into_iter().enumerate() {
             let digest = digest_from(&d, &format!("digests[{i}]"))?;
-            if seen.insert(digest) && !self.shared.blobs.has(&digest) {
+            if seen.insert(digest) && !self.shared.blobs.has_and_touch(&digest) {
                 missing.push(d);
             }
         }
@@ -251,9 +288,9 @@ impl Jobs for Svc {
         req: Request<Streaming<v1::BlobChunk>>,
     ) -> Result<Response<v1::UploadBlobResponse>, Status> {
         let mut stream = req.into_inner();
-        let header = chunked::header(&mut stream, "UploadBlob")
+        let header = chunked::header(&mut stream, "UploadBlob", self.idle())
             .await
-            .map_err(upload_status)?;
+            .map_err(UploadError::into_status)?;
         let digest = digest_from(&header.digest, "header.digest")?;
         let max = self.shared.cfg.bundle_limits.max_file_bytes;
         if header.size > max {
@@ -270,7 +307,17 @@ impl Jobs for Svc {
                 already_present,
             }))
         };
-        if self.shared.blobs.has(&digest) {
+        if self.shared.blobs.has_and_touch(&digest) {
+            // The same digest with another size is a false header, not a duplicate.
+            let stored = self.shared.blobs.size(&digest);
+            if stored != Some(header.size) {
+                return Err(bad(format!(
+                    "header.size: {} bytes, but the blob {} is {} bytes",
+                    header.size,
+                    digest.to_hex(),
+                    stored.unwrap_or(0)
+                )));
+            }
             return done(true);
         }
         let mut upload = self
@@ -278,9 +325,9 @@ impl Jobs for Svc {
             .blobs
             .begin(digest, header.size)
             .map_err(|e| Status::internal(format!("cannot store the blob: {e}")))?;
-        chunked::data(&mut stream, header.size, |d| upload.write(d))
+        chunked::data(&mut stream, header.size, self.idle(), |d| upload.write(d))
             .await
-            .map_err(upload_status)?;
+            .map_err(UploadError::into_status)?;
         upload.finish().map_err(super::bad)?;
         tracing::debug!(blob = %digest.to_hex(), size = header.size, "blob stored");
         done(false)
@@ -291,6 +338,7 @@ impl Jobs for Svc {
         req: Request<v1::SubmitJobRequest>,
     ) -> Result<Response<v1::SubmitJobResponse>, Status> {
         let req = req.into_inner();
+        self.room_for_a_job()?;
         self.shared.advise_prefetch(&req);
         let shared = self.shared.clone();
         let (req, prepared) = tokio::task::spawn_blocking(move || {
@@ -299,22 +347,9 @@ impl Jobs for Svc {
         })
         .await
         .map_err(|e| Status::internal(format!("job validation panicked: {e}")))?;
-        let prepared = match prepared {
-            Ok(p) => p,
-            Err(status) => {
-                // Nothing of a refused submission is kept: its blobs go unless a job uses them.
-                let mut st = self.shared.lock();
-                let digests = req.bundle.iter().flat_map(|b| &b.files);
-                let digests =
-                    digests.filter_map(|f| <[u8; 32]>::try_from(f.digest.as_slice()).ok());
-                st.garbage.extend(digests.map(crate::bundle::Digest));
-                self.shared.collect_garbage(&mut st);
-                return Err(status);
-            }
-        };
-        let mut st = self.shared.lock();
-        let n = st.next_job;
-        st.next_job += 1;
+        // A refused submission's blobs stay until the grace period has passed (another
+        // client may have uploaded the same files for a job of its own): `sweep`.
+        let prepared = prepared?;
         let record = JobRecord {
             request: Some(req),
             state: v1::JobState::Queued as i32,
@@ -323,21 +358,29 @@ impl Jobs for Svc {
             height: prepared.height,
             ..Default::default()
         };
+        let need = session_memory(&record);
+        let budget = self.shared.cfg.resources.job_memory_bytes;
+        if need > budget {
+            return Err(Status::resource_exhausted(format!(
+                "the job's {}x{} image needs about {} MB of coordinator memory, more than \
+                 its job memory budget of {} MB (--job-memory-mb)",
+                record.width,
+                record.height,
+                need >> 20,
+                budget >> 20
+            )));
+        }
+        self.room_for_a_job()?;
+        let mut st = self.shared.lock();
+        let n = st.next_job;
+        st.next_job += 1;
         if let Err(e) = self.shared.db.put(n, &record) {
             return Err(Status::internal(e));
         }
-        let (watch, _) = watch::channel(status_of(n, &record, None));
-        st.jobs.insert(
-            n,
-            Job {
-                record,
-                active: None,
-                watch,
-            },
-        );
+        let pending = Pending::Queued(Some(Box::new(prepared)));
+        st.jobs.insert(n, Job::new(record, Some(pending), n));
         tracing::info!(job = %job_name(n), "job submitted");
-        self.shared.start_job(&mut st, n, prepared);
-        self.shared.dispatch(&mut st);
+        self.shared.admit(&mut st);
         Ok(Response::new(v1::SubmitJobResponse {
             job_id: job_name(n),
         }))
@@ -378,7 +421,7 @@ impl Jobs for Svc {
         let job = &st.jobs[&n];
         let request = job.record.request.clone().unwrap_or_default();
         Ok(Response::new(v1::GetJobResponse {
-            status: Some(status_of(n, &job.record, job.active.as_ref())),
+            status: Some(job.status(n)),
             settings: request.settings,
             root: request.bundle.map(|b| b.root).unwrap_or_default(),
             image: (job.record.width > 0).then_some(v1::Resolution {
@@ -397,7 +440,7 @@ impl Jobs for Svc {
         let mut jobs: Vec<v1::JobStatus> = st
             .jobs
             .iter()
-            .map(|(&n, j)| status_of(n, &j.record, j.active.as_ref()))
+            .map(|(&n, j)| j.status(n))
             .filter(|s| req.states.is_empty() || req.states.contains(&s.state))
             .collect();
         if req.limit > 0 && jobs.len() > req.limit as usize {
@@ -424,7 +467,7 @@ impl Jobs for Svc {
         let job = &st.jobs[&n];
         Ok(Response::new(v1::CancelJobResponse {
             cancelled,
-            status: Some(status_of(n, &job.record, job.active.as_ref())),
+            status: Some(job.status(n)),
         }))
     }
 
@@ -478,13 +521,8 @@ impl Jobs for Svc {
             .workers
             .iter()
             .map(|(&id, w)| {
-                let mut lease_ids: Vec<u64> = st
-                    .leases
-                    .iter()
-                    .filter(|(_, l)| l.worker == WorkerId(id) && !l.done && w.tx.is_some())
-                    .map(|(&lease, _)| lease)
-                    .collect();
-                lease_ids.sort_unstable();
+                let held = st.sched.held_by(WorkerId(id));
+                let lease_ids: Vec<u64> = held.into_iter().map(|l| l.0).collect();
                 v1::WorkerInfo {
                     worker_id: id,
                     host_name: w.register.host_name.clone(),
@@ -497,7 +535,7 @@ impl Jobs for Svc {
                     protocol_version: w.register.protocol_version,
                     draining: w.draining,
                     registered_unix_ms: w.registered_unix_ms,
-                    connected: w.tx.is_some(),
+                    connected: true,
                 }
             })
             .collect();
@@ -507,19 +545,6 @@ impl Jobs for Svc {
 
 fn msg(m: v1::coordinator_message::Msg) -> Result<v1::CoordinatorMessage, Status> {
     Ok(v1::CoordinatorMessage { msg: Some(m) })
-}
-
-fn ack(accepted: bool, reason: v1::TileRejectReason, detail: String) -> Response<v1::TileAck> {
-    Response::new(v1::TileAck {
-        accepted,
-        reject_reason: reason as i32,
-        detail,
-        duplicate: false,
-    })
-}
-
-fn corrupt(detail: impl Into<String>) -> Result<Response<v1::TileAck>, Status> {
-    Ok(ack(false, v1::TileRejectReason::Corrupt, detail.into()))
 }
 
 impl Svc {
@@ -538,9 +563,24 @@ impl Svc {
                 tracing::warn!(worker = id, "second Register ignored");
             }
             Msg::Heartbeat(h) => {
+                let max = shared.cfg.resources.max_heartbeat_leases;
+                if h.active_lease_ids.len() > max {
+                    let n = h.active_lease_ids.len();
+                    tracing::warn!(worker = id, leases = n, "heartbeat lists too many leases");
+                    let events = st.sched.worker_lost(worker).unwrap_or_default();
+                    let why = format!("sent a heartbeat of {n} leases (at most {max})");
+                    forget_worker(&mut st, id, &why);
+                    shared.handle_events(&mut st, events);
+                    shared.lost_holder(&mut st, worker);
+                    return;
+                }
                 let active: Vec<LeaseId> = h.active_lease_ids.iter().map(|&l| LeaseId(l)).collect();
                 if let Ok(stale) = st.sched.heartbeat(worker, &active, now) {
-                    for lease in stale {
+                    // Only leases this worker was given are worth a cancel: one for every
+                    // id a peer makes up would amplify its heartbeats into our memory.
+                    let given =
+                        |l: &LeaseId| st.sched.lease(*l).is_some_and(|v| v.worker == worker);
+                    for lease in stale.into_iter().filter(given) {
                         send_cancel(&st, worker, lease, "not this worker's lease any more");
                     }
                 }
@@ -558,19 +598,18 @@ impl Svc {
                     "lease failed: {}",
                     f.reason
                 );
-                let job = st.leases.get(&f.lease_id).map(|l| l.key.job.0);
+                let job = st.sched.lease(LeaseId(f.lease_id)).map(|l| l.key.job.0);
                 match st
                     .sched
                     .fail_lease(worker, LeaseId(f.lease_id), &f.reason, now)
                 {
                     Ok(events) => {
                         shared.handle_events(&mut st, events);
+                        // One worker's word that the job cannot be rendered blocks that
+                        // worker; the job fails when no worker is left to try it.
                         if let (true, Some(n)) = (f.fatal, job) {
-                            shared.fail_job(
-                                &mut st,
-                                n,
-                                format!("worker {id} failed lease {}: {}", f.lease_id, f.reason),
-                            );
+                            let why = format!("failed lease {}: {}", f.lease_id, f.reason);
+                            shared.blame(&mut st, n, id, &why, Blame::Unrenderable);
                         }
                     }
                     Err(r) => tracing::debug!(
@@ -597,10 +636,7 @@ impl Svc {
 
     fn worker_gone(&self, id: u64) {
         let mut st = self.shared.lock();
-        if let Some(w) = st.workers.get_mut(&id) {
-            w.tx = None;
-            w.credits = 0;
-        }
+        forget_worker(&mut st, id, "disconnected");
         tracing::info!(worker = id, "worker disconnected");
         match st.sched.worker_lost(WorkerId(id)) {
             Ok(events) => self.shared.handle_events(&mut st, events),
@@ -613,7 +649,7 @@ impl Svc {
 
 #[tonic::async_trait]
 impl Workers for Svc {
-    type ControlStream = UnboundedReceiverStream<Result<v1::CoordinatorMessage, Status>>;
+    type ControlStream = ReceiverStream<Result<v1::CoordinatorMessage, Status>>;
 
     async fn control(
         &self,
@@ -627,7 +663,7 @@ impl Workers for Svc {
                 "the first message on the control stream must be Register",
             ));
         };
-        let (tx, rx) = mpsc::unbounded_channel();
+        let (tx, rx) = mpsc::channel(self.shared.cfg.resources.outbox_messages.max(8));
         let ours = crate::build::build_id();
         let refusal = if register.protocol_version != pathfarm_proto::PROTOCOL_VERSION {
             Some(format!(
@@ -636,23 +672,29 @@ impl Workers for Svc {
                 pathfarm_proto::PROTOCOL_VERSION
             ))
         } else if register.build_id != ours {
+            // The coordinator's own build id is not told: run the same release everywhere.
             Some(format!(
-                "build mismatch: worker build {}, coordinator build {ours} (different builds \
+                "build mismatch: worker build {} is not the coordinator's (different builds \
                  may round differently, and tiles must be bit-exact)",
-                register.build_id
+                resources::echo(&register.build_id)
             ))
         } else {
             None
         };
         if let Some(reason) = refusal {
-            tracing::warn!(host = %register.host_name, "worker refused: {reason}");
-            let _ = tx.send(msg(Msg::Refused(v1::Refused {
+            let host = resources::truncate(&register.host_name, resources::MAX_NAME_BYTES);
+            tracing::warn!(host = %host, "worker refused: {reason}");
+            let _ = tx.try_send(msg(Msg::Refused(v1::Refused {
                 reason: reason.clone(),
                 supported_protocol_versions: vec![pathfarm_proto::PROTOCOL_VERSION],
-                required_build_id: ours.to_string(),
+                required_build_id: String::new(),
             })));
-            let _ = tx.send(Err(Status::failed_precondition(reason)));
-            return Ok(Response::new(UnboundedReceiverStream::new(rx)));
+            let _ = tx.try_send(Err(Status::failed_precondition(reason)));
+            return Ok(Response::new(ReceiverStream::new(rx)));
+        }
+        let mut register = register;
+        for name in [&mut register.host_name, &mut register.worker_name] {
+            *name = resources::truncate(name, resources::MAX_NAME_BYTES);
         }
         let id = {
             let mut st = self.shared.lock();
@@ -667,12 +709,14 @@ impl Workers for Svc {
             }
             let sc = &self.shared.cfg.scheduler;
             let heartbeat = (sc.heartbeat_timeout.as_millis() / 3).clamp(100, 5000) as u32;
-            let _ = tx.send(msg(Msg::Registered(v1::Registered {
+            let upload_key = new_upload_key(id);
+            let _ = tx.try_send(msg(Msg::Registered(v1::Registered {
                 worker_id: id,
                 heartbeat_interval_ms: heartbeat,
                 lease_timeout_ms: sc.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
                 protocol_version: pathfarm_proto::PROTOCOL_VERSION,
                 build_id: ours.to_string(),
+                upload_key: upload_key.to_vec(),
             })));
             tracing::info!(
                 worker = id,
@@ -681,18 +725,28 @@ impl Workers for Svc {
                 threads = register.threads,
                 "worker registered"
             );
-            st.workers.insert(
-                id,
-                WorkerConn {
-                    tx: Some(tx),
-                    credits: 0,
-                    register,
-                    registered_unix_ms: unix_ms(),
-                    last_unix_ms: unix_ms(),
-                    tiles_done: 0,
-                    draining: false,
-                },
-            );
+            let conn = WorkerConn {
+                tx,
+                credits: 0,
+                register,
+                registered_unix_ms: unix_ms(),
+                last_unix_ms: unix_ms(),
+                tiles_done: 0,
+                draining: false,
+                upload_key,
+                overflowed: AtomicBool::new(false),
+            };
+            // A worker blocked from a job stays blocked when it comes back.
+            let who = conn.identity();
+            let blocked: Vec<u64> = (st.jobs.iter())
+                .filter(|(_, j)| j.blocked.contains_key(&who))
+                .map(|(&n, _)| n)
+                .collect();
+            for n in blocked {
+                let _ = st.sched.block(WorkerId(id), JobId(n));
+            }
+            st.by_key.insert(upload_key, id);
+            st.workers.insert(id, conn);
             id
         };
         update_health(&self.shared, &self.health).await;
@@ -712,7 +766,7 @@ impl Workers for Svc {
             svc.worker_gone(id);
             update_health(&svc.shared, &svc.health).await;
         });
-        Ok(Response::new(UnboundedReceiverStream::new(rx)))
+        Ok(Response::new(ReceiverStream::new(rx)))
     }
 
     type FetchBlobStream = ChunkStream;
@@ -735,171 +789,17 @@ impl Workers for Svc {
         &self,
         req: Request<Streaming<v1::TileUpload>>,
     ) -> Result<Response<v1::TileAck>, Status> {
-        let mut stream = req.into_inner();
-        let header = match chunked::header(&mut stream, "UploadTile").await {
-            Ok(h) => h,
-            Err(e) => return upload_refused(e, corrupt_ack),
-        };
-        let received = std::time::Instant::now();
-        let total = match payload_size(&header) {
-            Ok(t) => t,
-            Err(detail) => return corrupt(detail),
-        };
-        let bytes = match chunked::data_to_vec(&mut stream, total).await {
-            Ok(b) => b,
-            Err(e) => return upload_refused(e, corrupt_ack),
-        };
-        let receive_s = received.elapsed().as_secs_f64();
-        let ack = self.upload_tile_inner(header, bytes, receive_s);
-        let accepted = matches!(&ack, Ok(a) if a.get_ref().accepted);
-        self.shared.metrics.tile_upload(total, accepted);
-        ack
+        let sender = self.sender(req.metadata())?;
+        self.take_tile_upload(sender, req.into_inner()).await
     }
 
     async fn upload_records(
         &self,
         req: Request<Streaming<v1::RecordsUpload>>,
     ) -> Result<Response<v1::RecordsAck>, Status> {
-        let mut stream = req.into_inner();
-        let refused = |d: String| records_ack(false, d).into_inner();
-        let header = match chunked::header(&mut stream, "UploadRecords").await {
-            Ok(h) => h,
-            Err(e) => return upload_refused(e, refused),
-        };
-        if header.size > 1 << 32 {
-            return Ok(records_ack(false, "records of over 4 GiB"));
-        }
-        let bytes = match chunked::data_to_vec(&mut stream, header.size).await {
-            Ok(b) => b,
-            Err(e) => return upload_refused(e, refused),
-        };
-        self.shared.metrics.records_upload(bytes.len() as u64);
-        Ok(self.take_records(header, bytes))
+        let sender = self.sender(req.metadata())?;
+        self.take_records_upload(sender, req.into_inner()).await
     }
-}
-
-fn records_ack(accepted: bool, detail: impl Into<String>) -> Response<v1::RecordsAck> {
-    Response::new(v1::RecordsAck {
-        accepted,
-        detail: detail.into(),
-    })
-}
-
-/// A malformed upload as an `InvalidArgument` status.
-fn upload_status(e: UploadError) -> Status {
-    match e {
-        UploadError::Transport(s) => s,
-        UploadError::Malformed(detail) => bad(detail),
-    }
-}
-
-/// A malformed upload answered in the RPC's own reply (`ack` makes it from the detail); a
-/// broken stream as its status.
-fn upload_refused<T>(e: UploadError, ack: impl FnOnce(String) -> T) -> Result<Response<T>, Status> {
-    match e {
-        UploadError::Transport(s) => Err(s),
-        UploadError::Malformed(detail) => Ok(Response::new(ack(detail))),
-    }
-}
-
-impl Svc {
-    /// A holder's answer to FlushRecords: its records added to the session (decoded off
-    /// the lock), or, if it lost them, the job rolled back.
-    fn take_records(&self, header: v1::RecordsHeader, bytes: Vec<u8>) -> Response<v1::RecordsAck> {
-        let Some(n) = parse_job(&header.job_id) else {
-            return records_ack(false, format!("no job {:?}", header.job_id));
-        };
-        let decode_start = std::time::Instant::now();
-        let records = match header.lost {
-            true => None,
-            false => {
-                if bytes.len() as u64 != header.size
-                    || digest_of(&bytes).0.as_slice() != header.digest.as_slice()
-                {
-                    return records_ack(false, "size or digest does not match the records");
-                }
-                match IterationStats::decode(&bytes) {
-                    Ok(r) => Some(r),
-                    Err(e) => return records_ack(false, format!("records: {e}")),
-                }
-            }
-        };
-        // Decoding is timed apart from waiting for the state lock.
-        let decode_s = decode_start.elapsed().as_secs_f64();
-        let shared = &self.shared;
-        let mut st = shared.lock();
-        let st = &mut *st;
-        let w = header.worker_id;
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
-            return records_ack(false, "the job is not running");
-        };
-        let current = a.records_epoch == header.records_epoch
-            && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
-        let asked = a.collecting.as_ref().is_some_and(|c| c.contains(&w));
-        if !current || !asked {
-            return records_ack(
-                false,
-                "records not asked for (another epoch, version or worker)",
-            );
-        }
-        let Some(records) = records else {
-            let why = format!("worker {w} lost the records it held");
-            shared.roll_back(st, n, &why);
-            return records_ack(true, "");
-        };
-        let merge_start = std::time::Instant::now();
-        if let Err(e) = a.session.add_records(&records) {
-            let reason = format!("worker {w}'s records were refused by the session: {e}");
-            shared.fail_job(st, n, reason);
-            return records_ack(false, e.to_string());
-        }
-        let merge_s = merge_start.elapsed().as_secs_f64();
-        a.records_ledger.add(bytes.len() as u64, decode_s, merge_s);
-        let left = a.collecting.as_mut().expect("asked");
-        left.remove(&w);
-        tracing::debug!(job = %job_name(n), worker = w, bytes = bytes.len(), left = left.len(), "records in");
-        if left.is_empty() && shared.records_in(st, n) {
-            shared.drive(st, n);
-            shared.dispatch(st);
-        }
-        records_ack(true, "")
-    }
-}
-
-/// The most tiles one upload may carry.
-pub const MAX_UPLOAD_TILES: usize = 64;
-
-/// The payload bytes `header` announces, or why it is malformed: no tile or too many, a
-/// tile without pixels, a lease named twice, more than 4 GiB.
-fn payload_size(header: &v1::TileHeader) -> Result<u64, String> {
-    let n = header.tiles.len();
-    if n == 0 || n > MAX_UPLOAD_TILES {
-        return Err(format!("{n} tiles in one upload (1 to {MAX_UPLOAD_TILES})"));
-    }
-    let mut ids: Vec<u64> = header.tiles.iter().map(|t| t.lease_id).collect();
-    ids.sort_unstable();
-    if ids.windows(2).any(|w| w[0] == w[1]) {
-        return Err("a lease named twice in one upload".into());
-    }
-    let mut total = header.stats_size;
-    for t in &header.tiles {
-        if t.pixels_size == 0 {
-            return Err(format!("lease {}: no pixel sums", t.lease_id));
-        }
-        total = total.saturating_add(t.pixels_size);
-    }
-    if total > 1 << 32 {
-        return Err(format!("payload of {total} bytes is over 4 GiB"));
-    }
-    Ok(total)
-}
-
-/// A tile of an upload, checked against its lease and decoded.
-struct Accepting {
-    lease: LeaseId,
-    index: usize,
-    out: TileOutput,
-    counters: v1::TileCounters,
 }
 
 impl Svc {
@@ -908,234 +808,21 @@ impl Svc {
             self.shared.metrics.blob_sent(meta.len());
         }
     }
-
-    fn upload_tile_inner(
-        &self,
-        header: v1::TileHeader,
-        bytes: Vec<u8>,
-        receive_s: f64,
-    ) -> Result<Response<v1::TileAck>, Status> {
-        let decode_start = std::time::Instant::now();
-        let total = bytes.len() as u64;
-        let (mut pixels, stats_bytes) = bytes.split_at(total as usize - header.stats_size as usize);
-        let mut parts = Vec::with_capacity(header.tiles.len());
-        for t in &header.tiles {
-            let (mine, rest) = pixels.split_at(t.pixels_size as usize);
-            if digest_of(mine).0.as_slice() != t.pixels_digest.as_slice() {
-                return corrupt(format!(
-                    "lease {}: pixels_digest does not match",
-                    t.lease_id
-                ));
-            }
-            parts.push(mine);
-            pixels = rest;
-        }
-        if digest_of(stats_bytes).0.as_slice() != header.stats_digest.as_slice() {
-            return corrupt("stats_digest does not match the statistics payload");
-        }
-        let stats = if stats_bytes.is_empty() {
-            None
-        } else {
-            match IterationStats::decode(stats_bytes) {
-                Ok(s) => Some(s),
-                Err(e) => return corrupt(format!("statistics: {e}")),
-            }
-        };
-        // Decoding is timed apart from waiting for the state lock (another upload's merge, a
-        // unit's end, a checkpoint): the ledger's decode column is CPU, not queueing.
-        let mut decode_s = decode_start.elapsed().as_secs_f64();
-        let shared = &self.shared;
-        let mut st = shared.lock();
-        let pixels_start = std::time::Instant::now();
-        let (n, worker, unit, tiles) = match self.check_tiles(&st, &header, &parts) {
-            Ok(checked) => checked,
-            Err(a) => return Ok(self.refuse(&mut st, &header, Response::new(a))),
-        };
-        decode_s += pixels_start.elapsed().as_secs_f64();
-        let now = shared.now();
-        let ids: Vec<LeaseId> = tiles.iter().map(|t| t.lease).collect();
-        let completions = match st.sched.complete_all(worker, &ids, now) {
-            Ok(c) => c,
-            Err(Rejection::Duplicate) => {
-                let mut a = ack(true, v1::TileRejectReason::Unspecified, String::new());
-                a.get_mut().duplicate = true;
-                return Ok(a);
-            }
-            Err(r) => {
-                let reason = match r {
-                    Rejection::UnknownLease => v1::TileRejectReason::UnknownLease,
-                    Rejection::Expired => v1::TileRejectReason::Expired,
-                    _ => v1::TileRejectReason::Superseded,
-                };
-                tracing::info!(job = %job_name(n), leases = ?ids, "tiles rejected: {r}");
-                return Ok(self.refuse(&mut st, &header, ack(false, reason, r.to_string())));
-            }
-        };
-        let unit_done = completions.last().is_some_and(|c| c.unit_done);
-        let times = TileTimes {
-            receive_s,
-            decode_s,
-            bytes: total,
-        };
-        let job = st.jobs.get_mut(&n).expect("checked");
-        let a = job.active.as_mut().expect("checked");
-        let secs = a.clock.elapsed().as_secs_f64();
-        let merge_start = std::time::Instant::now();
-        let spec = a.flight(unit).expect("checked").spec;
-        let outs: Vec<(usize, &TileOutput)> = tiles.iter().map(|t| (t.index, &t.out)).collect();
-        if let Err(e) = a.session.add_tiles(unit, &outs, stats.as_ref(), secs) {
-            let reason = format!("tiles {ids:?} rejected by the session: {e}");
-            shared.fail_job(&mut st, n, reason);
-            return Ok(ack(false, v1::TileRejectReason::Superseded, e.to_string()));
-        }
-        if spec.record() {
-            // The tiles' quadtree records stay in the worker's tree copy until asked for.
-            a.holders.insert(worker.0);
-        }
-        let merge_s = merge_start.elapsed().as_secs_f64();
-        let mut samples = 0;
-        for t in &tiles {
-            let s = t.out.region.pixels() as u64 * spec.unit_spp();
-            a.cost
-                .record(t.out.region, t.counters.render_seconds / s.max(1) as f64);
-            samples += s;
-        }
-        let flight = a.flights.iter_mut().find(|f| f.spec.unit == spec.unit);
-        let ledger = &mut flight.expect("checked").ledger;
-        let counters: Vec<&v1::TileCounters> = tiles.iter().map(|t| &t.counters).collect();
-        if unit_done {
-            ledger.end_s = merge_s;
-            ledger.upload(&counters, &times, 0.0);
-        } else {
-            ledger.upload(&counters, &times, merge_s);
-        }
-        job.record.samples_done += samples;
-        if let Some(w) = st.workers.get_mut(&worker.0) {
-            w.tiles_done += tiles.len() as u64;
-        }
-        tracing::debug!(job = %job_name(n), leases = ?ids, unit, "tiles accepted");
-        for id in &ids {
-            if let Some(l) = st.leases.get_mut(&id.0) {
-                l.done = true;
-            }
-        }
-        if unit_done {
-            shared.end_unit(&mut st, n, spec.unit);
-        }
-        shared.publish_status(&st, n);
-        shared.dispatch(&mut st);
-        Ok(ack(true, v1::TileRejectReason::Unspecified, String::new()))
-    }
-
-    /// Checks every tile of an upload against its lease (one worker, the header's job and
-    /// unit, a unit still in flight, the lease's region) and decodes its pixels; the answer
-    /// to give when one does not pass.
-    fn check_tiles(
-        &self,
-        st: &State,
-        header: &v1::TileHeader,
-        parts: &[&[u8]],
-    ) -> Result<(u64, WorkerId, u64, Vec<Accepting>), v1::TileAck> {
-        let mut out = Vec::with_capacity(parts.len());
-        let mut owner: Option<(WorkerId, TaskKey)> = None;
-        for (t, bytes) in header.tiles.iter().zip(parts) {
-            let lease_id = t.lease_id;
-            let Some(info) = st.leases.get(&lease_id).copied() else {
-                return Err(ack(
-                    false,
-                    v1::TileRejectReason::UnknownLease,
-                    format!("lease {lease_id} is not known"),
-                )
-                .into_inner());
-            };
-            let (worker, first) = *owner.get_or_insert((info.worker, info.key));
-            let n = info.key.job.0;
-            if info.worker != worker
-                || info.key.job != first.job
-                || info.key.unit != first.unit
-                || header.job_id != job_name(n)
-                || header.unit != info.key.unit
-            {
-                return Err(corrupt_ack(format!(
-                    "lease {lease_id} ({}) does not belong with the upload's job {} unit {} \
-                     and first lease ({first})",
-                    info.key, header.job_id, header.unit
-                )));
-            }
-            let current = st
-                .jobs
-                .get(&n)
-                .and_then(|j| j.active.as_ref())
-                .and_then(|a| Some((a.flight(info.key.unit)?.spec, a)))
-                .and_then(|(spec, a)| Some((spec, a.session.tiles_of(info.key.unit)?)))
-                .and_then(|(spec, tiles)| Some((spec, *tiles.get(info.key.tile as usize)?)));
-            let Some((spec, region)) = current else {
-                return Err(ack(
-                    false,
-                    v1::TileRejectReason::Superseded,
-                    format!("unit {} of {} is over", info.key.unit, job_name(n)),
-                )
-                .into_inner());
-            };
-            if t.tile != Some(codec::region_to_proto(region)) {
-                return Err(corrupt_ack(format!(
-                    "the tile of lease {lease_id} is not its lease's ({})",
-                    info.key
-                )));
-            }
-            let pixels = codec::decode_tile_pixels(bytes, &spec, region)
-                .map_err(|e| corrupt_ack(format!("lease {lease_id}: pixels: {e}")))?;
-            let c = t.counters.unwrap_or_default();
-            out.push(Accepting {
-                lease: LeaseId(lease_id),
-                index: info.key.tile as usize,
-                out: TileOutput {
-                    region,
-                    pixels,
-                    rays: c.rays,
-                    invalid_samples: c.invalid_samples,
-                    nonfinite_records: c.nonfinite_records,
-                    split_paths: c.split_paths,
-                    extra_light_samples: c.extra_light_samples,
-                },
-                counters: c,
-            });
-        }
-        let (worker, key) = owner.expect("an upload has at least one tile");
-        Ok((key.job.0, worker, key.unit, out))
-    }
-
-    /// Answers a rejected upload: the worker keeps nothing of it, so the leases it names
-    /// that were still valid go back to the queue now (without counting an attempt) instead
-    /// of waiting out their deadlines.
-    fn refuse(
-        &self,
-        st: &mut State,
-        header: &v1::TileHeader,
-        answer: Response<v1::TileAck>,
-    ) -> Response<v1::TileAck> {
-        let now = self.shared.now();
-        let known = |t: &v1::UploadedTile| st.leases.get(&t.lease_id).map(|i| i.worker);
-        // The upload's owner is the holder of its first known lease; another worker's
-        // leases named in it (a corrupt upload) are left alone.
-        let Some(owner) = header.tiles.iter().find_map(known) else {
-            return answer;
-        };
-        let ids: Vec<LeaseId> = header
-            .tiles
-            .iter()
-            .filter(|t| known(t) == Some(owner))
-            .map(|t| LeaseId(t.lease_id))
-            .collect();
-        let returned = st.sched.hand_back(owner, &ids, now).map_or(0, |k| k.len());
-        if returned > 0 {
-            tracing::info!(job = %header.job_id, returned, "valid leases of a rejected upload returned");
-            self.shared.dispatch(st);
-        }
-        answer
-    }
 }
 
-fn corrupt_ack(detail: String) -> v1::TileAck {
-    ack(false, v1::TileRejectReason::Corrupt, detail).into_inner()
+/// A fresh `Registered.upload_key` for worker `id`: 32 bytes from the kernel's random
+/// source, or, where there is none, a hash of what differs between registrations.
+fn new_upload_key(id: u64) -> [u8; 32] {
+    use std::io::Read;
+    let mut key = [0u8; 32];
+    let random = std::fs::File::open("/dev/urandom").and_then(|mut f| f.read_exact(&mut key));
+    if random.is_err() {
+        let mut h = blake3::Hasher::new();
+        h.update(&id.to_le_bytes());
+        h.update(&std::process::id().to_le_bytes());
+        h.update(format!("{:?}", std::time::SystemTime::now()).as_bytes());
+        h.update(format!("{:p}", &key).as_bytes());
+        key = *h.finalize().as_bytes();
+    }
+    key
 }

@@ -41,6 +41,46 @@ impl BlobStore {
         self.path(digest).is_file()
     }
 
+    /// [`BlobStore::has`], and if so restarts the blob's grace period (a client was told it
+    /// is here and will count on it): see [`super::sweep`].
+    pub(crate) fn has_and_touch(&self, digest: &Digest) -> bool {
+        let Ok(f) = fs::File::options().append(true).open(self.path(digest)) else {
+            return false;
+        };
+        let _ = f.set_modified(std::time::SystemTime::now());
+        true
+    }
+
+    /// The size of a stored blob.
+    pub(crate) fn size(&self, digest: &Digest) -> Option<u64> {
+        fs::metadata(self.path(digest)).ok().map(|m| m.len())
+    }
+
+    /// How long ago the blob was written or touched.
+    pub(crate) fn age(&self, digest: &Digest) -> Option<std::time::Duration> {
+        let modified = fs::metadata(self.path(digest)).ok()?.modified().ok()?;
+        Some(super::sweep::age_of(modified))
+    }
+
+    /// The stored blobs not written or touched within `grace`.
+    pub(crate) fn older_than(&self, grace: std::time::Duration) -> Vec<Digest> {
+        let Ok(dir) = fs::read_dir(&self.blobs) else {
+            return Vec::new();
+        };
+        dir.filter_map(|e| {
+            let e = e.ok()?;
+            let digest = super::sweep::digest_of_name(e.file_name().to_str()?)?;
+            let modified = e.metadata().ok()?.modified().ok()?;
+            (super::sweep::age_of(modified) >= grace).then_some(digest)
+        })
+        .collect()
+    }
+
+    /// Deletes a blob; true if it was there.
+    pub(crate) fn remove(&self, digest: &Digest) -> bool {
+        fs::remove_file(self.path(digest)).is_ok()
+    }
+
     /// A fresh path in the temporary directory (not created).
     pub(crate) fn temp_path(&self, what: &str) -> PathBuf {
         let n = self.counter.fetch_add(1, Ordering::Relaxed);

@@ -24,10 +24,10 @@ use pathfarm_render::Scene;
 use pathfarm_scene::{GuidedParams, Limits};
 use prost::Message;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::wrappers::UnboundedReceiverStream;
 
 use crate::bundle::{self, Digest, Manifest, ManifestEntry};
-use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote};
+use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote, WorkerKey};
 use crate::codec;
 
 mod prefetch;
@@ -72,8 +72,10 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
     if cfg.threads == 0 {
         return Err(WorkerError::Config("threads must be at least 1".into()));
     }
+    let key = WorkerKey::default();
     let auth = Auth::new(cfg.coordinator.token.as_deref())
-        .map_err(|e| WorkerError::Config(e.to_string()))?;
+        .map_err(|e| WorkerError::Config(e.to_string()))?
+        .with_worker_key(key.clone());
     let ep = endpoint(&cfg.coordinator).map_err(|e| WorkerError::Config(e.to_string()))?;
     for d in ["blobs", "bundles"] {
         std::fs::create_dir_all(cfg.cache_dir.join(d)).map_err(|e| {
@@ -120,7 +122,17 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
         };
         let api = WorkersClient::with_interceptor(channel, auth.clone())
             .max_decoding_message_size(16 << 20);
-        match session(&cfg, &shared, api, &mut shutdown, &mut stop, &mut backoff).await {
+        match session(
+            &cfg,
+            &shared,
+            api,
+            &key,
+            &mut shutdown,
+            &mut stop,
+            &mut backoff,
+        )
+        .await
+        {
             Ok(()) => {}
             Err(SessionEnd::Refused(r)) => return Err(WorkerError::Refused(r)),
             Err(SessionEnd::Lost(m)) => {
@@ -216,15 +228,21 @@ struct Running {
     handle: tokio::task::JoinHandle<LeaseEnd>,
 }
 
-fn send(tx: &mpsc::Sender<v1::WorkerMessage>, msg: v1::worker_message::Msg) -> bool {
-    tx.try_send(v1::WorkerMessage { msg: Some(msg) }).is_ok()
+/// Queues a message on the control stream. Unbounded, so nothing is dropped (a lost
+/// `RequestWork` would leak a credit, a lost `LeaseFailed` leave a tile waiting for its
+/// deadline); what the worker sends is bounded by its leases and its heartbeat interval.
+/// Fails only once the stream is gone, which the session loop sees and reconnects.
+fn send(tx: &mpsc::UnboundedSender<v1::WorkerMessage>, msg: v1::worker_message::Msg) {
+    if tx.send(v1::WorkerMessage { msg: Some(msg) }).is_err() {
+        tracing::debug!("control stream closed: a message to the coordinator was not sent");
+    }
 }
 
 /// One control-stream session's leases: queued, rendering, rendered and waiting for the
 /// rest of their unit, being serialised and uploading, and whether the worker is draining.
 /// The session loop feeds it one event at a time.
 struct Leases {
-    tx: mpsc::Sender<v1::WorkerMessage>,
+    tx: mpsc::UnboundedSender<v1::WorkerMessage>,
     queue: VecDeque<v1::Lease>,
     running: Option<Running>,
     /// Rendered tiles of one unit whose records are in the tree: uploaded together.
@@ -529,8 +547,8 @@ fn lost(s: tonic::Status) -> SessionEnd {
 async fn register(
     cfg: &WorkerConfig,
     api: &mut Api,
-    tx: &mpsc::Sender<v1::WorkerMessage>,
-    rx: mpsc::Receiver<v1::WorkerMessage>,
+    tx: &mpsc::UnboundedSender<v1::WorkerMessage>,
+    rx: mpsc::UnboundedReceiver<v1::WorkerMessage>,
 ) -> Result<(v1::Registered, tonic::Streaming<v1::CoordinatorMessage>), SessionEnd> {
     let register = v1::Register {
         protocol_version: PROTOCOL_VERSION,
@@ -541,7 +559,7 @@ async fn register(
     };
     send(tx, v1::worker_message::Msg::Register(register));
     let mut inbound = api
-        .control(ReceiverStream::new(rx))
+        .control(UnboundedReceiverStream::new(rx))
         .await
         .map_err(lost)?
         .into_inner();
@@ -559,13 +577,16 @@ async fn session<S: Future<Output = ()>>(
     cfg: &WorkerConfig,
     shared: &Arc<Shared>,
     mut api: Api,
+    key: &WorkerKey,
     shutdown: &mut std::pin::Pin<&mut S>,
     stop: &mut bool,
     backoff: &mut Backoff,
 ) -> Result<(), SessionEnd> {
     use v1::worker_message::Msg;
-    let (tx, rx) = mpsc::channel::<v1::WorkerMessage>(64);
+    let (tx, rx) = mpsc::unbounded_channel::<v1::WorkerMessage>();
     let (registered, mut inbound) = register(cfg, &mut api, &tx, rx).await?;
+    // The uploads of this stream's leases name it by its key.
+    key.set(&registered.upload_key);
     backoff.reset();
     tracing::info!(
         "registered with {} as worker {} (coordinator {})",
