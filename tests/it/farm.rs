@@ -418,6 +418,31 @@ fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
 }
 
 #[test]
+fn a_worker_paused_past_the_heartbeat_timeout_registers_again_and_the_job_completes_bit_identical()
+{
+    // SIGSTOP for twice the heartbeat timeout is what a VM stall, a long swap or a network
+    // partition does: the coordinator declares the worker lost and ends its stream; once
+    // resumed, the worker registers again, is offered work, and the one-worker farm
+    // finishes the job with the one-process bits.
+    let mut farm = Farm::start("pause", 0);
+    farm.coordinator = None;
+    farm.start_coordinator_with(&["--heartbeat-timeout-s", "2"]);
+    farm.add_worker();
+    let (reference, out, run) = job_under_way(&farm, 64, "pause.exr", 3, "the worker paused");
+    farm.workers[0].signal(libc::SIGSTOP);
+    std::thread::sleep(Duration::from_secs(4));
+    farm.workers[0].signal(libc::SIGCONT);
+    wait_for_job(run, &farm);
+    assert_same_exr(&out, &reference, &farm);
+    let w = farm.workers[0].stderr_text();
+    assert!(w.contains("declared lost"), "the coordinator told it\n{w}");
+    assert!(
+        w.matches("registered with").count() >= 2,
+        "registered again\n{w}"
+    );
+}
+
+#[test]
 fn a_worker_that_lost_its_records_rolls_the_job_back_and_the_image_stays_bit_identical() {
     // Worker 0 answers its first FlushRecords with "lost" (fault injection), as a worker
     // whose kept quadtree records were spoiled would: the coordinator starts the job again
@@ -448,7 +473,7 @@ fn a_worker_that_lost_its_records_rolls_the_job_back_and_the_image_stays_bit_ide
 }
 
 #[test]
-fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_stored() {
+fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_kept() {
     let farm = Farm::start("bad", 0);
     let out = farm.data.join("never.exr");
     let r = submit(&farm, 8, &out, &[("PATHFARM_TOKEN", "wrong")]).wait(Duration::from_secs(60));
@@ -498,11 +523,22 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_stor
         "the error names the mesh by its bundle path: {}",
         r.stderr
     );
+    // Its blobs stay for the grace period (another client may have uploaded the same
+    // files for a job of its own); a coordinator with a grace period of a second then
+    // deletes them.
     assert_eq!(
         farm.blob_count(),
-        0,
-        "nothing of the refused bundle was kept"
+        2,
+        "the refused bundle's blobs wait out the grace period"
     );
+    let mut farm = farm;
+    farm.coordinator = None;
+    farm.start_coordinator_with(&["--blob-grace-s", "1"]);
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while farm.blob_count() > 0 {
+        assert!(std::time::Instant::now() < deadline, "never swept");
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 #[test]

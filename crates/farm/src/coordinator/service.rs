@@ -169,7 +169,7 @@ impl tonic::service::Interceptor for Auth {
         if let Some(v) = req.metadata().get(pathfarm_proto::PROTOCOL_HEADER) {
             let ours = pathfarm_proto::PROTOCOL_VERSION.to_string();
             if v.as_bytes() != ours.as_bytes() {
-                let theirs = resources::echo(v.to_str().unwrap_or("?"));
+                let theirs = resources::truncate(v.to_str().unwrap_or("?"), 64);
                 return Err(Status::failed_precondition(format!(
                     "protocol version mismatch: client protocol {theirs}, coordinator {ours}"
                 )));
