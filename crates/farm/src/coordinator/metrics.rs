@@ -12,6 +12,7 @@ use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::{Metric, Registry};
 use tokio::net::TcpListener;
 
@@ -54,6 +55,7 @@ pub(crate) struct Metrics {
     roll_backs: Counter,
     workers_blocked: Counter,
     blobs_expired: Counter,
+    control_seconds: Histogram,
 }
 
 impl Default for Metrics {
@@ -74,6 +76,9 @@ impl Default for Metrics {
         let roll_backs = registered(on, "roll_backs", ROLL_BACKS_HELP);
         let workers_blocked = registered(on, "workers_blocked", BLOCKED_HELP);
         let blobs_expired = registered(on, "blobs_expired", EXPIRED_HELP);
+        // 50 us to about 3 s
+        let control_seconds = Histogram::new(exponential_buckets(5e-5, 2.0, 17));
+        on.register("control_message_seconds", CONTROL_HELP, control_seconds.clone());
         Metrics {
             registry: r,
             jobs,
@@ -90,6 +95,7 @@ impl Default for Metrics {
             roll_backs,
             workers_blocked,
             blobs_expired,
+            control_seconds,
         }
     }
 }
@@ -103,6 +109,8 @@ const RECORDS_BYTES_HELP: &str =
 const ROLL_BACKS_HELP: &str =
     "Jobs rolled back to their last checkpoint: a worker holding records was lost";
 
+const CONTROL_HELP: &str = "Seconds from receiving a worker's control message (heartbeat, \
+     lease request, failure, hand-back) to having handled it, waiting for the state lock included";
 const BLOCKED_HELP: &str =
     "Workers blocked from a job after sending it bad results (a worker and job counted once)";
 const EXPIRED_HELP: &str =
@@ -140,6 +148,11 @@ impl Metrics {
     /// Counts a records upload of `bytes`.
     pub(crate) fn records_upload(&self, bytes: u64) {
         self.records_bytes.inc_by(bytes);
+    }
+
+    /// Observes how long a control message took to handle.
+    pub(crate) fn control_message(&self, seconds: f64) {
+        self.control_seconds.observe(seconds);
     }
 
     /// Counts a worker blocked from a job.

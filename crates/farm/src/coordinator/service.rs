@@ -754,7 +754,11 @@ impl Workers for Svc {
         tokio::spawn(async move {
             loop {
                 match inbound.message().await {
-                    Ok(Some(v1::WorkerMessage { msg: Some(m) })) => svc.on_worker_message(id, m),
+                    Ok(Some(v1::WorkerMessage { msg: Some(m) })) => {
+                        let t0 = std::time::Instant::now();
+                        svc.on_worker_message(id, m);
+                        svc.shared.metrics.control_message(t0.elapsed().as_secs_f64());
+                    }
                     Ok(Some(_)) => {}
                     Ok(None) => break,
                     Err(e) => {
