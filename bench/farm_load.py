@@ -11,13 +11,15 @@ For each worker count N, on this machine: one `pathfarm coordinator` process (wi
 of a small scene, so every payload is a real one, and they heartbeat as in production), then
 `--jobs` guided jobs of scenes/cornell-box at --res x --res and --spp, and one job of
 --big x --big at --big-spp, all submitted at once with `pathfarm submit --wait`. Meanwhile
-`pathfarm status` runs every 100 ms.
+`pathfarm status` runs every 100 ms (and ten times before the jobs, on the idle farm:
+the command's own cost, process start included).
 
 Reported per N: wall seconds until every job is done; tiles accepted per second; the p99 of
 `pathfarm status` (wall time of the whole command, process start included: what a user
 waits); the p99 of the coordinator's handling of control messages (heartbeats, lease
 requests: from its `pathfarm_control_message_seconds` histogram, the upper edge of the bucket
-holding the 99th percentile, the state lock's wait included); the coordinator's CPU seconds
+holding the 99th percentile, the state lock's wait included; heartbeats and the other
+messages apart); the coordinator's CPU seconds
 (user + system) per unit; its peak resident memory (VmHWM). Target: heartbeats and status
 under 100 ms at p99 throughout.
 
@@ -40,7 +42,8 @@ import urllib.request
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, ".."))
 TOKEN = "farm-load-token"
-BUCKET_RE = re.compile(r'pathfarm_control_message_seconds_bucket\{le="([^"]+)"\} (\d+)')
+BUCKET_RE = re.compile(
+    r'pathfarm_control_message_seconds_bucket\{le="([^"]+)",kind="(\w+)"\} (\d+)')
 
 
 def cpu_name():
@@ -87,11 +90,11 @@ def counter(text, name):
     return total
 
 
-def histogram_p99(before, after):
-    """The upper edge of the bucket holding the 99th percentile of what was observed
-    between the two scrapes."""
-    b = {le: int(n) for le, n in BUCKET_RE.findall(before)}
-    a = [(le, int(n) - b.get(le, 0)) for le, n in BUCKET_RE.findall(after)]
+def histogram_p99(before, after, kind):
+    """The upper edge of the bucket holding the 99th percentile of the `kind` messages
+    observed between the two scrapes."""
+    b = {le: int(n) for le, k, n in BUCKET_RE.findall(before) if k == kind}
+    a = [(le, int(n) - b.get(le, 0)) for le, k, n in BUCKET_RE.findall(after) if k == kind]
     if not a or a[-1][1] == 0:
         return float("nan"), 0
     total = a[-1][1]
@@ -136,6 +139,12 @@ def run(a, n, tmp):
                 raise SystemExit(f"only {counter(scrape(mport), 'pathfarm_workers')} of {n} workers registered")
             time.sleep(0.2)
         scene = os.path.join(ROOT, "scenes", "cornell-box", "scene.xml")
+        idle_ms = []
+        for _ in range(10):
+            s = time.time()
+            subprocess.run([a.binary, "status", "--coordinator", url], env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            idle_ms.append((time.time() - s) * 1000)
         before = scrape(mport)
         cpu0 = proc_cpu_seconds(coord.pid)
         t0 = time.time()
@@ -177,11 +186,14 @@ def run(a, n, tmp):
         tiles = counter(after, 'pathfarm_tiles_total{outcome="accepted"}') - counter(
             before, 'pathfarm_tiles_total{outcome="accepted"}')
         units = counter(after, "pathfarm_units_total") - counter(before, "pathfarm_units_total")
-        hb99, hbn = histogram_p99(before, after)
+        hb99, hbn = histogram_p99(before, after, "heartbeat")
+        other99, othern = histogram_p99(before, after, "other")
         return {
             "workers": n, "wall_s": wall, "tiles_per_s": tiles / wall, "tiles": tiles,
             "units": units, "status_p99_ms": p99(status_ms), "status_n": len(status_ms),
-            "control_p99_ms": hb99 * 1000, "control_n": hbn,
+            "status_idle_ms": statistics.median(idle_ms),
+            "heartbeat_p99_ms": hb99 * 1000, "heartbeat_n": hbn,
+            "other_p99_ms": other99 * 1000, "other_n": othern,
             "cpu_s_per_unit": cpu / max(units, 1), "coordinator_cpu_s": cpu, "peak_mb": peak,
         }
     finally:
@@ -226,13 +238,14 @@ def main():
         f"{a.spp} spp and 1 x {a.big}x{a.big} at {a.big_spp} spp (cornell-box, guided_path), "
         "submitted together.",
         "",
-        "| workers | wall s | tiles/s | status p99 ms | control msg p99 ms | coordinator CPU s/unit | coordinator peak MB |",
-        "|---|---|---|---|---|---|---|",
+        "| workers | wall s | tiles/s | status idle median ms | status p99 ms (n) | heartbeat p99 ms (n) | other control msg p99 ms (n) | coordinator CPU s/unit | coordinator peak MB |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['workers']} | {r['wall_s']:.1f} | {r['tiles_per_s']:.1f} | "
-            f"{r['status_p99_ms']:.0f} ({r['status_n']}) | <= {r['control_p99_ms']:.1f} ({r['control_n']}) | "
+            f"| {r['workers']} | {r['wall_s']:.1f} | {r['tiles_per_s']:.1f} | {r['status_idle_ms']:.0f} | "
+            f"{r['status_p99_ms']:.0f} ({r['status_n']}) | <= {r['heartbeat_p99_ms']:.2f} ({r['heartbeat_n']}) | "
+            f"<= {r['other_p99_ms']:.1f} ({r['other_n']}) | "
             f"{r['cpu_s_per_unit']:.3f} | {r['peak_mb']:.0f} |")
     text = "\n".join(lines)
     print(text)

@@ -55,7 +55,12 @@ pub(crate) struct Metrics {
     roll_backs: Counter,
     workers_blocked: Counter,
     blobs_expired: Counter,
-    control_seconds: Histogram,
+    control_seconds: Family<KindLabel, Histogram>,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct KindLabel {
+    kind: &'static str,
 }
 
 impl Default for Metrics {
@@ -77,7 +82,9 @@ impl Default for Metrics {
         let workers_blocked = registered(on, "workers_blocked", BLOCKED_HELP);
         let blobs_expired = registered(on, "blobs_expired", EXPIRED_HELP);
         // 50 us to about 3 s
-        let control_seconds = Histogram::new(exponential_buckets(5e-5, 2.0, 17));
+        let control_seconds = Family::<KindLabel, Histogram>::new_with_constructor(
+            (|| Histogram::new(exponential_buckets(5e-5, 2.0, 17))) as fn() -> Histogram,
+        );
         on.register("control_message_seconds", CONTROL_HELP, control_seconds.clone());
         Metrics {
             registry: r,
@@ -110,7 +117,8 @@ const ROLL_BACKS_HELP: &str =
     "Jobs rolled back to their last checkpoint: a worker holding records was lost";
 
 const CONTROL_HELP: &str = "Seconds from receiving a worker's control message (heartbeat, \
-     lease request, failure, hand-back) to having handled it, waiting for the state lock included";
+     lease request, failure, hand-back) to having handled it, waiting for the state lock included, \
+     by kind (heartbeat, other)";
 const BLOCKED_HELP: &str =
     "Workers blocked from a job after sending it bad results (a worker and job counted once)";
 const EXPIRED_HELP: &str =
@@ -151,8 +159,10 @@ impl Metrics {
     }
 
     /// Observes how long a control message took to handle.
-    pub(crate) fn control_message(&self, seconds: f64) {
-        self.control_seconds.observe(seconds);
+    pub(crate) fn control_message(&self, kind: &'static str, seconds: f64) {
+        self.control_seconds
+            .get_or_create(&KindLabel { kind })
+            .observe(seconds);
     }
 
     /// Counts a worker blocked from a job.

@@ -177,6 +177,34 @@ pub(crate) struct Shared {
     /// A blob sweep is running ([`sweep`]), and when the last one started.
     pub(crate) sweeping: AtomicBool,
     pub(crate) last_sweep_ms: AtomicU64,
+    /// What clients read about jobs and workers without waiting for the state lock (a
+    /// merge or a refinement may hold it for most of a second): see [`JobView`].
+    pub(crate) views: std::sync::RwLock<BTreeMap<u64, JobView>>,
+    pub(crate) workers_view: std::sync::RwLock<Vec<v1::WorkerInfo>>,
+    /// Heartbeats received and not yet applied to the scheduler: a heartbeat is taken at
+    /// once with the instant it arrived, and applied by the next holder of the state lock
+    /// before anything else ([`Shared::lock`]), so its handling never waits for the lock and
+    /// its effect (the worker alive, its leases extended) is as of its arrival.
+    pub(crate) beats: Mutex<Vec<Beat>>,
+}
+
+/// A heartbeat waiting to be applied ([`Shared::beats`]).
+pub(crate) struct Beat {
+    pub(crate) worker: WorkerId,
+    pub(crate) at: Millis,
+    pub(crate) unix_ms: u64,
+    pub(crate) leases: Vec<LeaseId>,
+}
+
+/// What a client reads about a job without the state lock: its status as of its last
+/// change (the job's watch channel, which the coordinator updates at every change) and what
+/// its submission fixed.
+#[derive(Clone)]
+pub(crate) struct JobView {
+    pub(crate) status: watch::Receiver<v1::JobStatus>,
+    pub(crate) settings: Option<v1::JobSettings>,
+    pub(crate) root: String,
+    pub(crate) image: Option<v1::Resolution>,
 }
 
 /// A worker's control stream, bounded ([`Resources::outbox_messages`]).
@@ -454,6 +482,9 @@ impl Shared {
             upload_kib: Arc::new(tokio::sync::Semaphore::new(upload_kib as usize)),
             sweeping: AtomicBool::new(false),
             last_sweep_ms: AtomicU64::new(0),
+            views: Default::default(),
+            workers_view: Default::default(),
+            beats: Mutex::new(Vec::new()),
             cfg,
             blobs,
             db,
@@ -476,14 +507,91 @@ impl Shared {
                     record.started_unix_ms = 0;
                     Pending::Queued(None)
                 });
-                st.jobs.insert(n, Job::new(record, pending, n));
+                shared.add_job(&mut st, n, Job::new(record, pending, n));
             }
         }
         Ok(shared)
     }
 
+    /// The state, with the heartbeats received meanwhile applied first.
     pub(crate) fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
+        let mut st = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        self.apply_beats(&mut st);
+        st
+    }
+
+    /// Takes a heartbeat without waiting for the state lock ([`Shared::beats`]).
+    pub(crate) fn beat(&self, beat: Beat) {
+        self.beats.lock().unwrap_or_else(|e| e.into_inner()).push(beat);
+    }
+
+    fn apply_beats(&self, st: &mut State) {
+        let beats = std::mem::take(&mut *self.beats.lock().unwrap_or_else(|e| e.into_inner()));
+        for b in beats {
+            if let Some(w) = st.workers.get_mut(&b.worker.0) {
+                w.last_unix_ms = b.unix_ms;
+            }
+            let Ok(stale) = st.sched.heartbeat(b.worker, &b.leases, b.at) else {
+                continue;
+            };
+            // Only leases this worker was given are worth a cancel: one for every id a peer
+            // makes up would amplify its heartbeats into our memory.
+            for lease in stale {
+                if st.sched.lease(lease).is_some_and(|v| v.worker == b.worker) {
+                    send_cancel(st, b.worker, lease, "not this worker's lease any more");
+                }
+            }
+        }
+    }
+
+    /// Adds job `n` to the state and to the views clients read.
+    pub(crate) fn add_job(&self, st: &mut State, n: u64, job: Job) {
+        let r = &job.record;
+        let request = r.request.clone().unwrap_or_default();
+        let view = JobView {
+            status: job.watch.subscribe(),
+            settings: request.settings,
+            root: request.bundle.map(|b| b.root).unwrap_or_default(),
+            image: (r.width > 0).then_some(v1::Resolution {
+                width: r.width,
+                height: r.height,
+            }),
+        };
+        self.views
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(n, view);
+        st.jobs.insert(n, job);
+    }
+
+    /// The job view of `n`, if there is such a job.
+    pub(crate) fn view(&self, n: u64) -> Option<JobView> {
+        let views = self.views.read().unwrap_or_else(|e| e.into_inner());
+        views.get(&n).cloned()
+    }
+
+    /// Refreshes what `ListWorkers` answers.
+    pub(crate) fn refresh_workers_view(&self, st: &State) {
+        let workers = (st.workers.iter())
+            .map(|(&id, w)| {
+                let held = st.sched.held_by(WorkerId(id));
+                v1::WorkerInfo {
+                    worker_id: id,
+                    host_name: w.register.host_name.clone(),
+                    worker_name: w.register.worker_name.clone(),
+                    threads: w.register.threads,
+                    tiles_done: w.tiles_done,
+                    last_heartbeat_unix_ms: w.last_unix_ms,
+                    lease_ids: held.into_iter().map(|l| l.0).collect(),
+                    build_id: w.register.build_id.clone(),
+                    protocol_version: w.register.protocol_version,
+                    draining: w.draining,
+                    registered_unix_ms: w.registered_unix_ms,
+                    connected: true,
+                }
+            })
+            .collect();
+        *self.workers_view.write().unwrap_or_else(|e| e.into_inner()) = workers;
     }
 
     pub(crate) fn now(&self) -> Millis {
@@ -1163,6 +1271,7 @@ impl Shared {
             }
             ids.reverse();
         }
+        self.refresh_workers_view(st);
     }
 
     /// Offers worker `id` its next lease, if the scheduler has one for it.

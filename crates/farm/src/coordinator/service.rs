@@ -230,10 +230,9 @@ impl Svc {
     fn job_number(&self, id: &str) -> Result<u64, Status> {
         let missing = || Status::not_found(format!("no job {}", resources::echo(id)));
         let n = parse_job(id).ok_or_else(missing)?;
-        if self.shared.lock().jobs.contains_key(&n) {
-            Ok(n)
-        } else {
-            Err(missing())
+        match self.shared.view(n) {
+            Some(_) => Ok(n),
+            None => Err(missing()),
         }
     }
 
@@ -378,7 +377,7 @@ impl Jobs for Svc {
             return Err(Status::internal(e));
         }
         let pending = Pending::Queued(Some(Box::new(prepared)));
-        st.jobs.insert(n, Job::new(record, Some(pending), n));
+        self.shared.add_job(&mut st, n, Job::new(record, Some(pending), n));
         tracing::info!(job = %job_name(n), "job submitted");
         self.shared.admit(&mut st);
         Ok(Response::new(v1::SubmitJobResponse {
@@ -393,7 +392,7 @@ impl Jobs for Svc {
         req: Request<v1::WatchJobRequest>,
     ) -> Result<Response<Self::WatchJobStream>, Status> {
         let n = self.job_number(&req.get_ref().job_id)?;
-        let mut rx = self.shared.lock().jobs[&n].watch.subscribe();
+        let mut rx = self.shared.view(n).expect("checked").status;
         let (tx, out) = mpsc::channel(4);
         tokio::spawn(async move {
             loop {
@@ -417,17 +416,13 @@ impl Jobs for Svc {
         req: Request<v1::GetJobRequest>,
     ) -> Result<Response<v1::GetJobResponse>, Status> {
         let n = self.job_number(&req.get_ref().job_id)?;
-        let st = self.shared.lock();
-        let job = &st.jobs[&n];
-        let request = job.record.request.clone().unwrap_or_default();
+        let view = self.shared.view(n).expect("checked");
+        let status = view.status.borrow().clone();
         Ok(Response::new(v1::GetJobResponse {
-            status: Some(job.status(n)),
-            settings: request.settings,
-            root: request.bundle.map(|b| b.root).unwrap_or_default(),
-            image: (job.record.width > 0).then_some(v1::Resolution {
-                width: job.record.width,
-                height: job.record.height,
-            }),
+            status: Some(status),
+            settings: view.settings,
+            root: view.root,
+            image: view.image,
         }))
     }
 
@@ -435,14 +430,14 @@ impl Jobs for Svc {
         &self,
         req: Request<v1::ListJobsRequest>,
     ) -> Result<Response<v1::ListJobsResponse>, Status> {
+        // From the views: a merge or refinement holding the state lock never delays it.
         let req = req.into_inner();
-        let st = self.shared.lock();
-        let mut jobs: Vec<v1::JobStatus> = st
-            .jobs
-            .iter()
-            .map(|(&n, j)| j.status(n))
+        let views = self.shared.views.read().unwrap_or_else(|e| e.into_inner());
+        let mut jobs: Vec<v1::JobStatus> = (views.values())
+            .map(|v| v.status.borrow().clone())
             .filter(|s| req.states.is_empty() || req.states.contains(&s.state))
             .collect();
+        drop(views);
         if req.limit > 0 && jobs.len() > req.limit as usize {
             jobs.drain(..jobs.len() - req.limit as usize);
         }
@@ -516,29 +511,8 @@ impl Jobs for Svc {
         &self,
         _req: Request<v1::ListWorkersRequest>,
     ) -> Result<Response<v1::ListWorkersResponse>, Status> {
-        let st = self.shared.lock();
-        let workers = st
-            .workers
-            .iter()
-            .map(|(&id, w)| {
-                let held = st.sched.held_by(WorkerId(id));
-                let lease_ids: Vec<u64> = held.into_iter().map(|l| l.0).collect();
-                v1::WorkerInfo {
-                    worker_id: id,
-                    host_name: w.register.host_name.clone(),
-                    worker_name: w.register.worker_name.clone(),
-                    threads: w.register.threads,
-                    tiles_done: w.tiles_done,
-                    last_heartbeat_unix_ms: w.last_unix_ms,
-                    lease_ids,
-                    build_id: w.register.build_id.clone(),
-                    protocol_version: w.register.protocol_version,
-                    draining: w.draining,
-                    registered_unix_ms: w.registered_unix_ms,
-                    connected: true,
-                }
-            })
-            .collect();
+        let view = self.shared.workers_view.read().unwrap_or_else(|e| e.into_inner());
+        let workers = view.clone();
         Ok(Response::new(v1::ListWorkersResponse { workers }))
     }
 }
@@ -548,6 +522,22 @@ fn msg(m: v1::coordinator_message::Msg) -> Result<v1::CoordinatorMessage, Status
 }
 
 impl Svc {
+    /// Takes a heartbeat of worker `id` without the state lock (applied by its next holder,
+    /// as of now); a heartbeat listing more leases than any worker holds goes the slow way
+    /// and disconnects its sender. Returns the message if it was not taken.
+    fn on_heartbeat(&self, id: u64, h: v1::Heartbeat) -> Option<v1::worker_message::Msg> {
+        if h.active_lease_ids.len() > self.shared.cfg.resources.max_heartbeat_leases {
+            return Some(v1::worker_message::Msg::Heartbeat(h));
+        }
+        self.shared.beat(Beat {
+            worker: WorkerId(id),
+            at: self.shared.now(),
+            unix_ms: unix_ms(),
+            leases: h.active_lease_ids.iter().map(|&l| LeaseId(l)).collect(),
+        });
+        None
+    }
+
     /// Handles one control message of worker `id`.
     fn on_worker_message(&self, id: u64, m: v1::worker_message::Msg) {
         use v1::worker_message::Msg;
@@ -563,27 +553,16 @@ impl Svc {
                 tracing::warn!(worker = id, "second Register ignored");
             }
             Msg::Heartbeat(h) => {
+                // Only a flood comes here ([`Svc::on_heartbeat`] takes the others).
+                let n = h.active_lease_ids.len();
+                tracing::warn!(worker = id, leases = n, "heartbeat lists too many leases");
+                let events = st.sched.worker_lost(worker).unwrap_or_default();
                 let max = shared.cfg.resources.max_heartbeat_leases;
-                if h.active_lease_ids.len() > max {
-                    let n = h.active_lease_ids.len();
-                    tracing::warn!(worker = id, leases = n, "heartbeat lists too many leases");
-                    let events = st.sched.worker_lost(worker).unwrap_or_default();
-                    let why = format!("sent a heartbeat of {n} leases (at most {max})");
-                    forget_worker(&mut st, id, &why);
-                    shared.handle_events(&mut st, events);
-                    shared.lost_holder(&mut st, worker);
-                    return;
-                }
-                let active: Vec<LeaseId> = h.active_lease_ids.iter().map(|&l| LeaseId(l)).collect();
-                if let Ok(stale) = st.sched.heartbeat(worker, &active, now) {
-                    // Only leases this worker was given are worth a cancel: one for every
-                    // id a peer makes up would amplify its heartbeats into our memory.
-                    let given =
-                        |l: &LeaseId| st.sched.lease(*l).is_some_and(|v| v.worker == worker);
-                    for lease in stale.into_iter().filter(given) {
-                        send_cancel(&st, worker, lease, "not this worker's lease any more");
-                    }
-                }
+                let why = format!("sent a heartbeat of {n} leases (at most {max})");
+                forget_worker(&mut st, id, &why);
+                shared.handle_events(&mut st, events);
+                shared.lost_holder(&mut st, worker);
+                return;
             }
             Msg::RequestWork(r) => {
                 if let Some(w) = st.workers.get_mut(&id) {
@@ -637,6 +616,7 @@ impl Svc {
     fn worker_gone(&self, id: u64) {
         let mut st = self.shared.lock();
         forget_worker(&mut st, id, "disconnected");
+        self.shared.refresh_workers_view(&st);
         tracing::info!(worker = id, "worker disconnected");
         match st.sched.worker_lost(WorkerId(id)) {
             Ok(events) => self.shared.handle_events(&mut st, events),
@@ -747,6 +727,7 @@ impl Workers for Svc {
             }
             st.by_key.insert(upload_key, id);
             st.workers.insert(id, conn);
+            self.shared.refresh_workers_view(&st);
             id
         };
         update_health(&self.shared, &self.health).await;
@@ -756,8 +737,19 @@ impl Workers for Svc {
                 match inbound.message().await {
                     Ok(Some(v1::WorkerMessage { msg: Some(m) })) => {
                         let t0 = std::time::Instant::now();
-                        svc.on_worker_message(id, m);
-                        svc.shared.metrics.control_message(t0.elapsed().as_secs_f64());
+                        let kind = match &m {
+                            v1::worker_message::Msg::Heartbeat(_) => "heartbeat",
+                            _ => "other",
+                        };
+                        let rest = match m {
+                            v1::worker_message::Msg::Heartbeat(h) => svc.on_heartbeat(id, h),
+                            m => Some(m),
+                        };
+                        if let Some(m) = rest {
+                            svc.on_worker_message(id, m);
+                        }
+                        let seconds = t0.elapsed().as_secs_f64();
+                        svc.shared.metrics.control_message(kind, seconds);
                     }
                     Ok(Some(_)) => {}
                     Ok(None) => break,
