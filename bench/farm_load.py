@@ -10,7 +10,10 @@ For each worker count N, on this machine: one `pathfarm coordinator` process (wi
 --metrics), N `pathfarm worker --threads 1` processes (real workers: they render real tiles
 of a small scene, so every payload is a real one, and they heartbeat as in production), then
 `--jobs` guided jobs of scenes/cornell-box at --res x --res and --spp, and one job of
---big x --big at --big-spp, all submitted at once with `pathfarm submit --wait`. Meanwhile
+--big x --big at --big-spp (none with --big 0), all submitted at once with
+`pathfarm submit --wait`. Each worker process keeps its own copies of what its jobs need
+(the large job's pixel estimate among them), so 128 workers with a 2048x2048 job do not fit
+in 24 GiB: run the largest worker counts with --big 0. Meanwhile
 `pathfarm status` runs every 100 ms (and ten times before the jobs, on the idle farm:
 the command's own cost, process start included).
 
@@ -149,7 +152,7 @@ def run(a, n, tmp):
         cpu0 = proc_cpu_seconds(coord.pid)
         t0 = time.time()
         jobs = []
-        sizes = [(a.big, a.big_spp)] + [(a.res, a.spp)] * a.jobs
+        sizes = ([(a.big, a.big_spp)] if a.big > 0 else []) + [(a.res, a.spp)] * a.jobs
         for k, (res, spp) in enumerate(sizes):
             out = os.path.join(tmp, f"job-{n}-{k}.exr")
             jobs.append(subprocess.Popen(
@@ -218,7 +221,7 @@ def main():
     ap.add_argument("--jobs", type=int, default=4)
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--big", type=int, default=2048)
+    ap.add_argument("--big", type=int, default=2048, help="0: no large job")
     ap.add_argument("--big-spp", type=int, default=4)
     ap.add_argument("--job-memory-mb", type=int, default=20000)
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "pathfarm"))

@@ -254,7 +254,12 @@ pub fn render(args: RenderArgs) -> Result<()> {
             stats.nonfinite_records
         );
     }
-    let exr = output::encode_exr(&film, args.aovs)
+    let aovs = if args.aovs {
+        output::Aovs::Yes
+    } else {
+        output::Aovs::No
+    };
+    let exr = output::encode_exr(&film, aovs)
         .with_context(|| format!("writing {}", exr_out.path().display()))?;
     let png = match &png_out {
         Some(out) => Some(

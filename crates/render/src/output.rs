@@ -38,9 +38,18 @@ fn err(path: &Path, e: impl std::fmt::Display) -> RenderError {
     }
 }
 
+/// Which channels an EXR carries besides `R`, `G`, `B`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Aovs {
+    /// The pixel means only.
+    No,
+    /// Also `variance.R/G/B` (variance of each pixel's mean) and `spp`.
+    Yes,
+}
+
 /// The OpenEXR file of `film`: `R`, `G`, `B` (the pixel means) and, with
-/// `aovs`, `variance.R/G/B` (variance of each pixel's mean) and `spp`.
-pub fn encode_exr(film: &Film, aovs: bool) -> Result<Vec<u8>, RenderError> {
+/// [`Aovs::Yes`], `variance.R/G/B` (variance of each pixel's mean) and `spp`.
+pub fn encode_exr(film: &Film, aovs: Aovs) -> Result<Vec<u8>, RenderError> {
     let (w, h) = (film.width as usize, film.height as usize);
     let mean = film.mean_rgb();
     let mut list: Vec<AnyChannel<FlatSamples>> = Vec::new();
@@ -50,7 +59,7 @@ pub fn encode_exr(film: &Film, aovs: bool) -> Result<Vec<u8>, RenderError> {
             FlatSamples::F32(mean.iter().map(|p| p[c]).collect()),
         ));
     }
-    if aovs {
+    if aovs == Aovs::Yes {
         let var = film.variance_rgb();
         for (c, name) in ["variance.R", "variance.G", "variance.B"]
             .iter()
@@ -209,7 +218,7 @@ pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<(), RenderError> {
 }
 
 /// Writes the OpenEXR file of `film` (see [`encode_exr`]) to `path`, replacing it.
-pub fn write_exr(path: &Path, film: &Film, aovs: bool) -> Result<(), RenderError> {
+pub fn write_exr(path: &Path, film: &Film, aovs: Aovs) -> Result<(), RenderError> {
     let bytes = encode_exr(film, aovs).map_err(|e| err(path, e))?;
     write_file_atomic(path, &bytes)
 }

@@ -142,6 +142,6 @@ pub fn save(reference: &Reference, path: &Path) -> Result<()> {
     for (px, v) in film.pixels.iter_mut().zip(&reference.image.pixels) {
         px.add(1.0, glam::Vec3::from_array(*v));
     }
-    output::write_exr(path, &film, false)?;
+    output::write_exr(path, &film, output::Aovs::No)?;
     Ok(())
 }

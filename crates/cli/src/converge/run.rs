@@ -94,7 +94,7 @@ pub fn run(
             variant.label
         );
     }
-    output::write_exr(exr, &r.film, false)?;
+    output::write_exr(exr, &r.film, output::Aovs::No)?;
     let measured = Measured {
         wall_s,
         cpu_s,

@@ -181,6 +181,9 @@ pub(crate) struct Shared {
     /// merge or a refinement may hold it for most of a second): see [`JobView`].
     pub(crate) views: std::sync::RwLock<BTreeMap<u64, JobView>>,
     pub(crate) workers_view: std::sync::RwLock<Vec<v1::WorkerInfo>>,
+    /// Connected workers by their upload key (`Registered.upload_key`): an upload's sender,
+    /// found without the state lock.
+    pub(crate) keys: std::sync::RwLock<HashMap<[u8; 32], u64>>,
     /// Heartbeats received and not yet applied to the scheduler: a heartbeat is taken at
     /// once with the instant it arrived, and applied by the next holder of the state lock
     /// before anything else ([`Shared::lock`]), so its handling never waits for the lock and
@@ -375,8 +378,7 @@ pub(crate) struct State {
     pub(crate) sched: Scheduler,
     pub(crate) jobs: BTreeMap<u64, Job>,
     pub(crate) workers: BTreeMap<u64, WorkerConn>,
-    /// Connected workers by their upload key.
-    pub(crate) by_key: HashMap<[u8; 32], u64>,
+
     pub(crate) next_job: u64,
     pub(crate) next_worker: u64,
     /// Blobs that jobs stopped referring to, deleted by the next
@@ -472,7 +474,7 @@ impl Shared {
             sched: Scheduler::new(cfg.scheduler.clone()),
             jobs: BTreeMap::new(),
             workers: BTreeMap::new(),
-            by_key: HashMap::new(),
+
             next_job: 1,
             next_worker: 1,
             garbage: Vec::new(),
@@ -483,6 +485,7 @@ impl Shared {
             sweeping: AtomicBool::new(false),
             last_sweep_ms: AtomicU64::new(0),
             views: Default::default(),
+            keys: Default::default(),
             workers_view: Default::default(),
             beats: Mutex::new(Vec::new()),
             cfg,
@@ -568,6 +571,17 @@ impl Shared {
     pub(crate) fn view(&self, n: u64) -> Option<JobView> {
         let views = self.views.read().unwrap_or_else(|e| e.into_inner());
         views.get(&n).cloned()
+    }
+
+    /// Forgets connected worker `id` (if it still is): its stream ends with `why`, so a
+    /// worker that is still running sees it and registers again.
+    pub(crate) fn forget_worker(&self, st: &mut State, id: u64, why: &str) {
+        if let Some(w) = st.workers.remove(&id) {
+            let mut keys = self.keys.write().unwrap_or_else(|e| e.into_inner());
+            keys.remove(&w.upload_key);
+            let status = Status::unavailable(format!("worker {id} {why}; register again"));
+            let _ = w.tx.try_send(Err(status));
+        }
     }
 
     /// Refreshes what `ListWorkers` answers.
@@ -1103,7 +1117,8 @@ impl Shared {
     ) {
         let encoded = (|| -> Result<[Vec<u8>; 3], String> {
             let exr =
-                pathfarm_render::output::encode_exr(&film, false).map_err(|e| e.to_string())?;
+                pathfarm_render::output::encode_exr(&film, pathfarm_render::output::Aovs::No)
+                    .map_err(|e| e.to_string())?;
             let png = pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
             Ok([exr, png, tree.encode()])
         })();
@@ -1367,7 +1382,7 @@ impl Shared {
                     }
                     // Its stream (if still open) is ended: a worker that was only paused
                     // reconnects and registers anew, and is offered work again.
-                    forget_worker(
+                    self.forget_worker(
                         st,
                         worker.0,
                         "declared lost (silent past the heartbeat timeout)",
@@ -1466,7 +1481,7 @@ impl Shared {
                 "worker disconnected: it does not read its stream"
             );
             let events = st.sched.worker_lost(WorkerId(id)).unwrap_or_default();
-            forget_worker(&mut st, id, "did not read its stream");
+            self.forget_worker(&mut st, id, "did not read its stream");
             self.handle_events(&mut st, events);
             self.lost_holder(&mut st, WorkerId(id));
         }
@@ -1517,15 +1532,6 @@ pub(crate) enum Blame {
     Unrenderable,
 }
 
-/// Forgets connected worker `id` (if it still is): its stream ends with `why`, so a worker
-/// that is still running sees it and registers again.
-pub(crate) fn forget_worker(st: &mut State, id: u64, why: &str) {
-    if let Some(w) = st.workers.remove(&id) {
-        st.by_key.remove(&w.upload_key);
-        let status = Status::unavailable(format!("worker {id} {why}; register again"));
-        let _ = w.tx.try_send(Err(status));
-    }
-}
 
 pub(crate) fn send_cancel(st: &State, worker: WorkerId, lease: LeaseId, reason: &str) {
     if let Some(w) = st.workers.get(&worker.0) {
@@ -1690,7 +1696,9 @@ pub(crate) async fn update_health(
     shared: &Shared,
     reporter: &tonic_health::server::HealthReporter,
 ) {
-    let any = !shared.lock().workers.is_empty();
+    let any = !(shared.workers_view.read())
+        .unwrap_or_else(|e| e.into_inner())
+        .is_empty();
     if shared.serving.swap(any, Ordering::SeqCst) == any {
         return;
     }

@@ -77,7 +77,8 @@ pub(super) async fn run(
             let mut interval = tokio::time::interval(TICK);
             loop {
                 interval.tick().await;
-                svc.shared.tick();
+                let shared = svc.shared.clone();
+                let _ = tokio::task::spawn_blocking(move || shared.tick()).await;
                 update_health(&svc.shared, &svc.health).await;
             }
         })
@@ -104,7 +105,7 @@ pub(super) async fn run(
         tracing::info!("coordinator shutting down");
         // End the workers' control streams so the server can stop.
         let mut st = closer.lock();
-        st.by_key.clear();
+        closer.keys.write().unwrap_or_else(|e| e.into_inner()).clear();
         for w in std::mem::take(&mut st.workers).into_values() {
             w.post(v1::coordinator_message::Msg::Drain(v1::Drain {
                 reason: "the coordinator is shutting down".into(),
@@ -227,6 +228,16 @@ fn chunk_stream(path: PathBuf, digest: Vec<u8>) -> Result<ChunkStream, Status> {
 }
 
 impl Svc {
+    /// Runs `f` on a blocking thread: whatever takes the state lock waits there, never on
+    /// the async threads that answer heartbeats and status.
+    async fn off<R: Send + 'static>(&self, f: impl FnOnce(&Svc) -> R + Send + 'static) -> R {
+        let svc = self.clone();
+        match tokio::task::spawn_blocking(move || f(&svc)).await {
+            Ok(r) => r,
+            Err(e) => std::panic::resume_unwind(e.into_panic()),
+        }
+    }
+
     fn job_number(&self, id: &str) -> Result<u64, Status> {
         let missing = || Status::not_found(format!("no job {}", resources::echo(id)));
         let n = parse_job(id).ok_or_else(missing)?;
@@ -239,11 +250,9 @@ impl Svc {
     /// Refuses a submission while [`Resources::max_jobs_waiting`] jobs are queued or running.
     fn room_for_a_job(&self) -> Result<(), Status> {
         let max = self.shared.cfg.resources.max_jobs_waiting;
-        let st = self.shared.lock();
-        let waiting = st
-            .jobs
-            .values()
-            .filter(|j| !is_terminal(j.record.state))
+        let views = self.shared.views.read().unwrap_or_else(|e| e.into_inner());
+        let waiting = (views.values())
+            .filter(|v| !is_terminal(v.status.borrow().state))
             .count();
         if waiting >= max {
             return Err(Status::resource_exhausted(format!(
@@ -338,9 +347,9 @@ impl Jobs for Svc {
     ) -> Result<Response<v1::SubmitJobResponse>, Status> {
         let req = req.into_inner();
         self.room_for_a_job()?;
-        self.shared.advise_prefetch(&req);
         let shared = self.shared.clone();
         let (req, prepared) = tokio::task::spawn_blocking(move || {
+            shared.advise_prefetch(&req);
             let p = shared.prepare(&req);
             (req, p)
         })
@@ -370,16 +379,20 @@ impl Jobs for Svc {
             )));
         }
         self.room_for_a_job()?;
-        let mut st = self.shared.lock();
-        let n = st.next_job;
-        st.next_job += 1;
-        if let Err(e) = self.shared.db.put(n, &record) {
-            return Err(Status::internal(e));
-        }
-        let pending = Pending::Queued(Some(Box::new(prepared)));
-        self.shared.add_job(&mut st, n, Job::new(record, Some(pending), n));
-        tracing::info!(job = %job_name(n), "job submitted");
-        self.shared.admit(&mut st);
+        let n = self
+            .off(move |svc| {
+                let mut st = svc.shared.lock();
+                let n = st.next_job;
+                st.next_job += 1;
+                svc.shared.db.put(n, &record).map_err(Status::internal)?;
+                let pending = Pending::Queued(Some(Box::new(prepared)));
+                svc.shared
+                    .add_job(&mut st, n, Job::new(record, Some(pending), n));
+                tracing::info!(job = %job_name(n), "job submitted");
+                svc.shared.admit(&mut st);
+                Ok::<u64, Status>(n)
+            })
+            .await?;
         Ok(Response::new(v1::SubmitJobResponse {
             job_id: job_name(n),
         }))
@@ -450,20 +463,25 @@ impl Jobs for Svc {
     ) -> Result<Response<v1::CancelJobResponse>, Status> {
         let req = req.into_inner();
         let n = self.job_number(&req.job_id)?;
-        let mut st = self.shared.lock();
         let reason = if req.reason.is_empty() {
             "cancelled".to_string()
         } else {
-            format!("cancelled: {}", req.reason)
+            format!("cancelled: {}", resources::truncate(&req.reason, 1024))
         };
-        let cancelled = self
-            .shared
-            .end_job(&mut st, n, v1::JobState::Cancelled, reason);
-        let job = &st.jobs[&n];
-        Ok(Response::new(v1::CancelJobResponse {
-            cancelled,
-            status: Some(job.status(n)),
-        }))
+        let answer = self
+            .off(move |svc| {
+                let mut st = svc.shared.lock();
+                let cancelled = svc
+                    .shared
+                    .end_job(&mut st, n, v1::JobState::Cancelled, reason);
+                let status = st.jobs[&n].status(n);
+                v1::CancelJobResponse {
+                    cancelled,
+                    status: Some(status),
+                }
+            })
+            .await;
+        Ok(Response::new(answer))
     }
 
     type DownloadResultStream = ChunkStream;
@@ -475,8 +493,9 @@ impl Jobs for Svc {
         let req = req.into_inner();
         let n = self.job_number(&req.job_id)?;
         let kind = v1::ResultKind::try_from(req.kind).unwrap_or(v1::ResultKind::Unspecified);
-        let digest = {
-            let st = self.shared.lock();
+        let job_id = resources::truncate(&req.job_id, 64);
+        let digest = self.off(move |svc| {
+            let st = svc.shared.lock();
             let r = &st.jobs[&n].record;
             let d = match kind {
                 v1::ResultKind::Unspecified => {
@@ -491,17 +510,18 @@ impl Jobs for Svc {
             if let (v1::ResultKind::PngPreview, Some(p), false) =
                 (kind, running_preview, r.state == v1::JobState::Done as i32)
             {
-                p.0.to_vec()
+                Ok(p.0.to_vec())
             } else if r.state != v1::JobState::Done as i32 || d.is_empty() {
                 return Err(Status::failed_precondition(format!(
                     "{}: the result {kind:?} is available once the job is DONE (a PNG \
                      preview once its first iteration is done)",
-                    req.job_id
+                    job_id
                 )));
             } else {
-                d
+                Ok(d)
             }
-        };
+        })
+        .await?;
         let path = self.shared.blobs.path(&digest_from(&digest, "result")?);
         self.count_fetch(&path);
         Ok(Response::new(chunk_stream(path, digest)?))
@@ -559,7 +579,7 @@ impl Svc {
                 let events = st.sched.worker_lost(worker).unwrap_or_default();
                 let max = shared.cfg.resources.max_heartbeat_leases;
                 let why = format!("sent a heartbeat of {n} leases (at most {max})");
-                forget_worker(&mut st, id, &why);
+                shared.forget_worker(&mut st, id, &why);
                 shared.handle_events(&mut st, events);
                 shared.lost_holder(&mut st, worker);
                 return;
@@ -615,7 +635,7 @@ impl Svc {
 
     fn worker_gone(&self, id: u64) {
         let mut st = self.shared.lock();
-        forget_worker(&mut st, id, "disconnected");
+        self.shared.forget_worker(&mut st, id, "disconnected");
         self.shared.refresh_workers_view(&st);
         tracing::info!(worker = id, "worker disconnected");
         match st.sched.worker_lost(WorkerId(id)) {
@@ -676,18 +696,19 @@ impl Workers for Svc {
         for name in [&mut register.host_name, &mut register.worker_name] {
             *name = resources::truncate(name, resources::MAX_NAME_BYTES);
         }
-        let id = {
-            let mut st = self.shared.lock();
+        let id = self
+            .off(move |svc| {
+            let mut st = svc.shared.lock();
             let id = st.next_worker;
             st.next_worker += 1;
-            let now = self.shared.now();
+            let now = svc.shared.now();
             if let Err(e) = st
                 .sched
                 .register_worker(WorkerId(id), register.threads.max(1), now)
             {
                 return Err(Status::internal(e.to_string()));
             }
-            let sc = &self.shared.cfg.scheduler;
+            let sc = &svc.shared.cfg.scheduler;
             let heartbeat = (sc.heartbeat_timeout.as_millis() / 3).clamp(100, 5000) as u32;
             let upload_key = new_upload_key(id);
             let _ = tx.try_send(msg(Msg::Registered(v1::Registered {
@@ -725,11 +746,12 @@ impl Workers for Svc {
             for n in blocked {
                 let _ = st.sched.block(WorkerId(id), JobId(n));
             }
-            st.by_key.insert(upload_key, id);
+            svc.shared.keys.write().unwrap_or_else(|e| e.into_inner()).insert(upload_key, id);
             st.workers.insert(id, conn);
-            self.shared.refresh_workers_view(&st);
-            id
-        };
+            svc.shared.refresh_workers_view(&st);
+            Ok::<u64, Status>(id)
+            })
+            .await?;
         update_health(&self.shared, &self.health).await;
         let svc = self.clone();
         tokio::spawn(async move {
@@ -746,7 +768,7 @@ impl Workers for Svc {
                             m => Some(m),
                         };
                         if let Some(m) = rest {
-                            svc.on_worker_message(id, m);
+                            svc.off(move |svc| svc.on_worker_message(id, m)).await;
                         }
                         let seconds = t0.elapsed().as_secs_f64();
                         svc.shared.metrics.control_message(kind, seconds);
@@ -759,7 +781,7 @@ impl Workers for Svc {
                     }
                 }
             }
-            svc.worker_gone(id);
+            svc.off(move |svc| svc.worker_gone(id)).await;
             update_health(&svc.shared, &svc.health).await;
         });
         Ok(Response::new(ReceiverStream::new(rx)))

@@ -215,10 +215,7 @@ enum LeaseEnd {
     /// Cancelled after it rendered: its records are in the tree and must be discarded.
     CancelledRendered(RenderedTile),
     Cancelled,
-    Failed {
-        reason: String,
-        fatal: bool,
-    },
+    Failed(Fail),
 }
 
 struct Running {
@@ -306,12 +303,12 @@ impl Leases {
             LeaseEnd::Cancelled => {
                 tracing::info!("lease {id} (job {job}): cancelled, nothing uploaded");
             }
-            LeaseEnd::Failed { reason, fatal } => {
+            LeaseEnd::Failed(Fail { reason, severity }) => {
                 tracing::error!("lease {id} (job {job}) failed: {reason}");
                 let failed = v1::LeaseFailed {
                     lease_id: id,
                     reason,
-                    fatal,
+                    fatal: severity == Severity::Fatal,
                 };
                 self.send(Msg::LeaseFailed(failed));
             }
@@ -517,9 +514,9 @@ impl Leases {
     /// The stream broke (or the worker drained): leases not started are abandoned (the
     /// coordinator re-queues them); the one rendering is finished, and the rendered tiles
     /// are uploaded if they can be.
-    async fn finish(mut self, shared: &Arc<Shared>, api: &Api, lost: bool) {
+    async fn finish(mut self, shared: &Arc<Shared>, api: &Api, end: StreamEnd) {
         if let Some(r) = self.running.take() {
-            if lost {
+            if end == StreamEnd::Broke {
                 let (id, job) = (r.lease_id, &r.job_id);
                 tracing::info!("lease {id} (job {job}): finishing after the stream broke");
             }
@@ -537,6 +534,15 @@ impl Leases {
         }
         while self.uploads.join_next().await.is_some() {}
     }
+}
+
+/// How a control stream's session ended ([`Leases::finish`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum StreamEnd {
+    /// The worker drained and closed it.
+    Closed,
+    /// It broke (the coordinator went away, or ended it).
+    Broke,
 }
 
 fn lost(s: tonic::Status) -> SessionEnd {
@@ -642,9 +648,8 @@ async fn session<S: Future<Output = ()>>(
             }
             end = async { (&mut l.running.as_mut().expect("guarded").handle).await }, if l.running.is_some() => {
                 let r = l.running.take().expect("guarded");
-                let end = end.unwrap_or_else(|e| LeaseEnd::Failed {
-                    reason: format!("render task panicked: {e}"),
-                    fatal: false,
+                let end = end.unwrap_or_else(|e| {
+                    LeaseEnd::Failed(retryable(format!("render task panicked: {e}")))
                 });
                 l.on_rendered(r.lease_id, r.job_id, end);
             }
@@ -671,7 +676,11 @@ async fn session<S: Future<Output = ()>>(
         }
     };
     let draining = l.draining;
-    l.finish(shared, &api, lost.is_some()).await;
+    let end = match lost {
+        Some(_) => StreamEnd::Broke,
+        None => StreamEnd::Closed,
+    };
+    l.finish(shared, &api, end).await;
     match lost {
         Some(m) if !draining => Err(SessionEnd::Lost(m)),
         Some(_) if !*stop => Err(SessionEnd::Lost("drained by the coordinator".into())),
@@ -708,22 +717,32 @@ fn start_lease(shared: &Arc<Shared>, api: &Api, lease: v1::Lease) -> Running {
     }
 }
 
+/// Why a lease could not be rendered, and whether trying again could help.
 struct Fail {
     reason: String,
-    fatal: bool,
+    severity: Severity,
+}
+
+/// Whether a failure is this worker's bad luck or the job's (`LeaseFailed.fatal`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Severity {
+    /// Another attempt (here or elsewhere) may succeed: a fetch, a panic, an upload.
+    Retryable,
+    /// The lease cannot be rendered (its scene does not build, its inputs do not decode).
+    Fatal,
 }
 
 fn retryable(reason: impl std::fmt::Display) -> Fail {
     Fail {
         reason: reason.to_string(),
-        fatal: false,
+        severity: Severity::Retryable,
     }
 }
 
 fn fatal(reason: impl std::fmt::Display) -> Fail {
     Fail {
         reason: reason.to_string(),
-        fatal: true,
+        severity: Severity::Fatal,
     }
 }
 
@@ -745,12 +764,7 @@ async fn do_lease(
             p.fetch_seconds = fetch_start.elapsed().as_secs_f64();
             p
         }
-        Err(f) => {
-            return LeaseEnd::Failed {
-                reason: f.reason,
-                fatal: f.fatal,
-            }
-        }
+        Err(f) => return LeaseEnd::Failed(f),
     };
     if cancelled.load(Ordering::SeqCst) {
         return LeaseEnd::Cancelled;
@@ -764,18 +778,8 @@ async fn do_lease(
         tokio::task::spawn_blocking(move || sh.pool.install(|| render(&sh, prepared))).await;
     let tile = match rendered {
         Ok(Ok(t)) => t,
-        Ok(Err(f)) => {
-            return LeaseEnd::Failed {
-                reason: f.reason,
-                fatal: f.fatal,
-            }
-        }
-        Err(e) => {
-            return LeaseEnd::Failed {
-                reason: format!("render panicked: {e}"),
-                fatal: false,
-            }
-        }
+        Ok(Err(f)) => return LeaseEnd::Failed(f),
+        Err(e) => return LeaseEnd::Failed(retryable(format!("render panicked: {e}"))),
     };
     if cancelled.load(Ordering::SeqCst) {
         return LeaseEnd::CancelledRendered(tile);

@@ -83,8 +83,8 @@ impl Svc {
                      (Registered.upload_key, 64 hex digits)"
                 ))
             })?;
-        let st = self.shared.lock();
-        st.by_key.get(&key).map(|&id| WorkerId(id)).ok_or_else(|| {
+        let keys = self.shared.keys.read().unwrap_or_else(|e| e.into_inner());
+        keys.get(&key).map(|&id| WorkerId(id)).ok_or_else(|| {
             Status::permission_denied(
                 "the upload key names no connected worker (its control stream ended: \
                  register again)",
@@ -126,16 +126,21 @@ impl Svc {
             Err(e) => return upload_refused(e, corrupt_ack),
         };
         let received = Instant::now();
-        let total = match self.announced(sender, &header) {
+        let (header, announced) = self
+            .off(move |svc| {
+                let announced = svc.announced(sender, &header);
+                match announced {
+                    Ok(total) => (header, Ok(total)),
+                    Err(r) => {
+                        let ack = svc.refuse(&mut svc.shared.lock(), sender, &header, r);
+                        (header, Err(ack))
+                    }
+                }
+            })
+            .await;
+        let total = match announced {
             Ok(t) => t,
-            Err(r) => {
-                return Ok(Response::new(self.refuse(
-                    &mut *self.shared.lock(),
-                    sender,
-                    &header,
-                    r,
-                )))
-            }
+            Err(ack) => return Ok(Response::new(ack)),
         };
         let _reserved = self.reserve(total).await?;
         let bytes = match chunked::data_to_vec(&mut stream, total, self.idle()).await {
@@ -143,7 +148,7 @@ impl Svc {
             Err(e) => return upload_refused(e, corrupt_ack),
         };
         let receive_s = received.elapsed().as_secs_f64();
-        let ack = self.take_tiles(sender, header, bytes, receive_s);
+        let ack = (self.off(move |svc| svc.take_tiles(sender, header, bytes, receive_s))).await;
         self.shared.metrics.tile_upload(total, ack.accepted);
         Ok(Response::new(ack))
     }
@@ -340,15 +345,13 @@ impl Svc {
         sender: WorkerId,
         mut stream: Streaming<v1::RecordsUpload>,
     ) -> Result<Response<v1::RecordsAck>, Status> {
-        let refused = |d: String| records_ack(false, d).into_inner();
+        let refused = |d: String| records_refused(d).into_inner();
         let header = match chunked::header(&mut stream, "UploadRecords", self.idle()).await {
             Ok(h) => h,
             Err(e) => return upload_refused(e, refused),
         };
         if header.worker_id != sender.0 {
-            return Ok(records_ack(
-                false,
-                format!(
+            return Ok(records_refused(format!(
                     "worker_id {} is not the uploading worker's ({})",
                     header.worker_id, sender.0
                 ),
@@ -357,10 +360,16 @@ impl Svc {
         let max = self.shared.cfg.resources.max_records_bytes;
         if header.size > max {
             let detail = format!("{} bytes of records, at most {max}", header.size);
-            return Ok(records_ack(false, detail));
+            return Ok(records_refused(detail));
         }
-        if let Err(detail) = self.asked(&header) {
-            return Ok(records_ack(false, detail));
+        let (header, asked) = self
+            .off(move |svc| {
+                let asked = svc.asked(&header);
+                (header, asked)
+            })
+            .await;
+        if let Err(detail) = asked {
+            return Ok(records_refused(detail));
         }
         let size = if header.lost { 0 } else { header.size };
         let _reserved = self.reserve(size).await?;
@@ -369,7 +378,7 @@ impl Svc {
             Err(e) => return upload_refused(e, refused),
         };
         self.shared.metrics.records_upload(bytes.len() as u64);
-        Ok(self.take_records(header, bytes))
+        Ok(self.off(move |svc| svc.take_records(header, bytes)).await)
     }
 
     /// Whether the job named by `header` is collecting records from its worker for its
@@ -414,19 +423,19 @@ impl Svc {
         let st = &mut *st;
         let n = match self.asked_locked(st, &header) {
             Ok(n) => n,
-            Err(detail) => return records_ack(false, detail),
+            Err(detail) => return records_refused(detail),
         };
         let w = header.worker_id;
         let records = match records {
             Ok(Some(r)) => r,
             Ok(None) => {
                 shared.roll_back(st, n, &format!("worker {w} lost the records it held"));
-                return records_ack(true, "");
+                return records_taken();
             }
             Err(detail) => {
                 shared.blame(st, n, w, &detail, Blame::Bad);
                 shared.roll_back(st, n, &format!("worker {w} sent bad records: {detail}"));
-                return records_ack(false, detail);
+                return records_refused(detail);
             }
         };
         let a = (st.jobs.get_mut(&n))
@@ -437,7 +446,7 @@ impl Svc {
             let detail = format!("records refused by the session: {e}");
             shared.blame(st, n, w, &detail, Blame::Bad);
             shared.roll_back(st, n, &format!("worker {w}'s {detail}"));
-            return records_ack(false, detail);
+            return records_refused(detail);
         }
         let merge_s = merge_start.elapsed().as_secs_f64();
         a.records_ledger.add(bytes.len() as u64, decode_s, merge_s);
@@ -448,7 +457,7 @@ impl Svc {
             shared.drive(st, n);
             shared.dispatch(st);
         }
-        records_ack(true, "")
+        records_taken()
     }
 
     /// [`Svc::asked`] under a lock already held.
@@ -623,9 +632,18 @@ fn payload_size(header: &v1::TileHeader) -> Result<u64, String> {
     Ok(total)
 }
 
-fn records_ack(accepted: bool, detail: impl Into<String>) -> Response<v1::RecordsAck> {
+/// A records upload taken.
+fn records_taken() -> Response<v1::RecordsAck> {
     Response::new(v1::RecordsAck {
-        accepted,
+        accepted: true,
+        detail: String::new(),
+    })
+}
+
+/// A records upload refused, and why.
+fn records_refused(detail: impl Into<String>) -> Response<v1::RecordsAck> {
+    Response::new(v1::RecordsAck {
+        accepted: false,
         detail: detail.into(),
     })
 }
