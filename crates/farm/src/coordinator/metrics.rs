@@ -56,6 +56,7 @@ pub(crate) struct Metrics {
     workers_blocked: Counter,
     blobs_expired: Counter,
     control_seconds: Family<KindLabel, Histogram>,
+    status_seconds: Histogram,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -86,6 +87,8 @@ impl Default for Metrics {
             (|| Histogram::new(exponential_buckets(5e-5, 2.0, 17))) as fn() -> Histogram,
         );
         on.register("control_message_seconds", CONTROL_HELP, control_seconds.clone());
+        let status_seconds = Histogram::new(exponential_buckets(5e-5, 2.0, 17));
+        on.register("status_seconds", STATUS_HELP, status_seconds.clone());
         Metrics {
             registry: r,
             jobs,
@@ -103,6 +106,7 @@ impl Default for Metrics {
             workers_blocked,
             blobs_expired,
             control_seconds,
+            status_seconds,
         }
     }
 }
@@ -119,6 +123,8 @@ const ROLL_BACKS_HELP: &str =
 const CONTROL_HELP: &str = "Seconds from receiving a worker's control message (heartbeat, \
      lease request, failure, hand-back) to having handled it, waiting for the state lock included, \
      by kind (heartbeat, other)";
+const STATUS_HELP: &str = "Seconds the coordinator took to answer a status call (ListJobs, \
+     GetJob, ListWorkers), from the handler's start";
 const BLOCKED_HELP: &str =
     "Workers blocked from a job after sending it bad results (a worker and job counted once)";
 const EXPIRED_HELP: &str =
@@ -163,6 +169,11 @@ impl Metrics {
         self.control_seconds
             .get_or_create(&KindLabel { kind })
             .observe(seconds);
+    }
+
+    /// Observes how long a status call took.
+    pub(crate) fn status_call(&self, seconds: f64) {
+        self.status_seconds.observe(seconds);
     }
 
     /// Counts a worker blocked from a job.

@@ -428,9 +428,11 @@ impl Jobs for Svc {
         &self,
         req: Request<v1::GetJobRequest>,
     ) -> Result<Response<v1::GetJobResponse>, Status> {
+        let t0 = std::time::Instant::now();
         let n = self.job_number(&req.get_ref().job_id)?;
         let view = self.shared.view(n).expect("checked");
         let status = view.status.borrow().clone();
+        self.shared.metrics.status_call(t0.elapsed().as_secs_f64());
         Ok(Response::new(v1::GetJobResponse {
             status: Some(status),
             settings: view.settings,
@@ -444,6 +446,7 @@ impl Jobs for Svc {
         req: Request<v1::ListJobsRequest>,
     ) -> Result<Response<v1::ListJobsResponse>, Status> {
         // From the views: a merge or refinement holding the state lock never delays it.
+        let t0 = std::time::Instant::now();
         let req = req.into_inner();
         let views = self.shared.views.read().unwrap_or_else(|e| e.into_inner());
         let mut jobs: Vec<v1::JobStatus> = (views.values())
@@ -454,6 +457,7 @@ impl Jobs for Svc {
         if req.limit > 0 && jobs.len() > req.limit as usize {
             jobs.drain(..jobs.len() - req.limit as usize);
         }
+        self.shared.metrics.status_call(t0.elapsed().as_secs_f64());
         Ok(Response::new(v1::ListJobsResponse { jobs }))
     }
 
@@ -531,8 +535,11 @@ impl Jobs for Svc {
         &self,
         _req: Request<v1::ListWorkersRequest>,
     ) -> Result<Response<v1::ListWorkersResponse>, Status> {
+        let t0 = std::time::Instant::now();
         let view = self.shared.workers_view.read().unwrap_or_else(|e| e.into_inner());
         let workers = view.clone();
+        drop(view);
+        self.shared.metrics.status_call(t0.elapsed().as_secs_f64());
         Ok(Response::new(v1::ListWorkersResponse { workers }))
     }
 }
