@@ -86,7 +86,11 @@ impl Default for Metrics {
         let control_seconds = Family::<KindLabel, Histogram>::new_with_constructor(
             (|| Histogram::new(exponential_buckets(5e-5, 2.0, 17))) as fn() -> Histogram,
         );
-        on.register("control_message_seconds", CONTROL_HELP, control_seconds.clone());
+        on.register(
+            "control_message_seconds",
+            CONTROL_HELP,
+            control_seconds.clone(),
+        );
         let status_seconds = Histogram::new(exponential_buckets(5e-5, 2.0, 17));
         on.register("status_seconds", STATUS_HELP, status_seconds.clone());
         Metrics {

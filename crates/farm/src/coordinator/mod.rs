@@ -525,7 +525,10 @@ impl Shared {
 
     /// Takes a heartbeat without waiting for the state lock ([`Shared::beats`]).
     pub(crate) fn beat(&self, beat: Beat) {
-        self.beats.lock().unwrap_or_else(|e| e.into_inner()).push(beat);
+        self.beats
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(beat);
     }
 
     fn apply_beats(&self, st: &mut State) {
@@ -1116,9 +1119,8 @@ impl Shared {
         released: Vec<Digest>,
     ) {
         let encoded = (|| -> Result<[Vec<u8>; 3], String> {
-            let exr =
-                pathfarm_render::output::encode_exr(&film, pathfarm_render::output::Aovs::No)
-                    .map_err(|e| e.to_string())?;
+            let exr = pathfarm_render::output::encode_exr(&film, pathfarm_render::output::Aovs::No)
+                .map_err(|e| e.to_string())?;
             let png = pathfarm_render::output::encode_png(&film).map_err(|e| e.to_string())?;
             Ok([exr, png, tree.encode()])
         })();
@@ -1531,7 +1533,6 @@ pub(crate) enum Blame {
     /// The worker says the job cannot be rendered: blocked at once.
     Unrenderable,
 }
-
 
 pub(crate) fn send_cancel(st: &State, worker: WorkerId, lease: LeaseId, reason: &str) {
     if let Some(w) = st.workers.get(&worker.0) {

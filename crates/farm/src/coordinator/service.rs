@@ -105,7 +105,11 @@ pub(super) async fn run(
         tracing::info!("coordinator shutting down");
         // End the workers' control streams so the server can stop.
         let mut st = closer.lock();
-        closer.keys.write().unwrap_or_else(|e| e.into_inner()).clear();
+        closer
+            .keys
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .clear();
         for w in std::mem::take(&mut st.workers).into_values() {
             w.post(v1::coordinator_message::Msg::Drain(v1::Drain {
                 reason: "the coordinator is shutting down".into(),
@@ -498,34 +502,35 @@ impl Jobs for Svc {
         let n = self.job_number(&req.job_id)?;
         let kind = v1::ResultKind::try_from(req.kind).unwrap_or(v1::ResultKind::Unspecified);
         let job_id = resources::truncate(&req.job_id, 64);
-        let digest = self.off(move |svc| {
-            let st = svc.shared.lock();
-            let r = &st.jobs[&n].record;
-            let d = match kind {
-                v1::ResultKind::Unspecified => {
-                    return Err(Status::invalid_argument("kind: unspecified"))
-                }
-                v1::ResultKind::Exr => r.exr.clone(),
-                v1::ResultKind::PngPreview => r.png.clone(),
-                v1::ResultKind::SdTree => r.tree.clone(),
-            };
-            // while the job runs, the preview of the image so far
-            let running_preview = st.jobs[&n].active.as_ref().and_then(|a| a.preview);
-            if let (v1::ResultKind::PngPreview, Some(p), false) =
-                (kind, running_preview, r.state == v1::JobState::Done as i32)
-            {
-                Ok(p.0.to_vec())
-            } else if r.state != v1::JobState::Done as i32 || d.is_empty() {
-                return Err(Status::failed_precondition(format!(
-                    "{}: the result {kind:?} is available once the job is DONE (a PNG \
+        let digest = self
+            .off(move |svc| {
+                let st = svc.shared.lock();
+                let r = &st.jobs[&n].record;
+                let d = match kind {
+                    v1::ResultKind::Unspecified => {
+                        return Err(Status::invalid_argument("kind: unspecified"))
+                    }
+                    v1::ResultKind::Exr => r.exr.clone(),
+                    v1::ResultKind::PngPreview => r.png.clone(),
+                    v1::ResultKind::SdTree => r.tree.clone(),
+                };
+                // while the job runs, the preview of the image so far
+                let running_preview = st.jobs[&n].active.as_ref().and_then(|a| a.preview);
+                if let (v1::ResultKind::PngPreview, Some(p), false) =
+                    (kind, running_preview, r.state == v1::JobState::Done as i32)
+                {
+                    Ok(p.0.to_vec())
+                } else if r.state != v1::JobState::Done as i32 || d.is_empty() {
+                    return Err(Status::failed_precondition(format!(
+                        "{}: the result {kind:?} is available once the job is DONE (a PNG \
                      preview once its first iteration is done)",
-                    job_id
-                )));
-            } else {
-                Ok(d)
-            }
-        })
-        .await?;
+                        job_id
+                    )));
+                } else {
+                    Ok(d)
+                }
+            })
+            .await?;
         let path = self.shared.blobs.path(&digest_from(&digest, "result")?);
         self.count_fetch(&path);
         Ok(Response::new(chunk_stream(path, digest)?))
@@ -536,7 +541,11 @@ impl Jobs for Svc {
         _req: Request<v1::ListWorkersRequest>,
     ) -> Result<Response<v1::ListWorkersResponse>, Status> {
         let t0 = std::time::Instant::now();
-        let view = self.shared.workers_view.read().unwrap_or_else(|e| e.into_inner());
+        let view = self
+            .shared
+            .workers_view
+            .read()
+            .unwrap_or_else(|e| e.into_inner());
         let workers = view.clone();
         drop(view);
         self.shared.metrics.status_call(t0.elapsed().as_secs_f64());
@@ -705,58 +714,62 @@ impl Workers for Svc {
         }
         let id = self
             .off(move |svc| {
-            let mut st = svc.shared.lock();
-            let id = st.next_worker;
-            st.next_worker += 1;
-            let now = svc.shared.now();
-            if let Err(e) = st
-                .sched
-                .register_worker(WorkerId(id), register.threads.max(1), now)
-            {
-                return Err(Status::internal(e.to_string()));
-            }
-            let sc = &svc.shared.cfg.scheduler;
-            let heartbeat = (sc.heartbeat_timeout.as_millis() / 3).clamp(100, 5000) as u32;
-            let upload_key = new_upload_key(id);
-            let _ = tx.try_send(msg(Msg::Registered(v1::Registered {
-                worker_id: id,
-                heartbeat_interval_ms: heartbeat,
-                lease_timeout_ms: sc.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
-                protocol_version: pathfarm_proto::PROTOCOL_VERSION,
-                build_id: ours.to_string(),
-                upload_key: upload_key.to_vec(),
-            })));
-            tracing::info!(
-                worker = id,
-                host = %register.host_name,
-                name = %register.worker_name,
-                threads = register.threads,
-                "worker registered"
-            );
-            let conn = WorkerConn {
-                tx,
-                credits: 0,
-                register,
-                registered_unix_ms: unix_ms(),
-                last_unix_ms: unix_ms(),
-                tiles_done: 0,
-                draining: false,
-                upload_key,
-                overflowed: AtomicBool::new(false),
-            };
-            // A worker blocked from a job stays blocked when it comes back.
-            let who = conn.identity();
-            let blocked: Vec<u64> = (st.jobs.iter())
-                .filter(|(_, j)| j.blocked.contains_key(&who))
-                .map(|(&n, _)| n)
-                .collect();
-            for n in blocked {
-                let _ = st.sched.block(WorkerId(id), JobId(n));
-            }
-            svc.shared.keys.write().unwrap_or_else(|e| e.into_inner()).insert(upload_key, id);
-            st.workers.insert(id, conn);
-            svc.shared.refresh_workers_view(&st);
-            Ok::<u64, Status>(id)
+                let mut st = svc.shared.lock();
+                let id = st.next_worker;
+                st.next_worker += 1;
+                let now = svc.shared.now();
+                if let Err(e) = st
+                    .sched
+                    .register_worker(WorkerId(id), register.threads.max(1), now)
+                {
+                    return Err(Status::internal(e.to_string()));
+                }
+                let sc = &svc.shared.cfg.scheduler;
+                let heartbeat = (sc.heartbeat_timeout.as_millis() / 3).clamp(100, 5000) as u32;
+                let upload_key = new_upload_key(id);
+                let _ = tx.try_send(msg(Msg::Registered(v1::Registered {
+                    worker_id: id,
+                    heartbeat_interval_ms: heartbeat,
+                    lease_timeout_ms: sc.lease_timeout.as_millis().min(u32::MAX as u128) as u32,
+                    protocol_version: pathfarm_proto::PROTOCOL_VERSION,
+                    build_id: ours.to_string(),
+                    upload_key: upload_key.to_vec(),
+                })));
+                tracing::info!(
+                    worker = id,
+                    host = %register.host_name,
+                    name = %register.worker_name,
+                    threads = register.threads,
+                    "worker registered"
+                );
+                let conn = WorkerConn {
+                    tx,
+                    credits: 0,
+                    register,
+                    registered_unix_ms: unix_ms(),
+                    last_unix_ms: unix_ms(),
+                    tiles_done: 0,
+                    draining: false,
+                    upload_key,
+                    overflowed: AtomicBool::new(false),
+                };
+                // A worker blocked from a job stays blocked when it comes back.
+                let who = conn.identity();
+                let blocked: Vec<u64> = (st.jobs.iter())
+                    .filter(|(_, j)| j.blocked.contains_key(&who))
+                    .map(|(&n, _)| n)
+                    .collect();
+                for n in blocked {
+                    let _ = st.sched.block(WorkerId(id), JobId(n));
+                }
+                svc.shared
+                    .keys
+                    .write()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(upload_key, id);
+                st.workers.insert(id, conn);
+                svc.shared.refresh_workers_view(&st);
+                Ok::<u64, Status>(id)
             })
             .await?;
         update_health(&self.shared, &self.health).await;

@@ -633,7 +633,8 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
         &settings,
         guided::GuidedOptions::default(),
     );
-    let expected = pathfarm_render::output::encode_exr(&film, pathfarm_render::output::Aovs::No).unwrap();
+    let expected =
+        pathfarm_render::output::encode_exr(&film, pathfarm_render::output::Aovs::No).unwrap();
     assert!(
         exr == expected,
         "the farm's EXR differs from the one-process render"

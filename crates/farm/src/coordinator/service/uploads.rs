@@ -352,10 +352,9 @@ impl Svc {
         };
         if header.worker_id != sender.0 {
             return Ok(records_refused(format!(
-                    "worker_id {} is not the uploading worker's ({})",
-                    header.worker_id, sender.0
-                ),
-            ));
+                "worker_id {} is not the uploading worker's ({})",
+                header.worker_id, sender.0
+            )));
         }
         let max = self.shared.cfg.resources.max_records_bytes;
         if header.size > max {
