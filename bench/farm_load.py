@@ -45,30 +45,14 @@ import threading
 import time
 import urllib.request
 
+from farm import cpu_name, free_port  # this directory's farm benchmark
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, ".."))
 TOKEN = "farm-load-token"
 STATUS_RE = re.compile(r'pathfarm_status_seconds_bucket\{le="([^"]+)"\} (\d+)')
 BUCKET_RE = re.compile(
     r'pathfarm_control_message_seconds_bucket\{le="([^"]+)",kind="(\w+)"\} (\d+)')
-
-
-def cpu_name():
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown CPU"
-
-
-def free_port():
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def proc_cpu_seconds(pid):

@@ -383,20 +383,7 @@ impl Svc {
     /// Whether the job named by `header` is collecting records from its worker for its
     /// tree version and epoch; the refusal's text if not.
     fn asked(&self, header: &v1::RecordsHeader) -> Result<u64, String> {
-        let no_job = || format!("no job {}", resources::echo(&header.job_id));
-        let n = parse_job(&header.job_id).ok_or_else(no_job)?;
-        let st = self.shared.lock();
-        let job = st.jobs.get(&n).ok_or_else(no_job)?;
-        let Some(a) = job.active.as_ref() else {
-            return Err("the job is not running".into());
-        };
-        let current = a.records_epoch == header.records_epoch
-            && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
-        let asked = (a.collecting.as_ref()).is_some_and(|c| c.contains(&header.worker_id));
-        if !current || !asked {
-            return Err("records not asked for (another epoch, version or worker)".into());
-        }
-        Ok(n)
+        self.asked_locked(&self.shared.lock(), header)
     }
 
     /// A holder's records added to the session (decoded off the lock), or, if it lost them
@@ -461,9 +448,10 @@ impl Svc {
 
     /// [`Svc::asked`] under a lock already held.
     fn asked_locked(&self, st: &State, header: &v1::RecordsHeader) -> Result<u64, String> {
-        let n = parse_job(&header.job_id).ok_or_else(|| "no such job".to_string())?;
-        let a = (st.jobs.get(&n).and_then(|j| j.active.as_ref()))
-            .ok_or_else(|| "the job is not running".to_string())?;
+        let no_job = || format!("no job {}", resources::echo(&header.job_id));
+        let n = parse_job(&header.job_id).ok_or_else(no_job)?;
+        let job = st.jobs.get(&n).ok_or_else(no_job)?;
+        let a = (job.active.as_ref()).ok_or_else(|| "the job is not running".to_string())?;
         let current = a.records_epoch == header.records_epoch
             && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
         let asked = (a.collecting.as_ref()).is_some_and(|c| c.contains(&header.worker_id));
