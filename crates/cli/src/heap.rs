@@ -6,10 +6,10 @@
 //! and given back to the kernel as soon as its free top passes 128 KiB, so each decode
 //! faults its memory in again (zeroed pages, mprotect, page-table updates): half of a
 //! statistics decode's time was in the kernel. Growing in 16 MiB steps and keeping up to
-//! 256 MiB of free top makes the same decode 2.1x faster (`docs/farm-performance.md`, fifth
-//! session). The price is memory kept instead of returned: at 256 spp the coordinator's peak
-//! rose from 1073 to 1331 MB and a worker's from 786 to 839 MB (the one-process render's
-//! stayed at 660 MB).
+//! 256 MiB of free top makes the same decode 2.1x faster
+//! (`docs/decisions/glibc-heap-settings.md`). The price is memory kept instead of returned:
+//! at 256 spp the coordinator's peak rose from 1073 to 1331 MB and a worker's from 786 to
+//! 839 MB (the one-process render's stayed at 660 MB).
 //!
 //! Setting these turns off glibc's adaptive mmap threshold, so it is set too: allocations
 //! under 32 MiB (the most glibc allows) come from the heap, as the adaptive threshold would
