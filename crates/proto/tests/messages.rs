@@ -109,6 +109,7 @@ fn control_messages_round_trip() {
             lease_timeout_ms: 10_000,
             protocol_version: PROTOCOL_VERSION,
             build_id: "pathfarm 0.1.0 abc123".into(),
+            upload_key: vec![0xa5; 32],
         })),
     });
     // An empty message in a oneof still round-trips as that arm.
@@ -192,6 +193,7 @@ fn job_and_tile_messages_round_trip() {
         pass_kind: v1::PassKind::Guided as i32,
         started_unix_ms: 1_767_225_601_000,
         nonfinite: 3,
+        blocked_workers: vec!["render-07/gpu: lease 12: pixels: a sum is not finite".into()],
     });
     round_trip(&v1::SubmitJobRequest {
         bundle: Some(v1::Bundle {
