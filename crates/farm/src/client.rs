@@ -33,8 +33,8 @@ pub struct WorkerKey(std::sync::Arc<std::sync::Mutex<Option<MetadataValue<Ascii>
 impl WorkerKey {
     /// Sets the key (`Registered.upload_key`) the following calls carry.
     pub fn set(&self, key: &[u8]) {
-        let hex: String = key.iter().map(|b| format!("{b:02x}")).collect();
-        let value = hex.parse().ok();
+        let key = <[u8; 32]>::try_from(key).ok().map(crate::bundle::Digest);
+        let value = key.and_then(|k| k.to_hex().parse().ok());
         *self.0.lock().unwrap_or_else(|e| e.into_inner()) = value;
     }
 

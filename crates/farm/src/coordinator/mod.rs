@@ -343,7 +343,7 @@ pub(crate) struct Job {
 
 impl Job {
     pub(crate) fn new(record: JobRecord, pending: Option<Pending>, n: u64) -> Job {
-        let (watch, _) = watch::channel(status_of(n, &record, None));
+        let (watch, _) = watch::channel(v1::JobStatus::default());
         let job = Job {
             record,
             pending,

@@ -69,7 +69,7 @@ impl BlobStore {
         };
         dir.filter_map(|e| {
             let e = e.ok()?;
-            let digest = super::sweep::digest_of_name(e.file_name().to_str()?)?;
+            let digest = Digest::from_hex(e.file_name().to_str()?).ok()?;
             let modified = e.metadata().ok()?.modified().ok()?;
             (super::sweep::age_of(modified) >= grace).then_some(digest)
         })

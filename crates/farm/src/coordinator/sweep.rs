@@ -13,7 +13,6 @@ use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 use super::{checkpoints, Shared};
-use crate::bundle::Digest;
 
 /// How often the blob directory is listed: every 30 s, or twice per grace period if that
 /// is shorter.
@@ -73,16 +72,4 @@ pub(crate) fn age_of(modified: SystemTime) -> Duration {
     SystemTime::now()
         .duration_since(modified)
         .unwrap_or(Duration::ZERO)
-}
-
-/// A digest from a blob file's name, if it is one.
-pub(crate) fn digest_of_name(name: &str) -> Option<Digest> {
-    if name.len() != 64 {
-        return None;
-    }
-    let mut out = [0u8; 32];
-    for (i, byte) in out.iter_mut().enumerate() {
-        *byte = u8::from_str_radix(name.get(2 * i..2 * i + 2)?, 16).ok()?;
-    }
-    Some(Digest(out))
 }

@@ -462,10 +462,9 @@ impl Svc {
     }
 }
 
-/// An upload key from its hex form.
+/// An upload key from its hex form (written as a digest is).
 fn parse_key(hex: &str) -> Option<[u8; 32]> {
-    let d = crate::coordinator::sweep::digest_of_name(hex)?;
-    Some(d.0)
+    crate::bundle::Digest::from_hex(hex).ok().map(|d| d.0)
 }
 
 /// The job, unit and pass of the leases a header names, all `sender`'s and of one unit in
