@@ -118,13 +118,13 @@ impl Shared {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
             return 0.0;
         };
-        let Some(cp) = a.session.checkpoint_parts() else {
+        let Some(cp) = a.session().checkpoint_parts() else {
             return 0.0;
         };
-        let version = a.session.tree_version();
+        let version = a.session().tree_version();
         let tree = match a.tree_digest {
             Some((v, d)) if v == version => d,
-            _ => match self.blobs.put_unsynced(&a.session.tree().encode()) {
+            _ => match self.blobs.put_unsynced(&a.driver.encode_tree()) {
                 Ok(d) => {
                     if let Some((_, old)) = a.tree_digest.replace((version, d)) {
                         st.garbage.push(old);

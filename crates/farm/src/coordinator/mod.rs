@@ -37,7 +37,7 @@ mod tests;
 
 pub use resources::Resources;
 
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -48,7 +48,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
 use pathfarm_render::film::Film;
-use pathfarm_render::guided::{self, Budget, FallbackPolicy, Next, Records, Session, Splatting};
+use pathfarm_render::guided::{self, Budget, FallbackPolicy, Records, Session, Splatting};
 use pathfarm_render::pass::{PassKind, PassSpec};
 use pathfarm_render::{Purpose, Region, Scene};
 use pathfarm_scene::{GuidedParams, Limits};
@@ -58,6 +58,7 @@ use tonic::Status;
 
 use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
 use crate::codec;
+use crate::driver::{Blame, Blocklist, JobDriver, Offer, Standing, Step, Tiling};
 use crate::scheduler::{Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, WorkerId};
 use crate::tiling::CostMap;
 
@@ -246,18 +247,13 @@ impl WorkerConn {
     }
 }
 
-/// A job being rendered.
+/// A job being rendered: its driver (session, units in flight, records holders) and what
+/// the coordinator keeps beside it (published blobs, accounts, checkpoints).
 pub(crate) struct Active {
-    pub(crate) session: Session,
-    pub(crate) clock: Instant,
+    pub(crate) driver: JobDriver,
     pub(crate) seed: u64,
-    /// The units whose tiles are not all in, oldest first (at most two: training passes
-    /// overlap, see [`pathfarm_render::session`]).
-    pub(crate) flights: Vec<Flight>,
-    /// The job's fixed tile edge, or `None` for tiles cut by cost ([`CostMap::tiles`]).
-    pub(crate) tile: Option<u32>,
-    /// What the image cost per sample in the job's earlier units.
-    pub(crate) cost: CostMap,
+    /// Where each unit in flight's time and bytes went, by unit.
+    pub(crate) ledgers: Vec<(u64, UnitLedger)>,
     /// Checkpoints taken so far (a background write records its checkpoint only if no later
     /// one was taken meanwhile).
     pub(crate) checkpoint_seq: u64,
@@ -265,39 +261,27 @@ pub(crate) struct Active {
     pub(crate) preview: Option<Digest>,
     /// The films the last recorded checkpoint stored, so the next one stores only new films.
     pub(crate) film_digests: Vec<(Weak<Film>, Digest)>,
+    /// The blob of the tree version last published (or checkpointed).
     pub(crate) tree_digest: Option<(u32, Digest)>,
     /// The fractions of the last two units issued (the units in flight are among them).
     pub(crate) fractions_digests: Vec<((u32, u32), Digest)>,
-    pub(crate) estimate_digest: Option<(u32, Vec<u8>)>,
+    /// The pixel estimate last published (empty: none).
+    pub(crate) estimate_digest: Option<Vec<u8>>,
     pub(crate) samples_total: u64,
     /// What the job was started from: a roll back starts it again
     /// ([`Shared::roll_back`]).
     pub(crate) prepared: Prepared,
-    /// The records epoch of this session's leases (`PassSpec.records_epoch`).
-    pub(crate) records_epoch: u64,
-    /// Workers whose uploads of the current tree version's recording units were accepted:
-    /// they keep those tiles' quadtree records until asked (`FlushRecords`).
-    pub(crate) holders: BTreeSet<u64>,
-    /// While the session collects records: the holders asked and not answered yet, and
-    /// the collection's accounts (since when, bytes, seconds).
-    pub(crate) collecting: Option<BTreeSet<u64>>,
-    pub(crate) records_ledger: RecordsLedger,
+    /// The accounts of the records collection in progress.
+    pub(crate) records_ledger: Option<RecordsLedger>,
     /// The memory reserved for the session ([`Resources::job_memory_bytes`]).
     pub(crate) memory: u64,
-}
-
-/// A unit whose tiles are not all in.
-pub(crate) struct Flight {
-    pub(crate) spec: PassSpec,
-    /// Where its time and bytes went.
-    pub(crate) ledger: UnitLedger,
 }
 
 impl Active {
     /// The blobs the job's units in flight refer to: their published inputs (tree,
     /// fractions, pixel estimate) and the preview.
     pub(crate) fn blobs(&self) -> Vec<Digest> {
-        let estimate = self.estimate_digest.as_ref().map(|x| x.1.as_slice());
+        let estimate = self.estimate_digest.as_deref();
         let estimate = estimate.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest));
         let fractions = self.fractions_digests.iter().map(|x| x.1);
         [self.tree_digest.map(|x| x.1), estimate, self.preview]
@@ -307,9 +291,8 @@ impl Active {
             .collect()
     }
 
-    /// The unit in flight numbered `unit`.
-    pub(crate) fn flight(&self, unit: u64) -> Option<&Flight> {
-        self.flights.iter().find(|f| f.spec.unit == unit)
+    pub(crate) fn session(&self) -> &Session {
+        self.driver.session()
     }
 
     /// The digest of the fractions `spec` samples with.
@@ -317,6 +300,10 @@ impl Active {
         let v = (spec.tree_version, spec.fraction_version);
         let found = self.fractions_digests.iter().find(|x| x.0 == v);
         found.map(|x| x.1)
+    }
+
+    fn ledger(&mut self, unit: u64) -> Option<&mut UnitLedger> {
+        self.ledgers.iter_mut().find(|l| l.0 == unit).map(|l| &mut l.1)
     }
 }
 
@@ -335,22 +322,20 @@ pub(crate) struct Job {
     pub(crate) pending: Option<Pending>,
     pub(crate) active: Option<Active>,
     pub(crate) watch: watch::Sender<v1::JobStatus>,
-    /// Rejected uploads per worker identity ([`WorkerConn::identity`]).
-    pub(crate) bad_uploads: BTreeMap<String, u32>,
-    /// Workers that get no more of its leases, and why.
-    pub(crate) blocked: BTreeMap<String, String>,
+    /// Its bad results per worker identity ([`WorkerConn::identity`]), and the workers
+    /// that get no more of its leases.
+    pub(crate) blocklist: Blocklist,
 }
 
 impl Job {
-    pub(crate) fn new(record: JobRecord, pending: Option<Pending>, n: u64) -> Job {
+    pub(crate) fn new(record: JobRecord, pending: Option<Pending>, n: u64, r: &Resources) -> Job {
         let (watch, _) = watch::channel(v1::JobStatus::default());
         let job = Job {
             record,
             pending,
             active: None,
             watch,
-            bad_uploads: BTreeMap::new(),
-            blocked: BTreeMap::new(),
+            blocklist: Blocklist::new(r.bad_uploads_per_job),
         };
         job.watch.send_replace(job.status(n));
         job
@@ -367,9 +352,7 @@ impl Job {
 
     pub(crate) fn status(&self, n: u64) -> v1::JobStatus {
         let mut s = status_of(n, &self.record, self.active.as_ref());
-        s.blocked_workers = (self.blocked.iter())
-            .map(|(who, why)| format!("{who}: {why}"))
-            .collect();
+        s.blocked_workers = self.blocklist.reasons();
         s
     }
 }
@@ -510,7 +493,7 @@ impl Shared {
                     record.started_unix_ms = 0;
                     Pending::Queued(None)
                 });
-                shared.add_job(&mut st, n, Job::new(record, pending, n));
+                shared.add_job(&mut st, n, Job::new(record, pending, n, &shared.cfg.resources));
             }
         }
         Ok(shared)
@@ -748,19 +731,23 @@ impl Shared {
         })
     }
 
-    /// The unit `unit` of job `n` has all its tiles in: checkpoint the session (between
-    /// iterations), log the unit's accounts, and go on with the next units.
-    pub(crate) fn end_unit(self: &Arc<Self>, st: &mut State, n: u64, unit: u64) {
+    /// Units of job `n` ended (their tiles, and those of the units before them, are all
+    /// in): checkpoint the session (between iterations), log the units' accounts, and go on
+    /// with the next units.
+    pub(crate) fn end_units(self: &Arc<Self>, st: &mut State, n: u64, ended: &[PassSpec]) {
         let checkpoint_s = self.save_checkpoint(st, n);
         if checkpoint_s > 0.0 {
             self.update_preview(st, n);
         }
         if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
-            if let Some(i) = a.flights.iter().position(|f| f.spec.unit == unit) {
-                let mut f = a.flights.remove(i);
-                f.ledger.checkpoint_s = checkpoint_s;
-                let kind = format!("{:?}", f.spec.kind);
-                f.ledger.finish(&job_name(n), &f.spec, &kind, &self.metrics);
+            for spec in ended {
+                let Some(i) = a.ledgers.iter().position(|l| l.0 == spec.unit) else {
+                    continue;
+                };
+                let (_, mut ledger) = a.ledgers.remove(i);
+                ledger.checkpoint_s = checkpoint_s;
+                let kind = format!("{:?}", spec.kind);
+                ledger.finish(&job_name(n), spec, &kind, &self.metrics);
             }
         }
         self.drive(st, n);
@@ -772,7 +759,7 @@ impl Shared {
             .jobs
             .get(&n)
             .and_then(|j| j.active.as_ref())
-            .and_then(|a| a.session.preview())
+            .and_then(|a| a.session().preview())
         else {
             return;
         };
@@ -916,13 +903,15 @@ impl Shared {
         job.record.spp_done = session.spp_done();
         job.record.samples_done = session.spp_done() * p.width as u64 * p.height as u64;
         job.record.started_unix_ms = 0;
+        let tiling = match p.tile {
+            Some(edge) => Tiling::Fixed(edge),
+            None => Tiling::ByCost(CostMap::new(p.width, p.height)),
+        };
+        let epoch = self.next_epoch.fetch_add(1, Ordering::Relaxed);
         job.active = Some(Active {
-            session,
-            clock: Instant::now(),
+            driver: JobDriver::new(session, tiling, epoch, self.now()),
             seed: p.seed,
-            flights: Vec::new(),
-            tile: p.tile,
-            cost: CostMap::new(p.width, p.height),
+            ledgers: Vec::new(),
             checkpoint_seq: 0,
             preview: None,
             film_digests: Vec::new(),
@@ -931,10 +920,7 @@ impl Shared {
             estimate_digest: None,
             samples_total,
             prepared: p,
-            records_epoch: self.next_epoch.fetch_add(1, Ordering::Relaxed),
-            holders: BTreeSet::new(),
-            collecting: None,
-            records_ledger: RecordsLedger::start(0),
+            records_ledger: None,
             memory,
         });
         self.drive(st, n);
@@ -949,7 +935,7 @@ impl Shared {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.take()) else {
             return;
         };
-        tracing::warn!(job = %job_name(n), iteration = a.session.iteration(), "rolling back to the last checkpoint: {why}");
+        tracing::warn!(job = %job_name(n), iteration = a.session().iteration(), "rolling back to the last checkpoint: {why}");
         self.metrics.roll_back();
         st.garbage.extend(a.blobs());
         let leases = st.sched.remove_job(JobId(n)).unwrap_or_default();
@@ -963,69 +949,9 @@ impl Shared {
         self.admit(st);
     }
 
-    /// The session wants the iteration's records: asks every holder once, or goes on at
-    /// once if none holds any. True if the session can go on now.
-    fn collect_records(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
-            return false;
-        };
-        if a.collecting.is_some() {
-            return false;
-        }
-        if !a.holders.is_empty() {
-            let Some((_, tree)) = a.tree_digest else {
-                self.roll_back(st, n, "records held of no published tree");
-                return false;
-            };
-            let flush = v1::FlushRecords {
-                job_id: job_name(n),
-                tree_digest: tree.0.to_vec(),
-                records_epoch: a.records_epoch,
-            };
-            tracing::debug!(job = %job_name(n), holders = ?a.holders, "collecting records");
-            a.collecting = Some(a.holders.clone());
-            a.records_ledger = RecordsLedger::start(a.holders.len());
-            for w in &a.holders {
-                if let Some(w) = st.workers.get(w) {
-                    w.post(v1::coordinator_message::Msg::FlushRecords(flush.clone()));
-                }
-            }
-            return false;
-        }
-        a.records_ledger = RecordsLedger::start(0);
-        self.records_in(st, n)
-    }
-
-    /// Every holder's records are in: the session refines (or finishes), and the
-    /// checkpoint of the iteration's end is taken. True if the session went on.
-    pub(crate) fn records_in(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
-            return false;
-        };
-        a.holders.clear();
-        a.collecting = None;
-        let iteration = a.session.iteration();
-        let end_start = Instant::now();
-        if let Err(e) = a.session.records_in() {
-            self.fail_job(st, n, format!("records: {e}"));
-            return false;
-        }
-        let end_s = end_start.elapsed().as_secs_f64();
-        let ledger = a.records_ledger.clone();
-        let checkpoint_s = self.save_checkpoint(st, n);
-        if checkpoint_s > 0.0 {
-            self.update_preview(st, n);
-        }
-        let ended = RecordsEnd {
-            end_s,
-            checkpoint_s,
-        };
-        ledger.finish(&job_name(n), iteration, ended, &self.metrics);
-        true
-    }
-
-    /// Advances job `n`'s session: offers the units it issues (two at once when training
-    /// passes overlap), or finishes the job.
+    /// Advances job `n`'s driver until it waits: offers the units its session issues (two
+    /// at once when training passes overlap), asks for records, checkpoints at iterations'
+    /// ends, or finishes the job.
     pub(crate) fn drive(self: &Arc<Self>, st: &mut State, n: u64) {
         // Each unit's leases go out as soon as it is issued: issuing the next one (a new
         // iteration's second unit, after its fraction step) took tens of milliseconds that
@@ -1035,77 +961,133 @@ impl Shared {
         }
     }
 
-    /// One [`Session::next`] of job `n`; true if it issued a unit (ask again).
+    /// One [`JobDriver::step`] of job `n`; true if there may be more to do at once.
     fn drive_once(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
+        let slots = slots(&st.workers);
+        let now = self.now();
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
             return false;
         };
-        let now = a.clock.elapsed().as_secs_f64();
-        match a.session.next(now) {
-            Next::Wait => false,
-            Next::Records => self.collect_records(st, n),
-            Next::Render(spec) => {
-                let publish_start = Instant::now();
-                match self.publish(a, &spec) {
-                    Ok(replaced) => st.garbage.extend(replaced),
-                    Err(e) => {
-                        self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
-                        return false;
-                    }
-                }
-                let publish_s = publish_start.elapsed().as_secs_f64();
-                let tiling = match a.tile {
-                    Some(t) => {
-                        let (w, h) = a.session.size();
-                        Region::tiles(w, h, t)
-                    }
-                    None => a.cost.tiles(slots(&st.workers), spec.unit_spp()),
-                };
-                if let Err(e) = a.session.retile(tiling) {
-                    self.fail_job(st, n, format!("tiling unit {}: {e}", spec.unit));
-                    return false;
-                }
-                let tiles = a.session.tiles().len() as u32;
-                let ledger = UnitLedger::start(publish_s, now, &self.metrics);
-                a.flights.push(Flight { spec, ledger });
-                tracing::info!(
-                    job = %job_name(n),
-                    unit = spec.unit,
-                    iteration = spec.iteration,
-                    kind = ?spec.kind,
-                    tiles,
-                    "offering unit"
-                );
-                if let Err(e) = st.sched.offer_unit(JobId(n), spec.unit, tiles) {
-                    self.fail_job(st, n, format!("scheduler: {e}"));
-                    return false;
-                }
-                self.publish_status(st, n);
+        let started = Instant::now();
+        match a.driver.step(now, slots) {
+            Err(e) => {
+                self.fail_job(st, n, e.to_string());
+                false
+            }
+            Ok(Step::Wait) => false,
+            Ok(Step::Offer(offer)) => self.offer_unit(st, n, offer, started, now),
+            Ok(Step::Collect(holders)) => {
+                self.ask_for_records(st, n, &holders);
+                false
+            }
+            Ok(Step::IterationEnded { iteration }) => {
+                let end_s = started.elapsed().as_secs_f64();
+                self.iteration_ended(st, n, iteration, end_s);
                 true
             }
-            Next::Done => {
-                let job = st.jobs.get_mut(&n).expect("checked");
-                let a = job.active.take().expect("checked");
-                job.record.state = v1::JobState::Assembling as i32;
-                job.record.spp_done = a.session.spp_done();
-                job.record.iteration = a.session.iteration();
-                job.record.nonfinite = a.session.nonfinite();
-                let released = a.blobs();
-                let _ = st.sched.remove_job(JobId(n));
-                self.publish_status(st, n);
-                // its memory is the films `finish` combines: given back once assembled
-                self.admit(st);
-                let (film, stats, tree) = a.session.finish();
-                tracing::info!(
-                    job = %job_name(n),
-                    iterations = stats.iterations.len(),
-                    "assembling results"
-                );
-                let shared = self.clone();
-                tokio::task::spawn_blocking(move || shared.assemble(n, film, tree, released));
+            Ok(Step::Done) => {
+                self.job_rendered(st, n);
                 false
             }
         }
+    }
+
+    /// Publishes a unit's new inputs and offers its tiles. True if it did.
+    fn offer_unit(
+        self: &Arc<Self>,
+        st: &mut State,
+        n: u64,
+        offer: Offer,
+        started: Instant,
+        now: Millis,
+    ) -> bool {
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        match self.publish(a, &offer) {
+            Ok(replaced) => st.garbage.extend(replaced),
+            Err(e) => {
+                self.fail_job(st, n, format!("cannot store the unit's blobs: {e}"));
+                return false;
+            }
+        }
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let spec = offer.spec;
+        let publish_s = started.elapsed().as_secs_f64();
+        let ledger = UnitLedger::start(publish_s, a.driver.seconds(now), &self.metrics);
+        a.ledgers.push((spec.unit, ledger));
+        tracing::info!(
+            job = %job_name(n),
+            unit = spec.unit,
+            iteration = spec.iteration,
+            kind = ?spec.kind,
+            tiles = offer.tiles,
+            "offering unit"
+        );
+        if let Err(e) = st.sched.offer_unit(JobId(n), spec.unit, offer.tiles) {
+            self.fail_job(st, n, format!("scheduler: {e}"));
+            return false;
+        }
+        self.publish_status(st, n);
+        true
+    }
+
+    /// Asks the holders of job `n`'s records for them (`FlushRecords`).
+    fn ask_for_records(self: &Arc<Self>, st: &mut State, n: u64, holders: &[WorkerId]) {
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let Some((_, tree)) = a.tree_digest else {
+            return self.roll_back(st, n, "records held of no published tree");
+        };
+        let flush = v1::FlushRecords {
+            job_id: job_name(n),
+            tree_digest: tree.0.to_vec(),
+            records_epoch: a.driver.records_epoch(),
+        };
+        tracing::debug!(job = %job_name(n), ?holders, "collecting records");
+        a.records_ledger = Some(RecordsLedger::start(holders.len()));
+        for w in holders {
+            if let Some(w) = st.workers.get(&w.0) {
+                w.post(v1::coordinator_message::Msg::FlushRecords(flush.clone()));
+            }
+        }
+    }
+
+    /// Job `n`'s iteration `iteration` ended (its tree refined in `end_s`): the checkpoint of the
+    /// iteration's end is taken and the collection's accounts logged.
+    fn iteration_ended(self: &Arc<Self>, st: &mut State, n: u64, iteration: u32, end_s: f64) {
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let ledger = a.records_ledger.take().unwrap_or_else(|| RecordsLedger::start(0));
+        let checkpoint_s = self.save_checkpoint(st, n);
+        if checkpoint_s > 0.0 {
+            self.update_preview(st, n);
+        }
+        let ended = RecordsEnd {
+            end_s,
+            checkpoint_s,
+        };
+        ledger.finish(&job_name(n), iteration, ended, &self.metrics);
+    }
+
+    /// Job `n` is rendered: its results are assembled off the state lock, and its memory
+    /// given back once they are.
+    fn job_rendered(self: &Arc<Self>, st: &mut State, n: u64) {
+        let job = st.jobs.get_mut(&n).expect("driven");
+        let a = job.active.take().expect("driven");
+        job.record.state = v1::JobState::Assembling as i32;
+        job.record.spp_done = a.session().spp_done();
+        job.record.iteration = a.session().iteration();
+        job.record.nonfinite = a.session().nonfinite();
+        let released = a.blobs();
+        let _ = st.sched.remove_job(JobId(n));
+        self.publish_status(st, n);
+        // its memory is the films `finish` combines: given back once assembled
+        self.admit(st);
+        let (film, stats, tree) = a.driver.into_session().finish();
+        tracing::info!(
+            job = %job_name(n),
+            iterations = stats.iterations.len(),
+            "assembling results"
+        );
+        let shared = self.clone();
+        tokio::task::spawn_blocking(move || shared.assemble(n, film, tree, released));
     }
 
     /// Encodes and stores job `n`'s results (off the state lock: EXR and PNG encoding take
@@ -1169,36 +1151,36 @@ impl Shared {
         self.collect_garbage(st);
     }
 
-    /// Stores the blobs `spec` needs that are not stored yet (not durably: a unit's inputs
-    /// are derived from the session, which a checkpoint keeps). Returns the digests they
+    /// Stores the new inputs of a unit ([`Offer`]; not durably: a unit's inputs are
+    /// derived from the session, which a checkpoint keeps). Returns the digests they
     /// replace (garbage candidates).
-    fn publish(&self, a: &mut Active, spec: &PassSpec) -> std::io::Result<Vec<Digest>> {
+    fn publish(&self, a: &mut Active, offer: &Offer) -> std::io::Result<Vec<Digest>> {
+        let spec = &offer.spec;
         let mut replaced = Vec::new();
-        if a.tree_digest.map(|(v, _)| v) != Some(spec.tree_version) {
-            let d = self.blobs.put_unsynced(&a.session.tree().encode())?;
+        // The iteration's checkpoint may have stored this tree version already.
+        if offer.new_tree && a.tree_digest.map(|x| x.0) != Some(spec.tree_version) {
+            let d = self.blobs.put_unsynced(&a.driver.encode_tree())?;
             replaced.extend(a.tree_digest.replace((spec.tree_version, d)).map(|x| x.1));
         }
-        let fv = (spec.tree_version, spec.fraction_version);
-        if a.fractions_of(spec).is_none() {
-            let bytes = codec::encode_fractions(&a.session.tree().fraction_states());
-            let d = self.blobs.put_unsynced(&bytes)?;
-            a.fractions_digests.push((fv, d));
+        if offer.new_fractions {
+            let d = self.blobs.put_unsynced(&a.driver.encode_fractions())?;
+            a.fractions_digests.push(((spec.tree_version, spec.fraction_version), d));
             if a.fractions_digests.len() > 2 {
                 replaced.push(a.fractions_digests.remove(0).1);
             }
         }
-        let ev = a.session.estimate_version();
-        if a.estimate_digest.as_ref().map(|(v, _)| *v) != Some(ev) {
-            let estimate = a.session.estimate();
-            let digest = if estimate.is_empty() {
-                Vec::new()
-            } else {
-                let bytes = codec::encode_estimate(estimate);
-                self.blobs.put_unsynced(&bytes)?.0.to_vec()
+        if offer.new_estimate {
+            let bytes = a.driver.encode_estimate();
+            let digest = match bytes.is_empty() {
+                true => Vec::new(),
+                false => self.blobs.put_unsynced(&bytes)?.0.to_vec(),
             };
-            let old = a.estimate_digest.replace((ev, digest));
-            replaced.extend(old.and_then(|(_, d)| <[u8; 32]>::try_from(d).ok().map(Digest)));
+            let old = a.estimate_digest.replace(digest);
+            replaced.extend(old.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
         }
+        // Content-addressed: an input equal to the one it replaces is still in use.
+        let live = a.blobs();
+        replaced.retain(|d| !live.contains(d));
         Ok(replaced)
     }
 
@@ -1321,13 +1303,13 @@ impl Shared {
     ) -> Option<v1::LeaseOffer> {
         let job = st.jobs.get(&lease.key.job.0)?;
         let a = job.active.as_ref()?;
-        let spec = &a.flight(lease.key.unit)?.spec;
+        let spec = a.driver.flight(lease.key.unit)?;
         let request = job.record.request.as_ref()?;
-        let tiles = a.session.tiles_of(lease.key.unit)?;
+        let tiles = a.session().tiles_of(lease.key.unit)?;
         let region = *tiles.get(lease.key.tile as usize)?;
         let mut pass = codec::spec_to_proto(spec);
         pass.hold_records = spec.record();
-        pass.records_epoch = a.records_epoch;
+        pass.records_epoch = a.driver.records_epoch();
         if spec.guide() || spec.record() {
             pass.tree_digest = a.tree_digest.map(|(_, d)| d.0.to_vec()).unwrap_or_default();
             pass.fractions_digest = a
@@ -1336,11 +1318,7 @@ impl Shared {
                 .unwrap_or_default();
         }
         if spec.kind != PassKind::Path {
-            pass.estimate_digest = a
-                .estimate_digest
-                .as_ref()
-                .map(|(_, d)| d.clone())
-                .unwrap_or_default();
+            pass.estimate_digest = a.estimate_digest.clone().unwrap_or_default();
         }
         let mut settings = request
             .settings
@@ -1415,15 +1393,13 @@ impl Shared {
         let Some(job) = st.jobs.get_mut(&n) else {
             return;
         };
-        let count = job.bad_uploads.entry(who.clone()).or_default();
-        *count += 1;
-        let limit = self.cfg.resources.bad_uploads_per_job.max(1);
         let reason = resources::truncate(why, 512);
-        tracing::warn!(job = %job_name(n), worker = id, identity = %who, count = *count, "bad result: {reason}");
-        if b == Blame::Bad && *count < limit {
+        let already = job.blocklist.is_blocked(&who);
+        let standing = job.blocklist.blame(&who, &reason, b);
+        tracing::warn!(job = %job_name(n), worker = id, identity = %who, ?standing, "bad result: {reason}");
+        if already || standing != Standing::Blocked {
             return;
         }
-        job.blocked.insert(who.clone(), reason.clone());
         let blocked: Vec<u64> = (st.workers.iter())
             .filter(|(_, w)| w.identity() == who)
             .map(|(&w, _)| w)
@@ -1453,7 +1429,7 @@ impl Shared {
             .filter(|(_, j)| {
                 j.active
                     .as_ref()
-                    .is_some_and(|a| a.holders.contains(&worker.0))
+                    .is_some_and(|a| a.driver.holds(worker))
             })
             .map(|(&n, _)| n)
             .collect();
@@ -1492,11 +1468,7 @@ impl Shared {
         // must not stall its job: after a lease's lifetime the job rolls back.
         let timeout = self.cfg.scheduler.lease_timeout;
         let stalled: Vec<u64> = (st.jobs.iter())
-            .filter(|(_, j)| {
-                j.active.as_ref().is_some_and(|a| {
-                    a.collecting.is_some() && a.records_ledger.started.elapsed() > timeout
-                })
-            })
+            .filter(|(_, j)| (j.active.as_ref()).is_some_and(|a| a.driver.stalled(now, timeout)))
             .map(|(&n, _)| n)
             .collect();
         for n in stalled {
@@ -1506,32 +1478,18 @@ impl Shared {
                 "a holder did not answer for its records in time",
             );
         }
-        let waiting: Vec<u64> = st
-            .jobs
-            .iter()
-            .filter_map(|(&n, j)| {
-                let a = j.active.as_ref()?;
-                // a resumed session, or one that may overlap its next unit
-                let idle = a.flights.len() < crate::scheduler::MAX_UNITS_IN_FLIGHT;
-                idle.then_some(n)
-            })
+        // a resumed session, or one that may overlap its next unit (its driver says what)
+        let running: Vec<u64> = (st.jobs.iter())
+            .filter(|(_, j)| j.active.is_some())
+            .map(|(&n, _)| n)
             .collect();
-        for n in waiting {
+        for n in running {
             self.drive(&mut st, n);
         }
         self.dispatch(&mut st);
         drop(st);
         self.maybe_sweep();
     }
-}
-
-/// How bad a worker's result was ([`Shared::blame`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Blame {
-    /// A bad upload: counted, blocked past the limit.
-    Bad,
-    /// The worker says the job cannot be rendered: blocked at once.
-    Unrenderable,
 }
 
 pub(crate) fn send_cancel(st: &State, worker: WorkerId, lease: LeaseId, reason: &str) {
@@ -1649,24 +1607,25 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         ..Default::default()
     };
     if let Some(a) = a {
-        let (done, total) = a.session.tiles_done();
-        s.iteration = a.session.iteration();
+        let session = a.session();
+        let (done, total) = session.tiles_done();
+        s.iteration = session.iteration();
         s.tiles_done = done as u32;
-        s.tiles_total = if a.flights.is_empty() {
+        s.tiles_total = if a.driver.flights().is_empty() {
             0
         } else {
             total as u32
         };
         s.samples_total = a.samples_total;
-        s.spp_done = a.session.spp_done();
-        s.nonfinite = a.session.nonfinite();
-        if let Some(spec) = a.flights.first().map(|f| &f.spec) {
+        s.spp_done = session.spp_done();
+        s.nonfinite = session.nonfinite();
+        if let Some(spec) = a.driver.flights().first() {
             s.unit = spec.unit;
             s.pass_kind = codec::spec_to_proto(spec).kind;
         }
         s.eta_seconds = eta(r, a, &request);
         if r.started_unix_ms != 0 {
-            s.state = if a.session.in_final_pass() {
+            s.state = if session.in_final_pass() {
                 v1::JobState::FinalPass as i32
             } else {
                 v1::JobState::Training as i32

@@ -145,10 +145,26 @@ pub(super) async fn run(
         )
         .await;
     ticker.abort();
+    let _ = ticker.await;
     if let Some(m) = metrics {
         m.abort();
+        let _ = m.await;
     }
+    released(shared).await;
     result.map_err(CoordinatorError::from)
+}
+
+/// Waits (a minute at most) for the background work that holds the state (a job's build,
+/// its assembly, a checkpoint write) to finish, so that when `serve` returns the data
+/// directory and its database are free for the next coordinator.
+async fn released(shared: Arc<Shared>) {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while Arc::strong_count(&shared) > 1 {
+        if std::time::Instant::now() > deadline {
+            return tracing::warn!("background work still running at shutdown");
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
 }
 
 #[derive(Clone)]
@@ -391,7 +407,7 @@ impl Jobs for Svc {
                 svc.shared.db.put(n, &record).map_err(Status::internal)?;
                 let pending = Pending::Queued(Some(Box::new(prepared)));
                 svc.shared
-                    .add_job(&mut st, n, Job::new(record, Some(pending), n));
+                    .add_job(&mut st, n, Job::new(record, Some(pending), n, &svc.shared.cfg.resources));
                 tracing::info!(job = %job_name(n), "job submitted");
                 svc.shared.admit(&mut st);
                 Ok::<u64, Status>(n)
@@ -756,7 +772,7 @@ impl Workers for Svc {
                 // A worker blocked from a job stays blocked when it comes back.
                 let who = conn.identity();
                 let blocked: Vec<u64> = (st.jobs.iter())
-                    .filter(|(_, j)| j.blocked.contains_key(&who))
+                    .filter(|(_, j)| j.blocklist.is_blocked(&who))
                     .map(|(&n, _)| n)
                     .collect();
                 for n in blocked {

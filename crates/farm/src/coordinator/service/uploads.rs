@@ -18,6 +18,7 @@ use std::time::Instant;
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::*;
+use crate::driver::TileIn;
 
 /// Why an upload is refused, and whether its sender is to blame (a stale upload, whose
 /// lease expired or whose unit is over, is nobody's fault).
@@ -173,7 +174,7 @@ impl Svc {
             return Err(Refusal::corrupt(detail));
         }
         let a = st.jobs[&named.job].active.as_ref().expect("named");
-        let tiles = a.session.tiles_of(named.unit).expect("named");
+        let tiles = a.session().tiles_of(named.unit).expect("named");
         for t in &header.tiles {
             let key = st.sched.lease(LeaseId(t.lease_id)).expect("named").key;
             let region = tiles[key.tile as usize];
@@ -271,16 +272,24 @@ impl Svc {
         let a = (st.jobs.get_mut(&n))
             .and_then(|j| j.active.as_mut())
             .expect("checked");
-        let secs = a.clock.elapsed().as_secs_f64();
         let merge_start = Instant::now();
-        let outs: Vec<(usize, &TileOutput)> = tiles.iter().map(|t| (t.index, &t.out)).collect();
-        if let Err(e) = a.session.add_tiles(unit, &outs, stats.as_ref(), secs) {
-            let detail = format!("tiles {ids:?} refused by the session: {e}");
-            return self.refuse(st, sender, &header, Refusal::corrupt(detail));
-        }
-        let completions = (st.sched.complete_all(sender, &ids, now))
+        let tiles_in: Vec<TileIn> = (tiles.iter())
+            .map(|t| TileIn {
+                index: t.index,
+                out: &t.out,
+                render_seconds: t.counters.render_seconds,
+            })
+            .collect();
+        let ended = match a.driver.tiles_in(sender, unit, &tiles_in, stats.as_ref(), now) {
+            Ok(ended) => ended,
+            Err(e) => {
+                let detail = format!("tiles {ids:?} refused by the session: {e}");
+                return self.refuse(st, sender, &header, Refusal::corrupt(detail));
+            }
+        };
+        (st.sched.complete_all(sender, &ids, now))
             .expect("checked under the same lock, at the same instant");
-        let unit_done = completions.last().is_some_and(|c| c.unit_done);
+        let unit_done = ended.iter().any(|s| s.unit == unit);
         let merge_s = merge_start.elapsed().as_secs_f64();
         let times = TileTimes {
             receive_s,
@@ -289,16 +298,15 @@ impl Svc {
         };
         self.account(st, sender, n, &spec, &tiles, unit_done, (times, merge_s));
         tracing::debug!(job = %job_name(n), leases = ?ids, unit, "tiles accepted");
-        if unit_done {
-            shared.end_unit(st, n, spec.unit);
+        if !ended.is_empty() {
+            shared.end_units(st, n, &ended);
         }
         shared.publish_status(st, n);
         shared.dispatch(st);
         ack(true, v1::TileRejectReason::Unspecified, String::new()).into_inner()
     }
 
-    /// Books accepted tiles: their records' holder, the cost map, the unit's ledger, the
-    /// samples done and the worker's count.
+    /// Books accepted tiles: the unit's ledger, the samples done and the worker's count.
     #[allow(clippy::too_many_arguments)]
     fn account(
         &self,
@@ -312,25 +320,17 @@ impl Svc {
     ) {
         let job = st.jobs.get_mut(&n).expect("checked");
         let a = job.active.as_mut().expect("checked");
-        if spec.record() {
-            // The tiles' quadtree records stay in the worker's tree copy until asked for.
-            a.holders.insert(sender.0);
-        }
-        let mut samples = 0;
-        for t in tiles {
-            let s = t.out.region.pixels() as u64 * spec.unit_spp();
-            a.cost
-                .record(t.out.region, t.counters.render_seconds / s.max(1) as f64);
-            samples += s;
-        }
-        let flight = a.flights.iter_mut().find(|f| f.spec.unit == spec.unit);
-        let ledger = &mut flight.expect("checked").ledger;
+        let samples: u64 = (tiles.iter())
+            .map(|t| t.out.region.pixels() as u64 * spec.unit_spp())
+            .sum();
         let counters: Vec<&v1::TileCounters> = tiles.iter().map(|t| &t.counters).collect();
-        if unit_done {
-            ledger.end_s = merge_s;
-            ledger.upload(&counters, &times, 0.0);
-        } else {
-            ledger.upload(&counters, &times, merge_s);
+        if let Some(ledger) = a.ledger(spec.unit) {
+            if unit_done {
+                ledger.end_s = merge_s;
+                ledger.upload(&counters, &times, 0.0);
+            } else {
+                ledger.upload(&counters, &times, merge_s);
+            }
         }
         job.record.samples_done += samples;
         if let Some(w) = st.workers.get_mut(&sender.0) {
@@ -428,18 +428,21 @@ impl Svc {
             .and_then(|j| j.active.as_mut())
             .expect("asked");
         let merge_start = Instant::now();
-        if let Err(e) = a.session.add_records(&records) {
-            let detail = format!("records refused by the session: {e}");
-            shared.blame(st, n, w, &detail, Blame::Bad);
-            shared.roll_back(st, n, &format!("worker {w}'s {detail}"));
-            return records_refused(detail);
-        }
+        let left = match a.driver.records_from(WorkerId(w), &records) {
+            Ok(left) => left,
+            Err(e) => {
+                let detail = e.to_string();
+                shared.blame(st, n, w, &detail, Blame::Bad);
+                shared.roll_back(st, n, &format!("worker {w}'s {detail}"));
+                return records_refused(detail);
+            }
+        };
         let merge_s = merge_start.elapsed().as_secs_f64();
-        a.records_ledger.add(bytes.len() as u64, decode_s, merge_s);
-        let left = a.collecting.as_mut().expect("asked");
-        left.remove(&w);
-        tracing::debug!(job = %job_name(n), worker = w, bytes = bytes.len(), left = left.len(), "records in");
-        if left.is_empty() && shared.records_in(st, n) {
+        if let Some(ledger) = a.records_ledger.as_mut() {
+            ledger.add(bytes.len() as u64, decode_s, merge_s);
+        }
+        tracing::debug!(job = %job_name(n), worker = w, bytes = bytes.len(), left, "records in");
+        if left == 0 {
             shared.drive(st, n);
             shared.dispatch(st);
         }
@@ -452,9 +455,9 @@ impl Svc {
         let n = parse_job(&header.job_id).ok_or_else(no_job)?;
         let job = st.jobs.get(&n).ok_or_else(no_job)?;
         let a = (job.active.as_ref()).ok_or_else(|| "the job is not running".to_string())?;
-        let current = a.records_epoch == header.records_epoch
+        let current = a.driver.records_epoch() == header.records_epoch
             && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
-        let asked = (a.collecting.as_ref()).is_some_and(|c| c.contains(&header.worker_id));
+        let asked = a.driver.is_asked(WorkerId(header.worker_id));
         if !current || !asked {
             return Err("records not asked for (another epoch, version or worker)".into());
         }
@@ -501,9 +504,9 @@ fn named(st: &State, sender: WorkerId, header: &v1::TileHeader) -> Result<Named,
     let n = key.job.0;
     let spec = (st.jobs.get(&n))
         .and_then(|j| j.active.as_ref())
-        .filter(|a| a.session.tiles_of(key.unit).is_some())
-        .and_then(|a| a.flight(key.unit))
-        .map(|f| f.spec);
+        .filter(|a| a.session().tiles_of(key.unit).is_some())
+        .and_then(|a| a.driver.flight(key.unit))
+        .copied();
     let Some(spec) = spec else {
         let detail = format!("unit {} of {} is over", key.unit, job_name(n));
         return Err(Refusal::stale(v1::TileRejectReason::Superseded, detail));
@@ -556,7 +559,7 @@ fn check_tiles(
 ) -> Result<(Named, Vec<Accepting>), Refusal> {
     let named = named(st, sender, header)?;
     let a = st.jobs[&named.job].active.as_ref().expect("named");
-    let tiles = a.session.tiles_of(named.unit).expect("named");
+    let tiles = a.session().tiles_of(named.unit).expect("named");
     let mut out = Vec::with_capacity(parts.len());
     for (t, bytes) in header.tiles.iter().zip(parts) {
         let lease_id = t.lease_id;
