@@ -115,7 +115,7 @@ impl Shared {
     /// recorded when it is durable. Returns the seconds spent here, on the critical path.
     pub(crate) fn save_checkpoint(self: &Arc<Self>, st: &mut State, n: u64) -> f64 {
         let t0 = Instant::now();
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active_mut()) else {
             return 0.0;
         };
         let Some(cp) = a.session().checkpoint_parts() else {
@@ -179,7 +179,7 @@ impl Shared {
         let Some(job) = st.jobs.get_mut(&n) else {
             return;
         };
-        let current = job.active.as_ref().is_some_and(|a| a.checkpoint_seq == seq);
+        let current = job.active().is_some_and(|a| a.checkpoint_seq == seq);
         // A part equal to a blob in the garbage may have been collected since it was written
         // (collections run under the lock): such a checkpoint is not recorded.
         let complete = parts.digests().all(|d| self.blobs.has(&d));
@@ -193,7 +193,7 @@ impl Shared {
         }
         let old = take_parts(&mut job.record);
         parts.set(&mut job.record);
-        if let Some(a) = job.active.as_mut() {
+        if let Some(a) = job.active_mut() {
             let films = cp.films.iter().zip(&parts.films);
             a.film_digests = films.map(|(f, &d)| (Arc::downgrade(&f.film), d)).collect();
         }
@@ -281,7 +281,7 @@ pub(crate) fn referenced(st: &State) -> HashSet<Digest> {
         if let Some(p) = Parts::of(r) {
             live.extend(p.digests());
         }
-        live.extend(job.active.iter().flat_map(|a| a.blobs()));
+        live.extend(job.active().into_iter().flat_map(|a| a.blobs()));
     }
     live
 }

@@ -234,7 +234,7 @@ pub(crate) fn render(shared: &Shared) -> String {
         let st = shared.lock();
         let mut counts = [0i64; 7];
         for (&n, j) in &st.jobs {
-            let s = super::status_of(n, &j.record, j.active.as_ref()).state;
+            let s = super::status_of(n, &j.record, j.active()).state;
             if let Some(i) = STATES.iter().position(|x| *x as i32 == s) {
                 counts[i] += 1;
             }

@@ -57,6 +57,7 @@ use tokio::sync::{mpsc, watch};
 use tonic::Status;
 
 use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
+use crate::client::is_terminal;
 use crate::codec;
 use crate::driver::{Blame, Blocklist, JobDriver, Offer, Standing, Step, Tiling};
 use crate::scheduler::{Event, JobId, LeaseId, Millis, Scheduler, SchedulerConfig, WorkerId};
@@ -265,8 +266,9 @@ pub(crate) struct Active {
     pub(crate) tree_digest: Option<(u32, Digest)>,
     /// The fractions of the last two units issued (the units in flight are among them).
     pub(crate) fractions_digests: Vec<((u32, u32), Digest)>,
-    /// The pixel estimate last published (empty: none).
-    pub(crate) estimate_digest: Option<Vec<u8>>,
+    /// The pixel estimate last published, once one was (`Some(None)`: the job has none
+    /// yet).
+    pub(crate) estimate_digest: Option<Option<Digest>>,
     pub(crate) samples_total: u64,
     /// What the job was started from: a roll back starts it again
     /// ([`Shared::roll_back`]).
@@ -281,8 +283,7 @@ impl Active {
     /// The blobs the job's units in flight refer to: their published inputs (tree,
     /// fractions, pixel estimate) and the preview.
     pub(crate) fn blobs(&self) -> Vec<Digest> {
-        let estimate = self.estimate_digest.as_deref();
-        let estimate = estimate.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest));
+        let estimate = self.estimate_digest.flatten();
         let fractions = self.fractions_digests.iter().map(|x| x.1);
         [self.tree_digest.map(|x| x.1), estimate, self.preview]
             .into_iter()
@@ -307,20 +308,27 @@ impl Active {
     }
 }
 
-/// A job not rendering yet: it holds its request and no memory until it is admitted.
-pub(crate) enum Pending {
-    /// Waiting for memory; what its submission was validated into, if this coordinator
-    /// validated it (a restarted coordinator validates it again when it starts).
+/// Where a job is in its life on this coordinator. Each phase holds what the job has in
+/// it, so a job cannot be both waiting and running; the job record's `state` is the
+/// phase's proto form for clients and the database.
+pub(crate) enum Phase {
+    /// Waiting for memory, holding only its request; what its submission was validated
+    /// into, if this coordinator validated it (a restarted coordinator validates it again
+    /// when it starts).
     Queued(Option<Box<Prepared>>),
     /// Admitted with this much memory: its session is being built off the state lock.
     Building(u64),
+    /// Rendering.
+    Running(Box<Active>),
+    /// Rendered: its results are being encoded and stored off the state lock.
+    Assembling,
+    /// DONE, FAILED or CANCELLED (the record says which).
+    Ended,
 }
 
 pub(crate) struct Job {
     pub(crate) record: JobRecord,
-    /// Set while the job waits to start (then `active` is `None`).
-    pub(crate) pending: Option<Pending>,
-    pub(crate) active: Option<Active>,
+    pub(crate) phase: Phase,
     pub(crate) watch: watch::Sender<v1::JobStatus>,
     /// Its bad results per worker identity ([`WorkerConn::identity`]), and the workers
     /// that get no more of its leases.
@@ -328,12 +336,11 @@ pub(crate) struct Job {
 }
 
 impl Job {
-    pub(crate) fn new(record: JobRecord, pending: Option<Pending>, n: u64, r: &Resources) -> Job {
+    pub(crate) fn new(record: JobRecord, phase: Phase, n: u64, r: &Resources) -> Job {
         let (watch, _) = watch::channel(v1::JobStatus::default());
         let job = Job {
             record,
-            pending,
-            active: None,
+            phase,
             watch,
             blocklist: Blocklist::new(r.bad_uploads_per_job),
         };
@@ -343,15 +350,44 @@ impl Job {
 
     /// The memory the job holds now.
     pub(crate) fn memory(&self) -> u64 {
-        match (&self.pending, &self.active) {
-            (Some(Pending::Building(m)), _) => *m,
-            (_, Some(a)) => a.memory,
+        match &self.phase {
+            Phase::Building(m) => *m,
+            Phase::Running(a) => a.memory,
             _ => 0,
         }
     }
 
+    pub(crate) fn active(&self) -> Option<&Active> {
+        match &self.phase {
+            Phase::Running(a) => Some(a),
+            _ => None,
+        }
+    }
+
+    pub(crate) fn active_mut(&mut self) -> Option<&mut Active> {
+        match &mut self.phase {
+            Phase::Running(a) => Some(a),
+            _ => None,
+        }
+    }
+
+    /// Moves a running job to `next`, giving back what it ran with.
+    pub(crate) fn stop_running(&mut self, next: Phase) -> Option<Active> {
+        if !matches!(self.phase, Phase::Running(_)) {
+            return None;
+        }
+        match std::mem::replace(&mut self.phase, next) {
+            Phase::Running(a) => Some(*a),
+            _ => unreachable!("checked"),
+        }
+    }
+
+    pub(crate) fn is_ended(&self) -> bool {
+        matches!(self.phase, Phase::Ended)
+    }
+
     pub(crate) fn status(&self, n: u64) -> v1::JobStatus {
-        let mut s = status_of(n, &self.record, self.active.as_ref());
+        let mut s = status_of(n, &self.record, self.active());
         s.blocked_workers = self.blocklist.reasons();
         s
     }
@@ -405,11 +441,6 @@ pub(crate) fn parse_job(id: &str) -> Option<u64> {
     canonical.then(|| digits.parse().ok())?
 }
 
-pub(crate) fn is_terminal(state: i32) -> bool {
-    state == v1::JobState::Done as i32
-        || state == v1::JobState::Failed as i32
-        || state == v1::JobState::Cancelled as i32
-}
 
 /// What SubmitJob (or a restart) derives from a job's request.
 pub(crate) struct Prepared {
@@ -487,13 +518,16 @@ impl Shared {
             let mut st = shared.lock();
             for (n, mut record) in records {
                 st.next_job = st.next_job.max(n + 1);
-                let pending = (!is_terminal(record.state)).then(|| {
-                    tracing::info!(job = %job_name(n), "the job waits to restart");
-                    record.state = v1::JobState::Queued as i32;
-                    record.started_unix_ms = 0;
-                    Pending::Queued(None)
-                });
-                shared.add_job(&mut st, n, Job::new(record, pending, n, &shared.cfg.resources));
+                let phase = match is_terminal(record.state) {
+                    true => Phase::Ended,
+                    false => {
+                        tracing::info!(job = %job_name(n), "the job waits to restart");
+                        record.state = v1::JobState::Queued as i32;
+                        record.started_unix_ms = 0;
+                        Phase::Queued(None)
+                    }
+                };
+                shared.add_job(&mut st, n, Job::new(record, phase, n, &shared.cfg.resources));
             }
         }
         Ok(shared)
@@ -625,7 +659,7 @@ impl Shared {
         };
         let msg = v1::coordinator_message::Msg::Prefetch(prefetch);
         let st = self.lock();
-        if st.jobs.values().any(|j| !is_terminal(j.record.state)) {
+        if st.jobs.values().any(|j| !j.is_ended()) {
             return;
         }
         for w in st.workers.values().filter(|w| !w.draining) {
@@ -739,7 +773,7 @@ impl Shared {
         if checkpoint_s > 0.0 {
             self.update_preview(st, n);
         }
-        if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
+        if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active_mut()) {
             for spec in ended {
                 let Some(i) = a.ledgers.iter().position(|l| l.0 == spec.unit) else {
                     continue;
@@ -758,7 +792,7 @@ impl Shared {
         let Some(preview) = st
             .jobs
             .get(&n)
-            .and_then(|j| j.active.as_ref())
+            .and_then(|j| j.active())
             .and_then(|a| a.session().preview())
         else {
             return;
@@ -775,7 +809,7 @@ impl Shared {
             };
             let mut st = shared.lock();
             let st = &mut *st;
-            match st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) {
+            match st.jobs.get_mut(&n).and_then(|j| j.active_mut()) {
                 Some(a) => {
                     if let Some(old) = a.preview.replace(digest).filter(|&o| o != digest) {
                         st.garbage.push(old);
@@ -796,7 +830,7 @@ impl Shared {
         let budget = self.cfg.resources.job_memory_bytes;
         let mut used: u64 = st.jobs.values().map(Job::memory).sum();
         let mut queued: Vec<(std::cmp::Reverse<i32>, u64)> = (st.jobs.iter())
-            .filter(|(_, j)| matches!(j.pending, Some(Pending::Queued(_))))
+            .filter(|(_, j)| matches!(j.phase, Phase::Queued(_)))
             .map(|(&n, j)| {
                 let priority = j.record.request.as_ref().map_or(0, |r| r.priority);
                 (std::cmp::Reverse(priority), n)
@@ -810,7 +844,7 @@ impl Shared {
                 return;
             }
             used += need;
-            let Some(Pending::Queued(prepared)) = job.pending.replace(Pending::Building(need))
+            let Phase::Queued(prepared) = std::mem::replace(&mut job.phase, Phase::Building(need))
             else {
                 unreachable!("listed as queued")
             };
@@ -874,12 +908,11 @@ impl Shared {
         let Some(job) = st.jobs.get_mut(&n) else {
             return;
         };
-        if !matches!(job.pending, Some(Pending::Building(_))) {
+        if !matches!(job.phase, Phase::Building(_)) {
             // cancelled while it was built: its memory is free again
             self.admit(st);
             return;
         }
-        job.pending = None;
         let (session, p) = match built {
             Ok(b) => b,
             Err(reason) => {
@@ -908,7 +941,7 @@ impl Shared {
             None => Tiling::ByCost(CostMap::new(p.width, p.height)),
         };
         let epoch = self.next_epoch.fetch_add(1, Ordering::Relaxed);
-        job.active = Some(Active {
+        job.phase = Phase::Running(Box::new(Active {
             driver: JobDriver::new(session, tiling, epoch, self.now()),
             seed: p.seed,
             ledgers: Vec::new(),
@@ -922,7 +955,7 @@ impl Shared {
             prepared: p,
             records_ledger: None,
             memory,
-        });
+        }));
         self.drive(st, n);
         self.dispatch(st);
     }
@@ -932,7 +965,8 @@ impl Shared {
     /// job is deterministic, so only time is lost; its leases are cancelled and the
     /// workers' records of the old epoch are never added.
     pub(crate) fn roll_back(self: &Arc<Self>, st: &mut State, n: u64, why: &str) {
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.take()) else {
+        let queued = Phase::Queued(None);
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.stop_running(queued)) else {
             return;
         };
         tracing::warn!(job = %job_name(n), iteration = a.session().iteration(), "rolling back to the last checkpoint: {why}");
@@ -943,7 +977,7 @@ impl Shared {
             send_cancel(st, worker, id, "the job rolls back to its checkpoint");
         }
         if let Some(job) = st.jobs.get_mut(&n) {
-            job.pending = Some(Pending::Queued(Some(Box::new(a.prepared))));
+            job.phase = Phase::Queued(Some(Box::new(a.prepared)));
         }
         self.publish_status(st, n);
         self.admit(st);
@@ -965,7 +999,7 @@ impl Shared {
     fn drive_once(self: &Arc<Self>, st: &mut State, n: u64) -> bool {
         let slots = slots(&st.workers);
         let now = self.now();
-        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()) else {
+        let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active_mut()) else {
             return false;
         };
         let started = Instant::now();
@@ -1001,7 +1035,7 @@ impl Shared {
         started: Instant,
         now: Millis,
     ) -> bool {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
         match self.publish(a, &offer) {
             Ok(replaced) => st.garbage.extend(replaced),
             Err(e) => {
@@ -1009,7 +1043,7 @@ impl Shared {
                 return false;
             }
         }
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
         let spec = offer.spec;
         let publish_s = started.elapsed().as_secs_f64();
         let ledger = UnitLedger::start(publish_s, a.driver.seconds(now), &self.metrics);
@@ -1032,7 +1066,7 @@ impl Shared {
 
     /// Asks the holders of job `n`'s records for them (`FlushRecords`).
     fn ask_for_records(self: &Arc<Self>, st: &mut State, n: u64, holders: &[WorkerId]) {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
         let Some((_, tree)) = a.tree_digest else {
             return self.roll_back(st, n, "records held of no published tree");
         };
@@ -1053,7 +1087,7 @@ impl Shared {
     /// Job `n`'s iteration `iteration` ended (its tree refined in `end_s`): the checkpoint of the
     /// iteration's end is taken and the collection's accounts logged.
     fn iteration_ended(self: &Arc<Self>, st: &mut State, n: u64, iteration: u32, end_s: f64) {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active.as_mut()).expect("driven");
+        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
         let ledger = a.records_ledger.take().unwrap_or_else(|| RecordsLedger::start(0));
         let checkpoint_s = self.save_checkpoint(st, n);
         if checkpoint_s > 0.0 {
@@ -1070,7 +1104,7 @@ impl Shared {
     /// given back once they are.
     fn job_rendered(self: &Arc<Self>, st: &mut State, n: u64) {
         let job = st.jobs.get_mut(&n).expect("driven");
-        let a = job.active.take().expect("driven");
+        let a = job.stop_running(Phase::Assembling).expect("driven");
         job.record.state = v1::JobState::Assembling as i32;
         job.record.spp_done = a.session().spp_done();
         job.record.iteration = a.session().iteration();
@@ -1130,12 +1164,13 @@ impl Shared {
         let assembling = st
             .jobs
             .get(&n)
-            .is_some_and(|j| j.record.state == v1::JobState::Assembling as i32);
+            .is_some_and(|j| matches!(j.phase, Phase::Assembling));
         match stored {
             Err(e) => self.fail_job(st, n, format!("cannot store the results: {e}")),
             Ok(results) if !assembling => st.garbage.extend(results),
             Ok([exr, png, tree]) => {
                 let job = st.jobs.get_mut(&n).expect("checked");
+                job.phase = Phase::Ended;
                 job.record.state = v1::JobState::Done as i32;
                 job.record.exr = exr.0.to_vec();
                 job.record.png = png.0.to_vec();
@@ -1172,11 +1207,10 @@ impl Shared {
         if offer.new_estimate {
             let bytes = a.driver.encode_estimate();
             let digest = match bytes.is_empty() {
-                true => Vec::new(),
-                false => self.blobs.put_unsynced(&bytes)?.0.to_vec(),
+                true => None,
+                false => Some(self.blobs.put_unsynced(&bytes)?),
             };
-            let old = a.estimate_digest.replace(digest);
-            replaced.extend(old.and_then(|d| <[u8; 32]>::try_from(d).ok().map(Digest)));
+            replaced.extend(a.estimate_digest.replace(digest).flatten());
         }
         // Content-addressed: an input equal to the one it replaces is still in use.
         let live = a.blobs();
@@ -1190,7 +1224,7 @@ impl Shared {
             return;
         };
         let mut out = checkpoints::take_parts(&mut job.record);
-        out.extend(job.active.iter().flat_map(Active::blobs));
+        out.extend(job.active().into_iter().flat_map(Active::blobs));
         st.garbage.extend(out);
     }
 
@@ -1211,14 +1245,13 @@ impl Shared {
         let Some(job) = st.jobs.get_mut(&n) else {
             return false;
         };
-        if is_terminal(job.record.state) {
+        if job.is_ended() {
             return false;
         }
         tracing::warn!(job = %job_name(n), state = ?state, "job ended: {reason}");
         self.release_session_blobs(st, n);
         let job = st.jobs.get_mut(&n).expect("checked");
-        job.active = None;
-        job.pending = None;
+        job.phase = Phase::Ended;
         job.record.state = state as i32;
         if state == v1::JobState::Failed {
             job.record.failure_reason = reason.clone();
@@ -1302,7 +1335,7 @@ impl Shared {
         now: Millis,
     ) -> Option<v1::LeaseOffer> {
         let job = st.jobs.get(&lease.key.job.0)?;
-        let a = job.active.as_ref()?;
+        let a = job.active()?;
         let spec = a.driver.flight(lease.key.unit)?;
         let request = job.record.request.as_ref()?;
         let tiles = a.session().tiles_of(lease.key.unit)?;
@@ -1318,7 +1351,8 @@ impl Shared {
                 .unwrap_or_default();
         }
         if spec.kind != PassKind::Path {
-            pass.estimate_digest = a.estimate_digest.clone().unwrap_or_default();
+            let estimate = a.estimate_digest.flatten();
+            pass.estimate_digest = estimate.map(|d| d.0.to_vec()).unwrap_or_default();
         }
         let mut settings = request
             .settings
@@ -1427,8 +1461,7 @@ impl Shared {
             .jobs
             .iter()
             .filter(|(_, j)| {
-                j.active
-                    .as_ref()
+                j.active()
                     .is_some_and(|a| a.driver.holds(worker))
             })
             .map(|(&n, _)| n)
@@ -1468,7 +1501,7 @@ impl Shared {
         // must not stall its job: after a lease's lifetime the job rolls back.
         let timeout = self.cfg.scheduler.lease_timeout;
         let stalled: Vec<u64> = (st.jobs.iter())
-            .filter(|(_, j)| (j.active.as_ref()).is_some_and(|a| a.driver.stalled(now, timeout)))
+            .filter(|(_, j)| (j.active()).is_some_and(|a| a.driver.stalled(now, timeout)))
             .map(|(&n, _)| n)
             .collect();
         for n in stalled {
@@ -1480,7 +1513,7 @@ impl Shared {
         }
         // a resumed session, or one that may overlap its next unit (its driver says what)
         let running: Vec<u64> = (st.jobs.iter())
-            .filter(|(_, j)| j.active.is_some())
+            .filter(|(_, j)| j.active().is_some())
             .map(|(&n, _)| n)
             .collect();
         for n in running {

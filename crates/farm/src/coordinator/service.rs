@@ -405,9 +405,9 @@ impl Jobs for Svc {
                 let n = st.next_job;
                 st.next_job += 1;
                 svc.shared.db.put(n, &record).map_err(Status::internal)?;
-                let pending = Pending::Queued(Some(Box::new(prepared)));
+                let queued = Phase::Queued(Some(Box::new(prepared)));
                 svc.shared
-                    .add_job(&mut st, n, Job::new(record, Some(pending), n, &svc.shared.cfg.resources));
+                    .add_job(&mut st, n, Job::new(record, queued, n, &svc.shared.cfg.resources));
                 tracing::info!(job = %job_name(n), "job submitted");
                 svc.shared.admit(&mut st);
                 Ok::<u64, Status>(n)
@@ -531,7 +531,7 @@ impl Jobs for Svc {
                     v1::ResultKind::SdTree => r.tree.clone(),
                 };
                 // while the job runs, the preview of the image so far
-                let running_preview = st.jobs[&n].active.as_ref().and_then(|a| a.preview);
+                let running_preview = st.jobs[&n].active().and_then(|a| a.preview);
                 if let (v1::ResultKind::PngPreview, Some(p), false) =
                     (kind, running_preview, r.state == v1::JobState::Done as i32)
                 {

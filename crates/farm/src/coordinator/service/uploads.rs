@@ -173,7 +173,7 @@ impl Svc {
             );
             return Err(Refusal::corrupt(detail));
         }
-        let a = st.jobs[&named.job].active.as_ref().expect("named");
+        let a = st.jobs[&named.job].active().expect("named");
         let tiles = a.session().tiles_of(named.unit).expect("named");
         for t in &header.tiles {
             let key = st.sched.lease(LeaseId(t.lease_id)).expect("named").key;
@@ -270,7 +270,7 @@ impl Svc {
             }
         }
         let a = (st.jobs.get_mut(&n))
-            .and_then(|j| j.active.as_mut())
+            .and_then(|j| j.active_mut())
             .expect("checked");
         let merge_start = Instant::now();
         let tiles_in: Vec<TileIn> = (tiles.iter())
@@ -319,7 +319,7 @@ impl Svc {
         (times, merge_s): (TileTimes, f64),
     ) {
         let job = st.jobs.get_mut(&n).expect("checked");
-        let a = job.active.as_mut().expect("checked");
+        let a = job.active_mut().expect("checked");
         let samples: u64 = (tiles.iter())
             .map(|t| t.out.region.pixels() as u64 * spec.unit_spp())
             .sum();
@@ -425,7 +425,7 @@ impl Svc {
             }
         };
         let a = (st.jobs.get_mut(&n))
-            .and_then(|j| j.active.as_mut())
+            .and_then(|j| j.active_mut())
             .expect("asked");
         let merge_start = Instant::now();
         let left = match a.driver.records_from(WorkerId(w), &records) {
@@ -454,7 +454,7 @@ impl Svc {
         let no_job = || format!("no job {}", resources::echo(&header.job_id));
         let n = parse_job(&header.job_id).ok_or_else(no_job)?;
         let job = st.jobs.get(&n).ok_or_else(no_job)?;
-        let a = (job.active.as_ref()).ok_or_else(|| "the job is not running".to_string())?;
+        let a = (job.active()).ok_or_else(|| "the job is not running".to_string())?;
         let current = a.driver.records_epoch() == header.records_epoch
             && a.tree_digest.map(|(_, d)| d.0.to_vec()) == Some(header.tree_digest.clone());
         let asked = a.driver.is_asked(WorkerId(header.worker_id));
@@ -503,7 +503,7 @@ fn named(st: &State, sender: WorkerId, header: &v1::TileHeader) -> Result<Named,
     let key = first.expect("an upload names at least one tile");
     let n = key.job.0;
     let spec = (st.jobs.get(&n))
-        .and_then(|j| j.active.as_ref())
+        .and_then(|j| j.active())
         .filter(|a| a.session().tiles_of(key.unit).is_some())
         .and_then(|a| a.driver.flight(key.unit))
         .copied();
@@ -558,7 +558,7 @@ fn check_tiles(
     parts: &[&[u8]],
 ) -> Result<(Named, Vec<Accepting>), Refusal> {
     let named = named(st, sender, header)?;
-    let a = st.jobs[&named.job].active.as_ref().expect("named");
+    let a = st.jobs[&named.job].active().expect("named");
     let tiles = a.session().tiles_of(named.unit).expect("named");
     let mut out = Vec::with_capacity(parts.len());
     for (t, bytes) in header.tiles.iter().zip(parts) {
