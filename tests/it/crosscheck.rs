@@ -41,3 +41,16 @@ fn cornell_box_agrees_with_mitsuba() {
 fn materials_scene_agrees_with_mitsuba() {
     crosscheck(&project_scene("materials"), &[]);
 }
+
+/// An emitting shape without a BSDF is black, and a rotation axis is used as given (not
+/// normalised), as in Mitsuba 3.
+#[test]
+fn lamp_room_agrees_with_mitsuba() {
+    crosscheck(&project_scene("lamp-room"), &[]);
+}
+
+/// An environment map's rows sit on the poles and its columns' centres at (x + 0.5) / width.
+#[test]
+fn envmap_sky_agrees_with_mitsuba() {
+    crosscheck(&project_scene("envmap-sky"), &[]);
+}

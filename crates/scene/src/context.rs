@@ -34,6 +34,7 @@ pub(crate) struct Ctx {
     in_progress: HashSet<*const Node>,
     pub warnings: Vec<String>,
     default_bsdf: Option<usize>,
+    black_bsdf: Option<usize>,
     /// Resource limits of this load.
     pub limits: Limits,
     /// What the load reads of the files the scene names.
@@ -66,6 +67,7 @@ impl Ctx {
             in_progress: HashSet::new(),
             warnings: Vec::new(),
             default_bsdf: None,
+            black_bsdf: None,
             limits,
             reading,
             memory_bytes: 0,
@@ -222,6 +224,17 @@ impl Ctx {
         }
         self.memory_bytes = total;
         Ok(())
+    }
+
+    /// Index of the BSDF Mitsuba 3 gives an emitting shape that names none (diffuse,
+    /// reflectance 0: the emitter reflects nothing), added on first use.
+    pub(crate) fn black_bsdf(&mut self) -> usize {
+        *self.black_bsdf.get_or_insert_with(|| {
+            self.bsdfs.push(BsdfDesc::Diffuse {
+                reflectance: crate::desc::TexRef::Const(glam::Vec3::ZERO),
+            });
+            self.bsdfs.len() - 1
+        })
     }
 
     /// Index of Mitsuba's default BSDF (diffuse, reflectance 0.5), added on

@@ -626,8 +626,8 @@ pub enum BsdfDesc {
 pub struct ShapeDesc {
     pub id: Option<String>,
     pub geometry: Geometry,
-    /// Index into `SceneDesc::bsdfs`. Shapes without a BSDF get Mitsuba's
-    /// default, a diffuse BSDF with reflectance 0.5.
+    /// Index into `SceneDesc::bsdfs`. Shapes without a BSDF get Mitsuba 3's
+    /// default: a diffuse BSDF with reflectance 0.5, or 0 on an emitting shape.
     pub bsdf: usize,
     pub emitter: Option<AreaEmitterDesc>,
     pub location: Location,

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use glam::{DVec3, Vec3};
 
-use crate::context::Ctx;
+use crate::context::{Ctx, Reading};
 use crate::desc::{AreaEmitterDesc, EmitterDesc};
 use crate::error::SceneError;
 use crate::imageio::load_checked;
@@ -97,6 +97,19 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
             let to_world = p.transform("to_world")?.as_mat4();
             let path = ctx.resolve_path(&name, &loc)?;
             let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
+            // (A scene read for its file names has a 1x1 stand-in: nothing to check.)
+            if ctx.reading != Reading::Names && (img.width < 2 || img.height < 3) {
+                return Err(invalid(
+                    &loc,
+                    format!(
+                        "envmap file '{}' is {}x{}: an environment map has at least 2x3 \
+                         pixels (as in Mitsuba 3)",
+                        path.display(),
+                        img.width,
+                        img.height
+                    ),
+                ));
+            }
             EmitterDesc::EnvMap {
                 width: img.width,
                 height: img.height,

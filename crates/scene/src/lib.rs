@@ -89,6 +89,7 @@ fn load(
 ) -> Result<SceneDesc, SceneError> {
     let parsed = xml::parse_file(path, overrides, limits)?;
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
+    ctx.warnings = parsed.warnings;
     ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;

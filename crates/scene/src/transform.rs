@@ -5,10 +5,19 @@
 
 use glam::{DMat3, DMat4, DVec3, DVec4};
 
-/// Rotation by `angle_deg` degrees about `axis` (normalised here),
-/// right-handed, as Mitsuba's `Transform::rotate`.
+/// Rotation by `angle_deg` degrees about `axis`, right-handed, as Mitsuba 3's
+/// `Transform::rotate`: Rodrigues' formula `c I + s [a]x + (1 - c) a a^T` with the axis as
+/// given, not normalised (an axis of length 2 also scales, as in Mitsuba).
 pub(crate) fn rotate(axis: DVec3, angle_deg: f64) -> DMat4 {
-    DMat4::from_axis_angle(axis.normalize(), angle_deg.to_radians())
+    let (s, c) = angle_deg.to_radians().sin_cos();
+    let a = axis;
+    let cross = DMat3::from_cols(
+        DVec3::new(0.0, a.z, -a.y),
+        DVec3::new(-a.z, 0.0, a.x),
+        DVec3::new(a.y, -a.x, 0.0),
+    );
+    let outer = DMat3::from_cols(a * a.x, a * a.y, a * a.z);
+    DMat4::from_mat3(DMat3::IDENTITY * c + cross * s + outer * (1.0 - c))
 }
 
 /// Mitsuba's orthonormal basis construction (Duff et al. 2017); returns the
@@ -104,8 +113,24 @@ mod tests {
     }
 
     #[test]
+    fn rotate_uses_the_axis_as_given_like_mitsuba() {
+        // Mitsuba 3.9.1: ScalarTransform4f().rotate([1, 1, 0], 30).matrix
+        let m = rotate(DVec3::new(1.0, 1.0, 0.0), 30.0);
+        let expected = [
+            [1.0, 0.133975, 0.5],
+            [0.133975, 1.0, -0.5],
+            [-0.5, 0.5, 0.866025],
+        ];
+        for (r, row) in expected.iter().enumerate() {
+            for (c, &x) in row.iter().enumerate() {
+                assert!((m.col(c)[r] - x).abs() < 1e-6, "[{r}][{c}]: {} vs {x}", m.col(c)[r]);
+            }
+        }
+    }
+
+    #[test]
     fn rotate_is_right_handed_in_degrees() {
-        let p = rotate(DVec3::new(0.0, 0.0, 2.0), 90.0).transform_point3(DVec3::X);
+        let p = rotate(DVec3::new(0.0, 0.0, 1.0), 90.0).transform_point3(DVec3::X);
         assert!((p - DVec3::Y).length() < 1e-12);
     }
 
@@ -116,7 +141,8 @@ mod tests {
             Some(2.0)
         );
         assert!(similarity_scale(DMat4::from_scale(DVec3::new(1.0, 2.0, 1.0))).is_none());
-        let r = rotate(DVec3::new(1.0, 1.0, 0.0), 33.0) * DMat4::from_scale(DVec3::splat(3.0));
+        let axis = DVec3::new(1.0, 1.0, 0.0).normalize();
+        let r = rotate(axis, 33.0) * DMat4::from_scale(DVec3::splat(3.0));
         assert!((similarity_scale(r).unwrap() - 3.0).abs() < 1e-9);
     }
 }

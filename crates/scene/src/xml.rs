@@ -149,6 +149,8 @@ pub(crate) struct XmlScene {
     /// `-D name=value` overrides whose name the file neither declares (`<default>`) nor
     /// references (`$name`), in command-line order: the loader hands them to the integrator.
     pub unused_overrides: Vec<(String, String)>,
+    /// What the file does that Mitsuba accepts but is likely a mistake.
+    pub warnings: Vec<String>,
 }
 
 struct Parser<'a> {
@@ -161,6 +163,7 @@ struct Parser<'a> {
     /// Bytes `$name` substitution has produced so far, against `max_substituted`.
     substituted: std::cell::Cell<usize>,
     max_substituted: usize,
+    warnings: std::cell::RefCell<Vec<String>>,
 }
 
 /// Parse `path` with command-line `overrides` (which take precedence over
@@ -196,6 +199,7 @@ pub(crate) fn parse_file(
         ids: HashMap::new(),
         substituted: std::cell::Cell::new(0),
         max_substituted: limits.max_substituted_bytes,
+        warnings: Default::default(),
     };
     let root = doc.root_element();
     let root_loc = parser.loc(root);
@@ -285,6 +289,7 @@ pub(crate) fn parse_file(
         ids: parser.ids,
         base_dir,
         unused_overrides,
+        warnings: parser.warnings.into_inner(),
     })
 }
 
@@ -693,6 +698,13 @@ impl<'a> Parser<'a> {
                         return Err(invalid(&loc, "rotation axis cannot be zero"));
                     }
                     let angle = self.parse_f64(c, "angle", &self.req_attr(c, "angle")?)?;
+                    if (axis.length() - 1.0).abs() > 1e-6 {
+                        self.warnings.borrow_mut().push(format!(
+                            "{loc}: rotation axis ({}, {}, {}) is not of unit length; like \
+                             Mitsuba 3, it is used as given, which also scales",
+                            axis.x, axis.y, axis.z
+                        ));
+                    }
                     transform::rotate(axis, angle)
                 }
                 "lookat" => {

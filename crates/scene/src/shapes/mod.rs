@@ -18,19 +18,22 @@ use crate::props::{Props, Resolved};
 use crate::transform::similarity_scale;
 use crate::xml::{invalid, Category};
 
-/// Build the shape `r`: geometry in world space, its BSDF (Mitsuba's
-/// default diffuse 0.5 if none) and optional area emitter.
+/// Build the shape `r`: geometry in world space, its BSDF (if none, Mitsuba's default:
+/// diffuse 0.5, or black on an emitter) and optional area emitter.
 pub(crate) fn shape(ctx: &mut Ctx, r: &Resolved) -> Result<ShapeDesc, SceneError> {
     let p = ctx.props(&r.node)?;
     let geometry = geometry(ctx, &p)?;
 
-    let bsdf_index = match p.at_most_one(Category::Bsdf, &p.what())? {
-        None => ctx.default_bsdf(),
-        Some(b) => bsdf(ctx, &b)?,
-    };
+    let bsdf_node = p.at_most_one(Category::Bsdf, &p.what())?;
     let emitter = match p.at_most_one(Category::Emitter, &p.what())? {
         None => None,
         Some(e) => Some(area_emitter(ctx, &e)?),
+    };
+    // Mitsuba 3: a shape without a BSDF gets a diffuse one, black if the shape emits.
+    let bsdf_index = match (bsdf_node, &emitter) {
+        (Some(b), _) => bsdf(ctx, &b)?,
+        (None, Some(_)) => ctx.black_bsdf(),
+        (None, None) => ctx.default_bsdf(),
     };
     p.finish()?;
     Ok(ShapeDesc {
