@@ -9,7 +9,7 @@ use crate::desc::{BsdfDesc, MicrofacetDistribution, Roughness};
 use crate::error::SceneError;
 use crate::ior::{lookup_conductor, lookup_ior};
 use crate::props::{keywords, Props, Resolved};
-use crate::textures::{const_color, const_float, texref};
+use crate::textures::{const_float, const_rgb, texref};
 use crate::xml::{invalid, Category, Value};
 
 /// Build (or fetch from cache) the BSDF `r`, returning its arena index.
@@ -147,8 +147,10 @@ fn conductor_ior(p: &Props) -> Result<(Vec3, Vec3), SceneError> {
     let material = p.string_opt("material")?;
     let is_none = material.as_ref().is_none_or(|(m, _)| m == "none");
     if p.has("eta") || is_none {
-        let eta = const_color(p, "eta", Vec3::ZERO)?;
-        let k = const_color(p, "k", Vec3::ONE)?;
+        // An index of refraction is not a colour: fitted data may be slightly negative
+        // (Bitterli's living-room-2), and the Fresnel terms use only squares.
+        let eta = const_rgb(p, "eta", Vec3::ZERO)?;
+        let k = const_rgb(p, "k", Vec3::ONE)?;
         Ok((eta, k))
     } else {
         let (m, loc) = material.expect("material present when not none");

@@ -61,8 +61,14 @@ pub(crate) fn load_checked(
             texels: Texels::Float(Arc::new(vec![Vec3::ZERO])),
         });
     }
-    load_image(path, raw, pixels * 24).map_err(fail)
+    // The decoder's own allocations beside the pixels (a PNG's text and colour-profile
+    // chunks) are small but not bounded by the pixel count: a 10x9 icon with 6 KB of
+    // metadata is a valid texture.
+    load_image(path, raw, pixels * 24 + DECODER_ALLOWANCE).map_err(fail)
 }
+
+/// What the image decoder may allocate beyond the pixels it decodes.
+const DECODER_ALLOWANCE: u64 = 16 << 20;
 
 /// Width and height from the file's header, without decoding it.
 fn image_size(path: &Path) -> Result<(u32, u32), String> {

@@ -353,6 +353,31 @@ impl Props {
     /// A constant colour given as `<rgb>`, `<spectrum>` (uniform) or a number.
     /// Nested textures are not looked at (see [`Props::named_child`]).
     pub(crate) fn color_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
+        let Some(c) = self.rgb_opt(name)? else {
+            return Ok(None);
+        };
+        // Radiance, reflectance and the like: a negative value makes negative pixels.
+        if c.min_element() < 0.0 {
+            let p = self.get(name).expect("read above");
+            return Err(invalid(
+                &p.loc,
+                format!(
+                    "parameter '{name}' of {} is negative ({}, {}, {}): colours must be >= 0",
+                    self.what(),
+                    c.x,
+                    c.y,
+                    c.z
+                ),
+            ));
+        }
+        Ok(Some(c))
+    }
+
+    /// Three finite numbers given as a colour is: `<rgb>`, `<spectrum>` (uniform) or a
+    /// number, of any sign. For what is not a colour, such as a conductor's complex index
+    /// of refraction (fitted data may carry a small negative `eta`; only its square
+    /// matters).
+    pub(crate) fn rgb_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
         let Some(p) = self.get(name) else {
             return Ok(None);
         };
@@ -367,19 +392,6 @@ impl Props {
             return Err(invalid(
                 &p.loc,
                 format!("parameter '{name}' must be finite"),
-            ));
-        }
-        // Radiance, reflectance and the like: a negative value makes negative pixels.
-        if c.min_element() < 0.0 {
-            return Err(invalid(
-                &p.loc,
-                format!(
-                    "parameter '{name}' of {} is negative ({}, {}, {}): colours must be >= 0",
-                    self.what(),
-                    c.x,
-                    c.y,
-                    c.z
-                ),
             ));
         }
         Ok(Some(c))

@@ -56,6 +56,16 @@ pub(crate) fn const_color(p: &Props, name: &str, default: Vec3) -> Result<Vec3, 
     Ok(default)
 }
 
+/// As [`const_color`], for three numbers of any sign that are not a colour (a conductor's
+/// `eta` and `k`).
+pub(crate) fn const_rgb(p: &Props, name: &str, default: Vec3) -> Result<Vec3, SceneError> {
+    if let Some(c) = p.rgb_opt(name)? {
+        return Ok(c);
+    }
+    refuse_texture(p, name, "<rgb>")?;
+    Ok(default)
+}
+
 /// A scalar that must be constant (roughness); textured values are rejected.
 pub(crate) fn const_float(p: &Props, name: &str, default: f32) -> Result<f32, SceneError> {
     refuse_texture(p, name, "<float>")?;

@@ -32,7 +32,8 @@ fn write(path: &Path, contents: &[u8]) {
 
 fn write_png(path: &Path) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-    image::RgbImage::from_pixel(2, 2, image::Rgb([200, 100, 50]))
+    // 4x3: large enough to be an environment map (Mitsuba 3: at least 2x3)
+    image::RgbImage::from_pixel(4, 3, image::Rgb([200, 100, 50]))
         .save(path)
         .unwrap();
 }

@@ -434,7 +434,7 @@ fn escaped_dollar_is_kept_literally() {
 #[test]
 fn envmap_loads_linear_exr_with_scale_and_transform() {
     let d = temp_dir("envmap");
-    exr::prelude::write_rgb_file(d.join("sky.exr"), 4, 2, |x, y| (x as f32, y as f32, 2.5))
+    exr::prelude::write_rgb_file(d.join("sky.exr"), 4, 3, |x, y| (x as f32, y as f32, 2.5))
         .unwrap();
     let (p, _) = write_scene_in(
         &d,
@@ -452,11 +452,21 @@ fn envmap_loads_linear_exr_with_scale_and_transform() {
     else {
         panic!()
     };
-    assert_eq!((*width, *height, *scale), (4, 2, 3.0));
+    assert_eq!((*width, *height, *scale), (4, 3, 3.0));
     // Row-major, row 0 at the top, values untouched (EXR is linear).
     assert_eq!(texels[4 + 3], Vec3::new(3.0, 1.0, 2.5));
     assert!((to_world.transform_vector3(Vec3::X) - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-6);
     assert!(s.features.environment);
+}
+
+#[test]
+fn an_envmap_of_fewer_than_2x3_pixels_is_refused_as_mitsuba_does() {
+    let d = temp_dir("envmap-small");
+    exr::prelude::write_rgb_file(d.join("sky.exr"), 4, 2, |_, _| (1.0, 1.0, 1.0)).unwrap();
+    let body = r#"<emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>"#;
+    let (p, xml) = write_scene_in(&d, body);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "sky.exr"), &["sky.exr", "4x2", "at least 2x3"]);
 }
 
 /// An integrator block written like Bitterli's scenes: only `max_depth`, through `$max_depth`.
@@ -539,4 +549,96 @@ fn command_line_name_no_one_uses_is_an_error_naming_it() {
     let p = write_scene("cl-none", &scene(""));
     let err = load_scene(&p, &ov(&[("preset", "2019")])).unwrap_err();
     assert_invalid_at(&err, &p, 1, &["-D preset=2019", "no <integrator>"]);
+}
+
+#[test]
+fn an_emitting_shape_without_a_bsdf_is_black_and_others_get_diffuse_half() {
+    let xml = scene(
+        r#"<shape type="sphere"><emitter type="area"><rgb name="radiance" value="1"/></emitter></shape>
+<shape type="sphere"/>"#,
+    );
+    let s = load_scene(&write_scene("emitter-no-bsdf", &xml), &[]).unwrap();
+    let reflectance = |i: usize| match &s.bsdfs[s.shapes[i].bsdf] {
+        BsdfDesc::Diffuse {
+            reflectance: TexRef::Const(c),
+        } => *c,
+        b => panic!("not a constant diffuse: {b:?}"),
+    };
+    assert_eq!(reflectance(0), Vec3::ZERO, "Mitsuba 3: an emitter's default BSDF is black");
+    assert_eq!(reflectance(1), Vec3::splat(0.5));
+}
+
+#[test]
+fn a_rotation_axis_is_used_as_given_and_warned_about() {
+    // Axis (0, 0, 2), 90 degrees: c I + s [a]x + (1 - c) a a^T maps (1, 0, 0) to (0, 2, 0)
+    // (Mitsuba 3 does not normalise the axis), and the z axis to (0, 0, 4).
+    let xml = scene(
+        r#"<shape type="rectangle"><transform name="to_world">
+  <rotate z="2" angle="90"/>
+</transform></shape>"#,
+    );
+    let p = write_scene("rotate-long-axis", &xml);
+    let s = load_scene(&p, &[]).unwrap();
+    let m = only_mesh(&s);
+    let corner = m.positions[3]; // Mitsuba's rectangle vertex 3 is (1,1,0)
+    assert!((corner - Vec3::new(-2.0, 2.0, 0.0)).length() < 1e-5, "{corner}");
+    let line = line_of(&xml, "<rotate");
+    let warned = s.warnings.iter().any(|w| {
+        w.contains("not of unit length") && w.contains(&format!(":{line}"))
+    });
+    assert!(warned, "a warning naming the line: {:?}", s.warnings);
+    let unit = scene(r#"<shape type="rectangle"><transform name="to_world"><rotate z="1" angle="90"/></transform></shape>"#);
+    let s = load_scene(&write_scene("rotate-unit-axis", &unit), &[]).unwrap();
+    assert!(s.warnings.is_empty(), "{:?}", s.warnings);
+}
+
+#[test]
+fn a_conductors_index_of_refraction_may_be_negative_and_a_colour_may_not() {
+    // Bitterli's living-room-2 gives eta with a negative channel; only its square matters.
+    let xml = scene(
+        r#"<bsdf type="conductor" id="metal"><rgb name="eta" value="-0.0485226, 4.14275, 4.66977"/><rgb name="k" value="1, 2, 3"/></bsdf>
+<shape type="sphere"><ref id="metal"/></shape>"#,
+    );
+    let s = load_scene(&write_scene("negative-eta", &xml), &[]).unwrap();
+    match &s.bsdfs[s.shapes[0].bsdf] {
+        BsdfDesc::Conductor { eta, .. } => assert_eq!(eta.x, -0.0485226),
+        b => panic!("not a conductor: {b:?}"),
+    }
+    let xml = scene(
+        r#"<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="-0.1, 0.5, 0.5"/></bsdf></shape>"#,
+    );
+    let p = write_scene("negative-colour", &xml);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "reflectance"), &["negative", "colours must be >= 0"]);
+}
+
+/// A PNG of `w x h` grey pixels with a `tEXt` chunk of `text_bytes` before its data.
+fn png_with_metadata(w: u32, h: u32, text_bytes: usize) -> Vec<u8> {
+    let mut plain = Vec::new();
+    let img = image::GrayImage::from_pixel(w, h, image::Luma([128]));
+    img.write_to(&mut std::io::Cursor::new(&mut plain), image::ImageFormat::Png)
+        .unwrap();
+    let mut body = b"Comment\0".to_vec();
+    body.extend(std::iter::repeat_n(b'x', text_bytes));
+    let mut chunk = (body.len() as u32).to_be_bytes().to_vec();
+    let typed: Vec<u8> = b"tEXt".iter().chain(&body).copied().collect();
+    chunk.extend(&typed);
+    chunk.extend(crc32fast::hash(&typed).to_be_bytes());
+    // after the signature (8 bytes) and the IHDR chunk (25 bytes)
+    let mut out = plain[..33].to_vec();
+    out.extend(chunk);
+    out.extend(&plain[33..]);
+    out
+}
+
+#[test]
+fn a_small_png_with_large_metadata_loads() {
+    let dir = temp_dir("png-metadata");
+    std::fs::write(dir.join("t.png"), png_with_metadata(10, 9, 6 * 1024)).unwrap();
+    let body = r#"<shape type="sphere"><bsdf type="diffuse">
+  <texture type="bitmap" name="reflectance"><string name="filename" value="t.png"/></texture>
+</bsdf></shape>"#;
+    let p = write_xml_in(&dir, &scene(body));
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(s.shapes.len(), 1);
 }

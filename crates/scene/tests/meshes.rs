@@ -147,11 +147,20 @@ fn obj_errors_name_the_obj_line() {
 }
 
 #[test]
+fn obj_names_and_comments_may_be_in_any_code_page() {
+    // A 3ds Max export: Latin-1 in comments, object and material names.
+    let obj = b"# Cr\xe9\xe9 par 3ds Max\nmtllib caf\xe9.mtl\no Th\xe9i\xe8re\ng gr\xfcn\n\
+                v 0 0 0\nv 1 0 0 # \xb0\nv 0 1 0\nusemtl m\xe9tal\ns 1\nf 1 2 3\n";
+    let (p, _, _) = mesh_scene("obj-latin1-names", "obj", "x.obj", obj);
+    assert_eq!(triangles(&load_scene(&p, &[]).unwrap()), 1);
+}
+
+#[test]
 fn obj_files_that_are_not_text_are_refused() {
     obj_error(
-        "obj-latin1",
-        b"v 0 0 0\n# caf\xe9\nv 1 0 0\n",
-        "line 2 is not valid UTF-8 text",
+        "obj-latin1-data",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 \xe93\n",
+        "line 4 is not valid UTF-8 text",
     );
     obj_error(
         "obj-nul",

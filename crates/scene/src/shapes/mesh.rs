@@ -172,6 +172,41 @@ impl<R: BufRead> LineReader<R> {
         };
         text_of(line, bytes).map(|t| Some((line, t)))
     }
+
+    /// The next line of an OBJ file as text ([`obj_text_of`]).
+    pub(crate) fn next_obj_text(&mut self) -> Result<Option<(u64, &str)>, String> {
+        let Some((line, bytes)) = self.next_bytes()? else {
+            return Ok(None);
+        };
+        obj_text_of(line, bytes).map(|t| Some((line, t)))
+    }
+}
+
+/// An OBJ line as text. Only keywords and numbers need be ASCII: a line that is not UTF-8
+/// (a 3ds Max export writes names and comments in its code page) is read as the part before
+/// its comment if that is text, else as its keyword alone if the keyword only names
+/// something (`o`, `g`, `usemtl`, `mtllib`, `s`, or a comment); a data line (`v`, `f`, ...)
+/// that is not text is still an error.
+pub(crate) fn obj_text_of(line: u64, bytes: &[u8]) -> Result<&str, String> {
+    let error = match text_of(line, bytes) {
+        Ok(text) => return Ok(text),
+        Err(e) if bytes.contains(&0) => return Err(e),
+        Err(e) => e,
+    };
+    if let Some(hash) = bytes.iter().position(|&b| b == b'#') {
+        if let Ok(text) = std::str::from_utf8(&bytes[..hash]) {
+            return Ok(text);
+        }
+    }
+    let keyword = (bytes.split(u8::is_ascii_whitespace))
+        .find(|w| !w.is_empty())
+        .unwrap_or_default();
+    match keyword {
+        b"o" | b"g" | b"usemtl" | b"mtllib" | b"s" => {
+            Ok(std::str::from_utf8(keyword).expect("ASCII"))
+        }
+        _ => Err(error),
+    }
 }
 
 /// `bytes` (line `line` of a text file) as text: a NUL byte or invalid UTF-8 is an error.

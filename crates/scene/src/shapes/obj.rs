@@ -137,7 +137,7 @@ fn skip_byte_order_mark<R: BufRead>(reader: &mut R) -> Result<(), String> {
 /// The first pass: check that the file is text, count, and check polygon sizes.
 fn count<R: BufRead>(lines: &mut LineReader<R>, max_polygon: u64) -> Result<Counts, String> {
     let mut c = Counts::default();
-    while let Some((line, text)) = lines.next_text()? {
+    while let Some((line, text)) = lines.next_obj_text()? {
         let mut words = text.split_whitespace();
         match words.next() {
             Some("v") => c.positions += 1,
@@ -254,7 +254,7 @@ impl<'a> Parser<'a> {
         budget: &mut Budget,
         what: &str,
     ) -> Result<(), SceneError> {
-        while let Some((line, text)) = lines.next_text().map_err(|m| self.input.err(m))? {
+        while let Some((line, text)) = lines.next_obj_text().map_err(|m| self.input.err(m))? {
             self.line(line, text, budget, what)?;
         }
         self.end_object();
