@@ -27,6 +27,8 @@ pub(crate) enum Reading {
 pub(crate) struct Ctx {
     pub ids: HashMap<String, Rc<Node>>,
     pub base_dir: PathBuf,
+    /// `<path>` directories, searched first (see [`Ctx::resolve_path`]).
+    pub search_paths: Vec<String>,
     pub bsdfs: Vec<BsdfDesc>,
     pub textures: Vec<TextureDesc>,
     pub bsdf_cache: HashMap<*const Node, usize>,
@@ -60,6 +62,7 @@ impl Ctx {
         Self {
             ids,
             base_dir,
+            search_paths: Vec::new(),
             bsdfs: Vec::new(),
             textures: Vec::new(),
             bsdf_cache: HashMap::new(),
@@ -101,6 +104,19 @@ impl Ctx {
         name: &str,
         loc: &Location,
     ) -> Result<PathBuf, SceneError> {
+        // A relative name is looked up in the `<path>` directories first, as Mitsuba's
+        // file resolver does; the name found is the one confinement checks.
+        let found = (!Path::new(name).is_absolute())
+            .then(|| {
+                (self.search_paths.iter())
+                    .map(|dir| Path::new(dir).join(name))
+                    .find(|rel| self.base_dir.join(rel).exists())
+            })
+            .flatten();
+        let name = match &found {
+            Some(rel) => rel.to_str().unwrap_or(name),
+            None => name,
+        };
         let p = Path::new(name);
         let path = if p.is_absolute() {
             p.to_path_buf()

@@ -90,6 +90,7 @@ fn load(
     let parsed = xml::parse_file(path, overrides, limits)?;
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
     ctx.warnings = parsed.warnings;
+    ctx.search_paths = parsed.search_paths;
     ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;

@@ -151,6 +151,9 @@ pub(crate) struct XmlScene {
     pub unused_overrides: Vec<(String, String)>,
     /// What the file does that Mitsuba accepts but is likely a mistake.
     pub warnings: Vec<String>,
+    /// Directories of `<path value="..."/>`, relative to `base_dir` (or absolute), the last
+    /// declared first: a relative file name is looked up in each before `base_dir`.
+    pub search_paths: Vec<String>,
 }
 
 struct Parser<'a> {
@@ -164,6 +167,9 @@ struct Parser<'a> {
     substituted: std::cell::Cell<usize>,
     max_substituted: usize,
     warnings: std::cell::RefCell<Vec<String>>,
+    /// The file is of Mitsuba 0.x (`version` below 2.0): its plugins' parameters are
+    /// upgraded as Mitsuba 3 upgrades them ([`upgrade_from_v1`]).
+    legacy: bool,
 }
 
 /// Parse `path` with command-line `overrides` (which take precedence over
@@ -200,6 +206,7 @@ pub(crate) fn parse_file(
         substituted: std::cell::Cell::new(0),
         max_substituted: limits.max_substituted_bytes,
         warnings: Default::default(),
+        legacy: false,
     };
     let root = doc.root_element();
     let root_loc = parser.loc(root);
@@ -213,6 +220,7 @@ pub(crate) fn parse_file(
         ));
     }
     let mut objects = Vec::new();
+    let mut search_paths = Vec::new();
     for attr in root.attributes() {
         if !matches!(attr.name(), "version" | "type" | "id") {
             return Err(invalid(
@@ -236,7 +244,7 @@ pub(crate) fn parse_file(
             ),
             ))
         }
-        Some(_) => {}
+        Some(v) => parser.legacy = v.split('.').next().and_then(|m| m.parse::<u32>().ok()) < Some(2),
     }
     for child in root.children().filter(|n| n.is_element()) {
         let loc = parser.loc(child);
@@ -258,6 +266,18 @@ pub(crate) fn parse_file(
                     &loc,
                     "<include> is not supported; inline the included file",
                 ));
+            }
+            "path" => {
+                parser.check_attrs(child, &["value"], &["value"])?;
+                let value = parser.subst(child, child.attribute("value").unwrap_or_default())?;
+                let dir = path.parent().unwrap_or(Path::new("")).join(&value);
+                if !dir.is_dir() {
+                    let shown = bounded(&value);
+                    let msg = format!("<path value=\"{shown}\">: no such directory beside the scene");
+                    return Err(invalid(&loc, msg));
+                }
+                // Mitsuba 3 prepends: the last <path> is searched first.
+                search_paths.insert(0, value);
             }
             _ => match parser.parse_element(child)? {
                 Element::Object(obj) => objects.push(obj),
@@ -290,12 +310,105 @@ pub(crate) fn parse_file(
         base_dir,
         unused_overrides,
         warnings: parser.warnings.into_inner(),
+        search_paths,
     })
 }
 
 enum Element {
     Object(Child),
     Prop(Prop),
+}
+
+/// At most the first 120 characters of `s`, for messages.
+fn bounded(s: &str) -> String {
+    match s.char_indices().nth(120) {
+        Some((i, _)) => format!("{}...", &s[..i]),
+        None => s.to_string(),
+    }
+}
+
+/// A Mitsuba 0.x parameter name as Mitsuba 3 reads it: camelCase to snake_case, a run of
+/// capitals kept together (`intIOR` is `int_ior`, `toWorld` is `to_world`).
+pub(crate) fn camel_to_snake(name: &str) -> String {
+    let b = name.as_bytes();
+    let mut out = String::with_capacity(name.len() + 4);
+    let mut i = 0;
+    while i < b.len() {
+        let c = b[i] as char;
+        if i > 0 && b[i - 1].is_ascii_lowercase() && c.is_ascii_uppercase() {
+            out.push('_');
+            out.push(c.to_ascii_lowercase());
+            while i + 1 < b.len() && b[i + 1].is_ascii_uppercase() {
+                i += 1;
+                out.push(b[i].to_ascii_lowercase() as char);
+            }
+        } else {
+            out.push(c);
+        }
+        i += 1;
+    }
+    out
+}
+
+/// Mitsuba 3's upgrade of a plugin of a Mitsuba 0.x file: parameter and nested-object names
+/// from camelCase to snake_case, a `diffuse` BSDF's `diffuse_reflectance` to `reflectance`,
+/// and a texture's `uoffset`, `voffset`, `uscale`, `vscale` to a `to_uv` transform.
+fn upgrade_from_v1(
+    plugin: &str,
+    props: &mut Vec<Prop>,
+    children: &mut [Child],
+) -> Result<(), SceneError> {
+    let rename = |name: &str| match camel_to_snake(name) {
+        n if plugin == "diffuse" && n == "diffuse_reflectance" => "reflectance".to_string(),
+        n => n,
+    };
+    for p in props.iter_mut() {
+        p.name = rename(&p.name);
+    }
+    for c in children.iter_mut() {
+        c.name = c.name.as_deref().map(rename);
+    }
+    for (k, p) in props.iter().enumerate() {
+        if let Some(prev) = props[..k].iter().find(|q| q.name == p.name) {
+            return Err(invalid(
+                &p.loc,
+                format!(
+                    "property '{}' is specified twice once upgraded from Mitsuba 0.x names \
+                     (first at line {})",
+                    p.name, prev.loc.line
+                ),
+            ));
+        }
+    }
+    let mut offset = DVec3::ZERO;
+    let mut scale = DVec3::ONE;
+    let mut loc = None;
+    let mut kept = Vec::with_capacity(props.len());
+    for p in props.drain(..) {
+        let slot = match p.name.as_str() {
+            "uoffset" => &mut offset.x,
+            "voffset" => &mut offset.y,
+            "uscale" => &mut scale.x,
+            "vscale" => &mut scale.y,
+            _ => {
+                kept.push(p);
+                continue;
+            }
+        };
+        *slot = match p.value {
+            Value::Float(f) => f,
+            Value::Integer(i) => i as f64,
+            _ => return Err(invalid(&p.loc, format!("'{}' must be a <float>", p.name))),
+        };
+        loc = Some(p.loc);
+    }
+    *props = kept;
+    if let Some(loc) = loc {
+        let value = Value::Transform(DMat4::from_scale(scale) * DMat4::from_translation(offset));
+        let name = "to_uv".to_string();
+        props.push(Prop { name, value, loc });
+    }
+    Ok(())
 }
 
 /// Split a list of numbers separated by commas and/or whitespace.
@@ -587,10 +700,10 @@ impl<'a> Parser<'a> {
                     other => other,
                 })?)
             }
-            "default" => {
+            "default" | "path" => {
                 return Err(invalid(
                     &loc,
-                    "<default> is only allowed directly inside <scene>",
+                    format!("<{tag}> is only allowed directly inside <scene>"),
                 ))
             }
             "include" => {
@@ -645,6 +758,9 @@ impl<'a> Parser<'a> {
                     props.push(p)
                 }
             }
+        }
+        if self.legacy {
+            upgrade_from_v1(&plugin, &mut props, &mut children)?;
         }
         let n = Rc::new(Node {
             category,
@@ -933,6 +1049,24 @@ fn scan_start_tag(b: &[u8], mut i: usize) -> (usize, bool) {
 
 #[cfg(test)]
 mod tests {
+    use super::camel_to_snake;
+
+    #[test]
+    fn the_upgrade_turns_camel_case_into_snake_case_as_mitsuba_does() {
+        for (old, new) in [
+            ("maxDepth", "max_depth"),
+            ("intIOR", "int_ior"),
+            ("toWorld", "to_world"),
+            ("fovAxis", "fov_axis"),
+            ("specularReflectance", "specular_reflectance"),
+            ("sampleCount", "sample_count"),
+            ("radiance", "radiance"),
+            ("alphaU", "alpha_u"),
+        ] {
+            assert_eq!(camel_to_snake(old), new);
+        }
+    }
+
     use super::check_nesting;
 
     #[test]

@@ -642,3 +642,77 @@ fn a_small_png_with_large_metadata_loads() {
     let s = load_scene(&p, &[]).unwrap();
     assert_eq!(s.shapes.len(), 1);
 }
+
+#[test]
+fn radiance_hdr_and_bmp_images_load_the_hdr_as_linear() {
+    let d = temp_dir("hdr-bmp");
+    let hdr = image::Rgb32FImage::from_pixel(4, 3, image::Rgb([2.5f32, 0.5, 8.0]));
+    image::DynamicImage::ImageRgb32F(hdr).save(d.join("sky.hdr")).unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([255, 128, 0]))
+        .save(d.join("wall.bmp"))
+        .unwrap();
+    let body = r#"<emitter type="envmap"><string name="filename" value="sky.hdr"/></emitter>
+<shape type="sphere"><bsdf type="diffuse">
+  <texture type="bitmap" name="reflectance"><string name="filename" value="wall.bmp"/></texture>
+</bsdf></shape>"#;
+    let (p, _) = write_scene_in(&d, body);
+    let s = load_scene(&p, &[]).unwrap();
+    let EmitterDesc::EnvMap { texels, .. } = &s.emitters[0] else {
+        panic!("not an envmap")
+    };
+    // RGBE keeps 8 bits of mantissa: exact for these values, and not sRGB-decoded.
+    assert_eq!(texels[0], Vec3::new(2.5, 0.5, 8.0));
+}
+
+#[test]
+fn mitsuba_0_6_files_are_upgraded_as_mitsuba_3_does() {
+    let d = temp_dir("v06");
+    std::fs::create_dir_all(d.join("textures")).unwrap();
+    image::RgbImage::from_pixel(2, 2, image::Rgb([255, 255, 255]))
+        .save(d.join("textures/wood.png"))
+        .unwrap();
+    let xml = r#"<scene version="0.6.0">
+<path value="textures"/>
+<integrator type="path"><integer name="maxDepth" value="7"/><integer name="rrDepth" value="3"/></integrator>
+<sensor type="perspective">
+  <string name="fovAxis" value="smaller"/><float name="fov" value="40"/>
+  <transform name="toWorld"><lookat origin="0 0 5" target="0 0 0" up="0 1 0"/></transform>
+  <sampler type="independent"><integer name="sampleCount" value="16"/></sampler>
+  <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
+</sensor>
+<bsdf type="diffuse" id="wood">
+  <texture type="bitmap" name="diffuseReflectance">
+    <string name="filename" value="wood.png"/>
+    <float name="uscale" value="4"/><float name="voffset" value="0.5"/>
+  </texture>
+</bsdf>
+<bsdf type="dielectric" id="glass"><float name="intIOR" value="1.33"/></bsdf>
+<shape type="sphere"><ref id="wood"/></shape>
+<shape type="sphere"><ref id="glass"/></shape>
+</scene>
+"#;
+    let p = write_xml_in(&d, xml);
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!((s.sensor.sample_count, s.sensor.film.width, s.sensor.film.height), (16, 32, 24));
+    match &s.bsdfs[s.shapes[1].bsdf] {
+        BsdfDesc::Dielectric { int_ior, .. } => assert_eq!(*int_ior, 1.33),
+        b => panic!("not a dielectric: {b:?}"),
+    }
+    assert!(
+        s.files.iter().any(|f| f.ends_with("textures/wood.png")),
+        "the texture is found through <path>: {:?}",
+        s.files
+    );
+    // A Mitsuba 3 file is not upgraded: camelCase names are unknown parameters there.
+    let v3 = xml.replace("0.6.0", "3.0.0").replace("<path value=\"textures\"/>", "");
+    let err = load_scene(&write_xml_in(&d, &v3), &[]).unwrap_err();
+    assert!(err.to_string().contains("maxDepth"), "{err}");
+}
+
+#[test]
+fn a_path_that_is_not_a_directory_is_an_error_at_its_line() {
+    let xml = "<scene version=\"3.0.0\">\n<path value=\"nowhere\"/>\n<sensor type=\"perspective\"/>\n</scene>\n";
+    let p = write_scene("path-missing", xml);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, 2, &["nowhere", "no such directory"]);
+}
