@@ -91,6 +91,9 @@ fn load(
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
     ctx.warnings = parsed.warnings;
     ctx.search_paths = parsed.search_paths;
+    for f in &parsed.included {
+        ctx.record_file(f);
+    }
     ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;

@@ -10,8 +10,13 @@
 /// Resource limits on untrusted input. `Limits::default()` documents each default.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Limits {
-    /// Largest scene XML file, in bytes (default 256 MiB).
+    /// Largest scene XML file, in bytes, with the files it includes counted together
+    /// (default 256 MiB).
     pub max_scene_file_bytes: u64,
+    /// Deepest nesting of `<include>` (default 16).
+    pub max_include_depth: usize,
+    /// Most files a scene may include, all told (default 1024).
+    pub max_include_files: usize,
     /// Deepest nesting of XML elements in a scene file (default 100; real scenes nest fewer
     /// than 10 deep). Checked before the XML is parsed, so deep nesting cannot exhaust the
     /// stack.
@@ -67,6 +72,8 @@ impl Default for Limits {
         let memory = physical_memory_bytes().unwrap_or(16 << 30);
         Self {
             max_scene_file_bytes: 256 << 20,
+            max_include_depth: 16,
+            max_include_files: 1024,
             max_xml_depth: 100,
             max_substituted_bytes: 16 << 20,
             max_film_side: 16384,

@@ -154,11 +154,12 @@ pub(crate) struct XmlScene {
     /// Directories of `<path value="..."/>`, relative to `base_dir` (or absolute), the last
     /// declared first: a relative file name is looked up in each before `base_dir`.
     pub search_paths: Vec<String>,
+    /// The files `<include>` read, in the order read.
+    pub included: Vec<PathBuf>,
 }
 
-struct Parser<'a> {
-    file: PathBuf,
-    doc: &'a roxmltree::Document<'a>,
+/// What parsing a scene file and the files it includes shares.
+struct Shared {
     params: HashMap<String, String>,
     /// Names declared by `<default>` or referenced by `$name`.
     used: std::cell::RefCell<std::collections::HashSet<String>>,
@@ -167,30 +168,84 @@ struct Parser<'a> {
     substituted: std::cell::Cell<usize>,
     max_substituted: usize,
     warnings: std::cell::RefCell<Vec<String>>,
+    limits: crate::Limits,
+    /// The directory of the scene file (the root of confinement, and where the files the
+    /// scene names are found).
+    root_dir: PathBuf,
+    /// Bytes of scene text read (the scene and every file it includes), against
+    /// `Limits::max_scene_file_bytes`.
+    text_bytes: u64,
+    included: Vec<PathBuf>,
+    objects: Vec<Child>,
+    search_paths: Vec<String>,
+}
+
+/// One scene file being parsed.
+struct Parser<'a, 's> {
+    file: PathBuf,
+    doc: &'a roxmltree::Document<'a>,
+    s: &'s mut Shared,
     /// The file is of Mitsuba 0.x (`version` below 2.0): its plugins' parameters are
     /// upgraded as Mitsuba 3 upgrades them ([`upgrade_from_v1`]).
     legacy: bool,
 }
 
 /// Parse `path` with command-line `overrides` (which take precedence over
-/// `<default>` values).
+/// `<default>` values), and the files it includes.
 pub(crate) fn parse_file(
     path: &Path,
     overrides: &[(String, String)],
     limits: &crate::Limits,
 ) -> Result<XmlScene, SceneError> {
-    let text = read_scene_text(path, limits)?;
+    let root_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let mut shared = Shared {
+        params: overrides.iter().cloned().collect(),
+        used: Default::default(),
+        ids: HashMap::new(),
+        substituted: std::cell::Cell::new(0),
+        max_substituted: limits.max_substituted_bytes,
+        warnings: Default::default(),
+        limits: limits.clone(),
+        root_dir: root_dir.clone(),
+        text_bytes: 0,
+        included: Vec::new(),
+        objects: Vec::new(),
+        search_paths: Vec::new(),
+    };
+    parse_scene_file(&mut shared, path, 0)?;
+    let used = shared.used.into_inner();
+    let mut unused_overrides: Vec<(String, String)> = Vec::new();
+    for (name, value) in overrides {
+        if !used.contains(name) {
+            // A repeated -D: the last one wins, as in `params`.
+            unused_overrides.retain(|(n, _)| n != name);
+            unused_overrides.push((name.clone(), value.clone()));
+        }
+    }
+    Ok(XmlScene {
+        objects: shared.objects,
+        ids: shared.ids,
+        base_dir: root_dir,
+        unused_overrides,
+        warnings: shared.warnings.into_inner(),
+        search_paths: shared.search_paths,
+        included: shared.included,
+    })
+}
+
+/// Parses the scene file `path` (the scene, or a file it includes `depth` deep) into `s`.
+fn parse_scene_file(s: &mut Shared, path: &Path, depth: usize) -> Result<(), SceneError> {
+    let text = read_scene_text(path, &s.limits, s.text_bytes)?;
+    s.text_bytes += text.len() as u64;
     let file_loc = |line: u32| Location {
         file: path.to_path_buf(),
         line,
     };
-    check_nesting(&text, limits.max_xml_depth).map_err(|line| {
+    let max_depth = s.limits.max_xml_depth;
+    check_nesting(&text, max_depth).map_err(|line| {
         invalid(
             &file_loc(line),
-            format!(
-                "elements nest deeper than {} levels (Limits::max_xml_depth)",
-                limits.max_xml_depth
-            ),
+            format!("elements nest deeper than {max_depth} levels (Limits::max_xml_depth)"),
         )
     })?;
     let doc = roxmltree::Document::parse(&text).map_err(|e| {
@@ -200,87 +255,99 @@ pub(crate) fn parse_file(
     let mut parser = Parser {
         file: path.to_path_buf(),
         doc: &doc,
-        params: overrides.iter().cloned().collect(),
-        used: Default::default(),
-        ids: HashMap::new(),
-        substituted: std::cell::Cell::new(0),
-        max_substituted: limits.max_substituted_bytes,
-        warnings: Default::default(),
+        s,
         legacy: false,
     };
     let root = doc.root_element();
-    let root_loc = parser.loc(root);
-    if root.tag_name().name() != "scene" {
-        return Err(invalid(
-            &root_loc,
-            format!(
-                "root element must be <scene>, found <{}>",
-                root.tag_name().name()
-            ),
-        ));
+    if depth > 0 && Category::from_tag(root.tag_name().name()).is_some() {
+        // An included file may hold a single object instead of a scene.
+        return match parser.parse_element(root)? {
+            Element::Object(obj) => Ok(parser.s.objects.push(obj)),
+            Element::Prop(_) => unreachable!("an object tag"),
+        };
     }
-    let mut objects = Vec::new();
-    let mut search_paths = Vec::new();
-    for attr in root.attributes() {
-        if !matches!(attr.name(), "version" | "type" | "id") {
-            return Err(invalid(
-                &root_loc,
-                format!("unexpected attribute '{}' on <scene>", attr.name()),
-            ));
-        }
-    }
-    match root.attribute("version") {
-        None => {
-            return Err(invalid(
-                &root_loc,
-                "<scene> is missing the 'version' attribute",
-            ))
-        }
-        Some(v) if !is_version(v) => {
+    parser.scene(root, depth)
+}
+
+impl Parser<'_, '_> {
+    /// The `<scene>` element `root` of this file, its children added to the scene.
+    fn scene(&mut self, root: roxmltree::Node, depth: usize) -> Result<(), SceneError> {
+        let root_loc = self.loc(root);
+        if root.tag_name().name() != "scene" {
             return Err(invalid(
                 &root_loc,
                 format!(
-                "<scene version=\"{v}\">: the version must be MAJOR.MINOR.PATCH, e.g. \"3.0.0\""
-            ),
-            ))
+                    "root element must be <scene>, found <{}>",
+                    root.tag_name().name()
+                ),
+            ));
         }
-        Some(v) => parser.legacy = v.split('.').next().and_then(|m| m.parse::<u32>().ok()) < Some(2),
+        for attr in root.attributes() {
+            if !matches!(attr.name(), "version" | "type" | "id") {
+                return Err(invalid(
+                    &root_loc,
+                    format!("unexpected attribute '{}' on <scene>", attr.name()),
+                ));
+            }
+        }
+        match root.attribute("version") {
+            None => {
+                return Err(invalid(
+                    &root_loc,
+                    "<scene> is missing the 'version' attribute",
+                ))
+            }
+            Some(v) if !is_version(v) => {
+                return Err(invalid(
+                    &root_loc,
+                    format!(
+                        "<scene version=\"{v}\">: the version must be MAJOR.MINOR.PATCH, e.g. \
+                         \"3.0.0\""
+                    ),
+                ))
+            }
+            Some(v) => {
+                let major = v.split('.').next().and_then(|m| m.parse::<u32>().ok());
+                self.legacy = major < Some(2);
+            }
+        }
+        for child in root.children().filter(|n| n.is_element()) {
+            self.scene_child(child, depth)?;
+        }
+        Ok(())
     }
-    for child in root.children().filter(|n| n.is_element()) {
-        let loc = parser.loc(child);
+
+    /// One child of `<scene>`: a `<default>`, `<include>`, `<path>` or an object.
+    fn scene_child(&mut self, child: roxmltree::Node, depth: usize) -> Result<(), SceneError> {
+        let loc = self.loc(child);
         match child.tag_name().name() {
             "default" => {
-                parser.check_attrs(child, &["name", "value"], &["name", "value"])?;
+                self.check_attrs(child, &["name", "value"], &["name", "value"])?;
                 let name = child.attribute("name").unwrap_or_default().to_string();
-                let value = parser.subst(child, child.attribute("value").unwrap_or_default())?;
+                let value = self.subst(child, child.attribute("value").unwrap_or_default())?;
                 if name.is_empty() {
                     return Err(invalid(&loc, "<default>: name must be non-empty"));
                 }
                 // As in Mitsuba, the first definition wins: command-line
                 // overrides, then the earliest <default> of that name.
-                parser.used.borrow_mut().insert(name.clone());
-                parser.params.entry(name).or_insert(value);
+                self.s.used.borrow_mut().insert(name.clone());
+                self.s.params.entry(name).or_insert(value);
             }
-            "include" => {
-                return Err(invalid(
-                    &loc,
-                    "<include> is not supported; inline the included file",
-                ));
-            }
+            "include" => self.include(child, depth)?,
             "path" => {
-                parser.check_attrs(child, &["value"], &["value"])?;
-                let value = parser.subst(child, child.attribute("value").unwrap_or_default())?;
-                let dir = path.parent().unwrap_or(Path::new("")).join(&value);
-                if !dir.is_dir() {
+                self.check_attrs(child, &["value"], &["value"])?;
+                let value = self.subst(child, child.attribute("value").unwrap_or_default())?;
+                if !self.s.root_dir.join(&value).is_dir() {
                     let shown = bounded(&value);
-                    let msg = format!("<path value=\"{shown}\">: no such directory beside the scene");
+                    let msg =
+                        format!("<path value=\"{shown}\">: no such directory beside the scene");
                     return Err(invalid(&loc, msg));
                 }
                 // Mitsuba 3 prepends: the last <path> is searched first.
-                search_paths.insert(0, value);
+                self.s.search_paths.insert(0, value);
             }
-            _ => match parser.parse_element(child)? {
-                Element::Object(obj) => objects.push(obj),
+            _ => match self.parse_element(child)? {
+                Element::Object(obj) => self.s.objects.push(obj),
                 Element::Prop(p) => {
                     return Err(invalid(
                         &p.loc,
@@ -293,25 +360,79 @@ pub(crate) fn parse_file(
                 }
             },
         }
+        Ok(())
     }
-    let base_dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let used = parser.used.into_inner();
-    let mut unused_overrides: Vec<(String, String)> = Vec::new();
-    for (name, value) in overrides {
-        if !used.contains(name) {
-            // A repeated -D: the last one wins, as in `params`.
-            unused_overrides.retain(|(n, _)| n != name);
-            unused_overrides.push((name.clone(), value.clone()));
+
+    /// `<include filename="..."/>`: the file's scene (or single object) is added here, as
+    /// if written in its place. It is looked for beside the including file, then in the
+    /// `<path>` directories, then beside the scene; includes nest at most
+    /// `Limits::max_include_depth` deep, at most `Limits::max_include_files` are read, and
+    /// their text counts against `Limits::max_scene_file_bytes` with the scene's.
+    fn include(&mut self, node: roxmltree::Node, depth: usize) -> Result<(), SceneError> {
+        self.check_attrs(node, &["filename", "name"], &["filename"])?;
+        let loc = self.loc(node);
+        let name = self.req_attr(node, "filename")?;
+        let shown = bounded(&name);
+        let limits = &self.s.limits;
+        if depth + 1 > limits.max_include_depth {
+            let max = limits.max_include_depth;
+            let msg = format!(
+                "<include filename=\"{shown}\">: includes nest deeper than {max} \
+                 (Limits::max_include_depth)"
+            );
+            return Err(invalid(&loc, msg));
         }
+        if self.s.included.len() >= limits.max_include_files {
+            let max = limits.max_include_files;
+            let msg = format!(
+                "<include filename=\"{shown}\">: more than {max} files included \
+                 (Limits::max_include_files)"
+            );
+            return Err(invalid(&loc, msg));
+        }
+        let path = self.find_include(&name, &loc)?;
+        self.s.included.push(path.clone());
+        parse_scene_file(self.s, &path, depth + 1)
     }
-    Ok(XmlScene {
-        objects,
-        ids: parser.ids,
-        base_dir,
-        unused_overrides,
-        warnings: parser.warnings.into_inner(),
-        search_paths,
-    })
+
+    /// The file an `<include>` names, held to `Limits::confine_files`.
+    fn find_include(&self, name: &str, loc: &Location) -> Result<PathBuf, SceneError> {
+        let shown = bounded(name);
+        let rel = Path::new(name);
+        if self.s.limits.confine_files {
+            let outside = rel.is_absolute()
+                || rel.components().any(|c| !matches!(c, std::path::Component::Normal(_)));
+            if outside {
+                let msg = format!(
+                    "<include filename=\"{shown}\">: an absolute path or one with '..': files \
+                     are confined to the scene file's directory (Limits::confine_files)"
+                );
+                return Err(invalid(loc, msg));
+            }
+        }
+        let here = self.file.parent().unwrap_or(Path::new(""));
+        let searched = (self.s.search_paths.iter()).map(|d| self.s.root_dir.join(d));
+        let candidates = std::iter::once(here.to_path_buf())
+            .chain(searched)
+            .chain(std::iter::once(self.s.root_dir.clone()));
+        let Some(path) = candidates.map(|d| d.join(rel)).find(|p| p.is_file()) else {
+            let msg = format!("<include filename=\"{shown}\">: no such file");
+            return Err(invalid(loc, msg));
+        };
+        if self.s.limits.confine_files {
+            // A symbolic link must not lead out of the scene's directory.
+            let root = self.s.root_dir.canonicalize().ok();
+            let real = path.canonicalize().ok();
+            if !real.zip(root).is_some_and(|(r, root)| r.starts_with(root)) {
+                let msg = format!(
+                    "<include filename=\"{shown}\">: leads outside the scene file's directory \
+                     (Limits::confine_files)"
+                );
+                return Err(invalid(loc, msg));
+            }
+        }
+        Ok(path)
+    }
 }
 
 enum Element {
@@ -418,7 +539,7 @@ pub(crate) fn tokenize(s: &str) -> Vec<&str> {
         .collect()
 }
 
-impl<'a> Parser<'a> {
+impl Parser<'_, '_> {
     fn loc(&self, node: roxmltree::Node) -> Location {
         let pos = self.doc.text_pos_at(node.range().start);
         Location {
@@ -482,23 +603,23 @@ impl<'a> Parser<'a> {
                 }
             }
             let name = &value[start..end];
-            if !self.used.borrow().contains(name) {
-                self.used.borrow_mut().insert(name.to_string());
+            if !self.s.used.borrow().contains(name) {
+                self.s.used.borrow_mut().insert(name.to_string());
             }
-            match self.params.get(name) {
+            match self.s.params.get(name) {
                 Some(v) if !name.is_empty() => {
-                    let total = self.substituted.get().saturating_add(v.len());
-                    if total > self.max_substituted {
+                    let total = self.s.substituted.get().saturating_add(v.len());
+                    if total > self.s.max_substituted {
                         return Err(invalid(
                             &self.loc(node),
                             format!(
                                 "substituting ${name} would make the scene's substituted text \
                                  longer than {} bytes (Limits::max_substituted_bytes)",
-                                self.max_substituted
+                                self.s.max_substituted
                             ),
                         ));
                     }
-                    self.substituted.set(total);
+                    self.s.substituted.set(total);
                     out.push_str(v)
                 }
                 _ => {
@@ -709,7 +830,7 @@ impl<'a> Parser<'a> {
             "include" => {
                 return Err(invalid(
                     &loc,
-                    "<include> is not supported; inline the included file",
+                    "<include> is supported only directly inside <scene>",
                 ))
             }
             _ => return Err(invalid(&loc, format!("unsupported XML element <{tag}>"))),
@@ -771,7 +892,7 @@ impl<'a> Parser<'a> {
             loc: loc.clone(),
         });
         if let Some(id) = id {
-            if let Some(prev) = self.ids.get(&id) {
+            if let Some(prev) = self.s.ids.get(&id) {
                 return Err(invalid(
                     &loc,
                     format!(
@@ -780,7 +901,7 @@ impl<'a> Parser<'a> {
                     ),
                 ));
             }
-            self.ids.insert(id, n.clone());
+            self.s.ids.insert(id, n.clone());
         }
         Ok(Child {
             name,
@@ -815,7 +936,7 @@ impl<'a> Parser<'a> {
                     }
                     let angle = self.parse_f64(c, "angle", &self.req_attr(c, "angle")?)?;
                     if (axis.length() - 1.0).abs() > 1e-6 {
-                        self.warnings.borrow_mut().push(format!(
+                        self.s.warnings.borrow_mut().push(format!(
                             "{loc}: rotation axis ({}, {}, {}) is not of unit length; like \
                              Mitsuba 3, it is used as given, which also scales",
                             axis.x, axis.y, axis.z
@@ -915,7 +1036,14 @@ pub(crate) fn root_loc(path: &Path) -> Location {
 
 /// The scene file's text: at most `limits.max_scene_file_bytes`, UTF-8 (UTF-16 and other
 /// encodings are refused by name).
-fn read_scene_text(path: &Path, limits: &crate::Limits) -> Result<String, SceneError> {
+/// The text of scene file `path`, `already` bytes of scene text having been read for the
+/// scene (an included file counts against the scene's limit).
+fn read_scene_text(
+    path: &Path,
+    limits: &crate::Limits,
+    already: u64,
+) -> Result<String, SceneError> {
+    let max = limits.max_scene_file_bytes.saturating_sub(already);
     let here = |message: String| {
         invalid(
             &Location {
@@ -932,10 +1060,12 @@ fn read_scene_text(path: &Path, limits: &crate::Limits) -> Result<String, SceneE
     if meta.is_dir() {
         return Err(here("is a directory, not a scene file".into()));
     }
-    if meta.len() > limits.max_scene_file_bytes {
+    if meta.len() > max {
         return Err(here(format!(
-            "the scene file is {} bytes, more than the limit of {} (Limits::max_scene_file_bytes)",
+            "the scene file is {} bytes, more than the {} left of the limit of {} \
+             (Limits::max_scene_file_bytes, for the scene and the files it includes)",
             meta.len(),
+            max,
             limits.max_scene_file_bytes
         )));
     }
@@ -943,7 +1073,7 @@ fn read_scene_text(path: &Path, limits: &crate::Limits) -> Result<String, SceneE
         file: path.to_path_buf(),
         error,
     })?;
-    if bytes.len() as u64 > limits.max_scene_file_bytes {
+    if bytes.len() as u64 > max {
         return Err(here(format!(
             "the scene file grew past the limit of {} bytes while being read",
             limits.max_scene_file_bytes

@@ -108,10 +108,10 @@ fn bad_scenes_are_reported_at_the_line_at_fault() {
             &["colour"],
         ),
         (
-            "include",
+            "include-missing",
             scene("<include filename=\"other.xml\"/>"),
             At::First("include"),
-            &["not supported"],
+            &["other.xml", "no such file"],
         ),
         (
             // Keyword parameters name themselves, their plugin and the words they take.

@@ -279,3 +279,31 @@ fn scene_files_opens_each_file_but_leaves_decoding_to_the_full_load() {
         "a bad value is an error"
     );
 }
+
+#[test]
+fn confinement_applies_to_includes_and_paths() {
+    let d = temp_dir("confine-include");
+    write(
+        &d.join("scene/parts/ok.xml"),
+        b"<scene version=\"3.0.0\"><shape type=\"sphere\"/></scene>",
+    );
+    write(
+        &d.join("outside.xml"),
+        b"<scene version=\"3.0.0\"><shape type=\"sphere\"/></scene>",
+    );
+    let (p, _) = write_scene_in(&d.join("scene"), r#"<include filename="parts/ok.xml"/>"#);
+    let s = load_confined(&p).unwrap();
+    assert_eq!(s.shapes.len(), 1);
+    assert!(s.files.contains(&d.join("scene/parts/ok.xml")), "{:?}", s.files);
+    let outside = d.join("outside.xml");
+    for name in ["../outside.xml".to_string(), outside.display().to_string()] {
+        let body = format!("<include filename=\"{name}\"/>");
+        let p = assert_confined_fails(&d.join("scene"), &body, &[&name, "confine_files"]);
+        load_scene(&p, &[]).unwrap();
+    }
+    // A <path> directory does not open a way out either.
+    write_png(&d.join("tex/wood.png"));
+    let body = "<path value=\"../tex\"/>\n<texture type=\"bitmap\" id=\"t\">\n  <string name=\"filename\" value=\"wood.png\"/>\n</texture>";
+    let p = assert_confined_fails(&d.join("scene"), body, &["wood.png", "confine_files"]);
+    load_scene(&p, &[]).unwrap();
+}

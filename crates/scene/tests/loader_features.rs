@@ -716,3 +716,58 @@ fn a_path_that_is_not_a_directory_is_an_error_at_its_line() {
     let err = load_scene(&p, &[]).unwrap_err();
     assert_invalid_at(&err, &p, 2, &["nowhere", "no such directory"]);
 }
+
+#[test]
+fn an_include_adds_its_scene_or_object_in_place_and_is_listed_among_the_files() {
+    let d = temp_dir("include");
+    std::fs::create_dir_all(d.join("parts")).unwrap();
+    std::fs::write(
+        d.join("parts/materials.xml"),
+        r#"<scene version="0.6.0"><bsdf type="dielectric" id="glass"><float name="intIOR" value="1.4"/></bsdf>
+<include filename="sphere.xml"/></scene>"#,
+    )
+    .unwrap();
+    std::fs::write(
+        d.join("parts/sphere.xml"),
+        r#"<shape type="sphere"><ref id="glass"/></shape>"#,
+    )
+    .unwrap();
+    let body = r#"<default name="part" value="parts/materials.xml"/>
+<include filename="$part"/>
+<shape type="cube"><ref id="glass"/></shape>"#;
+    let (p, _) = write_scene_in(&d, body);
+    let s = load_scene(&p, &[]).unwrap();
+    assert_eq!(s.shapes.len(), 2, "the included sphere and the cube");
+    match &s.bsdfs[s.shapes[1].bsdf] {
+        // the included file is of Mitsuba 0.6: upgraded on its own
+        BsdfDesc::Dielectric { int_ior, .. } => assert_eq!(*int_ior, 1.4),
+        b => panic!("not a dielectric: {b:?}"),
+    }
+    for f in ["parts/materials.xml", "parts/sphere.xml"] {
+        assert!(s.files.iter().any(|x| x.ends_with(f)), "{f} in {:?}", s.files);
+    }
+}
+
+#[test]
+fn includes_are_bounded_in_depth_and_an_error_names_the_included_file() {
+    let d = temp_dir("include-loop");
+    std::fs::write(
+        d.join("loop.xml"),
+        "<scene version=\"3.0.0\">\n<include filename=\"loop.xml\"/>\n</scene>\n",
+    )
+    .unwrap();
+    let (p, _) = write_scene_in(&d, r#"<include filename="loop.xml"/>"#);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &d.join("loop.xml"), 2, &["Limits::max_include_depth"]);
+    std::fs::write(
+        d.join("bad.xml"),
+        "<scene version=\"3.0.0\">\n\n<shape type=\"teapot\"/>\n</scene>\n",
+    )
+    .unwrap();
+    let (p, _) = write_scene_in(&d, r#"<include filename="bad.xml"/>"#);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &d.join("bad.xml"), 3, &["teapot"]);
+    let (p, xml) = write_scene_in(&d, r#"<include filename="missing.xml"/>"#);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "missing.xml"), &["missing.xml", "no such file"]);
+}

@@ -443,3 +443,111 @@ fn sphere_radius_must_be_positive() {
     let p = write_scene("sheared-sphere", &xml);
     assert_load_fails_at(&p, &xml, "<shape", &["similarity"]);
 }
+
+/// One shape of a Mitsuba serialized file (format `version` 3 or 4): the header and the
+/// zlib stream of its flags, name, counts, positions, normals, texture coordinates and
+/// indices (f64 with `double`).
+fn serialized_shape(
+    version: u16,
+    double: bool,
+    positions: &[[f32; 3]],
+    normals: Option<&[[f32; 3]]>,
+    uvs: Option<&[[f32; 2]]>,
+    triangles: &[[u32; 3]],
+) -> Vec<u8> {
+    use std::io::Write;
+    let mut body = Vec::new();
+    let flags = u32::from(normals.is_some())
+        | if uvs.is_some() { 2 } else { 0 }
+        | if double { 0x2000 } else { 0x1000 };
+    body.extend(flags.to_le_bytes());
+    if version == 4 {
+        body.extend(b"shape name\0");
+    }
+    body.extend((positions.len() as u64).to_le_bytes());
+    body.extend((triangles.len() as u64).to_le_bytes());
+    let mut put = |x: f32| match double {
+        true => body.extend((x as f64).to_le_bytes()),
+        false => body.extend(x.to_le_bytes()),
+    };
+    positions.iter().flatten().for_each(|&x| put(x));
+    normals.into_iter().flatten().flatten().for_each(|&x| put(x));
+    uvs.into_iter().flatten().flatten().for_each(|&x| put(x));
+    for t in triangles.iter().flatten() {
+        body.extend(t.to_le_bytes());
+    }
+    let mut z = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::default());
+    z.write_all(&body).unwrap();
+    let mut out = vec![0x1C, 0x04];
+    out.extend(version.to_le_bytes());
+    out.extend(z.finish().unwrap());
+    out
+}
+
+/// Shapes concatenated, with the dictionary of their offsets at the end.
+fn serialized_file(version: u16, shapes: &[Vec<u8>]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut offsets = Vec::new();
+    for s in shapes {
+        offsets.push(out.len() as u64);
+        out.extend(s);
+    }
+    for o in offsets {
+        match version {
+            4 => out.extend(o.to_le_bytes()),
+            _ => out.extend((o as u32).to_le_bytes()),
+        }
+    }
+    out.extend((shapes.len() as u32).to_le_bytes());
+    out
+}
+
+const QUAD: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+
+#[test]
+fn serialized_meshes_load_by_shape_index_in_both_versions_and_precisions() {
+    let tri = serialized_shape(4, false, &QUAD[..3], None, None, &[[0, 1, 2]]);
+    let uvs = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
+    let normals = [[0.0, 0.0, 1.0]; 4];
+    let quad = serialized_shape(4, false, &QUAD, Some(&normals), Some(&uvs), &[[0, 1, 2], [0, 2, 3]]);
+    let file = serialized_file(4, &[tri, quad]);
+    for (index, triangles, has_uvs) in [(0, 1, false), (1, 2, true)] {
+        let extra = format!("\n  <integer name=\"shape_index\" value=\"{index}\"/>");
+        let name = format!("serialized-v4-{index}");
+        let (p, _, _) = mesh_scene_with(&name, "serialized", "m.serialized", &file, &extra);
+        let s = load_scene(&p, &[]).unwrap();
+        let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("a mesh") };
+        assert_eq!(m.indices.len(), triangles);
+        assert_eq!(m.uvs.is_some(), has_uvs);
+        assert_eq!(m.positions[2], glam::Vec3::new(1.0, 1.0, 0.0));
+        if has_uvs {
+            // as stored: a serialized file's v is not flipped
+            assert_eq!(m.uvs.as_ref().unwrap()[3], glam::Vec2::new(0.0, 1.0));
+        }
+    }
+    let v3 = serialized_file(3, &[serialized_shape(3, true, &QUAD, None, None, &[[3, 2, 1]])]);
+    let (p, _, _) = mesh_scene("serialized-v3", "serialized", "m.serialized", &v3);
+    let s = load_scene(&p, &[]).unwrap();
+    let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("a mesh") };
+    assert_eq!((m.indices[0], m.positions[3]), ([3, 2, 1], glam::Vec3::new(0.0, 1.0, 0.0)));
+}
+
+#[test]
+fn bad_serialized_files_are_refused_naming_the_file() {
+    let good = serialized_shape(4, false, &QUAD[..3], None, None, &[[0, 1, 2]]);
+    let file = serialized_file(4, std::slice::from_ref(&good));
+    let err = |name: &str, bytes: &[u8], extra: &str, needle: &str| {
+        let (p, xml, mesh) = mesh_scene_with(name, "serialized", "m.serialized", bytes, extra);
+        let prefix = format!("mesh file '{}': ", mesh.display());
+        assert_load_fails_at(&p, &xml, "m.serialized", &[&prefix, needle]);
+    };
+    let index = "\n  <integer name=\"shape_index\" value=\"1\"/>";
+    err("ser-index", &file, index, "shape_index 1 is out of range: the file holds 1 shapes");
+    err("ser-magic", b"PK\x03\x04 not a mesh", "", "not a serialized mesh");
+    let mut v5 = file.clone();
+    v5[2] = 5;
+    err("ser-version", &v5, "", "format version 5 is not supported");
+    err("ser-truncated", &good[..good.len() - 6], "", "ends early");
+    let oob = serialized_shape(4, false, &QUAD[..3], None, None, &[[0, 1, 7]]);
+    err("ser-oob", &serialized_file(4, &[oob]), "", "triangle 0: vertex index 7 out of range");
+}

@@ -1,8 +1,9 @@
-//! Shape plugins: `obj`, `ply`, `rectangle`, `cube`, `sphere`, `disk`.
+//! Shape plugins: `obj`, `ply`, `serialized`, `rectangle`, `cube`, `sphere`, `disk`.
 
 mod mesh;
 mod obj;
 mod ply;
+mod serialized;
 pub(crate) mod primitives;
 
 use std::sync::Arc;
@@ -50,8 +51,9 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
     let flip_normals = p.bool("flip_normals", false)?;
     let loc = p.loc().clone();
     match p.plugin() {
-        "obj" | "ply" => {
+        "obj" | "ply" | "serialized" => {
             let is_obj = p.plugin() == "obj";
+            let is_serialized = p.plugin() == "serialized";
             let (name, name_loc) = p.string_opt("filename")?.ok_or_else(|| {
                 invalid(
                     &loc,
@@ -59,8 +61,12 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
                 )
             })?;
             let face_normals = p.bool("face_normals", false)?;
-            // Mitsuba: OBJ flips v by default, PLY does not.
-            let flip_tex_coords = p.bool("flip_tex_coords", is_obj)?;
+            // Mitsuba: OBJ flips v by default, PLY does not; a serialized file has no flag.
+            let flip_tex_coords = !is_serialized && p.bool("flip_tex_coords", is_obj)?;
+            let shape_index = match is_serialized {
+                true => p.int_in("shape_index", 0, 0, u32::MAX as i64)? as u32,
+                false => 0,
+            };
             let path = ctx.resolve_path(&name, &name_loc)?;
             let input = mesh::MeshInput {
                 path: &path,
@@ -80,6 +86,8 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
             let local = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                 if is_obj {
                     obj::load_obj(&input, &mut budget)
+                } else if is_serialized {
+                    serialized::load_serialized(&input, shape_index, &mut budget)
                 } else {
                     ply::load_ply(&input, &mut budget)
                 }
@@ -191,6 +199,6 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
                 flip_normals,
             })
         }
-        _ => Err(p.unsupported("shape", "obj, ply, rectangle, cube, sphere, disk")),
+        _ => Err(p.unsupported("shape", "obj, ply, serialized, rectangle, cube, sphere, disk")),
     }
 }
