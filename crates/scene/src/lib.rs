@@ -17,6 +17,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 mod bsdfs;
+mod cie;
 mod context;
 pub mod desc;
 mod emitters;
@@ -28,6 +29,7 @@ pub mod limits;
 mod props;
 mod sensor;
 mod shapes;
+mod spectrum;
 mod textures;
 mod transform;
 mod xml;

@@ -9,7 +9,8 @@ use glam::{DMat4, Vec3};
 
 use crate::desc::Location;
 use crate::error::SceneError;
-use crate::xml::{invalid, Category, Child, Node, ObjRef, Prop, Value};
+use crate::spectrum;
+use crate::xml::{invalid, Category, Child, Node, ObjRef, Prop, Spectrum, Value};
 
 /// A nested object with `ref`s already followed.
 #[derive(Clone, Debug)]
@@ -350,10 +351,14 @@ impl Props {
         Ok(self.transform_opt(name)?.unwrap_or(DMat4::IDENTITY))
     }
 
-    /// A constant colour given as `<rgb>`, `<spectrum>` (uniform) or a number.
+    /// A constant colour given as `<rgb>`, `<spectrum>` or a number.
     /// Nested textures are not looked at (see [`Props::named_child`]).
     pub(crate) fn color_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
-        let Some(c) = self.rgb_opt(name)? else {
+        let usage = match self.node.category {
+            Category::Emitter => spectrum::Use::Emission,
+            _ => spectrum::Use::Reflectance,
+        };
+        let Some(c) = self.rgb_as(name, usage)? else {
             return Ok(None);
         };
         // Radiance, reflectance and the like: a negative value makes negative pixels.
@@ -378,12 +383,22 @@ impl Props {
     /// of refraction (fitted data may carry a small negative `eta`; only its square
     /// matters).
     pub(crate) fn rgb_opt(&self, name: &str) -> Result<Option<Vec3>, SceneError> {
+        self.rgb_as(name, spectrum::Use::Unbounded)
+    }
+
+    /// Three numbers from `<rgb>`, `<spectrum>` (converted for `usage` as Mitsuba 3's RGB
+    /// variants convert it) or a number.
+    fn rgb_as(&self, name: &str, usage: spectrum::Use) -> Result<Option<Vec3>, SceneError> {
         let Some(p) = self.get(name) else {
             return Ok(None);
         };
         let c = match p.value {
             Value::Rgb(c) => c,
-            Value::Spectrum(s) => Vec3::splat(s),
+            Value::Spectrum(Spectrum::Uniform(s)) => match usage {
+                spectrum::Use::Emission => spectrum::uniform_emission(s),
+                _ => Vec3::splat(s),
+            },
+            Value::Spectrum(Spectrum::Pairs(ref pairs)) => spectrum::to_srgb(pairs, usage),
             Value::Float(f) => Vec3::splat(f as f32),
             Value::Integer(i) => Vec3::splat(i as f32),
             _ => return Err(self.type_error(p, "<rgb>, <spectrum> or <float>")),

@@ -79,7 +79,7 @@ pub(crate) enum Value {
     String(String),
     Rgb(Vec3),
     /// A uniform spectrum (the only kind supported).
-    Spectrum(f32),
+    Spectrum(Spectrum),
     Point(DVec3),
     Vector(DVec3),
     Transform(DMat4),
@@ -107,6 +107,17 @@ impl Value {
 }
 
 /// A named property of a plugin.
+/// A `<spectrum>`: one value for every wavelength, or `wavelength:value` pairs (nm,
+/// strictly increasing).
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) enum Spectrum {
+    Uniform(f32),
+    Pairs(Vec<(f32, f32)>),
+}
+
+/// The most `wavelength:value` pairs a `<spectrum>` may list.
+const MAX_SPECTRUM_PAIRS: usize = 4096;
+
 #[derive(Clone, Debug)]
 pub(crate) struct Prop {
     pub name: String,
@@ -718,6 +729,43 @@ impl Parser<'_, '_> {
         }
     }
 
+    /// A `<spectrum>` value: one number, or `wavelength:value` pairs with strictly
+    /// increasing wavelengths (at least two, at most [`MAX_SPECTRUM_PAIRS`]).
+    fn parse_spectrum(&self, node: roxmltree::Node, s: &str) -> Result<Spectrum, SceneError> {
+        let loc = self.loc(node);
+        let toks = tokenize(s);
+        if toks.len() == 1 && !toks[0].contains(':') {
+            return Ok(Spectrum::Uniform(self.parse_f64(node, "spectrum", toks[0])? as f32));
+        }
+        let shown = bounded(s);
+        if toks.len() < 2 || toks.len() > MAX_SPECTRUM_PAIRS {
+            let msg = format!(
+                "<spectrum value=\"{shown}\">: one value, or 2 to {MAX_SPECTRUM_PAIRS} \
+                 wavelength:value pairs"
+            );
+            return Err(invalid(&loc, msg));
+        }
+        let mut pairs: Vec<(f32, f32)> = Vec::with_capacity(toks.len());
+        for t in toks {
+            let Some((w, v)) = t.split_once(':') else {
+                let msg = format!("<spectrum>: \"{}\" is not a wavelength:value pair", bounded(t));
+                return Err(invalid(&loc, msg));
+            };
+            let w = self.parse_f64(node, "wavelength", w)? as f32;
+            let v = self.parse_f64(node, "spectrum value", v)? as f32;
+            if !(w.is_finite() && v.is_finite()) {
+                let msg = format!("<spectrum>: \"{}\" is not finite", bounded(t));
+                return Err(invalid(&loc, msg));
+            }
+            if pairs.last().is_some_and(|&(prev, _)| w <= prev) {
+                let msg = format!("<spectrum value=\"{shown}\">: wavelengths must increase");
+                return Err(invalid(&loc, msg));
+            }
+            pairs.push((w, v));
+        }
+        Ok(Spectrum::Pairs(pairs))
+    }
+
     fn parse_element(&mut self, node: roxmltree::Node) -> Result<Element, SceneError> {
         let tag = node.tag_name().name();
         let loc = self.loc(node);
@@ -762,18 +810,13 @@ impl Parser<'_, '_> {
                 if node.attribute("type").is_some() || node.attribute("filename").is_some() {
                     return Err(invalid(
                         &loc,
-                        "<spectrum> is supported only as a single uniform value (value=\"0.5\"); spectral files and plugins are not supported",
+                        "<spectrum> is supported as a value or as wavelength:value pairs \
+                         (value=\"0.5\", value=\"400:0.1, 700:0.5\"); spectral files and \
+                         plugins are not supported",
                     ));
                 }
                 let s = self.req_attr(node, "value")?;
-                let toks = tokenize(&s);
-                if toks.len() != 1 || toks[0].contains(':') {
-                    return Err(invalid(
-                        &loc,
-                        format!("<spectrum value=\"{s}\">: only a single uniform value is supported (wavelength:value lists are not supported)"),
-                    ));
-                }
-                Value::Spectrum(self.parse_f64(node, "spectrum", toks[0])? as f32)
+                Value::Spectrum(self.parse_spectrum(node, &s)?)
             }
             "point" | "vector" => {
                 self.check_attrs(node, &["name", "value", "x", "y", "z"], &["name"])?;

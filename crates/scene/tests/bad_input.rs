@@ -83,10 +83,16 @@ fn bad_scenes_are_reported_at_the_line_at_fault() {
             &["alpha", "not supported"],
         ),
         (
-            "spectral-list",
-            scene("<bsdf type=\"diffuse\">\n<spectrum name=\"reflectance\" value=\"400:0.1, 700:0.5\"/>\n</bsdf>"),
+            "spectral-list-unordered",
+            scene("<bsdf type=\"diffuse\">\n<spectrum name=\"reflectance\" value=\"700:0.1, 400:0.5\"/>\n</bsdf>"),
             At::First("spectrum"),
-            &["not supported"],
+            &["700:0.1, 400:0.5", "wavelengths must increase"],
+        ),
+        (
+            "spectral-list-not-a-pair",
+            scene("<bsdf type=\"diffuse\">\n<spectrum name=\"reflectance\" value=\"400:0.1, 0.5\"/>\n</bsdf>"),
+            At::First("spectrum"),
+            &["\"0.5\" is not a wavelength:value pair"],
         ),
         (
             "no-sensor",

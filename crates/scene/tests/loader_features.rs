@@ -771,3 +771,23 @@ fn includes_are_bounded_in_depth_and_an_error_names_the_included_file() {
     let err = load_scene(&p, &[]).unwrap_err();
     assert_invalid_at(&err, &p, line_of(&xml, "missing.xml"), &["missing.xml", "no such file"]);
 }
+
+#[test]
+fn spectra_become_the_colours_mitsuba_3_gives_them() {
+    // Mitsuba 3.9.1 scalar_rgb, mi.traverse of the loaded scene.
+    let xml = scene(
+        r#"<shape type="sphere"><emitter type="area"><spectrum name="radiance" value="2"/></emitter></shape>
+<shape type="sphere"><bsdf type="diffuse"><spectrum name="reflectance" value="400:0.1, 500:0.5, 600:0.8, 700:0.3"/></bsdf></shape>
+<emitter type="constant"><spectrum name="radiance" value="400:1, 700:2"/></emitter>"#,
+    );
+    let s = load_scene(&write_scene("spectra", &xml), &[]).unwrap();
+    let close = |a: Vec3, b: [f32; 3]| (a - Vec3::from(b)).abs().max_element() < 2e-5;
+    let radiance = s.shapes[0].emitter.as_ref().unwrap().radiance;
+    assert!(close(radiance, [2.40959, 1.89658, 1.81783]), "{radiance}");
+    let BsdfDesc::Diffuse { reflectance: TexRef::Const(r) } = &s.bsdfs[s.shapes[1].bsdf] else {
+        panic!("a constant diffuse")
+    };
+    assert!(close(*r, [0.752187, 0.645269, 0.271706]), "{r}");
+    let EmitterDesc::Constant { radiance } = &s.emitters[0] else { panic!("constant") };
+    assert!(close(*radiance, [2.14, 1.40424, 1.01714]), "{radiance}");
+}
