@@ -54,3 +54,9 @@ fn lamp_room_agrees_with_mitsuba() {
 fn envmap_sky_agrees_with_mitsuba() {
     crosscheck(&project_scene("envmap-sky"), &[]);
 }
+
+/// A `spot` emitter's cone and linear falloff, rendered with Mitsuba's `direct` integrator.
+#[test]
+fn spotlight_agrees_with_mitsuba() {
+    crosscheck(&project_scene("spotlight"), &[]);
+}

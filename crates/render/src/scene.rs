@@ -10,7 +10,7 @@ use pathfarm_scene::{
 use crate::camera::Camera;
 use crate::filter::Filter;
 use crate::geometry::{Accel, Analytic, Bvh, ShapeGeom, SurfaceInteraction};
-use crate::light::{AreaLight, EnvMap, Light, Lights};
+use crate::light::{AreaLight, EnvMap, Light, Lights, Spot};
 use crate::material::Material;
 use crate::RenderError;
 use pathfarm_scene::limits::{format_bytes, Limits};
@@ -144,6 +144,12 @@ impl Scene {
                     position: *position,
                     intensity: *intensity,
                 },
+                EmitterDesc::Spot {
+                    to_world,
+                    intensity,
+                    cutoff_angle,
+                    beam_width,
+                } => Light::Spot(Spot::new(*to_world, *intensity, *cutoff_angle, *beam_width)),
                 EmitterDesc::Directional {
                     direction,
                     irradiance,

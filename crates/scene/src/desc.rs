@@ -689,6 +689,15 @@ pub enum EmitterDesc {
         /// Radiant intensity (W/sr).
         intensity: Vec3,
     },
+    /// Mitsuba's `spot`: a point light at `to_world`'s origin shining along its +z, at full
+    /// intensity within `beam_width` of the axis, falling off linearly in angle to zero at
+    /// `cutoff_angle` (radians).
+    Spot {
+        to_world: Mat4,
+        intensity: Vec3,
+        cutoff_angle: f32,
+        beam_width: f32,
+    },
     Constant {
         radiance: Vec3,
     },

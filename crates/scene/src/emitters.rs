@@ -1,4 +1,4 @@
-//! Emitter plugins: `area` (on shapes), `point`, `constant`, `envmap`,
+//! Emitter plugins: `area` (on shapes), `point`, `spot`, `constant`, `envmap`,
 //! `directional`.
 
 use std::sync::Arc;
@@ -61,6 +61,32 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
                 intensity: const_color(&p, "intensity", Vec3::ONE)?,
             }
         }
+        "spot" => {
+            let to_world = p.transform("to_world")?.as_mat4();
+            let cutoff = p.float("cutoff_angle", 20.0)?;
+            let beam = p.float("beam_width", cutoff * 0.75)?;
+            if !(cutoff > 0.0 && cutoff <= 90.0) {
+                let at = p.get("cutoff_angle").map_or(p.loc(), |c| &c.loc);
+                let msg = format!("spot emitter: cutoff_angle {cutoff} is not in (0, 90] degrees");
+                return Err(invalid(at, msg));
+            }
+            if !(beam > 0.0 && beam < cutoff) {
+                let at = p.get("beam_width").map_or(p.loc(), |c| &c.loc);
+                let msg = format!(
+                    "spot emitter: beam_width {beam} is not in (0, cutoff_angle {cutoff}) degrees"
+                );
+                return Err(invalid(at, msg));
+            }
+            if !to_world.is_finite() || glam::Mat3::from_mat4(to_world).determinant() == 0.0 {
+                return Err(invalid(p.loc(), "spot emitter: to_world must be invertible"));
+            }
+            EmitterDesc::Spot {
+                to_world,
+                intensity: const_color(&p, "intensity", Vec3::ONE)?,
+                cutoff_angle: cutoff.to_radians(),
+                beam_width: beam.to_radians(),
+            }
+        }
         "constant" => EmitterDesc::Constant {
             radiance: const_color(&p, "radiance", Vec3::ONE)?,
         },
@@ -118,7 +144,10 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
                 to_world,
             }
         }
-        _ => return Err(p.unsupported("emitter", "area, point, constant, envmap, directional")),
+        _ => {
+            let known = "area, point, spot, constant, envmap, directional";
+            return Err(p.unsupported("emitter", known));
+        }
     };
     p.finish()?;
     Ok(desc)

@@ -18,7 +18,8 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
     let desc = match p.plugin() {
         "path" => IntegratorDesc::Path(path_params(&p)?),
         "guided_path" => IntegratorDesc::GuidedPath(guided_params(&p, &ctx.limits)?),
-        _ => return Err(p.unsupported("integrator", "path, guided_path")),
+        "direct" => IntegratorDesc::Path(direct_params(&p)?),
+        _ => return Err(p.unsupported("integrator", "path, direct, guided_path")),
     };
     p.finish()?;
     Ok(desc)
@@ -32,6 +33,22 @@ fn path_params(p: &Props) -> Result<PathParams, SceneError> {
         max_depth: p.int_in("max_depth", d.max_depth as i64, -1, i32::MAX as i64)? as i32,
         rr_depth: p.int_in("rr_depth", d.rr_depth as i64, 1, u32::MAX as i64)? as u32,
         hide_emitters: p.bool("hide_emitters", d.hide_emitters)?,
+    })
+}
+
+/// Mitsuba's `direct` (emitted light and direct illumination, light and BSDF samples
+/// combined by MIS) is what `path` computes with `max_depth` 2: the same estimator of the
+/// same value. Its sample counts (`emitter_samples`, `bsdf_samples`, `shading_samples`)
+/// are accepted and render as one light and one BSDF sample a pixel sample: they change the
+/// noise per sample, not the image.
+fn direct_params(p: &Props) -> Result<PathParams, SceneError> {
+    for name in ["emitter_samples", "bsdf_samples", "shading_samples"] {
+        p.int_in(name, 1, 0, u32::MAX as i64)?;
+    }
+    Ok(PathParams {
+        max_depth: 2,
+        hide_emitters: p.bool("hide_emitters", false)?,
+        ..PathParams::default()
     })
 }
 

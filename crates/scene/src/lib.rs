@@ -270,7 +270,9 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
     }
     for e in emitters {
         match e {
-            EmitterDesc::Point { .. } | EmitterDesc::Directional { .. } => f.delta_lights = true,
+            EmitterDesc::Point { .. } | EmitterDesc::Spot { .. } | EmitterDesc::Directional { .. } => {
+                f.delta_lights = true
+            }
             EmitterDesc::Constant { .. } | EmitterDesc::EnvMap { .. } => f.environment = true,
         }
     }

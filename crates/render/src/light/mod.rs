@@ -4,10 +4,12 @@
 
 mod area;
 mod envmap;
+mod spot;
 
 pub use area::AreaLight;
 use area::{flat_triangle_sample, FlatTri};
 pub use envmap::EnvMap;
+pub use spot::Spot;
 
 use glam::{Vec2, Vec3};
 use std::f32::consts::PI;
@@ -61,6 +63,8 @@ pub enum Light {
         /// `intensity / d^2`.
         intensity: Vec3,
     },
+    /// A spot light (Mitsuba's `spot`).
+    Spot(Spot),
     /// A light at infinity from a single direction.
     Directional {
         /// Normalised world-space direction the light travels (from the light into the scene).
@@ -147,6 +151,7 @@ impl Lights {
                     delta: true,
                 }
             }
+            Light::Spot(spot) => spot.sample(p)?,
             Light::Directional {
                 direction,
                 irradiance,
