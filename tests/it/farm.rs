@@ -921,3 +921,49 @@ fn is_zombie(pid: u32) -> bool {
         .map(|x| x.1.trim_start().starts_with('Z'))
         .unwrap_or(true)
 }
+
+/// A scene naming an integrator pathfarm does not have, in a block `-D` cannot reach (no
+/// `$integrator`): `--integrator guided_path` replaces it in `render` and `cluster` alike,
+/// keeping `max_depth` and saying what it dropped, and the farm's image is render's.
+#[test]
+fn integrator_flag_replaces_the_scenes_integrator_in_render_and_cluster_alike() {
+    let dir = temp_dir("integrator-flag");
+    let src = project_scene("door-ajar");
+    let xml = fs::read_to_string(&src).unwrap();
+    let start = xml.find("<integrator").expect("an integrator block");
+    let end = xml[start..].find("</integrator>").expect("closed") + start + "</integrator>".len();
+    let sppm = "<integrator type=\"sppm\"><integer name=\"max_depth\" value=\"6\"/>\
+                <integer name=\"photon_count\" value=\"100000\"/></integrator>";
+    // The scene's directory copied (its mesh beside it), the integrator block replaced.
+    for e in fs::read_dir(src.parent().unwrap()).unwrap() {
+        let e = e.unwrap();
+        fs::copy(e.path(), dir.join(e.file_name())).unwrap();
+    }
+    let scene = dir.join("scene.xml");
+    fs::write(&scene, format!("{}{sppm}{}", &xml[..start], &xml[end..])).unwrap();
+    let common = ["--integrator", "guided_path", "-D", "resx=40", "-D", "resy=24"];
+    let flags = ["--spp", "8", "--seed", "3"];
+    let render_out = dir.join("render.exr");
+    let mut args = vec!["render", path_str(&scene), "--no-png", "-o", path_str(&render_out)];
+    args.extend(common.iter().chain(&flags));
+    let r = Running::start(&args, &[]).wait(Duration::from_secs(300));
+    assert!(r.status.success(), "render: {}", r.describe());
+    let cluster_out = dir.join("cluster.exr");
+    let mut args = vec!["cluster", "--workers", "2", "--threads-per-worker", "1"];
+    args.extend([path_str(&scene), "-o", path_str(&cluster_out)]);
+    args.extend(common.iter().chain(&flags));
+    let c = Running::start(&args, &[]).wait(Duration::from_secs(300));
+    assert!(c.status.success(), "cluster: {}", c.describe());
+    for (what, run) in [("render", &r), ("cluster", &c)] {
+        let err = run.describe();
+        assert!(
+            err.contains("integrator 'sppm' replaced by 'guided_path'")
+                && err.contains("dropped photon_count"),
+            "{what} says what it replaced and dropped: {err}"
+        );
+    }
+    assert!(
+        fs::read(&cluster_out).unwrap() == fs::read(&render_out).unwrap(),
+        "the cluster's image is render's"
+    );
+}

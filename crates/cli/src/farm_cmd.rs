@@ -408,12 +408,28 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
     r
 }
 
+/// With `--integrator`, says on stderr what the replacement replaces and drops in `scene`
+/// (the coordinator and the workers load it replaced the same way).
+fn report_integrator(job: &JobArgs, scene: &Path) -> Result<()> {
+    let Some(name) = job.budget.integrator.as_deref() else {
+        return Ok(());
+    };
+    let defines = parse_defines(&job.budget.defines)?;
+    let limits = Limits::default();
+    let desc = pathfarm_scene::scan_scene_as(scene, &defines, &limits, Some(name))?;
+    for w in desc.warnings.iter().filter(|w| w.contains("--integrator")) {
+        eprintln!("warning: {w}");
+    }
+    Ok(())
+}
+
 fn job_options(
     job: &JobArgs,
     scene: &Path,
     tile: Option<u32>,
     priority: i32,
 ) -> Result<SubmitOptions> {
+    report_integrator(job, scene)?;
     job.budget.check(&Limits::default())?;
     if job.budget.spp.is_some() && job.budget.time.is_some() {
         bail!("--spp and --time: a farm job has one budget, give one of them");
@@ -423,6 +439,7 @@ fn job_options(
     }
     Ok(SubmitOptions {
         defines: parse_defines(&job.budget.defines)?,
+        integrator: job.budget.integrator.clone(),
         resolution: job.resolution,
         budget: match (job.budget.spp, job.budget.time) {
             (Some(n), _) => Some(Budget::Spp(n)),
@@ -853,6 +870,7 @@ pub fn cluster(args: ClusterArgs) -> Result<()> {
         let collecting = tokio::spawn(client::Collected::of_owned(
             args.scene.clone(),
             opts.defines.clone(),
+            opts.integrator.clone(),
         ));
         let work = async {
             // Wait until the coordinator answers.

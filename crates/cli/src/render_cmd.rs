@@ -8,7 +8,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pathfarm_render::guided::{self, Budget};
 use pathfarm_render::{output, RenderSettings, Scene};
-use pathfarm_scene::{load_scene, load_scene_with_limits, Limits};
+use pathfarm_scene::{load_scene, load_scene_as, Limits};
 
 use crate::cpu_time::process_cpu_time;
 use crate::outfile::{self, OutputFile};
@@ -55,6 +55,10 @@ pub struct BudgetArgs {
     /// Override a scene parameter declared with <default>, e.g. -D spp=64.
     #[arg(short = 'D', value_name = "NAME=VALUE")]
     pub defines: Vec<String>,
+    /// Replace the scene's integrator by NAME (path, direct, guided_path), keeping its
+    /// max_depth, rr_depth and hide_emitters; says on stderr what it replaced and dropped.
+    #[arg(long, value_name = "NAME")]
+    pub integrator: Option<String>,
 }
 
 impl BudgetArgs {
@@ -181,7 +185,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
     };
     let t_load = Instant::now();
     let defines = parse_defines(&args.budget.defines)?;
-    let desc = load_scene_with_limits(&args.scene, &defines, &limits)?;
+    let integrator = args.budget.integrator.as_deref();
+    let desc = load_scene_as(&args.scene, &defines, &limits, integrator)?;
     for w in &desc.warnings {
         tracing::warn!("{w}");
     }

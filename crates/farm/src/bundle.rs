@@ -24,7 +24,7 @@ use std::io::{self, Read, Write};
 use std::path::{Component, Path, PathBuf};
 
 use pathfarm_scene::limits::format_bytes;
-use pathfarm_scene::{load_scene_with_limits, scene_files, Limits, SceneDesc, SceneError};
+use pathfarm_scene::{load_scene_as, scene_files_as, Limits, SceneDesc, SceneError};
 
 /// The blake3 digest (32 bytes) of a file's contents: the name of its blob.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -389,13 +389,15 @@ fn confined(limits: &Limits) -> Limits {
 pub fn collect(
     scene: &Path,
     overrides: &[(String, String)],
+    integrator: Option<&str>,
     limits: &Limits,
 ) -> Result<(Manifest, Vec<PathBuf>), BundleError> {
-    let names =
-        scene_files(scene, overrides, &confined(limits)).map_err(|error| BundleError::Collect {
+    let names = scene_files_as(scene, overrides, &confined(limits), integrator).map_err(
+        |error| BundleError::Collect {
             scene: scene.to_path_buf(),
             error,
-        })?;
+        },
+    )?;
     let base = scene.parent().unwrap_or(Path::new(""));
     let mut seen = HashSet::new();
     let mut files = Vec::with_capacity(names.len());
@@ -595,11 +597,12 @@ pub fn check(
     manifest: &Manifest,
     dir: &Path,
     overrides: &[(String, String)],
+    integrator: Option<&str>,
     limits: &Limits,
 ) -> Result<SceneDesc, BundleError> {
     let entries = manifest.entries()?;
     let root = dir.join(&manifest.root);
-    let desc = load_scene_with_limits(&root, overrides, &confined(limits))?;
+    let desc = load_scene_as(&root, overrides, &confined(limits), integrator)?;
     for file in &desc.files {
         let path = manifest_path(file, dir)?;
         let Some(e) = entries.get(path.as_str()) else {

@@ -243,6 +243,8 @@ pub use pathfarm_render::guided::Budget;
 #[derive(Clone, Debug, Default)]
 pub struct SubmitOptions {
     pub defines: Vec<(String, String)>,
+    /// Replaces the scene's integrator (`--integrator`; [`pathfarm_scene::load_scene_as`]).
+    pub integrator: Option<String>,
     /// Film width and height instead of the scene's.
     pub resolution: Option<(u32, u32)>,
     pub budget: Option<Budget>,
@@ -348,12 +350,19 @@ impl Collected {
     /// opened and digested, meshes and images not decoded ([`bundle::collect`]); a caller
     /// that can do this while it waits for something else, as `pathfarm cluster` does while
     /// the coordinator starts, should.
-    pub async fn of(scene: &Path, defines: &[(String, String)]) -> Result<Collected, ClientError> {
+    pub async fn of(
+        scene: &Path,
+        defines: &[(String, String)],
+        integrator: Option<&str>,
+    ) -> Result<Collected, ClientError> {
         let scene_path = scene.to_path_buf();
         let defines = defines.to_vec();
+        let integrator = integrator.map(str::to_string);
         let (manifest, locals) = tokio::task::spawn_blocking(move || {
             let t0 = std::time::Instant::now();
-            let collected = bundle::collect(&scene_path, &defines, &Limits::default());
+            let limits = Limits::default();
+            let collected =
+                bundle::collect(&scene_path, &defines, integrator.as_deref(), &limits);
             let seconds = t0.elapsed().as_secs_f64();
             tracing::debug!(seconds, "bundled {}", scene_path.display());
             collected
@@ -367,8 +376,9 @@ impl Collected {
     pub async fn of_owned(
         scene: std::path::PathBuf,
         defines: Vec<(String, String)>,
+        integrator: Option<String>,
     ) -> Result<Collected, ClientError> {
-        Self::of(&scene, &defines).await
+        Self::of(&scene, &defines, integrator.as_deref()).await
     }
 }
 
@@ -380,7 +390,7 @@ impl Client {
         scene: &Path,
         opts: &SubmitOptions,
     ) -> Result<String, ClientError> {
-        let collected = Collected::of(scene, &opts.defines).await?;
+        let collected = Collected::of(scene, &opts.defines, opts.integrator.as_deref()).await?;
         self.submit_collected(&collected, opts).await
     }
 
@@ -433,7 +443,7 @@ impl Client {
             bundle: Some(bundle),
             settings: Some(v1::JobSettings {
                 scene: Some(v1::SceneSettings {
-                    integrator: None,
+                    integrator: opts.integrator.clone(),
                     defines: opts
                         .defines
                         .iter()

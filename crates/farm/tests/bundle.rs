@@ -94,7 +94,7 @@ fn assert_same_scene(a: &SceneDesc, b: &SceneDesc) {
 fn round_trip(scene: &Path) -> Manifest {
     let limits = Limits::default();
     let original = pathfarm_scene::load_scene_with_limits(scene, &[], &limits).unwrap();
-    let (manifest, locals) = collect(scene, &[], &limits).unwrap();
+    let (manifest, locals) = collect(scene, &[], None, &limits).unwrap();
     manifest.validate(&BundleLimits::default()).unwrap();
     assert_eq!(manifest.files.len(), locals.len());
     assert_eq!(manifest.root, manifest.files[0].path);
@@ -123,7 +123,7 @@ fn round_trip(scene: &Path) -> Manifest {
             e.size
         );
     }
-    let checked = check(&manifest, &dest, &[], &limits).unwrap();
+    let checked = check(&manifest, &dest, &[], None, &limits).unwrap();
     assert_same_scene(&original, &checked);
     assert!(checked.files.iter().all(|f| f.starts_with(&dest)));
     assert_eq!(checked.source, root);
@@ -374,7 +374,7 @@ fn collect_refuses_a_scene_that_refers_outside_its_directory() {
     let abs = t.path().join("x.obj");
     for name in ["../x.obj", abs.to_str().unwrap()] {
         let scene = write_scene(&t.path().join("scene"), &mesh_shape(name));
-        let err = collect(&scene, &[], &Limits::default()).unwrap_err();
+        let err = collect(&scene, &[], None, &Limits::default()).unwrap_err();
         let shown = err.to_string();
         assert!(matches!(err, BundleError::Collect { .. }), "{err:?}");
         for needle in [
@@ -400,7 +400,7 @@ fn collect_lists_a_file_once_and_paths_relative_to_the_scene() {
         mesh_shape("./models/a.obj")
     );
     let scene = write_scene(&t.path().join("s"), &body);
-    let (m, locals) = collect(&scene, &[], &Limits::default()).unwrap();
+    let (m, locals) = collect(&scene, &[], None, &Limits::default()).unwrap();
     let paths: Vec<&str> = m.files.iter().map(|e| e.path.as_str()).collect();
     assert_eq!(paths, ["scene.xml", "models/a.obj"]);
     assert_eq!(locals.len(), 2);
@@ -421,7 +421,7 @@ fn two_mesh_bundle(name: &str) -> (TempDir, Manifest, PathBuf) {
             mesh_shape("models/b.obj")
         ),
     );
-    let (m, locals) = collect(&scene, &[], &Limits::default()).unwrap();
+    let (m, locals) = collect(&scene, &[], None, &Limits::default()).unwrap();
     let blobs = t.path().join("blobs");
     store_blobs(&m, &locals, &blobs);
     (t, m, blobs)
@@ -434,7 +434,7 @@ fn check_names_a_referenced_file_missing_from_the_bundle() {
     m.validate(&BundleLimits::default()).unwrap();
     let dest = t.path().join("bundle");
     let root = materialize(&m, |d| blobs.join(d.to_hex()), &dest).unwrap();
-    let err = check(&m, &dest, &[], &Limits::default()).unwrap_err();
+    let err = check(&m, &dest, &[], None, &Limits::default()).unwrap_err();
     let shown = err.to_string();
     assert!(matches!(err, BundleError::Scene(_)), "{err:?}");
     // The scene file and the line of the filename, and the missing name.
@@ -447,11 +447,11 @@ fn check_refuses_a_file_read_that_the_manifest_does_not_list() {
     let (t, m, blobs) = two_mesh_bundle("check-unlisted");
     let dest = t.path().join("bundle");
     materialize(&m, |d| blobs.join(d.to_hex()), &dest).unwrap();
-    check(&m, &dest, &[], &Limits::default()).unwrap();
+    check(&m, &dest, &[], None, &Limits::default()).unwrap();
     // The directory has the file, but the manifest checked against it does not.
     let mut short = m.clone();
     short.files.retain(|e| e.path != "models/a.obj");
-    let err = check(&short, &dest, &[], &Limits::default()).unwrap_err();
+    let err = check(&short, &dest, &[], None, &Limits::default()).unwrap_err();
     assert!(
         matches!(&err, BundleError::NotInManifest { file } if file == &dest.join("models/a.obj")),
         "{err:?}"
@@ -461,7 +461,7 @@ fn check_refuses_a_file_read_that_the_manifest_does_not_list() {
         &dest.join("models/b.obj"),
         format!("{QUAD_OBJ}\n").as_bytes(),
     );
-    let err = check(&m, &dest, &[], &Limits::default()).unwrap_err();
+    let err = check(&m, &dest, &[], None, &Limits::default()).unwrap_err();
     assert!(
         matches!(&err, BundleError::SizeMismatch { path, .. } if path == "models/b.obj"),
         "{err:?}"
@@ -511,7 +511,7 @@ fn materialize_copies_when_it_cannot_link() {
         assert!(meta.file_type().is_file(), "{}", e.path);
         assert_eq!(meta.len(), e.size);
     }
-    check(&m, &dest, &[], &Limits::default()).unwrap();
+    check(&m, &dest, &[], None, &Limits::default()).unwrap();
 }
 
 #[test]

@@ -83,11 +83,57 @@ pub fn scene_files(
     Ok(load(path, overrides, limits, Reading::Names)?.files)
 }
 
+/// [`load_scene_with_limits`] with the scene's integrator replaced by `integrator` (the
+/// command line's `--integrator NAME`; `None`: as written). The replacement keeps the
+/// parameters every integrator here reads the same way (`max_depth`, `rr_depth`,
+/// `hide_emitters`) and drops the others; [`SceneDesc::warnings`] says what it replaced and
+/// dropped. A scene without an `<integrator>` gets one.
+pub fn load_scene_as(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    integrator: Option<&str>,
+) -> Result<SceneDesc, SceneError> {
+    load_as(path, overrides, limits, Reading::Contents, integrator)
+}
+
+/// The scene as [`scene_files_as`] reads it (files named and opened, not decoded): its
+/// [`SceneDesc::files`] and [`SceneDesc::warnings`] are those of the full load; its meshes and
+/// images are stand-ins.
+pub fn scan_scene_as(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    integrator: Option<&str>,
+) -> Result<SceneDesc, SceneError> {
+    load_as(path, overrides, limits, Reading::Names, integrator)
+}
+
+/// [`scene_files`] of the scene with its integrator replaced ([`load_scene_as`]).
+pub fn scene_files_as(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    integrator: Option<&str>,
+) -> Result<Vec<std::path::PathBuf>, SceneError> {
+    Ok(load_as(path, overrides, limits, Reading::Names, integrator)?.files)
+}
+
 fn load(
     path: &Path,
     overrides: &[(String, String)],
     limits: &Limits,
     reading: Reading,
+) -> Result<SceneDesc, SceneError> {
+    load_as(path, overrides, limits, reading, None)
+}
+
+fn load_as(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    reading: Reading,
+    replace: Option<&str>,
 ) -> Result<SceneDesc, SceneError> {
     let parsed = xml::parse_file(path, overrides, limits)?;
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
@@ -107,6 +153,9 @@ fn load(
         let mut r = props::resolve(child, &ctx.ids)?;
         match r.node.category {
             Category::Integrator => {
+                if let Some(name) = replace {
+                    r.node = Rc::new(replaced_integrator(&r.node, name, &mut ctx.warnings));
+                }
                 if !unused.is_empty() {
                     r.node = Rc::new(with_command_line_params(
                         &r.node,
@@ -153,6 +202,23 @@ fn load(
         }
     }
 
+    if let (Some(name), None) = (replace, &integrator_desc) {
+        let node = xml::Node {
+            category: Category::Integrator,
+            plugin: name.to_string(),
+            id: None,
+            props: Vec::new(),
+            children: Vec::new(),
+            loc: xml::root_loc(path),
+        };
+        let node = with_command_line_params(&node, std::mem::take(&mut unused));
+        let child = xml::Child {
+            name: None,
+            obj: xml::ObjRef::Inline(Rc::new(node)),
+        };
+        let r = props::resolve(&child, &ctx.ids)?;
+        integrator_desc = Some(integrator::integrator(&ctx, &r)?);
+    }
     if let Some((name, value)) = unused.first() {
         return Err(invalid(
             &xml::root_loc(path),
@@ -183,6 +249,33 @@ fn load(
 /// The integrator `node` with the `-D` overrides the file does not use as its parameters: each
 /// replaces a property of the same name written in the file (the command line wins, as it
 /// does for `<default>`), and one the integrator does not know is an error when it is built.
+/// The parameters that mean the same in every integrator pathfarm has.
+const SHARED_INTEGRATOR_PARAMS: [&str; 3] = ["max_depth", "rr_depth", "hide_emitters"];
+
+/// The integrator `node` replaced by plugin `name`, keeping [`SHARED_INTEGRATOR_PARAMS`]; what
+/// was replaced and dropped is said in `warnings`.
+fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>) -> xml::Node {
+    let mut n = node.clone();
+    let (kept, dropped): (Vec<_>, Vec<_>) = (n.props.into_iter())
+        .partition(|p| SHARED_INTEGRATOR_PARAMS.contains(&p.name.as_str()));
+    let mut gone: Vec<String> = dropped.into_iter().map(|p| p.name).collect();
+    gone.extend(n.children.iter().map(|c| c.name.clone().unwrap_or_else(|| "(object)".into())));
+    n.props = kept;
+    n.children = Vec::new();
+    let was = std::mem::replace(&mut n.plugin, name.to_string());
+    let dropped = match gone.is_empty() {
+        true => "nothing dropped".to_string(),
+        false => format!("dropped {}", gone.join(", ")),
+    };
+    warnings.push(format!(
+        "{}: integrator '{was}' replaced by '{name}' (--integrator); kept what it sets of \
+         {}; {dropped}",
+        node.loc,
+        SHARED_INTEGRATOR_PARAMS.join(", ")
+    ));
+    n
+}
+
 fn with_command_line_params(node: &xml::Node, overrides: Vec<(String, String)>) -> xml::Node {
     let mut n = node.clone();
     for (name, value) in overrides {

@@ -791,3 +791,27 @@ fn spectra_become_the_colours_mitsuba_3_gives_them() {
     let EmitterDesc::Constant { radiance } = &s.emitters[0] else { panic!("constant") };
     assert!(close(*radiance, [2.14, 1.40424, 1.01714]), "{radiance}");
 }
+
+#[test]
+fn the_integrator_flag_replaces_the_integrator_keeping_what_means_the_same() {
+    let xml = scene(
+        r#"<integrator type="sppm"><integer name="max_depth" value="6"/><integer name="photon_count" value="1000"/><boolean name="hide_emitters" value="true"/></integrator>"#,
+    );
+    let p = write_scene("integrator-flag", &xml);
+    assert!(load_scene(&p, &[]).is_err(), "sppm is not an integrator pathfarm has");
+    let s = load_scene_as(&p, &[], &Limits::default(), Some("path")).unwrap();
+    let IntegratorDesc::Path(pp) = &s.integrator else { panic!("path") };
+    assert_eq!((pp.max_depth, pp.hide_emitters), (6, true));
+    let w = s.warnings.join("\n");
+    assert!(w.contains("integrator 'sppm' replaced by 'path'") && w.contains("dropped photon_count"), "{w}");
+    // -D parameters the scene does not use go to the replacement.
+    let s = load_scene_as(&p, &ov(&[("preset", "2019")]), &Limits::default(), Some("guided_path"))
+        .unwrap();
+    assert!(matches!(s.integrator, IntegratorDesc::GuidedPath(_)));
+    // A scene without an integrator gets one; an unknown name is refused naming it.
+    let bare = write_scene("integrator-flag-bare", &scene(""));
+    let s = load_scene_as(&bare, &[], &Limits::default(), Some("guided_path")).unwrap();
+    assert!(matches!(s.integrator, IntegratorDesc::GuidedPath(_)));
+    let err = load_scene_as(&p, &[], &Limits::default(), Some("bdpt")).unwrap_err();
+    assert!(err.to_string().contains("bdpt"), "{err}");
+}

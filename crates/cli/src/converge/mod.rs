@@ -21,7 +21,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pathfarm_render::{output, Scene};
-use pathfarm_scene::{load_scene_with_limits, Limits};
+use pathfarm_scene::{load_scene_as, IntegratorDesc, Limits};
 
 use crate::render_cmd::{parse_defines, use_threads};
 use method::{file_stem, variants, Method, Sweep, Variant};
@@ -68,6 +68,10 @@ pub struct ConvergeArgs {
     /// Override a scene parameter declared with <default>, e.g. -D resx=320.
     #[arg(short = 'D', value_name = "NAME=VALUE")]
     pub defines: Vec<String>,
+    /// Replace the scene's integrator by NAME (path, direct, guided_path), keeping its
+    /// max_depth, rr_depth and hide_emitters; says on stderr what it replaced and dropped.
+    #[arg(long, value_name = "NAME")]
+    pub integrator: Option<String>,
     /// Render threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -162,8 +166,15 @@ pub fn converge(args: ConvergeArgs) -> Result<()> {
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     use_threads(threads)?;
     let defines = parse_defines(&args.defines)?;
-    let desc = load_scene_with_limits(&args.scene, &defines, &Limits::default())?;
+    let integrator = args.integrator.as_deref();
+    let desc = load_scene_as(&args.scene, &defines, &Limits::default(), integrator)?;
+    for w in &desc.warnings {
+        tracing::warn!("{w}");
+    }
     let mut scene = Scene::build(&desc)?;
+    // A farm renders guided jobs only: a cluster run replaces another integrator.
+    let guided = matches!(desc.integrator, IntegratorDesc::GuidedPath(_));
+    let farm_integrator = (!guided).then_some("guided_path");
     let runs = (plan.budgets.len() * plan.variants.len() * args.repeats as usize) as u64;
     let bar = progress_bar(runs + 2);
     // The bar counts runs (the reference's two halves first) in thousandths.
@@ -176,6 +187,7 @@ pub fn converge(args: ConvergeArgs) -> Result<()> {
         scene: &mut scene,
         scene_path: &args.scene,
         defines: &args.defines,
+        farm_integrator,
         threads,
         progress: &set_progress,
     };

@@ -55,6 +55,9 @@ pub struct RunContext<'a> {
     /// The scene file and the `-D` overrides (a cluster run loads the scene itself).
     pub scene_path: &'a Path,
     pub defines: &'a [String],
+    /// The integrator a cluster run renders the scene with when the scene's own is not
+    /// `guided_path` (`--integrator` of `cluster`; a farm renders guided jobs only).
+    pub farm_integrator: Option<&'a str>,
     /// Threads of in-process runs; a cluster's workers share them.
     pub threads: usize,
     /// Samples done / total of the current run, for the progress bar.
@@ -142,7 +145,9 @@ fn run_cluster(
     for d in ctx.defines {
         cmd.arg("-D").arg(d);
     }
-    cmd.arg("-D").arg("integrator=guided_path");
+    if let Some(name) = ctx.farm_integrator {
+        cmd.arg("--integrator").arg(name);
+    }
     let (cpu0, t0) = (children_cpu_time(), Instant::now());
     let out = cmd
         .stdin(Stdio::null())

@@ -702,8 +702,9 @@ impl Shared {
                 let msg = e.to_string().replace(&format!("{}/", dir.display()), "");
                 bad(format!("scene {:?}: {msg}", manifest.root))
             };
-            let mut desc =
-                bundle::check(&manifest, &dir, &overrides, &limits).map_err(|e| refuse(&e))?;
+            let integrator = scene_settings.integrator.as_deref();
+            let mut desc = bundle::check(&manifest, &dir, &overrides, integrator, &limits)
+                .map_err(|e| refuse(&e))?;
             if let Some(r) = &scene_settings.resolution {
                 bundle::override_resolution(&mut desc, r.width, r.height, &limits)
                     .map_err(|e| bad(format!("settings.scene.resolution: {e}")))?;
@@ -1615,7 +1616,12 @@ fn overrides_of(s: &v1::SceneSettings) -> Result<Vec<(String, String)>, Status> 
         out.push((d.name.clone(), d.value.clone()));
     }
     if let Some(integrator) = &s.integrator {
-        out.push(("integrator".to_string(), integrator.clone()));
+        if integrator.is_empty() || integrator.len() > MAX_DEFINE_NAME_BYTES {
+            return Err(bad(format!(
+                "settings.scene.integrator: {} is not an integrator name",
+                resources::echo(integrator)
+            )));
+        }
     }
     Ok(out)
 }

@@ -1030,22 +1030,13 @@ fn build_in(
                 .collect()
         })
         .unwrap_or_default();
-    let mut desc = bundle::check(manifest, dest, &defines, &limits)
+    let integrator = settings.and_then(|s| s.integrator.as_deref());
+    let mut desc = bundle::check(manifest, dest, &defines, integrator, &limits)
         .map_err(|e| fatal(format!("loading the scene: {e}")))?;
     if let Some(r) = settings.and_then(|s| s.resolution.as_ref()) {
         bundle::override_resolution(&mut desc, r.width, r.height, &limits).map_err(fatal)?;
     }
-    let mut scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;
-    match settings.and_then(|s| s.integrator.as_deref()) {
-        None => {}
-        Some("path") => scene.guided = None,
-        Some("guided_path") => {
-            if scene.guided.is_none() {
-                scene.guided = Some(GuidedParams::default());
-            }
-        }
-        Some(other) => return Err(fatal(format!("unknown integrator override {other:?}"))),
-    }
+    let scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;
     let params = scene.guided.clone().unwrap_or_default();
     Ok(JobScene { scene, params })
 }
