@@ -13,6 +13,8 @@ Usage:
   --pf-spp M     spp for pathfarm (default K*N, i.e. the same total as Mitsuba)
   --max-depth D  sets -D max_depth=D for both renderers (default: the XML's default)
   -D k=v         extra XML parameters, given to both renderers
+  --pf-integrator NAME  pathfarm renders with --integrator NAME (guided_path: unbiased, so
+                 its image must agree with Mitsuba's path tracer's)
 
 Method
   Mitsuba renders the scene K times with seeds 0..K-1 at N spp. Per pixel:
@@ -95,9 +97,11 @@ def read_pathfarm_exr(path):
     return rgb, var, spp
 
 
-def run_pathfarm(cmd, xml, params, spp, seed, outdir):
+def run_pathfarm(cmd, xml, params, spp, seed, outdir, integrator=None):
     out = os.path.join(outdir, "pathfarm.exr")
     args = shlex.split(cmd) + ["render", xml, "-o", out, "--spp", str(spp), "--seed", str(seed), "--aovs"]
+    if integrator:
+        args += ["--integrator", integrator]
     for k, v in params.items():
         args += ["-D", "%s=%s" % (k, v)]
     t0 = time.time()
@@ -147,6 +151,9 @@ def main():
     ap.add_argument("--seed", type=int, default=7, help="pathfarm seed")
     ap.add_argument("--mi-seed0", type=int, default=0, help="first Mitsuba seed (runs use seed0..seed0+K-1)")
     ap.add_argument("-D", action="append", default=[], metavar="K=V")
+    ap.add_argument("--pf-integrator", default=None, metavar="NAME",
+                    help="pathfarm renders with --integrator NAME (e.g. guided_path: an unbiased "
+                         "estimator of the image Mitsuba's integrator renders)")
     ap.add_argument("--out", default=None, help="output dir for EXR/PNGs (default $TMPDIR/crosscheck-out/<scene>)")
     a = ap.parse_args()
 
@@ -178,7 +185,8 @@ def main():
     ma, va = render_mitsuba(xml, mi_params, a.spp, a.runs, a.mi_seed0)
     t_mi = time.time() - t0
     pf_params = {k: v for k, v in params.items() if k != "spp"}
-    exr, summary, t_pf = run_pathfarm(a.pathfarm, xml, pf_params, pf_spp, a.seed, outdir)
+    exr, summary, t_pf = run_pathfarm(a.pathfarm, xml, pf_params, pf_spp, a.seed, outdir,
+                                      a.pf_integrator)
     mb, vb, spp_map = read_pathfarm_exr(exr)
     if mb.shape != ma.shape:
         raise SystemExit("FAIL: resolution mismatch: Mitsuba %s vs pathfarm %s"
