@@ -189,6 +189,9 @@ fn load_as(
             Category::Texture => {
                 textures::texture(&mut ctx, &r)?;
             }
+            // An area emitter declared at the top with an id that a shape references is
+            // the shape's (Mitsuba 3 accepts it so): it is built where the shape names it.
+            Category::Emitter if is_shared_area_emitter(&r.node, &parsed.objects) => {}
             Category::Emitter => emitter_descs.push(emitters::emitter(&mut ctx, &r)?),
             Category::Film | Category::RFilter | Category::Sampler => {
                 return Err(invalid(
@@ -249,6 +252,20 @@ fn load_as(
 /// The integrator `node` with the `-D` overrides the file does not use as its parameters: each
 /// replaces a property of the same name written in the file (the command line wins, as it
 /// does for `<default>`), and one the integrator does not know is an error when it is built.
+/// Whether `node` is an `area` emitter with an id that a shape of `objects` references.
+fn is_shared_area_emitter(node: &xml::Node, objects: &[xml::Child]) -> bool {
+    let Some(id) = node.id.as_deref().filter(|_| node.plugin == "area") else {
+        return false;
+    };
+    let shapes = objects.iter().filter_map(|c| match &c.obj {
+        xml::ObjRef::Inline(n) if n.category == Category::Shape => Some(n),
+        _ => None,
+    });
+    shapes
+        .flat_map(|n| n.children.iter())
+        .any(|c| matches!(&c.obj, xml::ObjRef::Ref { id: r, .. } if r == id))
+}
+
 /// The parameters that mean the same in every integrator pathfarm has.
 const SHARED_INTEGRATOR_PARAMS: [&str; 3] = ["max_depth", "rr_depth", "hide_emitters"];
 

@@ -815,3 +815,19 @@ fn the_integrator_flag_replaces_the_integrator_keeping_what_means_the_same() {
     let err = load_scene_as(&p, &[], &Limits::default(), Some("bdpt")).unwrap_err();
     assert!(err.to_string().contains("bdpt"), "{err}");
 }
+
+#[test]
+fn an_area_emitter_declared_at_the_top_and_referenced_by_a_shape_is_the_shapes() {
+    let xml = scene(
+        r#"<emitter type="area" id="light"><rgb name="radiance" value="5"/></emitter>
+<shape type="sphere"><ref id="light"/></shape>"#,
+    );
+    let s = load_scene(&write_scene("area-ref", &xml), &[]).unwrap();
+    assert!(s.emitters.is_empty(), "not a scene-level emitter");
+    assert_eq!(s.shapes[0].emitter.as_ref().unwrap().radiance, Vec3::splat(5.0));
+    // Not referenced by any shape: still an error at its line.
+    let xml = scene(r#"<emitter type="area" id="light"><rgb name="radiance" value="5"/></emitter>"#);
+    let p = write_scene("area-unref", &xml);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "area"), &["nested inside a <shape>"]);
+}
