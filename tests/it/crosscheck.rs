@@ -61,14 +61,21 @@ fn spotlight_agrees_with_mitsuba() {
     crosscheck(&project_scene("spotlight"), &[]);
 }
 
+/// Analytic cylinders: a pipe seen inside and out, a scaled column, a tube light sampled by
+/// area.
+#[test]
+fn cylinders_agree_with_mitsuba() {
+    crosscheck(&project_scene("cylinders"), &[]);
+}
+
 /// `guided_path` (through `--integrator`) against Mitsuba's path tracer: guiding is
 /// unbiased, so the images agree where guiding meets a black emitter BSDF and scaling
-/// rotations (lamp-room), an environment map's mapping (envmap-sky) and a spot light's cone
-/// (spotlight).
+/// rotations (lamp-room), an environment map's mapping (envmap-sky), a spot light's cone
+/// (spotlight) and analytic cylinders (cylinders).
 #[test]
-fn guided_path_agrees_with_mitsuba_on_lamp_room_envmap_sky_and_spotlight() {
+fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
     let guided = ["--pf-integrator", "guided_path", "-D", "integrator=path"];
-    for scene in ["lamp-room", "envmap-sky", "spotlight"] {
+    for scene in ["lamp-room", "envmap-sky", "spotlight", "cylinders"] {
         crosscheck(&project_scene(scene), &guided);
     }
 }

@@ -96,6 +96,10 @@ impl Scene {
                     to_world,
                     flip_normals,
                 } => ShapeGeom::Analytic(Analytic::disk(*to_world, *flip_normals)),
+                Geometry::Cylinder {
+                    to_world,
+                    flip_normals,
+                } => ShapeGeom::Analytic(Analytic::cylinder(*to_world, *flip_normals)),
             })
             .collect();
         let triangle_count = desc

@@ -647,6 +647,10 @@ pub enum Geometry {
     /// Analytic unit disk in the local xy plane (normal +z), mapped by
     /// `to_world`.
     Disk { to_world: Mat4, flip_normals: bool },
+    /// Analytic open cylinder (no caps) of radius 1 around the local z axis from z = 0 to
+    /// z = 1, mapped by `to_world` (which keeps it circular: Mitsuba's `cylinder` with its
+    /// `p0`, `p1` and `radius` folded in).
+    Cylinder { to_world: Mat4, flip_normals: bool },
 }
 
 /// A triangle mesh in world space. Invariant (checked by the loader): all

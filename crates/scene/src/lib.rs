@@ -376,7 +376,10 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
     }
     for s in shapes {
         f.area_lights |= s.emitter.is_some();
-        f.analytic_shapes |= matches!(s.geometry, Geometry::Sphere { .. } | Geometry::Disk { .. });
+        f.analytic_shapes |= matches!(
+            s.geometry,
+            Geometry::Sphere { .. } | Geometry::Disk { .. } | Geometry::Cylinder { .. }
+        );
     }
     for e in emitters {
         match e {

@@ -20,6 +20,16 @@ pub(crate) fn rotate(axis: DVec3, angle_deg: f64) -> DMat4 {
     DMat4::from_mat3(DMat3::IDENTITY * c + cross * s + outer * (1.0 - c))
 }
 
+/// Mitsuba's orthonormal basis around unit `n` (Duff et al. 2017, `coordinate_system`): the
+/// two tangents, as Mitsuba's `Frame3f(n)` has them.
+pub(crate) fn coordinate_system(n: DVec3) -> (DVec3, DVec3) {
+    let sign = if n.z >= 0.0 { 1.0 } else { -1.0 };
+    let a = -1.0 / (sign + n.z);
+    let b = n.x * n.y * a;
+    let t = DVec3::new(b, sign + n.y * n.y * a, -n.y);
+    (coordinate_system_first(n), t)
+}
+
 /// Mitsuba's orthonormal basis construction (Duff et al. 2017); returns the
 /// first tangent, which Mitsuba uses as `up` when a lookat omits it.
 fn coordinate_system_first(n: DVec3) -> DVec3 {

@@ -831,3 +831,24 @@ fn an_area_emitter_declared_at_the_top_and_referenced_by_a_shape_is_the_shapes()
     let err = load_scene(&p, &[]).unwrap_err();
     assert_invalid_at(&err, &p, line_of(&xml, "area"), &["nested inside a <shape>"]);
 }
+
+#[test]
+fn a_cylinder_folds_p0_p1_and_radius_into_a_circular_transform() {
+    let xml = scene(
+        r#"<shape type="cylinder"><point name="p0" x="1" y="0" z="0"/><point name="p1" x="1" y="3" z="0"/><float name="radius" value="0.5"/></shape>
+<shape type="cylinder"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>"#,
+    );
+    let p = write_scene("cylinder-squashed", &xml);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "scale x"), &["cylinder", "circular"]);
+    let ok = scene(
+        r#"<shape type="cylinder"><point name="p0" x="1" y="0" z="0"/><point name="p1" x="1" y="3" z="0"/><float name="radius" value="0.5"/></shape>"#,
+    );
+    let s = load_scene(&write_scene("cylinder", &ok), &[]).unwrap();
+    let Geometry::Cylinder { to_world, .. } = &s.shapes[0].geometry else { panic!("cylinder") };
+    // the unit cylinder's axis runs from p0 to p1, its radius is 0.5
+    let end = to_world.transform_point3(Vec3::Z);
+    assert!((end - Vec3::new(1.0, 3.0, 0.0)).length() < 1e-6, "{end}");
+    assert!((to_world.transform_vector3(Vec3::X).length() - 0.5).abs() < 1e-6);
+    assert!(s.features.analytic_shapes);
+}

@@ -1,4 +1,4 @@
-//! Analytic shapes (Mitsuba `sphere`, `disk`), intersected directly. They are
+//! Analytic shapes (Mitsuba `sphere`, `disk`, `cylinder`), intersected directly. They are
 //! few in real scenes, so they are tested after the BVH without their own
 //! acceleration structure; scenes without them skip this entirely.
 
@@ -31,6 +31,17 @@ pub enum Analytic {
         /// Normals point to local -z (Mitsuba `flip_normals`).
         flip: bool,
     },
+    /// The open unit cylinder around the local z axis (radius 1, z from 0 to 1), placed by a
+    /// transform that keeps it circular (Mitsuba `cylinder`); build it with
+    /// [`Analytic::cylinder`].
+    Cylinder {
+        /// Object-to-world transform of the unit cylinder.
+        to_world: Mat4,
+        /// Inverse of `to_world`.
+        to_local: Mat4,
+        /// Normals point inwards (Mitsuba `flip_normals`).
+        flip: bool,
+    },
 }
 
 impl Analytic {
@@ -45,6 +56,15 @@ impl Analytic {
             to_world,
             to_local: to_world.inverse(),
             normal,
+            flip,
+        }
+    }
+
+    /// The cylinder placed by `to_world`, with its inverse precomputed.
+    pub fn cylinder(to_world: Mat4, flip: bool) -> Self {
+        Analytic::Cylinder {
+            to_world,
+            to_local: to_world.inverse(),
             flip,
         }
     }
@@ -88,6 +108,33 @@ impl Analytic {
                     f32::INFINITY
                 }
             }
+            Analytic::Cylinder { to_local, .. } => {
+                // In the local frame (an affine map keeps the ray parameter), solved in f64:
+                // grazing rays and thin cylinders lose digits in f32.
+                let o = to_local.transform_point3(ray.o).as_dvec3();
+                let d = to_local.transform_vector3(ray.d).as_dvec3();
+                let a = d.x * d.x + d.y * d.y;
+                if a == 0.0 {
+                    return f32::INFINITY;
+                }
+                let b = o.x * d.x + o.y * d.y;
+                let c = o.x * o.x + o.y * o.y - 1.0;
+                let disc = b * b - a * c;
+                if disc < 0.0 {
+                    return f32::INFINITY;
+                }
+                let q = -(b + b.signum() * disc.sqrt());
+                let (r0, r1) = (q / a, if q == 0.0 { 0.0 } else { c / q });
+                let (t0, t1) = if r0 < r1 { (r0, r1) } else { (r1, r0) };
+                for t in [t0, t1] {
+                    let z = o.z + t * d.z;
+                    let t = t as f32;
+                    if (0.0..=1.0).contains(&z) && t > ray.tmin && t < ray.tmax {
+                        return t;
+                    }
+                }
+                f32::INFINITY
+            }
         }
     }
 
@@ -123,6 +170,23 @@ impl Analytic {
                 }
                 (n, n, Vec2::new(r, phi / (2.0 * std::f32::consts::PI)))
             }
+            Analytic::Cylinder {
+                to_world,
+                to_local,
+                flip,
+            } => {
+                let q = to_local.transform_point3(p);
+                // The transform keeps the cylinder circular: the radial direction maps to the
+                // world normal as it is.
+                let radial = to_world.transform_vector3(Vec3::new(q.x, q.y, 0.0));
+                let n = radial.normalize_or_zero();
+                let n = if *flip { -n } else { n };
+                let mut phi = q.y.atan2(q.x);
+                if phi < 0.0 {
+                    phi += 2.0 * std::f32::consts::PI;
+                }
+                (n, n, Vec2::new(phi / (2.0 * std::f32::consts::PI), q.z))
+            }
         }
     }
 
@@ -139,6 +203,19 @@ impl Analytic {
                 let mut hi = Vec3::splat(f32::NEG_INFINITY);
                 for (x, y) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
                     let q = to_world.transform_point3(Vec3::new(x, y, 0.0));
+                    lo = lo.min(q);
+                    hi = hi.max(q);
+                }
+                (lo, hi)
+            }
+            Analytic::Cylinder { to_world, .. } => {
+                let mut lo = Vec3::splat(f32::INFINITY);
+                let mut hi = Vec3::splat(f32::NEG_INFINITY);
+                for (x, y, z) in [-1.0f32, 1.0]
+                    .into_iter()
+                    .flat_map(|x| [(x, -1.0, 0.0), (x, 1.0, 0.0), (x, -1.0, 1.0), (x, 1.0, 1.0)])
+                {
+                    let q = to_world.transform_point3(Vec3::new(x, y, z));
                     lo = lo.min(q);
                     hi = hi.max(q);
                 }

@@ -75,6 +75,12 @@ impl AreaLight {
                 let y = to_world.transform_vector3(Vec3::Y);
                 (Distribution1D::default(), PI * x.cross(y).length())
             }
+            ShapeGeom::Analytic(Analytic::Cylinder { to_world, .. }) => {
+                // circular (the loader checks): 2 pi r h
+                let r = to_world.transform_vector3(Vec3::X).length();
+                let h = to_world.transform_vector3(Vec3::Z).length();
+                (Distribution1D::default(), 2.0 * PI * r * h)
+            }
         };
         let tri_data = match accel.shape(shape) {
             ShapeGeom::Mesh(m) => m
@@ -135,6 +141,14 @@ impl AreaLight {
             ShapeGeom::Analytic(a @ Analytic::Disk { to_world, .. }) => {
                 let d = concentric_disk(u);
                 let p = to_world.transform_point3(Vec3::new(d.x, d.y, 0.0));
+                let (_, n, _) = a.shade(p);
+                (p, n)
+            }
+            ShapeGeom::Analytic(a @ Analytic::Cylinder { to_world, .. }) => {
+                // uniform by area on a circular cylinder: uniform in angle and height
+                let phi = 2.0 * PI * u.x;
+                let local = Vec3::new(phi.cos(), phi.sin(), u.y);
+                let p = to_world.transform_point3(local);
                 let (_, n, _) = a.shade(p);
                 (p, n)
             }

@@ -1,4 +1,5 @@
-//! Shape plugins: `obj`, `ply`, `serialized`, `rectangle`, `cube`, `sphere`, `disk`.
+//! Shape plugins: `obj`, `ply`, `serialized`, `rectangle`, `cube`, `sphere`, `disk`,
+//! `cylinder`.
 
 mod mesh;
 mod obj;
@@ -199,6 +200,58 @@ fn geometry(ctx: &mut Ctx, p: &Props) -> Result<Geometry, SceneError> {
                 flip_normals,
             })
         }
-        _ => Err(p.unsupported("shape", "obj, ply, serialized, rectangle, cube, sphere, disk")),
+        "cylinder" => cylinder(p, to_world, flip_normals),
+        _ => {
+            let known = "obj, ply, serialized, rectangle, cube, sphere, disk, cylinder";
+            Err(p.unsupported("shape", known))
+        }
     }
+}
+
+/// Mitsuba's `cylinder`: open, from `p0` (default the origin) to `p1` (default +z), of
+/// `radius` (1), then `to_world`. Folded into one transform of the unit cylinder; the result
+/// must stay circular (the cross-section's axes equal and perpendicular to each other and to
+/// the axis), which an area light's uniform sampling relies on.
+fn cylinder(p: &Props, to_world: DMat4, flip_normals: bool) -> Result<Geometry, SceneError> {
+    let loc = p.loc().clone();
+    let p0 = p.point_opt("p0")?.unwrap_or(Vec3::ZERO).as_dvec3();
+    let p1 = p.point_opt("p1")?.unwrap_or(Vec3::Z).as_dvec3();
+    let radius = p.float("radius", 1.0)? as f64;
+    let axis = p1 - p0;
+    let length = axis.length();
+    if !(radius > 0.0 && radius.is_finite()) || !(length > 0.0 && length.is_finite()) {
+        let msg = "cylinder: radius and the distance from p0 to p1 must be positive and finite";
+        return Err(invalid(&loc, msg));
+    }
+    let w = axis / length;
+    // Mitsuba's frame around the axis: the same angle origin, so the same uv.
+    let (u, v) = crate::transform::coordinate_system(w);
+    let frame = DMat4::from_cols(
+        (u * radius).extend(0.0),
+        (v * radius).extend(0.0),
+        (w * length).extend(0.0),
+        p0.extend(1.0),
+    );
+    let m = to_world * frame;
+    let (x, y, z) = (m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate());
+    let circular = (x.length() - y.length()).abs() <= 1e-6 * x.length()
+        && x.dot(y).abs() <= 1e-6 * x.length_squared()
+        && x.dot(z).abs() <= 1e-6 * x.length() * z.length()
+        && y.dot(z).abs() <= 1e-6 * y.length() * z.length();
+    if !circular || !m.is_finite() {
+        return Err(invalid(
+            &loc,
+            "cylinder: to_world must keep it circular (no non-uniform scale across its axis, \
+             no shear)",
+        ));
+    }
+    let extent = m.w_axis.truncate().abs() + x.abs() + y.abs() + z.abs();
+    if !(extent.max_element() <= mesh::MAX_WORLD_COORDINATE) {
+        let msg = format!("cylinder: in world space it reaches {}", mesh::beyond_bound_message());
+        return Err(invalid(&loc, msg));
+    }
+    Ok(Geometry::Cylinder {
+        to_world: m.as_mat4(),
+        flip_normals,
+    })
 }
