@@ -68,14 +68,20 @@ fn cylinders_agree_with_mitsuba() {
     crosscheck(&project_scene("cylinders"), &[]);
 }
 
+/// Instancing: a shapegroup placed four times (rotated, scaled, mirrored).
+#[test]
+fn instances_agree_with_mitsuba() {
+    crosscheck(&project_scene("instances"), &[]);
+}
+
 /// `guided_path` (through `--integrator`) against Mitsuba's path tracer: guiding is
 /// unbiased, so the images agree where guiding meets a black emitter BSDF and scaling
 /// rotations (lamp-room), an environment map's mapping (envmap-sky), a spot light's cone
-/// (spotlight) and analytic cylinders (cylinders).
+/// (spotlight), analytic cylinders (cylinders) and instancing (instances).
 #[test]
 fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
     let guided = ["--pf-integrator", "guided_path", "-D", "integrator=path"];
-    for scene in ["lamp-room", "envmap-sky", "spotlight", "cylinders"] {
+    for scene in ["lamp-room", "envmap-sky", "spotlight", "cylinders", "instances"] {
         crosscheck(&project_scene(scene), &guided);
     }
 }

@@ -149,6 +149,7 @@ fn load_as(
     let mut emitter_descs = Vec::new();
 
     let mut unused = parsed.unused_overrides;
+    let mut groups = shapes::instance::Groups::default();
     for child in &parsed.objects {
         let mut r = props::resolve(child, &ctx.ids)?;
         match r.node.category {
@@ -180,6 +181,11 @@ fn load_as(
                         r.loc
                     ));
                 }
+            }
+            // A group is built where an instance places it.
+            Category::Shape if r.node.plugin == "shapegroup" => {}
+            Category::Shape if r.node.plugin == "instance" => {
+                shape_descs.extend(shapes::instance::instance(&mut ctx, &r, &mut groups)?)
             }
             Category::Shape => shape_descs.push(shapes::shape(&mut ctx, &r)?),
             Category::Bsdf => {

@@ -852,3 +852,34 @@ fn a_cylinder_folds_p0_p1_and_radius_into_a_circular_transform() {
     assert!((to_world.transform_vector3(Vec3::X).length() - 0.5).abs() < 1e-6);
     assert!(s.features.analytic_shapes);
 }
+
+#[test]
+fn instances_place_copies_of_their_group_and_a_group_is_not_rendered_itself() {
+    let xml = scene(
+        r#"<shape type="shapegroup" id="g">
+  <shape type="rectangle"/>
+  <shape type="sphere"><float name="radius" value="0.5"/></shape>
+</shape>
+<shape type="instance"><ref id="g"/><transform name="to_world"><translate x="2"/></transform></shape>
+<shape type="instance"><ref id="g"/><transform name="to_world"><scale value="2"/></transform></shape>"#,
+    );
+    let s = load_scene(&write_scene("instances", &xml), &[]).unwrap();
+    assert_eq!(s.shapes.len(), 4, "two shapes, two instances; the group itself is not rendered");
+    let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("mesh") };
+    assert_eq!(m.positions[3], Vec3::new(3.0, 1.0, 0.0), "the rectangle's corner moved by 2");
+    let Geometry::Sphere { radius, .. } = &s.shapes[3].geometry else { panic!("sphere") };
+    assert_eq!(*radius, 1.0, "scaled by 2");
+    let bad = scene(
+        r#"<shape type="shapegroup" id="g">
+  <shape type="sphere"><emitter type="area"/></shape>
+</shape>
+<shape type="instance"><ref id="g"/></shape>"#,
+    );
+    let p = write_scene("instances-emitter", &bad);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&bad, "<emitter"), &["cannot emit light"]);
+    let lone = scene(r#"<shape type="instance"><shape type="sphere"/></shape>"#);
+    let p = write_scene("instance-no-group", &lone);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&lone, "instance"), &["needs one shapegroup"]);
+}

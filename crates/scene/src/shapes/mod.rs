@@ -1,6 +1,7 @@
 //! Shape plugins: `obj`, `ply`, `serialized`, `rectangle`, `cube`, `sphere`, `disk`,
 //! `cylinder`.
 
+pub(crate) mod instance;
 mod mesh;
 mod obj;
 mod ply;
