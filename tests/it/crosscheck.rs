@@ -74,6 +74,13 @@ fn instances_agree_with_mitsuba() {
     crosscheck(&project_scene("instances"), &[]);
 }
 
+/// A Mitsuba 0.6 scene: camelCase names, `<path>`, `<include>`, a serialized mesh file of two
+/// shapes, spectra as wavelength:value pairs, a uniform spectrum on an emitter.
+#[test]
+fn legacy_scene_agrees_with_mitsuba() {
+    crosscheck(&project_scene("legacy-0.6"), &[]);
+}
+
 /// `guided_path` (through `--integrator`) against Mitsuba's path tracer: guiding is
 /// unbiased, so the images agree where guiding meets a black emitter BSDF and scaling
 /// rotations (lamp-room), an environment map's mapping (envmap-sky), a spot light's cone

@@ -2,8 +2,9 @@
 //! shipped scene's text, applies one to three mutations (byte flips, deleted and duplicated
 //! lines and attributes, numbers replaced by hostile values, element and plugin names swapped
 //! between categories, hostile `-D` overrides) and loads it with small limits. No case may
-//! panic, and every error must read `FILE:LINE: message`, FILE the scene file and LINE a line
-//! of it.
+//! panic, and every error must read `FILE:LINE: message`, FILE the scene file (or a file it
+//! includes) and LINE a line of it. The shipped scenes include a Mitsuba 0.6 one with
+//! `<path>`, `<include>`, a serialized mesh and spectra, so their syntax is fuzzed too.
 //!
 //! `PATHFARM_FUZZ_SEED` sets the seed (printed on every run and with every failure),
 //! `PATHFARM_FUZZ_CASES` the number of cases, `PATHFARM_FUZZ_CASE=i` reruns case `i` alone,
@@ -528,8 +529,21 @@ fn copy_shipped_scenes(root: &Path) -> Vec<(String, PathBuf, Vec<u8>)> {
 }
 
 /// The problem with an error's text, if any: it must be `PATH:LINE: message` with LINE a line
-/// of the file (or one past its end).
+/// of the file (or one past its end). An error in a file the scene includes names that file
+/// (beside the scene) and a line of it.
 fn check_error(shown: &str, path: &Path, lines: usize) -> Option<String> {
+    let dir = path.parent().expect("a scene directory");
+    let included = std::fs::read_dir(dir).ok().and_then(|entries| {
+        entries.flatten().map(|e| e.path()).find(|f| {
+            f != path
+                && f.extension().is_some_and(|x| x == "xml")
+                && shown.starts_with(&format!("{}:", f.display()))
+        })
+    });
+    if let Some(f) = included {
+        let n = std::fs::read_to_string(&f).map_or(0, |t| t.lines().count());
+        return check_error(shown, &f, n);
+    }
     let prefix = format!("{}:", path.display());
     let Some(rest) = shown.strip_prefix(&prefix) else {
         return Some(format!("does not start with {prefix:?}"));
