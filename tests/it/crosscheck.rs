@@ -88,7 +88,13 @@ fn legacy_scene_agrees_with_mitsuba() {
 #[test]
 fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
     let guided = ["--pf-integrator", "guided_path", "-D", "integrator=path"];
-    for scene in ["lamp-room", "envmap-sky", "spotlight", "cylinders", "instances"] {
+    for scene in [
+        "lamp-room",
+        "envmap-sky",
+        "spotlight",
+        "cylinders",
+        "instances",
+    ] {
         crosscheck(&project_scene(scene), &guided);
     }
 }

@@ -941,10 +941,23 @@ fn integrator_flag_replaces_the_scenes_integrator_in_render_and_cluster_alike() 
     }
     let scene = dir.join("scene.xml");
     fs::write(&scene, format!("{}{sppm}{}", &xml[..start], &xml[end..])).unwrap();
-    let common = ["--integrator", "guided_path", "-D", "resx=40", "-D", "resy=24"];
+    let common = [
+        "--integrator",
+        "guided_path",
+        "-D",
+        "resx=40",
+        "-D",
+        "resy=24",
+    ];
     let flags = ["--spp", "8", "--seed", "3"];
     let render_out = dir.join("render.exr");
-    let mut args = vec!["render", path_str(&scene), "--no-png", "-o", path_str(&render_out)];
+    let mut args = vec![
+        "render",
+        path_str(&scene),
+        "--no-png",
+        "-o",
+        path_str(&render_out),
+    ];
     args.extend(common.iter().chain(&flags));
     let r = Running::start(&args, &[]).wait(Duration::from_secs(300));
     assert!(r.status.success(), "render: {}", r.describe());

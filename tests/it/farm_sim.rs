@@ -136,7 +136,10 @@ impl SimWorker {
         }
         if e.0 != version {
             let key = (spec.tree_version, spec.fraction_version);
-            let bytes = j.fractions.get(&key).expect("the unit's fractions were published");
+            let bytes = j
+                .fractions
+                .get(&key)
+                .expect("the unit's fractions were published");
             let states = codec::decode_fractions(bytes).expect("decode");
             e.1.set_fraction_states(&states).expect("same leaves");
         }
@@ -165,7 +168,9 @@ fn drive(sched: &mut Scheduler, j: &mut SimJob, id: u64, now: Millis, slots: usi
                     j.estimate = d.encode_estimate();
                 }
                 j.overlapped += usize::from(d.flights().len() > 1);
-                sched.offer_unit(JobId(id), o.spec.unit, o.tiles).expect("offer");
+                sched
+                    .offer_unit(JobId(id), o.spec.unit, o.tiles)
+                    .expect("offer");
             }
             Step::IterationEnded { .. } => checkpoint(d, &mut j.checkpoint),
             Step::Done => {
@@ -215,8 +220,7 @@ fn session_of(scene: &Scene, n: u64, seed: u64, spp: u32, checkpoint: Option<&[u
         Some(bytes) => {
             let (cp, tree) = Checkpoint::from_bytes(bytes).expect("read back");
             let (budget, policy) = (Budget::Spp(spp), policy_of(n));
-            Session::restore(&params, budget, tiles, splatting, policy, &cp, tree)
-                .expect("restore")
+            Session::restore(&params, budget, tiles, splatting, policy, &cp, tree).expect("restore")
         }
         None => {
             let (lo, hi) = scene.accel.bounds();
@@ -320,7 +324,9 @@ impl Farm<'_> {
     fn join(&mut self, kind: Kind, now: Millis) {
         let id = self.next_worker;
         self.next_worker += 1;
-        self.sched.register_worker(WorkerId(id), 1, now).expect("register");
+        self.sched
+            .register_worker(WorkerId(id), 1, now)
+            .expect("register");
         // A blocked identity stays blocked (it cannot be one here: identities are new).
         self.workers.insert(id, SimWorker::new(kind));
     }
@@ -390,7 +396,10 @@ impl Farm<'_> {
         }
         let bytes = codec::encode_tile_pixels(&p.out.pixels);
         let region = {
-            let d = self.jobs[&p.job].driver.as_ref().expect("a lease of a running job");
+            let d = self.jobs[&p.job]
+                .driver
+                .as_ref()
+                .expect("a lease of a running job");
             d.session().tiles_of(p.unit).expect("in flight")[p.tile as usize]
         };
         let Ok(pixels) = codec::decode_tile_pixels(&bytes, &p.spec, region) else {
@@ -412,7 +421,9 @@ impl Farm<'_> {
         let Ok(ended) = took else {
             return self.refuse(wid, &p, now);
         };
-        self.sched.complete_all(WorkerId(wid), &[p.lease], now).expect("checked");
+        self.sched
+            .complete_all(WorkerId(wid), &[p.lease], now)
+            .expect("checked");
         self.seen.accepted_after_cancel += j.cancelled as u32;
         if let Some((key, r)) = p.records {
             keep(&mut self.workers.get_mut(&wid).unwrap().held, p.job, key, r);
@@ -436,7 +447,8 @@ impl Farm<'_> {
             let j = &self.jobs[&job];
             let d = j.driver.as_ref().expect("a lease of a running job");
             let spec = *d.flight(lease.key.unit).expect("a unit in flight");
-            let region = d.session().tiles_of(spec.unit).expect("in flight")[lease.key.tile as usize];
+            let region =
+                d.session().tiles_of(spec.unit).expect("in flight")[lease.key.tile as usize];
             let estimate = match j.estimate.is_empty() {
                 true => Vec::new(),
                 false => codec::decode_estimate(&j.estimate).expect("decode"),
@@ -503,8 +515,12 @@ impl Farm<'_> {
                     continue;
                 }
                 let (k, records) = w.held.remove(&n).expect("a holder keeps records");
-                assert_eq!(k, key, "a holder's records are of the version and epoch asked");
-                d.records_from(WorkerId(wid), &records).expect("records taken");
+                assert_eq!(
+                    k, key,
+                    "a holder's records are of the version and epoch asked"
+                );
+                d.records_from(WorkerId(wid), &records)
+                    .expect("records taken");
             }
             if d.stalled(now, self.timeout) {
                 roll_back(&mut self.sched, self.scene, j, n, now);
@@ -518,7 +534,9 @@ impl Farm<'_> {
     fn workers_step(&mut self, now: Millis) {
         let ids: Vec<u64> = self.workers.keys().copied().collect();
         for wid in ids {
-            let Some(w) = self.workers.get_mut(&wid) else { continue };
+            let Some(w) = self.workers.get_mut(&wid) else {
+                continue;
+            };
             if w.hung_until.is_some_and(|t| now < t) {
                 continue;
             }
@@ -541,7 +559,11 @@ impl Farm<'_> {
 
     /// Joins (mostly honest workers; an honest one whenever none is left), deaths and hangs.
     fn churn(&mut self, now: Millis) {
-        let honest = self.workers.values().filter(|w| w.kind == Kind::Honest).count();
+        let honest = self
+            .workers
+            .values()
+            .filter(|w| w.kind == Kind::Honest)
+            .count();
         if honest == 0 {
             self.join(Kind::Honest, now);
         } else if self.workers.len() < 5 && self.rng.chance(0.03) {
@@ -574,7 +596,9 @@ impl Farm<'_> {
             if j.driver.is_none() && j.done.is_none() && !j.cancelled && now >= j.starts {
                 let session = session_of(self.scene, n, j.seed, j.spp, None);
                 j.driver = Some(JobDriver::new(session, tiling_of(self.scene, n), 0, now));
-                self.sched.add_job(JobId(n), (n % 3) as i32, now).expect("add job");
+                self.sched
+                    .add_job(JobId(n), (n % 3) as i32, now)
+                    .expect("add job");
                 drive(&mut self.sched, j, n, now, slots);
             }
         }
@@ -611,7 +635,10 @@ fn random_schedule_with_faults_and_hostile_workers_gives_one_process_bits() {
     for sim_seed in [1u64, 2, 3] {
         let mut rng = TestRng::new(sim_seed * 0x1234_5678);
         let mut jobs = BTreeMap::new();
-        for (n, (seed, spp)) in [(3u64, 12u32), (7, 16), (11, 8), (13, 12)].iter().enumerate() {
+        for (n, (seed, spp)) in [(3u64, 12u32), (7, 16), (11, 8), (13, 12)]
+            .iter()
+            .enumerate()
+        {
             let n = n as u64;
             let job = SimJob {
                 seed: *seed,
@@ -672,13 +699,25 @@ fn random_schedule_with_faults_and_hostile_workers_gives_one_process_bits() {
         }
         let seen = &farm.seen;
         println!("seed {sim_seed}: {seen:?}");
-        assert!(seen.deaths >= 1 && seen.stale >= 1, "seed {sim_seed}: faults happened");
-        assert_eq!(seen.accepted_after_cancel, 0, "a cancelled job takes no tiles");
-        assert_eq!(seen.blocked_honest, 0, "seed {sim_seed}: no honest worker is blocked");
+        assert!(
+            seen.deaths >= 1 && seen.stale >= 1,
+            "seed {sim_seed}: faults happened"
+        );
+        assert_eq!(
+            seen.accepted_after_cancel, 0,
+            "a cancelled job takes no tiles"
+        );
+        assert_eq!(
+            seen.blocked_honest, 0,
+            "seed {sim_seed}: no honest worker is blocked"
+        );
         let rollbacks: usize = farm.jobs.values().map(|j| j.rollbacks).sum();
         assert!(rollbacks >= 1, "seed {sim_seed}: a job rolled back");
         let overlapped: usize = farm.jobs.values().map(|j| j.overlapped).sum();
-        assert!(overlapped >= 2, "seed {sim_seed}: units overlapped {overlapped} times");
+        assert!(
+            overlapped >= 2,
+            "seed {sim_seed}: units overlapped {overlapped} times"
+        );
         for (n, j) in &farm.jobs {
             if j.cancelled {
                 continue;
@@ -700,6 +739,12 @@ fn random_schedule_with_faults_and_hostile_workers_gives_one_process_bits() {
     }
     // Over the seeds, each hostile behaviour happened and was answered.
     assert!(total.refused >= 3, "garbage was refused: {total:?}");
-    assert!(total.blocked_hostile >= 1, "a garbage worker was blocked: {total:?}");
-    assert!(total.expired_hoards >= 1, "hoarded leases expired: {total:?}");
+    assert!(
+        total.blocked_hostile >= 1,
+        "a garbage worker was blocked: {total:?}"
+    );
+    assert!(
+        total.expired_hoards >= 1,
+        "hoarded leases expired: {total:?}"
+    );
 }

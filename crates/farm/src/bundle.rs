@@ -392,12 +392,13 @@ pub fn collect(
     integrator: Option<&str>,
     limits: &Limits,
 ) -> Result<(Manifest, Vec<PathBuf>), BundleError> {
-    let names = scene_files_as(scene, overrides, &confined(limits), integrator).map_err(
-        |error| BundleError::Collect {
-            scene: scene.to_path_buf(),
-            error,
-        },
-    )?;
+    let names =
+        scene_files_as(scene, overrides, &confined(limits), integrator).map_err(|error| {
+            BundleError::Collect {
+                scene: scene.to_path_buf(),
+                error,
+            }
+        })?;
     let base = scene.parent().unwrap_or(Path::new(""));
     let mut seen = HashSet::new();
     let mut files = Vec::with_capacity(names.len());

@@ -361,8 +361,7 @@ impl Collected {
         let (manifest, locals) = tokio::task::spawn_blocking(move || {
             let t0 = std::time::Instant::now();
             let limits = Limits::default();
-            let collected =
-                bundle::collect(&scene_path, &defines, integrator.as_deref(), &limits);
+            let collected = bundle::collect(&scene_path, &defines, integrator.as_deref(), &limits);
             let seconds = t0.elapsed().as_secs_f64();
             tracing::debug!(seconds, "bundled {}", scene_path.display());
             collected

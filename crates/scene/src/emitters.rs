@@ -78,7 +78,10 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
                 return Err(invalid(at, msg));
             }
             if !to_world.is_finite() || glam::Mat3::from_mat4(to_world).determinant() == 0.0 {
-                return Err(invalid(p.loc(), "spot emitter: to_world must be invertible"));
+                return Err(invalid(
+                    p.loc(),
+                    "spot emitter: to_world must be invertible",
+                ));
             }
             EmitterDesc::Spot {
                 to_world,

@@ -279,10 +279,14 @@ const SHARED_INTEGRATOR_PARAMS: [&str; 3] = ["max_depth", "rr_depth", "hide_emit
 /// was replaced and dropped is said in `warnings`.
 fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>) -> xml::Node {
     let mut n = node.clone();
-    let (kept, dropped): (Vec<_>, Vec<_>) = (n.props.into_iter())
-        .partition(|p| SHARED_INTEGRATOR_PARAMS.contains(&p.name.as_str()));
+    let (kept, dropped): (Vec<_>, Vec<_>) =
+        (n.props.into_iter()).partition(|p| SHARED_INTEGRATOR_PARAMS.contains(&p.name.as_str()));
     let mut gone: Vec<String> = dropped.into_iter().map(|p| p.name).collect();
-    gone.extend(n.children.iter().map(|c| c.name.clone().unwrap_or_else(|| "(object)".into())));
+    gone.extend(
+        n.children
+            .iter()
+            .map(|c| c.name.clone().unwrap_or_else(|| "(object)".into())),
+    );
     n.props = kept;
     n.children = Vec::new();
     let was = std::mem::replace(&mut n.plugin, name.to_string());
@@ -389,9 +393,9 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
     }
     for e in emitters {
         match e {
-            EmitterDesc::Point { .. } | EmitterDesc::Spot { .. } | EmitterDesc::Directional { .. } => {
-                f.delta_lights = true
-            }
+            EmitterDesc::Point { .. }
+            | EmitterDesc::Spot { .. }
+            | EmitterDesc::Directional { .. } => f.delta_lights = true,
             EmitterDesc::Constant { .. } | EmitterDesc::EnvMap { .. } => f.environment = true,
         }
     }

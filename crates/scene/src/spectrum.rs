@@ -51,7 +51,10 @@ pub(crate) fn to_srgb(pairs: &[(f32, f32)], usage: Use) -> Vec3 {
         if w < first || w > last {
             continue;
         }
-        let k = pairs.partition_point(|p| p.0 as f64 <= w).clamp(1, pairs.len() - 1) - 1;
+        let k = pairs
+            .partition_point(|p| p.0 as f64 <= w)
+            .clamp(1, pairs.len() - 1)
+            - 1;
         let ((w0, v0), (w1, v1)) = (pairs[k], pairs[k + 1]);
         let (w0, v0, w1, v1) = (w0 as f64, v0 as f64, w1 as f64, v1 as f64);
         let v = ((w - w1) * v0 + (w0 - w) * v1) / (w0 - w1);
@@ -59,7 +62,10 @@ pub(crate) fn to_srgb(pairs: &[(f32, f32)], usage: Use) -> Vec3 {
             true => table(&D65, w, |d| DVec3::splat(d as f64)).x,
             false => 1.0,
         };
-        xyz += table(&XYZ, w, |c| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64)) * v * weight;
+        xyz += table(&XYZ, w, |c| {
+            DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64)
+        }) * v
+            * weight;
     }
     xyz *= (MAX - MIN) * Y_NORMALIZATION / STEPS as f64;
     let rgb = xyz_to_srgb(xyz);

@@ -133,7 +133,11 @@ mod tests {
         ];
         for (r, row) in expected.iter().enumerate() {
             for (c, &x) in row.iter().enumerate() {
-                assert!((m.col(c)[r] - x).abs() < 1e-6, "[{r}][{c}]: {} vs {x}", m.col(c)[r]);
+                assert!(
+                    (m.col(c)[r] - x).abs() < 1e-6,
+                    "[{r}][{c}]: {} vs {x}",
+                    m.col(c)[r]
+                );
             }
         }
     }

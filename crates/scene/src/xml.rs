@@ -412,7 +412,9 @@ impl Parser<'_, '_> {
         let rel = Path::new(name);
         if self.s.limits.confine_files {
             let outside = rel.is_absolute()
-                || rel.components().any(|c| !matches!(c, std::path::Component::Normal(_)));
+                || rel
+                    .components()
+                    .any(|c| !matches!(c, std::path::Component::Normal(_)));
             if outside {
                 let msg = format!(
                     "<include filename=\"{shown}\">: an absolute path or one with '..': files \
@@ -735,7 +737,9 @@ impl Parser<'_, '_> {
         let loc = self.loc(node);
         let toks = tokenize(s);
         if toks.len() == 1 && !toks[0].contains(':') {
-            return Ok(Spectrum::Uniform(self.parse_f64(node, "spectrum", toks[0])? as f32));
+            return Ok(Spectrum::Uniform(
+                self.parse_f64(node, "spectrum", toks[0])? as f32,
+            ));
         }
         let shown = bounded(s);
         if toks.len() < 2 || toks.len() > MAX_SPECTRUM_PAIRS {
@@ -748,7 +752,10 @@ impl Parser<'_, '_> {
         let mut pairs: Vec<(f32, f32)> = Vec::with_capacity(toks.len());
         for t in toks {
             let Some((w, v)) = t.split_once(':') else {
-                let msg = format!("<spectrum>: \"{}\" is not a wavelength:value pair", bounded(t));
+                let msg = format!(
+                    "<spectrum>: \"{}\" is not a wavelength:value pair",
+                    bounded(t)
+                );
                 return Err(invalid(&loc, msg));
             };
             let w = self.parse_f64(node, "wavelength", w)? as f32;

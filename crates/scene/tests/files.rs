@@ -294,7 +294,11 @@ fn confinement_applies_to_includes_and_paths() {
     let (p, _) = write_scene_in(&d.join("scene"), r#"<include filename="parts/ok.xml"/>"#);
     let s = load_confined(&p).unwrap();
     assert_eq!(s.shapes.len(), 1);
-    assert!(s.files.contains(&d.join("scene/parts/ok.xml")), "{:?}", s.files);
+    assert!(
+        s.files.contains(&d.join("scene/parts/ok.xml")),
+        "{:?}",
+        s.files
+    );
     let outside = d.join("outside.xml");
     for name in ["../outside.xml".to_string(), outside.display().to_string()] {
         let body = format!("<include filename=\"{name}\"/>");

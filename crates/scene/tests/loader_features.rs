@@ -466,7 +466,12 @@ fn an_envmap_of_fewer_than_2x3_pixels_is_refused_as_mitsuba_does() {
     let body = r#"<emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>"#;
     let (p, xml) = write_scene_in(&d, body);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "sky.exr"), &["sky.exr", "4x2", "at least 2x3"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "sky.exr"),
+        &["sky.exr", "4x2", "at least 2x3"],
+    );
 }
 
 /// An integrator block written like Bitterli's scenes: only `max_depth`, through `$max_depth`.
@@ -564,7 +569,11 @@ fn an_emitting_shape_without_a_bsdf_is_black_and_others_get_diffuse_half() {
         } => *c,
         b => panic!("not a constant diffuse: {b:?}"),
     };
-    assert_eq!(reflectance(0), Vec3::ZERO, "Mitsuba 3: an emitter's default BSDF is black");
+    assert_eq!(
+        reflectance(0),
+        Vec3::ZERO,
+        "Mitsuba 3: an emitter's default BSDF is black"
+    );
     assert_eq!(reflectance(1), Vec3::splat(0.5));
 }
 
@@ -581,13 +590,19 @@ fn a_rotation_axis_is_used_as_given_and_warned_about() {
     let s = load_scene(&p, &[]).unwrap();
     let m = only_mesh(&s);
     let corner = m.positions[3]; // Mitsuba's rectangle vertex 3 is (1,1,0)
-    assert!((corner - Vec3::new(-2.0, 2.0, 0.0)).length() < 1e-5, "{corner}");
+    assert!(
+        (corner - Vec3::new(-2.0, 2.0, 0.0)).length() < 1e-5,
+        "{corner}"
+    );
     let line = line_of(&xml, "<rotate");
-    let warned = s.warnings.iter().any(|w| {
-        w.contains("not of unit length") && w.contains(&format!(":{line}"))
-    });
+    let warned = s
+        .warnings
+        .iter()
+        .any(|w| w.contains("not of unit length") && w.contains(&format!(":{line}")));
     assert!(warned, "a warning naming the line: {:?}", s.warnings);
-    let unit = scene(r#"<shape type="rectangle"><transform name="to_world"><rotate z="1" angle="90"/></transform></shape>"#);
+    let unit = scene(
+        r#"<shape type="rectangle"><transform name="to_world"><rotate z="1" angle="90"/></transform></shape>"#,
+    );
     let s = load_scene(&write_scene("rotate-unit-axis", &unit), &[]).unwrap();
     assert!(s.warnings.is_empty(), "{:?}", s.warnings);
 }
@@ -609,15 +624,23 @@ fn a_conductors_index_of_refraction_may_be_negative_and_a_colour_may_not() {
     );
     let p = write_scene("negative-colour", &xml);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "reflectance"), &["negative", "colours must be >= 0"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "reflectance"),
+        &["negative", "colours must be >= 0"],
+    );
 }
 
 /// A PNG of `w x h` grey pixels with a `tEXt` chunk of `text_bytes` before its data.
 fn png_with_metadata(w: u32, h: u32, text_bytes: usize) -> Vec<u8> {
     let mut plain = Vec::new();
     let img = image::GrayImage::from_pixel(w, h, image::Luma([128]));
-    img.write_to(&mut std::io::Cursor::new(&mut plain), image::ImageFormat::Png)
-        .unwrap();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut plain),
+        image::ImageFormat::Png,
+    )
+    .unwrap();
     let mut body = b"Comment\0".to_vec();
     body.extend(std::iter::repeat_n(b'x', text_bytes));
     let mut chunk = (body.len() as u32).to_be_bytes().to_vec();
@@ -647,7 +670,9 @@ fn a_small_png_with_large_metadata_loads() {
 fn radiance_hdr_and_bmp_images_load_the_hdr_as_linear() {
     let d = temp_dir("hdr-bmp");
     let hdr = image::Rgb32FImage::from_pixel(4, 3, image::Rgb([2.5f32, 0.5, 8.0]));
-    image::DynamicImage::ImageRgb32F(hdr).save(d.join("sky.hdr")).unwrap();
+    image::DynamicImage::ImageRgb32F(hdr)
+        .save(d.join("sky.hdr"))
+        .unwrap();
     image::RgbImage::from_pixel(2, 2, image::Rgb([255, 128, 0]))
         .save(d.join("wall.bmp"))
         .unwrap();
@@ -693,7 +718,14 @@ fn mitsuba_0_6_files_are_upgraded_as_mitsuba_3_does() {
 "#;
     let p = write_xml_in(&d, xml);
     let s = load_scene(&p, &[]).unwrap();
-    assert_eq!((s.sensor.sample_count, s.sensor.film.width, s.sensor.film.height), (16, 32, 24));
+    assert_eq!(
+        (
+            s.sensor.sample_count,
+            s.sensor.film.width,
+            s.sensor.film.height
+        ),
+        (16, 32, 24)
+    );
     match &s.bsdfs[s.shapes[1].bsdf] {
         BsdfDesc::Dielectric { int_ior, .. } => assert_eq!(*int_ior, 1.33),
         b => panic!("not a dielectric: {b:?}"),
@@ -704,7 +736,9 @@ fn mitsuba_0_6_files_are_upgraded_as_mitsuba_3_does() {
         s.files
     );
     // A Mitsuba 3 file is not upgraded: camelCase names are unknown parameters there.
-    let v3 = xml.replace("0.6.0", "3.0.0").replace("<path value=\"textures\"/>", "");
+    let v3 = xml
+        .replace("0.6.0", "3.0.0")
+        .replace("<path value=\"textures\"/>", "");
     let err = load_scene(&write_xml_in(&d, &v3), &[]).unwrap_err();
     assert!(err.to_string().contains("maxDepth"), "{err}");
 }
@@ -744,7 +778,11 @@ fn an_include_adds_its_scene_or_object_in_place_and_is_listed_among_the_files() 
         b => panic!("not a dielectric: {b:?}"),
     }
     for f in ["parts/materials.xml", "parts/sphere.xml"] {
-        assert!(s.files.iter().any(|x| x.ends_with(f)), "{f} in {:?}", s.files);
+        assert!(
+            s.files.iter().any(|x| x.ends_with(f)),
+            "{f} in {:?}",
+            s.files
+        );
     }
 }
 
@@ -769,7 +807,12 @@ fn includes_are_bounded_in_depth_and_an_error_names_the_included_file() {
     assert_invalid_at(&err, &d.join("bad.xml"), 3, &["teapot"]);
     let (p, xml) = write_scene_in(&d, r#"<include filename="missing.xml"/>"#);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "missing.xml"), &["missing.xml", "no such file"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "missing.xml"),
+        &["missing.xml", "no such file"],
+    );
 }
 
 #[test]
@@ -784,11 +827,16 @@ fn spectra_become_the_colours_mitsuba_3_gives_them() {
     let close = |a: Vec3, b: [f32; 3]| (a - Vec3::from(b)).abs().max_element() < 2e-5;
     let radiance = s.shapes[0].emitter.as_ref().unwrap().radiance;
     assert!(close(radiance, [2.40959, 1.89658, 1.81783]), "{radiance}");
-    let BsdfDesc::Diffuse { reflectance: TexRef::Const(r) } = &s.bsdfs[s.shapes[1].bsdf] else {
+    let BsdfDesc::Diffuse {
+        reflectance: TexRef::Const(r),
+    } = &s.bsdfs[s.shapes[1].bsdf]
+    else {
         panic!("a constant diffuse")
     };
     assert!(close(*r, [0.752187, 0.645269, 0.271706]), "{r}");
-    let EmitterDesc::Constant { radiance } = &s.emitters[0] else { panic!("constant") };
+    let EmitterDesc::Constant { radiance } = &s.emitters[0] else {
+        panic!("constant")
+    };
     assert!(close(*radiance, [2.14, 1.40424, 1.01714]), "{radiance}");
 }
 
@@ -798,15 +846,28 @@ fn the_integrator_flag_replaces_the_integrator_keeping_what_means_the_same() {
         r#"<integrator type="sppm"><integer name="max_depth" value="6"/><integer name="photon_count" value="1000"/><boolean name="hide_emitters" value="true"/></integrator>"#,
     );
     let p = write_scene("integrator-flag", &xml);
-    assert!(load_scene(&p, &[]).is_err(), "sppm is not an integrator pathfarm has");
+    assert!(
+        load_scene(&p, &[]).is_err(),
+        "sppm is not an integrator pathfarm has"
+    );
     let s = load_scene_as(&p, &[], &Limits::default(), Some("path")).unwrap();
-    let IntegratorDesc::Path(pp) = &s.integrator else { panic!("path") };
+    let IntegratorDesc::Path(pp) = &s.integrator else {
+        panic!("path")
+    };
     assert_eq!((pp.max_depth, pp.hide_emitters), (6, true));
     let w = s.warnings.join("\n");
-    assert!(w.contains("integrator 'sppm' replaced by 'path'") && w.contains("dropped photon_count"), "{w}");
+    assert!(
+        w.contains("integrator 'sppm' replaced by 'path'") && w.contains("dropped photon_count"),
+        "{w}"
+    );
     // -D parameters the scene does not use go to the replacement.
-    let s = load_scene_as(&p, &ov(&[("preset", "2019")]), &Limits::default(), Some("guided_path"))
-        .unwrap();
+    let s = load_scene_as(
+        &p,
+        &ov(&[("preset", "2019")]),
+        &Limits::default(),
+        Some("guided_path"),
+    )
+    .unwrap();
     assert!(matches!(s.integrator, IntegratorDesc::GuidedPath(_)));
     // A scene without an integrator gets one; an unknown name is refused naming it.
     let bare = write_scene("integrator-flag-bare", &scene(""));
@@ -824,12 +885,21 @@ fn an_area_emitter_declared_at_the_top_and_referenced_by_a_shape_is_the_shapes()
     );
     let s = load_scene(&write_scene("area-ref", &xml), &[]).unwrap();
     assert!(s.emitters.is_empty(), "not a scene-level emitter");
-    assert_eq!(s.shapes[0].emitter.as_ref().unwrap().radiance, Vec3::splat(5.0));
+    assert_eq!(
+        s.shapes[0].emitter.as_ref().unwrap().radiance,
+        Vec3::splat(5.0)
+    );
     // Not referenced by any shape: still an error at its line.
-    let xml = scene(r#"<emitter type="area" id="light"><rgb name="radiance" value="5"/></emitter>"#);
+    let xml =
+        scene(r#"<emitter type="area" id="light"><rgb name="radiance" value="5"/></emitter>"#);
     let p = write_scene("area-unref", &xml);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "area"), &["nested inside a <shape>"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "area"),
+        &["nested inside a <shape>"],
+    );
 }
 
 #[test]
@@ -840,12 +910,19 @@ fn a_cylinder_folds_p0_p1_and_radius_into_a_circular_transform() {
     );
     let p = write_scene("cylinder-squashed", &xml);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "scale x"), &["cylinder", "circular"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "scale x"),
+        &["cylinder", "circular"],
+    );
     let ok = scene(
         r#"<shape type="cylinder"><point name="p0" x="1" y="0" z="0"/><point name="p1" x="1" y="3" z="0"/><float name="radius" value="0.5"/></shape>"#,
     );
     let s = load_scene(&write_scene("cylinder", &ok), &[]).unwrap();
-    let Geometry::Cylinder { to_world, .. } = &s.shapes[0].geometry else { panic!("cylinder") };
+    let Geometry::Cylinder { to_world, .. } = &s.shapes[0].geometry else {
+        panic!("cylinder")
+    };
     // the unit cylinder's axis runs from p0 to p1, its radius is 0.5
     let end = to_world.transform_point3(Vec3::Z);
     assert!((end - Vec3::new(1.0, 3.0, 0.0)).length() < 1e-6, "{end}");
@@ -864,10 +941,22 @@ fn instances_place_copies_of_their_group_and_a_group_is_not_rendered_itself() {
 <shape type="instance"><ref id="g"/><transform name="to_world"><scale value="2"/></transform></shape>"#,
     );
     let s = load_scene(&write_scene("instances", &xml), &[]).unwrap();
-    assert_eq!(s.shapes.len(), 4, "two shapes, two instances; the group itself is not rendered");
-    let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("mesh") };
-    assert_eq!(m.positions[3], Vec3::new(3.0, 1.0, 0.0), "the rectangle's corner moved by 2");
-    let Geometry::Sphere { radius, .. } = &s.shapes[3].geometry else { panic!("sphere") };
+    assert_eq!(
+        s.shapes.len(),
+        4,
+        "two shapes, two instances; the group itself is not rendered"
+    );
+    let Geometry::Mesh(m) = &s.shapes[0].geometry else {
+        panic!("mesh")
+    };
+    assert_eq!(
+        m.positions[3],
+        Vec3::new(3.0, 1.0, 0.0),
+        "the rectangle's corner moved by 2"
+    );
+    let Geometry::Sphere { radius, .. } = &s.shapes[3].geometry else {
+        panic!("sphere")
+    };
     assert_eq!(*radius, 1.0, "scaled by 2");
     let bad = scene(
         r#"<shape type="shapegroup" id="g">
@@ -881,5 +970,10 @@ fn instances_place_copies_of_their_group_and_a_group_is_not_rendered_itself() {
     let lone = scene(r#"<shape type="instance"><shape type="sphere"/></shape>"#);
     let p = write_scene("instance-no-group", &lone);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&lone, "instance"), &["needs one shapegroup"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&lone, "instance"),
+        &["needs one shapegroup"],
+    );
 }

@@ -471,7 +471,11 @@ fn serialized_shape(
         false => body.extend(x.to_le_bytes()),
     };
     positions.iter().flatten().for_each(|&x| put(x));
-    normals.into_iter().flatten().flatten().for_each(|&x| put(x));
+    normals
+        .into_iter()
+        .flatten()
+        .flatten()
+        .for_each(|&x| put(x));
     uvs.into_iter().flatten().flatten().for_each(|&x| put(x));
     for t in triangles.iter().flatten() {
         body.extend(t.to_le_bytes());
@@ -502,21 +506,35 @@ fn serialized_file(version: u16, shapes: &[Vec<u8>]) -> Vec<u8> {
     out
 }
 
-const QUAD: [[f32; 3]; 4] = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]];
+const QUAD: [[f32; 3]; 4] = [
+    [0.0, 0.0, 0.0],
+    [1.0, 0.0, 0.0],
+    [1.0, 1.0, 0.0],
+    [0.0, 1.0, 0.0],
+];
 
 #[test]
 fn serialized_meshes_load_by_shape_index_in_both_versions_and_precisions() {
     let tri = serialized_shape(4, false, &QUAD[..3], None, None, &[[0, 1, 2]]);
     let uvs = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]];
     let normals = [[0.0, 0.0, 1.0]; 4];
-    let quad = serialized_shape(4, false, &QUAD, Some(&normals), Some(&uvs), &[[0, 1, 2], [0, 2, 3]]);
+    let quad = serialized_shape(
+        4,
+        false,
+        &QUAD,
+        Some(&normals),
+        Some(&uvs),
+        &[[0, 1, 2], [0, 2, 3]],
+    );
     let file = serialized_file(4, &[tri, quad]);
     for (index, triangles, has_uvs) in [(0, 1, false), (1, 2, true)] {
         let extra = format!("\n  <integer name=\"shape_index\" value=\"{index}\"/>");
         let name = format!("serialized-v4-{index}");
         let (p, _, _) = mesh_scene_with(&name, "serialized", "m.serialized", &file, &extra);
         let s = load_scene(&p, &[]).unwrap();
-        let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("a mesh") };
+        let Geometry::Mesh(m) = &s.shapes[0].geometry else {
+            panic!("a mesh")
+        };
         assert_eq!(m.indices.len(), triangles);
         assert_eq!(m.uvs.is_some(), has_uvs);
         assert_eq!(m.positions[2], glam::Vec3::new(1.0, 1.0, 0.0));
@@ -525,11 +543,19 @@ fn serialized_meshes_load_by_shape_index_in_both_versions_and_precisions() {
             assert_eq!(m.uvs.as_ref().unwrap()[3], glam::Vec2::new(0.0, 1.0));
         }
     }
-    let v3 = serialized_file(3, &[serialized_shape(3, true, &QUAD, None, None, &[[3, 2, 1]])]);
+    let v3 = serialized_file(
+        3,
+        &[serialized_shape(3, true, &QUAD, None, None, &[[3, 2, 1]])],
+    );
     let (p, _, _) = mesh_scene("serialized-v3", "serialized", "m.serialized", &v3);
     let s = load_scene(&p, &[]).unwrap();
-    let Geometry::Mesh(m) = &s.shapes[0].geometry else { panic!("a mesh") };
-    assert_eq!((m.indices[0], m.positions[3]), ([3, 2, 1], glam::Vec3::new(0.0, 1.0, 0.0)));
+    let Geometry::Mesh(m) = &s.shapes[0].geometry else {
+        panic!("a mesh")
+    };
+    assert_eq!(
+        (m.indices[0], m.positions[3]),
+        ([3, 2, 1], glam::Vec3::new(0.0, 1.0, 0.0))
+    );
 }
 
 #[test]
@@ -542,12 +568,27 @@ fn bad_serialized_files_are_refused_naming_the_file() {
         assert_load_fails_at(&p, &xml, "m.serialized", &[&prefix, needle]);
     };
     let index = "\n  <integer name=\"shape_index\" value=\"1\"/>";
-    err("ser-index", &file, index, "shape_index 1 is out of range: the file holds 1 shapes");
-    err("ser-magic", b"PK\x03\x04 not a mesh", "", "not a serialized mesh");
+    err(
+        "ser-index",
+        &file,
+        index,
+        "shape_index 1 is out of range: the file holds 1 shapes",
+    );
+    err(
+        "ser-magic",
+        b"PK\x03\x04 not a mesh",
+        "",
+        "not a serialized mesh",
+    );
     let mut v5 = file.clone();
     v5[2] = 5;
     err("ser-version", &v5, "", "format version 5 is not supported");
     err("ser-truncated", &good[..good.len() - 6], "", "ends early");
     let oob = serialized_shape(4, false, &QUAD[..3], None, None, &[[0, 1, 7]]);
-    err("ser-oob", &serialized_file(4, &[oob]), "", "triangle 0: vertex index 7 out of range");
+    err(
+        "ser-oob",
+        &serialized_file(4, &[oob]),
+        "",
+        "triangle 0: vertex index 7 out of range",
+    );
 }

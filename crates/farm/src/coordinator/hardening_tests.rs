@@ -142,7 +142,9 @@ async fn jobs_get_memory_when_they_start_and_one_that_can_never_fit_is_refused()
         .jobs
         .values()
         .all(|j| j.memory() == 0 && j.active().is_none()));
-    let queued = (st.jobs.values()).filter(|j| matches!(j.phase, Phase::Queued(_))).count();
+    let queued = (st.jobs.values())
+        .filter(|j| matches!(j.phase, Phase::Queued(_)))
+        .count();
     assert_eq!(queued, 1, "b restarts; a was cancelled");
     drop(st);
     let _ = std::fs::remove_dir_all(&data);

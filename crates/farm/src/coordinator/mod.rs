@@ -304,7 +304,10 @@ impl Active {
     }
 
     fn ledger(&mut self, unit: u64) -> Option<&mut UnitLedger> {
-        self.ledgers.iter_mut().find(|l| l.0 == unit).map(|l| &mut l.1)
+        self.ledgers
+            .iter_mut()
+            .find(|l| l.0 == unit)
+            .map(|l| &mut l.1)
     }
 }
 
@@ -441,7 +444,6 @@ pub(crate) fn parse_job(id: &str) -> Option<u64> {
     canonical.then(|| digits.parse().ok())?
 }
 
-
 /// What SubmitJob (or a restart) derives from a job's request.
 pub(crate) struct Prepared {
     params: GuidedParams,
@@ -527,7 +529,11 @@ impl Shared {
                         Phase::Queued(None)
                     }
                 };
-                shared.add_job(&mut st, n, Job::new(record, phase, n, &shared.cfg.resources));
+                shared.add_job(
+                    &mut st,
+                    n,
+                    Job::new(record, phase, n, &shared.cfg.resources),
+                );
             }
         }
         Ok(shared)
@@ -1036,7 +1042,11 @@ impl Shared {
         started: Instant,
         now: Millis,
     ) -> bool {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
+        let a = st
+            .jobs
+            .get_mut(&n)
+            .and_then(|j| j.active_mut())
+            .expect("driven");
         match self.publish(a, &offer) {
             Ok(replaced) => st.garbage.extend(replaced),
             Err(e) => {
@@ -1044,7 +1054,11 @@ impl Shared {
                 return false;
             }
         }
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
+        let a = st
+            .jobs
+            .get_mut(&n)
+            .and_then(|j| j.active_mut())
+            .expect("driven");
         let spec = offer.spec;
         let publish_s = started.elapsed().as_secs_f64();
         let ledger = UnitLedger::start(publish_s, a.driver.seconds(now), &self.metrics);
@@ -1067,7 +1081,11 @@ impl Shared {
 
     /// Asks the holders of job `n`'s records for them (`FlushRecords`).
     fn ask_for_records(self: &Arc<Self>, st: &mut State, n: u64, holders: &[WorkerId]) {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
+        let a = st
+            .jobs
+            .get_mut(&n)
+            .and_then(|j| j.active_mut())
+            .expect("driven");
         let Some((_, tree)) = a.tree_digest else {
             return self.roll_back(st, n, "records held of no published tree");
         };
@@ -1088,8 +1106,15 @@ impl Shared {
     /// Job `n`'s iteration `iteration` ended (its tree refined in `end_s`): the checkpoint of the
     /// iteration's end is taken and the collection's accounts logged.
     fn iteration_ended(self: &Arc<Self>, st: &mut State, n: u64, iteration: u32, end_s: f64) {
-        let a = st.jobs.get_mut(&n).and_then(|j| j.active_mut()).expect("driven");
-        let ledger = a.records_ledger.take().unwrap_or_else(|| RecordsLedger::start(0));
+        let a = st
+            .jobs
+            .get_mut(&n)
+            .and_then(|j| j.active_mut())
+            .expect("driven");
+        let ledger = a
+            .records_ledger
+            .take()
+            .unwrap_or_else(|| RecordsLedger::start(0));
         let checkpoint_s = self.save_checkpoint(st, n);
         if checkpoint_s > 0.0 {
             self.update_preview(st, n);
@@ -1200,7 +1225,8 @@ impl Shared {
         }
         if offer.new_fractions {
             let d = self.blobs.put_unsynced(&a.driver.encode_fractions())?;
-            a.fractions_digests.push(((spec.tree_version, spec.fraction_version), d));
+            a.fractions_digests
+                .push(((spec.tree_version, spec.fraction_version), d));
             if a.fractions_digests.len() > 2 {
                 replaced.push(a.fractions_digests.remove(0).1);
             }
@@ -1461,10 +1487,7 @@ impl Shared {
         let jobs: Vec<u64> = st
             .jobs
             .iter()
-            .filter(|(_, j)| {
-                j.active()
-                    .is_some_and(|a| a.driver.holds(worker))
-            })
+            .filter(|(_, j)| j.active().is_some_and(|a| a.driver.holds(worker)))
             .map(|(&n, _)| n)
             .collect();
         for n in jobs {

@@ -406,8 +406,11 @@ impl Jobs for Svc {
                 st.next_job += 1;
                 svc.shared.db.put(n, &record).map_err(Status::internal)?;
                 let queued = Phase::Queued(Some(Box::new(prepared)));
-                svc.shared
-                    .add_job(&mut st, n, Job::new(record, queued, n, &svc.shared.cfg.resources));
+                svc.shared.add_job(
+                    &mut st,
+                    n,
+                    Job::new(record, queued, n, &svc.shared.cfg.resources),
+                );
                 tracing::info!(job = %job_name(n), "job submitted");
                 svc.shared.admit(&mut st);
                 Ok::<u64, Status>(n)

@@ -86,7 +86,10 @@ mod tests {
     #[test]
     fn an_unrenderable_report_blocks_at_once() {
         let mut b = Blocklist::new(3);
-        assert_eq!(b.blame("h/w", "no scene", Blame::Unrenderable), Standing::Blocked);
+        assert_eq!(
+            b.blame("h/w", "no scene", Blame::Unrenderable),
+            Standing::Blocked
+        );
         assert!(b.is_blocked("h/w"));
     }
 

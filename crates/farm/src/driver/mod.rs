@@ -283,7 +283,9 @@ impl JobDriver {
         let outs: Vec<(usize, &TileOutput)> = tiles.iter().map(|t| (t.index, t.out)).collect();
         let secs = self.seconds(now);
         self.session.add_tiles(unit, &outs, stats, secs)?;
-        let spec = *self.flight(unit).expect("the session took tiles of a unit in flight");
+        let spec = *self
+            .flight(unit)
+            .expect("the session took tiles of a unit in flight");
         if spec.record() {
             self.holders.insert(worker);
         }

@@ -32,7 +32,15 @@ fn driver(scene: &Scene, spp: u32) -> JobDriver {
     let size = (scene.width, scene.height);
     let tiles = Region::tiles(size.0, size.1, 8);
     let policy = FallbackPolicy::Force(pathfarm_render::guided::GuidingVerdict::Keep);
-    let mut s = Session::new(&params, Budget::Spp(spp), tree, size, splatting, tiles, policy);
+    let mut s = Session::new(
+        &params,
+        Budget::Spp(spp),
+        tree,
+        size,
+        splatting,
+        tiles,
+        policy,
+    );
     s.set_records(Records::PerIteration);
     JobDriver::new(s, Tiling::Fixed(8), 7, Millis(0))
 }
@@ -76,7 +84,9 @@ fn render(
             render_seconds: 0.01,
         })
         .collect();
-    let ended = d.tiles_in(w, spec.unit, &tiles, stats.as_ref(), Millis(10)).unwrap();
+    let ended = d
+        .tiles_in(w, spec.unit, &tiles, stats.as_ref(), Millis(10))
+        .unwrap();
     (ended, records)
 }
 
@@ -119,7 +129,10 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
         }
     }
     assert_eq!(asked, vec![w], "the holder, once");
-    assert!(matches!(d.step(Millis(30), 1).unwrap(), Step::Wait), "asked only once");
+    assert!(
+        matches!(d.step(Millis(30), 1).unwrap(), Step::Wait),
+        "asked only once"
+    );
     let version = offers[0].spec.tree_version;
     for o in &offers[1..] {
         assert_eq!(o.spec.tree_version, version);
@@ -141,7 +154,10 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
     assert!(!d.holds(w), "the records were handed over");
     let next = offer(d.step(Millis(50), 1).unwrap());
     assert_eq!(next.spec.tree_version, version + 1);
-    assert!(next.new_tree && next.new_fractions, "a refined tree is published");
+    assert!(
+        next.new_tree && next.new_fractions,
+        "a refined tree is published"
+    );
 }
 
 #[test]
@@ -167,13 +183,17 @@ fn tiles_the_session_refuses_change_nothing() {
         out: &out,
         render_seconds: 0.0,
     }];
-    assert!(d.tiles_in(w, o.spec.unit + 5, &wrong_unit, None, Millis(1)).is_err());
+    assert!(d
+        .tiles_in(w, o.spec.unit + 5, &wrong_unit, None, Millis(1))
+        .is_err());
     let wrong_index = [TileIn {
         index: 1,
         out: &out,
         render_seconds: 0.0,
     }];
-    assert!(d.tiles_in(w, o.spec.unit, &wrong_index, None, Millis(1)).is_err());
+    assert!(d
+        .tiles_in(w, o.spec.unit, &wrong_index, None, Millis(1))
+        .is_err());
     assert!(!d.holds(w), "a refused tile makes no holder");
     assert_eq!(d.session().tiles_done().0, 0);
     assert_eq!(d.flights().len(), 1);

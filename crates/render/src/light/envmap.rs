@@ -41,7 +41,10 @@ impl EnvMap {
         scale: f32,
         to_world: Mat4,
     ) -> Self {
-        assert!(width >= 2 && height >= 3, "an envmap has at least 2x3 texels");
+        assert!(
+            width >= 2 && height >= 3,
+            "an envmap has at least 2x3 texels"
+        );
         let (w, h) = (width as usize, height as usize);
         let lum: Vec<f32> = texels.iter().map(|&c| luminance(c).max(0.0)).collect();
         let mean = lum.iter().map(|&l| l as f64).sum::<f64>() as f32 / lum.len().max(1) as f32;
@@ -181,18 +184,33 @@ mod tests {
         let env = EnvMap::new(4, 3, Arc::new(texels), 1.0, Mat4::IDENTITY);
         let at = |theta: f32| env.eval(Vec3::new(theta.sin(), theta.cos(), 0.0)).x;
         assert!((at(0.0) - 10.0).abs() < 1e-5, "the north pole is row 0");
-        assert!((at(PI / 4.0) - 7.5).abs() < 1e-4, "45 degrees is halfway to row 1");
+        assert!(
+            (at(PI / 4.0) - 7.5).abs() < 1e-4,
+            "45 degrees is halfway to row 1"
+        );
         assert!((at(PI / 2.0) - 5.0).abs() < 1e-4, "the equator is row 1");
-        assert!((at(PI) - 1.0).abs() < 1e-5, "the south pole is the last row");
+        assert!(
+            (at(PI) - 1.0).abs() < 1e-5,
+            "the south pole is the last row"
+        );
         // Column x is at u = (x + 0.5) / 4; u = atan2(x, -z) / 2pi.
         let cols = [1.0f32, 2.0, 3.0, 4.0];
         let texels: Vec<Vec3> = (0..12).map(|k| Vec3::splat(cols[k % 4])).collect();
         let env = EnvMap::new(4, 3, Arc::new(texels), 1.0, Mat4::IDENTITY);
         let phi = |u: f32| 2.0 * PI * u;
         let dir = |u: f32| Vec3::new(phi(u).sin(), 0.0, -phi(u).cos());
-        assert!((env.eval(dir(0.625)).x - 3.0).abs() < 1e-4, "the centre of column 2");
-        assert!((env.eval(dir(0.75)).x - 3.5).abs() < 1e-4, "between columns 2 and 3");
-        assert!((env.eval(dir(0.0)).x - 2.5).abs() < 1e-4, "between the last and first");
+        assert!(
+            (env.eval(dir(0.625)).x - 3.0).abs() < 1e-4,
+            "the centre of column 2"
+        );
+        assert!(
+            (env.eval(dir(0.75)).x - 3.5).abs() < 1e-4,
+            "between columns 2 and 3"
+        );
+        assert!(
+            (env.eval(dir(0.0)).x - 2.5).abs() < 1e-4,
+            "between the last and first"
+        );
     }
 
     #[test]
@@ -223,7 +241,10 @@ mod tests {
             let d = crate::sampling::uniform_sphere(rng.next_2d());
             uni += (env.eval(d).x * 4.0 * PI) as f64;
         }
-        assert!(differ * 10_000 < n, "pdf(sample) differs from the sample's in {differ} of {n}");
+        assert!(
+            differ * 10_000 < n,
+            "pdf(sample) differs from the sample's in {differ} of {n}"
+        );
         let (is, uni) = (is / n as f64, uni / n as f64);
         assert!(
             (is - uni).abs() < 0.03 * uni,

@@ -88,7 +88,13 @@ mod tests {
         assert!((at(17.5) - 0.5).abs() < 1e-3, "{}", at(17.5));
         assert_eq!(at(20.5), 0.0);
         let below = s.sample(Vec3::ZERO).unwrap();
-        assert!((below.value - Vec3::splat(0.75)).abs().max_element() < 1e-6, "3 / 2^2");
-        assert!(s.sample(Vec3::new(5.0, 0.0, 0.0)).is_none(), "outside the cone");
+        assert!(
+            (below.value - Vec3::splat(0.75)).abs().max_element() < 1e-6,
+            "3 / 2^2"
+        );
+        assert!(
+            s.sample(Vec3::new(5.0, 0.0, 0.0)).is_none(),
+            "outside the cone"
+        );
     }
 }

@@ -30,7 +30,10 @@ fn group(ctx: &mut Ctx, r: &Resolved) -> Result<Vec<ShapeDesc>, SceneError> {
     let mut out = Vec::with_capacity(children.len());
     for c in &children {
         if matches!(c.node.plugin.as_str(), "shapegroup" | "instance") {
-            let msg = format!("a shapegroup cannot hold a {} (as in Mitsuba 3)", c.node.plugin);
+            let msg = format!(
+                "a shapegroup cannot hold a {} (as in Mitsuba 3)",
+                c.node.plugin
+            );
             return Err(invalid(&c.loc, msg));
         }
         let s = super::shape(ctx, c)?;
@@ -55,9 +58,16 @@ pub(crate) fn instance(
     let g = p.at_most_one(Category::Shape, &what)?;
     p.finish()?;
     let Some(g) = g.filter(|g| g.node.plugin == "shapegroup") else {
-        return Err(invalid(&r.loc, "an instance needs one shapegroup (a <ref> to its id)"));
+        return Err(invalid(
+            &r.loc,
+            "an instance needs one shapegroup (a <ref> to its id)",
+        ));
     };
-    let key = g.node.id.clone().unwrap_or_else(|| format!("{}", g.node.loc));
+    let key = g
+        .node
+        .id
+        .clone()
+        .unwrap_or_else(|| format!("{}", g.node.loc));
     let shapes = match groups.0.get(&key) {
         Some(s) => s.clone(),
         None => {

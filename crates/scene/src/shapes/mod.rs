@@ -5,8 +5,8 @@ pub(crate) mod instance;
 mod mesh;
 mod obj;
 mod ply;
-mod serialized;
 pub(crate) mod primitives;
+mod serialized;
 
 use std::sync::Arc;
 
@@ -234,7 +234,11 @@ fn cylinder(p: &Props, to_world: DMat4, flip_normals: bool) -> Result<Geometry, 
         p0.extend(1.0),
     );
     let m = to_world * frame;
-    let (x, y, z) = (m.x_axis.truncate(), m.y_axis.truncate(), m.z_axis.truncate());
+    let (x, y, z) = (
+        m.x_axis.truncate(),
+        m.y_axis.truncate(),
+        m.z_axis.truncate(),
+    );
     let circular = (x.length() - y.length()).abs() <= 1e-6 * x.length()
         && x.dot(y).abs() <= 1e-6 * x.length_squared()
         && x.dot(z).abs() <= 1e-6 * x.length() * z.length()
@@ -248,7 +252,10 @@ fn cylinder(p: &Props, to_world: DMat4, flip_normals: bool) -> Result<Geometry, 
     }
     let extent = m.w_axis.truncate().abs() + x.abs() + y.abs() + z.abs();
     if !(extent.max_element() <= mesh::MAX_WORLD_COORDINATE) {
-        let msg = format!("cylinder: in world space it reaches {}", mesh::beyond_bound_message());
+        let msg = format!(
+            "cylinder: in world space it reaches {}",
+            mesh::beyond_bound_message()
+        );
         return Err(invalid(&loc, msg));
     }
     Ok(Geometry::Cylinder {

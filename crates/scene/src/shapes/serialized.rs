@@ -43,7 +43,9 @@ pub(crate) fn load_serialized(
             .map_err(|e| err(format!("cannot read: {e}")))?;
         let again = header(&mut file).map_err(err)?;
         if again != version {
-            return Err(err(format!("shape {shape_index} is of another format version")));
+            return Err(err(format!(
+                "shape {shape_index} is of another format version"
+            )));
         }
     }
     let mut z = flate2::read::ZlibDecoder::new(BufReader::new(file));
@@ -56,12 +58,23 @@ pub(crate) fn load_serialized(
     let limits = budget.limits().clone();
     let max_vertices = limits.max_mesh_vertices.min(u32::MAX as u64);
     check_limit(vertices, "vertices", max_vertices, "max_mesh_vertices").map_err(err)?;
-    check_limit(triangles, "triangles", limits.max_mesh_triangles, "max_mesh_triangles")
-        .map_err(err)?;
+    check_limit(
+        triangles,
+        "triangles",
+        limits.max_mesh_triangles,
+        "max_mesh_triangles",
+    )
+    .map_err(err)?;
     let has_uvs = flags & HAS_TEXCOORDS != 0;
-    let what = format!("{} ({vertices} vertices, {triangles} triangles)", input.source);
+    let what = format!(
+        "{} ({vertices} vertices, {triangles} triangles)",
+        input.source
+    );
     let bytes = vertices.saturating_mul(vertex_bytes(has_uvs));
-    budget.reserve(bytes.saturating_add(triangles.saturating_mul(TRIANGLE_BYTES)), &what)?;
+    budget.reserve(
+        bytes.saturating_add(triangles.saturating_mul(TRIANGLE_BYTES)),
+        &what,
+    )?;
     let (nv, nt) = (vertices as usize, triangles as usize);
     let double = flags & DOUBLE_PRECISION != 0;
     let mut mesh = TriangleMesh {
@@ -136,7 +149,9 @@ fn shape_offset(
         u32::from_le_bytes(read_array(f)?) as u64
     };
     if offset.saturating_add(4) > size {
-        return Err(format!("shape {index} starts at {offset}, past the end of the file"));
+        return Err(format!(
+            "shape {index} starts at {offset}, past the end of the file"
+        ));
     }
     Ok(offset)
 }
@@ -161,7 +176,9 @@ fn skip_name(r: &mut impl Read) -> Result<(), String> {
             return Ok(());
         }
     }
-    Err(format!("the shape's name is longer than {MAX_NAME_BYTES} bytes"))
+    Err(format!(
+        "the shape's name is longer than {MAX_NAME_BYTES} bytes"
+    ))
 }
 
 /// Reads `n` scalars (f32, or f64 if `double`), handing each to `f` with its index, a block

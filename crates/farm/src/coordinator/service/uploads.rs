@@ -280,7 +280,10 @@ impl Svc {
                 render_seconds: t.counters.render_seconds,
             })
             .collect();
-        let ended = match a.driver.tiles_in(sender, unit, &tiles_in, stats.as_ref(), now) {
+        let ended = match a
+            .driver
+            .tiles_in(sender, unit, &tiles_in, stats.as_ref(), now)
+        {
             Ok(ended) => ended,
             Err(e) => {
                 let detail = format!("tiles {ids:?} refused by the session: {e}");
