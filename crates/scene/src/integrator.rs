@@ -10,7 +10,7 @@ use crate::desc::{
 use crate::error::SceneError;
 use crate::limits::{format_number, Limits};
 use crate::props::{keywords, Props, Resolved};
-use crate::xml::invalid;
+use crate::xml::{invalid, Category};
 
 /// Build the integrator `r`.
 pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, SceneError> {
@@ -19,7 +19,8 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
         "path" => IntegratorDesc::Path(path_params(&p)?),
         "guided_path" => IntegratorDesc::GuidedPath(guided_params(&p, &ctx.limits)?),
         "direct" => IntegratorDesc::Path(direct_params(&p)?),
-        _ => return Err(p.unsupported("integrator", "path, direct, guided_path")),
+        "moment" => return moment(ctx, &p),
+        _ => return Err(p.unsupported("integrator", "path, direct, guided_path, moment")),
     };
     p.finish()?;
     Ok(desc)
@@ -34,6 +35,25 @@ fn path_params(p: &Props) -> Result<PathParams, SceneError> {
         rr_depth: p.int_in("rr_depth", d.rr_depth as i64, 1, u32::MAX as i64)? as u32,
         hide_emitters: p.bool("hide_emitters", d.hide_emitters)?,
     })
+}
+
+/// Mitsuba's `moment`: the image of its nested integrator, beside that image's second
+/// moment (an AOV pathfarm does not write). The image is the nested integrator's, so that is
+/// what renders; Mitsuba's test scenes wrap `path` in it.
+fn moment(ctx: &Ctx, p: &Props) -> Result<IntegratorDesc, SceneError> {
+    let nested = p.children_of(Category::Integrator);
+    p.finish()?;
+    match nested.as_slice() {
+        [one] => integrator(ctx, one),
+        _ => Err(invalid(
+            p.loc(),
+            format!(
+                "moment integrator: {} nested integrators; pathfarm renders the image of \
+                 exactly one",
+                nested.len()
+            ),
+        )),
+    }
 }
 
 /// Mitsuba's `direct` (emitted light and direct illumination, light and BSDF samples

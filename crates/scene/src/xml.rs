@@ -453,6 +453,11 @@ enum Element {
     Prop(Prop),
 }
 
+/// Whether transform element `tag` is read in this file: `lookAt` only in Mitsuba 0.x ones.
+fn tag_ok(tag: &str, legacy: bool) -> bool {
+    tag != "lookAt" || legacy
+}
+
 /// At most the first 120 characters of `s`, for messages.
 fn bounded(s: &str) -> String {
     match s.char_indices().nth(120) {
@@ -994,7 +999,8 @@ impl Parser<'_, '_> {
                     }
                     transform::rotate(axis, angle)
                 }
-                "lookat" => {
+                // `lookAt`: Mitsuba 0.x files (Mitsuba 0.6 read it; Mitsuba 3 does not).
+                "lookat" | "lookAt" if tag_ok(c.tag_name().name(), self.legacy) => {
                     self.check_attrs(c, &["origin", "target", "up"], &["origin", "target"])?;
                     let origin = self.parse_vec_str(c, &self.req_attr(c, "origin")?, false)?;
                     let target = self.parse_vec_str(c, &self.req_attr(c, "target")?, false)?;

@@ -977,3 +977,39 @@ fn instances_place_copies_of_their_group_and_a_group_is_not_rendered_itself() {
         &["needs one shapegroup"],
     );
 }
+
+#[test]
+fn a_moment_integrator_renders_its_nested_integrator() {
+    let xml = scene(
+        r#"<integrator type="moment"><integrator type="path"><integer name="max_depth" value="2"/></integrator></integrator>"#,
+    );
+    let s = load_scene(&write_scene("moment", &xml), &[]).unwrap();
+    let IntegratorDesc::Path(p) = &s.integrator else {
+        panic!("path")
+    };
+    assert_eq!(p.max_depth, 2);
+    let two = scene(
+        r#"<integrator type="moment"><integrator type="path"/><integrator type="path"/></integrator>"#,
+    );
+    let p = write_scene("moment-two", &two);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&two, "moment"), &["2 nested integrators"]);
+}
+
+#[test]
+fn look_at_is_read_in_mitsuba_0_x_files_only() {
+    let body = r#"<sensor type="perspective"><transform name="toWorld">
+  <lookAt origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/>
+</transform></sensor>"#;
+    let old = format!("<scene version=\"0.6.0\">\n{body}\n</scene>\n");
+    let s = load_scene(&write_scene("lookat-06", &old), &[]).unwrap();
+    let eye = s.sensor.to_world.transform_point3(Vec3::ZERO);
+    assert_eq!(eye, Vec3::new(0.0, 0.0, 5.0));
+    let new = format!(
+        "<scene version=\"3.0.0\">\n{}\n</scene>\n",
+        body.replace("toWorld", "to_world")
+    );
+    let p = write_scene("lookat-3", &new);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&new, "lookAt"), &["unexpected <lookAt>"]);
+}
