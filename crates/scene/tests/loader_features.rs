@@ -1013,3 +1013,16 @@ fn look_at_is_read_in_mitsuba_0_x_files_only() {
     let err = load_scene(&p, &[]).unwrap_err();
     assert_invalid_at(&err, &p, line_of(&new, "lookAt"), &["unexpected <lookAt>"]);
 }
+
+#[test]
+fn a_corrupt_radiance_hdr_file_is_an_error_naming_it() {
+    let d = temp_dir("hdr-garbage");
+    // A valid header, then run-length scanlines that overrun the row and end early.
+    let mut bytes = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 4 +X 16\n".to_vec();
+    bytes.extend([2, 2, 0, 16, 0xff, 7, 0x80, 0xff, 3, 1]);
+    std::fs::write(d.join("sky.hdr"), &bytes).unwrap();
+    let body = r#"<emitter type="envmap"><string name="filename" value="sky.hdr"/></emitter>"#;
+    let (p, xml) = write_scene_in(&d, body);
+    let err = load_scene(&p, &[]).unwrap_err();
+    assert_invalid_at(&err, &p, line_of(&xml, "sky.hdr"), &["sky.hdr", "cannot decode image"]);
+}
