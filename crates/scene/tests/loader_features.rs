@@ -1024,5 +1024,10 @@ fn a_corrupt_radiance_hdr_file_is_an_error_naming_it() {
     let body = r#"<emitter type="envmap"><string name="filename" value="sky.hdr"/></emitter>"#;
     let (p, xml) = write_scene_in(&d, body);
     let err = load_scene(&p, &[]).unwrap_err();
-    assert_invalid_at(&err, &p, line_of(&xml, "sky.hdr"), &["sky.hdr", "cannot decode image"]);
+    assert_invalid_at(
+        &err,
+        &p,
+        line_of(&xml, "sky.hdr"),
+        &["sky.hdr", "cannot decode image"],
+    );
 }
