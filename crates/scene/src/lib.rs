@@ -139,10 +139,11 @@ fn load_as(
     let mut ctx = Ctx::new(parsed.ids, parsed.base_dir, limits.clone(), reading);
     ctx.warnings = parsed.warnings;
     ctx.search_paths = parsed.search_paths;
+    // The scene file first (a bundle's root is its first file), then what it includes.
+    ctx.record_file(path);
     for f in &parsed.included {
         ctx.record_file(f);
     }
-    ctx.record_file(path);
     let mut integrator_desc = None;
     let mut sensor_desc = None;
     let mut shape_descs = Vec::new();
