@@ -276,12 +276,31 @@ fn is_shared_area_emitter(node: &xml::Node, objects: &[xml::Child]) -> bool {
 /// The parameters that mean the same in every integrator pathfarm has.
 const SHARED_INTEGRATOR_PARAMS: [&str; 3] = ["max_depth", "rr_depth", "hide_emitters"];
 
-/// The integrator `node` replaced by plugin `name`, keeping [`SHARED_INTEGRATOR_PARAMS`]; what
-/// was replaced and dropped is said in `warnings`.
+/// The integrator `node` replaced by plugin `name`, keeping those of
+/// [`SHARED_INTEGRATOR_PARAMS`] that `name` reads (`direct` has no depth); what was replaced
+/// and dropped is said in `warnings`. A `moment` wrapper's settings are its single nested
+/// integrator's.
 fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>) -> xml::Node {
-    let mut n = node.clone();
+    let nested = match node.children.as_slice() {
+        [xml::Child {
+            obj: xml::ObjRef::Inline(inner),
+            ..
+        }] if node.plugin == "moment" && inner.category == Category::Integrator => Some(inner),
+        _ => None,
+    };
+    let mut n = match nested {
+        Some(inner) => xml::Node {
+            plugin: format!("moment/{}", inner.plugin),
+            ..(**inner).clone()
+        },
+        None => node.clone(),
+    };
+    let reads = |p: &str| match name {
+        "direct" => p == "hide_emitters",
+        _ => SHARED_INTEGRATOR_PARAMS.contains(&p),
+    };
     let (kept, dropped): (Vec<_>, Vec<_>) =
-        (n.props.into_iter()).partition(|p| SHARED_INTEGRATOR_PARAMS.contains(&p.name.as_str()));
+        (n.props.into_iter()).partition(|p| reads(p.name.as_str()));
     let mut gone: Vec<String> = dropped.into_iter().map(|p| p.name).collect();
     gone.extend(
         n.children

@@ -784,6 +784,10 @@ fn an_include_adds_its_scene_or_object_in_place_and_is_listed_among_the_files() 
             s.files
         );
     }
+    assert_eq!(
+        s.files[0], *p,
+        "the scene file first: a bundle's root is its first file"
+    );
 }
 
 #[test]
@@ -875,6 +879,25 @@ fn the_integrator_flag_replaces_the_integrator_keeping_what_means_the_same() {
     assert!(matches!(s.integrator, IntegratorDesc::GuidedPath(_)));
     let err = load_scene_as(&p, &[], &Limits::default(), Some("bdpt")).unwrap_err();
     assert!(err.to_string().contains("bdpt"), "{err}");
+    // `direct` reads only hide_emitters of the three: the others are dropped, not refused.
+    let s = load_scene_as(&p, &[], &Limits::default(), Some("direct")).unwrap();
+    let IntegratorDesc::Path(pp) = &s.integrator else {
+        panic!("direct renders as path")
+    };
+    assert_eq!((pp.max_depth, pp.hide_emitters), (2, true));
+    // A `moment` wrapper's settings are its nested integrator's.
+    let wrapped = scene(
+        r#"<integrator type="moment"><integrator type="path"><integer name="max_depth" value="8"/></integrator></integrator>"#,
+    );
+    let p = write_scene("integrator-flag-moment", &wrapped);
+    let s = load_scene_as(&p, &[], &Limits::default(), Some("guided_path")).unwrap();
+    let IntegratorDesc::GuidedPath(g) = &s.integrator else {
+        panic!("guided")
+    };
+    assert_eq!(
+        g.path.max_depth, 8,
+        "the nested integrator's max_depth is kept"
+    );
 }
 
 #[test]
