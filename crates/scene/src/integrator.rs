@@ -26,6 +26,15 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
     Ok(desc)
 }
 
+/// The parameters `plugin` reads the same way as every other integrator here: what
+/// `--integrator` keeps of the scene's own (`direct` has no depth of its own).
+pub(crate) fn shared_params(plugin: &str) -> &'static [&'static str] {
+    match plugin {
+        "direct" => &["hide_emitters"],
+        _ => &["max_depth", "rr_depth", "hide_emitters"],
+    }
+}
+
 /// Mitsuba's `path`: `max_depth` (-1 = unbounded), `rr_depth` (5, must be
 /// > 0), `hide_emitters` (false).
 fn path_params(p: &Props) -> Result<PathParams, SceneError> {

@@ -65,7 +65,7 @@ pub fn load_scene_with_limits(
     overrides: &[(String, String)],
     limits: &Limits,
 ) -> Result<SceneDesc, SceneError> {
-    load(path, overrides, limits, Reading::Contents)
+    load(path, overrides, limits, Reading::Contents, None)
 }
 
 /// The files the scene `path` reads ([`SceneDesc::files`]: the scene file first), learned
@@ -80,7 +80,7 @@ pub fn scene_files(
     overrides: &[(String, String)],
     limits: &Limits,
 ) -> Result<Vec<std::path::PathBuf>, SceneError> {
-    Ok(load(path, overrides, limits, Reading::Names)?.files)
+    Ok(load(path, overrides, limits, Reading::Names, None)?.files)
 }
 
 /// [`load_scene_with_limits`] with the scene's integrator replaced by `integrator` (the
@@ -94,7 +94,7 @@ pub fn load_scene_as(
     limits: &Limits,
     integrator: Option<&str>,
 ) -> Result<SceneDesc, SceneError> {
-    load_as(path, overrides, limits, Reading::Contents, integrator)
+    load(path, overrides, limits, Reading::Contents, integrator)
 }
 
 /// The scene as [`scene_files_as`] reads it (files named and opened, not decoded): its
@@ -106,7 +106,7 @@ pub fn scan_scene_as(
     limits: &Limits,
     integrator: Option<&str>,
 ) -> Result<SceneDesc, SceneError> {
-    load_as(path, overrides, limits, Reading::Names, integrator)
+    load(path, overrides, limits, Reading::Names, integrator)
 }
 
 /// [`scene_files`] of the scene with its integrator replaced ([`load_scene_as`]).
@@ -116,19 +116,10 @@ pub fn scene_files_as(
     limits: &Limits,
     integrator: Option<&str>,
 ) -> Result<Vec<std::path::PathBuf>, SceneError> {
-    Ok(load_as(path, overrides, limits, Reading::Names, integrator)?.files)
+    Ok(load(path, overrides, limits, Reading::Names, integrator)?.files)
 }
 
 fn load(
-    path: &Path,
-    overrides: &[(String, String)],
-    limits: &Limits,
-    reading: Reading,
-) -> Result<SceneDesc, SceneError> {
-    load_as(path, overrides, limits, reading, None)
-}
-
-fn load_as(
     path: &Path,
     overrides: &[(String, String)],
     limits: &Limits,
@@ -273,12 +264,9 @@ fn is_shared_area_emitter(node: &xml::Node, objects: &[xml::Child]) -> bool {
         .any(|c| matches!(&c.obj, xml::ObjRef::Ref { id: r, .. } if r == id))
 }
 
-/// The parameters that mean the same in every integrator pathfarm has.
-const SHARED_INTEGRATOR_PARAMS: [&str; 3] = ["max_depth", "rr_depth", "hide_emitters"];
-
-/// The integrator `node` replaced by plugin `name`, keeping those of
-/// [`SHARED_INTEGRATOR_PARAMS`] that `name` reads (`direct` has no depth); what was replaced
-/// and dropped is said in `warnings`. A `moment` wrapper's settings are its single nested
+/// The integrator `node` replaced by plugin `name`, keeping the parameters that mean the same
+/// in both ([`integrator::shared_params`]); what was replaced and dropped is said in
+/// `warnings`. A `moment` wrapper's settings are its single nested
 /// integrator's.
 fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>) -> xml::Node {
     let nested = match node.children.as_slice() {
@@ -295,12 +283,9 @@ fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>)
         },
         None => node.clone(),
     };
-    let reads = |p: &str| match name {
-        "direct" => p == "hide_emitters",
-        _ => SHARED_INTEGRATOR_PARAMS.contains(&p),
-    };
+    let shared = integrator::shared_params(name);
     let (kept, dropped): (Vec<_>, Vec<_>) =
-        (n.props.into_iter()).partition(|p| reads(p.name.as_str()));
+        (n.props.into_iter()).partition(|p| shared.contains(&p.name.as_str()));
     let mut gone: Vec<String> = dropped.into_iter().map(|p| p.name).collect();
     gone.extend(
         n.children
@@ -318,7 +303,7 @@ fn replaced_integrator(node: &xml::Node, name: &str, warnings: &mut Vec<String>)
         "{}: integrator '{was}' replaced by '{name}' (--integrator); kept what it sets of \
          {}; {dropped}",
         node.loc,
-        SHARED_INTEGRATOR_PARAMS.join(", ")
+        shared.join(", ")
     ));
     n
 }

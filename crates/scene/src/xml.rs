@@ -453,11 +453,6 @@ enum Element {
     Prop(Prop),
 }
 
-/// Whether transform element `tag` is read in this file: `lookAt` only in Mitsuba 0.x ones.
-fn tag_ok(tag: &str, legacy: bool) -> bool {
-    tag != "lookAt" || legacy
-}
-
 /// At most the first 120 characters of `s`, for messages.
 fn bounded(s: &str) -> String {
     match s.char_indices().nth(120) {
@@ -974,7 +969,8 @@ impl Parser<'_, '_> {
                 continue;
             }
             let loc = self.loc(c);
-            let op = match c.tag_name().name() {
+            let tag = c.tag_name().name();
+            let op = match tag {
                 "translate" => {
                     self.check_attrs(c, &["x", "y", "z", "value"], &[])?;
                     DMat4::from_translation(self.parse_xyz(c, 0.0)?)
@@ -1000,7 +996,7 @@ impl Parser<'_, '_> {
                     transform::rotate(axis, angle)
                 }
                 // `lookAt`: Mitsuba 0.x files (Mitsuba 0.6 read it; Mitsuba 3 does not).
-                "lookat" | "lookAt" if tag_ok(c.tag_name().name(), self.legacy) => {
+                "lookat" | "lookAt" if tag == "lookat" || self.legacy => {
                     self.check_attrs(c, &["origin", "target", "up"], &["origin", "target"])?;
                     let origin = self.parse_vec_str(c, &self.req_attr(c, "origin")?, false)?;
                     let target = self.parse_vec_str(c, &self.req_attr(c, "target")?, false)?;

@@ -1054,11 +1054,6 @@ impl Shared {
                 return false;
             }
         }
-        let a = st
-            .jobs
-            .get_mut(&n)
-            .and_then(|j| j.active_mut())
-            .expect("driven");
         let spec = offer.spec;
         let publish_s = started.elapsed().as_secs_f64();
         let ledger = UnitLedger::start(publish_s, a.driver.seconds(now), &self.metrics);
