@@ -18,4 +18,5 @@ mod it {
     pub mod session;
     pub mod shared_scenes;
     pub mod stability;
+    pub mod surface_detail;
 }

@@ -81,10 +81,27 @@ fn legacy_scene_agrees_with_mitsuba() {
     crosscheck(&project_scene("legacy-0.6"), &[]);
 }
 
+/// Surfaces light passes through: `mask` with an opacity texture (a patterned shadow) and a
+/// constant, `null` with and without an emitter. Mitsuba's shadow rays stop at a mask, so
+/// its estimate of the light behind one is heavy-tailed: 64 runs steady its variance.
+#[test]
+fn cutouts_agree_with_mitsuba() {
+    crosscheck(&project_scene("cutouts"), &["--runs", "64"]);
+}
+
+/// Perturbed shading normals: `bumpmap` on a mesh and a sphere, `normalmap` under a rough
+/// conductor and a two-sided diffuse panel (the shading frame follows dp/du, the shadowing
+/// term and the side rule apply).
+#[test]
+fn bumps_agree_with_mitsuba() {
+    crosscheck(&project_scene("bumps"), &[]);
+}
+
 /// `guided_path` (through `--integrator`) against Mitsuba's path tracer: guiding is
 /// unbiased, so the images agree where guiding meets a black emitter BSDF and scaling
 /// rotations (lamp-room), an environment map's mapping (envmap-sky), a spot light's cone
-/// (spotlight), analytic cylinders (cylinders) and instancing (instances).
+/// (spotlight), analytic cylinders (cylinders), instancing (instances), surfaces paths pass
+/// through (cutouts) and perturbed normals (bumps).
 #[test]
 fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
     let guided = ["--pf-integrator", "guided_path", "-D", "integrator=path"];
@@ -94,7 +111,13 @@ fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
         "spotlight",
         "cylinders",
         "instances",
+        "bumps",
     ] {
         crosscheck(&project_scene(scene), &guided);
     }
+    let runs = ["--runs", "64"];
+    crosscheck(
+        &project_scene("cutouts"),
+        &[&guided[..], &runs[..]].concat(),
+    );
 }

@@ -145,7 +145,8 @@ fn cli_output_is_identical_for_one_and_two_threads() {
 
 /// `render` runs the path integrator over batches of paths side by side; the one-path
 /// estimator (`path::li`, one camera sample at a time) must give the same bits, on scenes
-/// covering meshes and analytic shapes, every BSDF, textures, area and environment lights.
+/// covering meshes and analytic shapes, every BSDF, textures, area and environment lights,
+/// surfaces paths step through (`mask`, `null`) and perturbed normals.
 #[test]
 fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
     use pathfarm_render::integrator::{path, specialised, Specialise};
@@ -164,6 +165,8 @@ fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
         ("materials", project_scene("materials")),
         ("caustic", project_scene("caustic")),
         ("white-furnace", project_scene("white-furnace")),
+        ("cutouts", project_scene("cutouts")),
+        ("bumps", project_scene("bumps")),
     ] {
         let scene = build_scene(&file, &[("resx", "24"), ("resy", "18")]);
         let settings = RenderSettings::new(Some(5), None, 3);

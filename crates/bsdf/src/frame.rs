@@ -22,6 +22,21 @@ impl Frame {
         Self { s, t, n }
     }
 
+    /// Builds a frame around a unit normal whose first axis is the tangent `dp_du` made
+    /// orthogonal to it (Mitsuba's shading frame, which normal maps are expressed in); the
+    /// normal-only frame if `dp_du` is parallel to the normal.
+    pub fn from_normal_tangent(n: Vec3, dp_du: Vec3) -> Self {
+        let s = (dp_du - n * n.dot(dp_du)).normalize_or_zero();
+        if s == Vec3::ZERO {
+            return Self::from_normal(n);
+        }
+        Self {
+            s,
+            t: n.cross(s),
+            n,
+        }
+    }
+
     #[inline]
     pub fn to_local(&self, v: Vec3) -> Vec3 {
         Vec3::new(v.dot(self.s), v.dot(self.t), v.dot(self.n))

@@ -29,6 +29,7 @@ pub mod rng;
 pub mod sampling;
 pub mod scene;
 pub mod session;
+pub mod shading;
 pub mod splat;
 pub mod texture;
 

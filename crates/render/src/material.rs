@@ -12,6 +12,7 @@ use pathfarm_bsdf::{
 use pathfarm_scene::{BsdfDesc, MicrofacetDistribution, Roughness, TexRef, TextureDesc};
 
 use crate::geometry::SurfaceInteraction;
+use crate::shading::{Perturb, ShadedBsdf};
 use crate::texture;
 
 /// One side of a material.
@@ -113,13 +114,35 @@ pub enum Side {
     },
 }
 
-/// A surface material: a single BSDF, or Mitsuba's `twosided` pair of a front and a back BSDF.
-pub enum Material {
-    /// A plain BSDF, always evaluated in the unflipped frame of the shading normal: the reflective
-    /// models are black seen from the back, the dielectrics handle both sides themselves.
-    OneSided(Side),
+/// A surface material: its sides (a single BSDF, or Mitsuba's `twosided` pair), how much light
+/// passes straight through it (`mask`, `null`), and the texture that perturbs its shading
+/// normal (`bumpmap`, `normalmap`).
+pub struct Material {
+    sides: Sides,
+    opacity: Opacity,
+    perturb: Option<Perturb>,
+}
+
+/// The BSDFs of a material's two sides.
+enum Sides {
+    /// A plain BSDF, always evaluated in the unflipped frame of the shading normal: the
+    /// reflective models are black seen from the back, the dielectrics handle both sides
+    /// themselves.
+    One(Side),
     /// Mitsuba `twosided`: the back side is seen through a flipped frame.
-    TwoSided(Side, Side),
+    Two(Side, Side),
+}
+
+/// How much of a surface is there (Mitsuba's `mask` and `null` wrappers).
+#[derive(Clone, Copy, Debug)]
+pub enum Opacity {
+    /// Every ray that meets the surface scatters.
+    Opaque,
+    /// A ray passes straight through with probability `1 - opacity` (the luminance of the
+    /// texture, clamped to [0, 1]).
+    Mask(TexRef),
+    /// Every ray passes straight through (Mitsuba `null`).
+    Null,
 }
 
 /// The distribution a rough model samples and evaluates (roughness clamped as Mitsuba's).
@@ -153,8 +176,8 @@ fn plastic_ssw(textures: &[TextureDesc], diffuse: TexRef, specular: TexRef) -> f
 }
 
 impl Side {
-    fn new(desc: &BsdfDesc, textures: &[TextureDesc]) -> Self {
-        match desc {
+    fn new(desc: &BsdfDesc, textures: &[TextureDesc]) -> Result<Self, String> {
+        Ok(match desc {
             BsdfDesc::Diffuse { reflectance } => Side::Diffuse {
                 reflectance: *reflectance,
             },
@@ -242,11 +265,19 @@ impl Side {
                 ssw: plastic_ssw(textures, *diffuse_reflectance, *specular_reflectance),
                 sample_visible: r.sample_visible,
             },
-            // Nested twosided is resolved by Material::new; treat as its front.
-            BsdfDesc::TwoSided { .. } => Side::Diffuse {
-                reflectance: TexRef::Const(Vec3::splat(0.5)),
-            },
-        }
+            BsdfDesc::TwoSided { .. }
+            | BsdfDesc::Mask { .. }
+            | BsdfDesc::Null
+            | BsdfDesc::BumpMap { .. }
+            | BsdfDesc::NormalMap { .. } => {
+                return Err(format!(
+                    "a {} inside another wrapper in this combination (nested twosided, two \
+                     masks or two normal perturbations on one surface, or a twosided whose \
+                     two sides are wrapped differently)",
+                    wrapper_name(desc)
+                ))
+            }
+        })
     }
 
     #[inline(always)]
@@ -319,37 +350,177 @@ impl Side {
     }
 }
 
+fn wrapper_name(desc: &BsdfDesc) -> &'static str {
+    match desc {
+        BsdfDesc::TwoSided { .. } => "twosided",
+        BsdfDesc::Mask { .. } => "mask",
+        BsdfDesc::Null => "null",
+        BsdfDesc::BumpMap { .. } => "bumpmap",
+        BsdfDesc::NormalMap { .. } => "normalmap",
+        _ => "bsdf",
+    }
+}
+
+/// The black BSDF a `null` surface never scatters with.
+const NO_SIDE: Side = Side::Diffuse {
+    reflectance: TexRef::Const(Vec3::ZERO),
+};
+
 impl Material {
-    /// Builds the material for `desc`; `all` is the scene's BSDF list, which the indices of a
-    /// `twosided` desc refer to, and `textures` is used for the plastic sampling weights.
-    pub fn new(desc: &BsdfDesc, all: &[BsdfDesc], textures: &[TextureDesc]) -> Self {
-        match desc {
-            BsdfDesc::TwoSided { front, back } => Material::TwoSided(
-                Side::new(&all[*front], textures),
-                Side::new(&all[*back], textures),
-            ),
-            d => Material::OneSided(Side::new(d, textures)),
+    /// Builds the material for `desc`; `all` is the scene's BSDF list, which the indices of
+    /// wrapper descs refer to, and `textures` is used for the plastic sampling weights. The
+    /// wrappers (`twosided`, `mask`, `bumpmap`, `normalmap`) may nest in any order, at most
+    /// one of each; `Err` names a combination that is not supported.
+    pub fn new(
+        desc: &BsdfDesc,
+        all: &[BsdfDesc],
+        textures: &[TextureDesc],
+    ) -> Result<Self, String> {
+        let mut opacity = Opacity::Opaque;
+        let mut perturb = None;
+        let mut two_sided = false;
+        let mut d = desc;
+        loop {
+            let next = match d {
+                BsdfDesc::Mask { opacity: o, nested } if matches!(opacity, Opacity::Opaque) => {
+                    opacity = Opacity::Mask(*o);
+                    *nested
+                }
+                BsdfDesc::Null if matches!(opacity, Opacity::Opaque) => {
+                    return Ok(Self {
+                        sides: Sides::One(NO_SIDE),
+                        opacity: Opacity::Null,
+                        perturb: None,
+                    });
+                }
+                BsdfDesc::BumpMap {
+                    height,
+                    scale,
+                    nested,
+                    normals,
+                } if perturb.is_none() => {
+                    perturb = Some(Perturb::Bump {
+                        height: *height,
+                        scale: *scale,
+                        options: *normals,
+                    });
+                    *nested
+                }
+                BsdfDesc::NormalMap {
+                    normals_texture,
+                    nested,
+                    normals,
+                } if perturb.is_none() => {
+                    perturb = Some(Perturb::Normal {
+                        texture: *normals_texture,
+                        options: *normals,
+                    });
+                    *nested
+                }
+                BsdfDesc::TwoSided { front, back } if !two_sided && front == back => {
+                    two_sided = true;
+                    *front
+                }
+                BsdfDesc::TwoSided { front, back } if !two_sided => {
+                    let sides = Sides::Two(
+                        Side::new(&all[*front], textures)?,
+                        Side::new(&all[*back], textures)?,
+                    );
+                    return Ok(Self {
+                        sides,
+                        opacity,
+                        perturb,
+                    });
+                }
+                d => {
+                    let side = Side::new(d, textures)?;
+                    let sides = if two_sided {
+                        Sides::Two(Side::new(d, textures)?, side)
+                    } else {
+                        Sides::One(side)
+                    };
+                    return Ok(Self {
+                        sides,
+                        opacity,
+                        perturb,
+                    });
+                }
+            };
+            d = &all[next];
         }
     }
 
-    /// The BSDF at hit `si` for a ray travelling along `ray_d`, and its frame.
+    /// The probability that a ray meeting the surface at `si` passes straight through it.
+    #[inline(always)]
+    pub fn pass_probability(&self, textures: &[TextureDesc], si: &SurfaceInteraction) -> f32 {
+        match self.opacity {
+            Opacity::Opaque => 0.0,
+            Opacity::Null => 1.0,
+            Opacity::Mask(r) => 1.0 - texture::eval_scalar(textures, r, si.uv).clamp(0.0, 1.0),
+        }
+    }
+
+    /// Whether light can pass straight through the surface somewhere.
+    pub fn passes_light(&self) -> bool {
+        !matches!(self.opacity, Opacity::Opaque)
+    }
+
+    /// The side a ray travelling along `ray_d` sees, the frame `base` flipped for a back side,
+    /// and whether it is the back.
+    #[inline(always)]
+    fn side(&self, si: &SurfaceInteraction, ray_d: Vec3, base: Frame) -> (&Side, Frame, bool) {
+        match &self.sides {
+            Sides::One(s) => (s, base, false),
+            Sides::Two(front, back) => {
+                if si.ns.dot(ray_d) > 0.0 {
+                    (back, base.flipped(), true)
+                } else {
+                    (front, base, false)
+                }
+            }
+        }
+    }
+
+    /// The BSDF at hit `si` for a ray travelling along `ray_d`, and its frame; `tangents`
+    /// gives the surface's `(dp/du, dp/dv)`, which only a perturbed normal needs.
     #[inline(always)]
     pub fn bsdf<'a>(
         &'a self,
         textures: &[TextureDesc],
         si: &SurfaceInteraction,
         ray_d: Vec3,
-    ) -> (Bsdf<'a>, Frame) {
-        let frame = Frame::from_normal(si.ns);
-        match self {
-            Material::OneSided(s) => (s.bsdf(textures, si.uv), frame),
-            Material::TwoSided(front, back) => {
-                if si.ns.dot(ray_d) > 0.0 {
-                    (back.bsdf(textures, si.uv), frame.flipped())
-                } else {
-                    (front.bsdf(textures, si.uv), frame)
-                }
+        tangents: impl FnOnce() -> (Vec3, Vec3),
+    ) -> (ShadedBsdf<'a>, Frame) {
+        match &self.perturb {
+            None => {
+                let (side, frame, _) = self.side(si, ray_d, Frame::from_normal(si.ns));
+                (ShadedBsdf::plain(side.bsdf(textures, si.uv)), frame)
             }
+            Some(p) => self.perturbed(p, textures, si, ray_d, tangents()),
         }
+    }
+
+    /// [`Material::bsdf`] under a bump or normal map: the perturbed normal is found in the
+    /// unperturbed frame (first axis along `dp/du`, as Mitsuba's), and seen mirrored in the
+    /// surface from a `twosided` back side (Mitsuba's `twosided` around a `bumpmap`).
+    #[inline(never)]
+    fn perturbed<'a>(
+        &'a self,
+        p: &Perturb,
+        textures: &[TextureDesc],
+        si: &SurfaceInteraction,
+        ray_d: Vec3,
+        tangents: (Vec3, Vec3),
+    ) -> (ShadedBsdf<'a>, Frame) {
+        let base = Frame::from_normal_tangent(si.ns, tangents.0);
+        let n = p.local_normal(textures, si, &base, tangents);
+        let (side, frame, back) = self.side(si, ray_d, base);
+        let n = if back { Vec3::new(n.y, n.x, n.z) } else { n };
+        let (frame, correction) = p.perturbed_frame(&frame, n, frame.to_local(-ray_d));
+        let bsdf = ShadedBsdf {
+            model: side.bsdf(textures, si.uv),
+            bump: Some(correction),
+        };
+        (bsdf, frame)
     }
 }

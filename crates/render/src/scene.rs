@@ -1,7 +1,7 @@
 //! The renderer's view of a scene: acceleration structure, materials,
 //! lights, camera, built once from a [`SceneDesc`].
 
-use pathfarm_bsdf::{frame::Frame, Bsdf};
+use pathfarm_bsdf::frame::Frame;
 use pathfarm_scene::{
     EmitterDesc, Features, Geometry, GuidedParams, IntegratorDesc, PathParams, SceneDesc,
     TextureDesc,
@@ -9,9 +9,10 @@ use pathfarm_scene::{
 
 use crate::camera::Camera;
 use crate::filter::Filter;
-use crate::geometry::{Accel, Analytic, Bvh, ShapeGeom, SurfaceInteraction};
+use crate::geometry::{spawn_ray_to, Accel, Analytic, Bvh, Ray, ShapeGeom, SurfaceInteraction};
 use crate::light::{AreaLight, EnvMap, Light, Lights, Spot};
 use crate::material::Material;
+use crate::shading::ShadedBsdf;
 use crate::RenderError;
 use pathfarm_scene::limits::{format_bytes, Limits};
 
@@ -196,7 +197,8 @@ impl Scene {
             .bsdfs
             .iter()
             .map(|b| Material::new(b, &desc.bsdfs, &desc.textures))
-            .collect();
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| RenderError::Unsupported(format!("{}: {e}", desc.source.display())))?;
         let shape_material = desc.shapes.iter().map(|s| s.bsdf as u32).collect();
         let path = desc.integrator.path_params();
         let guided = match &desc.integrator {
@@ -227,11 +229,67 @@ impl Scene {
     /// The BSDF at a hit and the shading frame to evaluate it in; `ray_d` is
     /// the incoming ray direction (two-sided materials pick their side by it).
     #[inline(always)]
-    pub fn bsdf_at(&self, si: &SurfaceInteraction, ray_d: glam::Vec3) -> (Bsdf<'_>, Frame) {
+    pub fn bsdf_at(&self, si: &SurfaceInteraction, ray_d: glam::Vec3) -> (ShadedBsdf<'_>, Frame) {
         let m = &self.materials[self.shape_material[si.shape as usize] as usize];
-        m.bsdf(&self.textures, si, ray_d)
+        m.bsdf(&self.textures, si, ray_d, || self.accel.uv_tangents(si))
+    }
+
+    /// The probability that a path meeting the surface at `si` passes straight through it
+    /// (`mask`, `null`); 0 in scenes without such surfaces.
+    #[inline(always)]
+    pub fn pass_probability(&self, si: &SurfaceInteraction) -> f32 {
+        if !self.features.pass_through {
+            return 0.0;
+        }
+        let m = &self.materials[self.shape_material[si.shape as usize] as usize];
+        m.pass_probability(&self.textures, si)
+    }
+
+    /// The fraction of light that reaches the end of shadow ray `ray`: 1 if nothing blocks
+    /// it, 0 if an opaque surface does, else the product of the pass probabilities of the
+    /// `mask` and `null` surfaces it crosses (the expected value of a path stepping through
+    /// them, so that light sampling and direction sampling estimate the same light).
+    #[inline(always)]
+    pub fn transmittance<const ANALYTIC: bool>(&self, ray: &Ray) -> f32 {
+        if self.accel.unoccluded::<ANALYTIC>(ray) {
+            1.0
+        } else if self.features.pass_through {
+            self.transmittance_through::<ANALYTIC>(ray)
+        } else {
+            0.0
+        }
+    }
+
+    /// [`Scene::transmittance`] of a blocked ray in a scene with pass-through surfaces: steps
+    /// from surface to surface (at most [`MAX_PASSES`]).
+    #[inline(never)]
+    pub fn transmittance_through<const ANALYTIC: bool>(&self, ray: &Ray) -> f32 {
+        let target = ray.o + ray.d * ray.tmax;
+        let mut ray = *ray;
+        let mut t = 1.0;
+        for _ in 0..MAX_PASSES {
+            let Some(hit) = self.accel.intersect::<ANALYTIC>(&ray) else {
+                return t;
+            };
+            let si = self.accel.interaction(&ray, &hit);
+            t *= self.pass_probability(&si);
+            if t <= 0.0 {
+                return 0.0;
+            }
+            ray = spawn_ray_to(si.p, si.ng, target, self.accel.offset_floor());
+            // The step must make progress along the original direction.
+            if ray.tmax <= 0.0 || ray.d.dot(target - si.p) <= 0.0 {
+                return t;
+            }
+        }
+        0.0
     }
 }
+
+/// The most surfaces a path or a shadow ray passes straight through in one segment: beyond
+/// it the light is taken as blocked (a stack of thousands of cut-out leaves in one
+/// direction is not a scene anyone renders; a ray caught on one surface by rounding is).
+pub const MAX_PASSES: u32 = 256;
 
 /// Bytes of acceleration structure per triangle (CWBVH nodes, SoA triangle blocks, the build's
 /// temporaries), an upper estimate.

@@ -43,6 +43,57 @@ pub fn eval_texture(t: &TextureDesc, uv: Vec2) -> Vec3 {
     }
 }
 
+/// Mitsuba's luminance of a linear sRGB colour (its `eval_1` of an RGB texture).
+#[inline]
+pub fn luminance(c: Vec3) -> f32 {
+    c.dot(Vec3::new(0.212_671, 0.715_160, 0.072_169))
+}
+
+/// A scalar parameter (mask opacity): the luminance of the colour `r` at `uv`.
+#[inline]
+pub fn eval_scalar(textures: &[TextureDesc], r: TexRef, uv: Vec2) -> f32 {
+    luminance(eval(textures, r, uv))
+}
+
+/// The gradient of the luminance of texture `t` with respect to `(u, v)` at `uv` (Mitsuba's
+/// `eval_1_grad`): that of the bilinear interpolation, zero for nearest lookups and
+/// checkerboards (flat almost everywhere).
+pub fn luminance_gradient(t: &TextureDesc, uv: Vec2) -> Vec2 {
+    let TextureDesc::Bitmap(b) = t else {
+        return Vec2::ZERO;
+    };
+    let q = b.to_uv.apply(uv);
+    if b.filter != TexFilter::Bilinear || !q.is_finite() {
+        return Vec2::ZERO;
+    }
+    let lum = |x: usize, y: usize| {
+        let i = y * b.width as usize + x;
+        luminance(match &b.texels {
+            Texels::Bytes { rgb, table } => byte_texel(table, rgb[i]),
+            Texels::Float(t) => t[i],
+        })
+    };
+    let px = q.x * b.width as f32 - 0.5;
+    let py = q.y * b.height as f32 - 0.5;
+    let (x0, y0) = (px.floor(), py.floor());
+    let (fx, fy) = (px - x0, py - y0);
+    let (x0, y0) = (x0 as i64, y0 as i64);
+    let (x1, y1) = (
+        wrap(x0 + 1, b.width, b.wrap),
+        wrap(y0 + 1, b.height, b.wrap),
+    );
+    let (x0, y0) = (wrap(x0, b.width, b.wrap), wrap(y0, b.height, b.wrap));
+    let (f00, f10, f01, f11) = (lum(x0, y0), lum(x1, y0), lum(x0, y1), lum(x1, y1));
+    // Partials with respect to the texel coordinates, then to the transformed uv, then
+    // (transpose of the uv transform) to the surface's uv.
+    let d_pixel = Vec2::new(
+        (1.0 - fy) * (f10 - f00) + fy * (f11 - f01),
+        (1.0 - fx) * (f01 - f00) + fx * (f11 - f10),
+    );
+    let d_q = d_pixel * Vec2::new(b.width as f32, b.height as f32);
+    b.to_uv.m.transpose() * d_q
+}
+
 #[inline]
 fn wrap(i: i64, n: u32, mode: WrapMode) -> usize {
     let n = n as i64;
@@ -200,5 +251,46 @@ mod tests {
         assert_eq!(eval_texture(&t, Vec2::new(0.25, 0.25)), Vec3::ONE);
         assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.25)), Vec3::ZERO);
         assert_eq!(eval_texture(&t, Vec2::new(0.75, 0.75)), Vec3::ONE);
+    }
+
+    #[test]
+    fn luminance_gradient_is_the_derivative_of_the_bilinear_lookup() {
+        let texels: Vec<Vec3> = (0..35)
+            .map(|i| Vec3::new((i * 7 % 11) as f32, (i * 3 % 5) as f32, (i % 4) as f32) * 0.1)
+            .collect();
+        let mut b = BitmapDesc {
+            width: 7,
+            height: 5,
+            texels: Texels::Float(Arc::new(texels)),
+            filter: TexFilter::Bilinear,
+            wrap: WrapMode::Repeat,
+            to_uv: UvTransform {
+                m: glam::Mat2::from_cols_array(&[2.0, 0.5, -0.3, 1.5]),
+                t: Vec2::new(0.1, 0.2),
+            },
+        };
+        let t = TextureDesc::Bitmap(b.clone());
+        let lum = |uv: Vec2| luminance(eval_texture(&t, uv));
+        let h = 1e-3;
+        let mut checked = 0;
+        for (u, v) in [(0.13, 0.41), (0.57, 0.22), (0.81, 0.93), (0.33, 0.67)] {
+            let uv = Vec2::new(u, v);
+            let g = luminance_gradient(&t, uv);
+            let fd = Vec2::new(
+                (lum(uv + Vec2::X * h) - lum(uv - Vec2::X * h)) / (2.0 * h),
+                (lum(uv + Vec2::Y * h) - lum(uv - Vec2::Y * h)) / (2.0 * h),
+            );
+            assert!(
+                (g - fd).length() < 2e-2 * (1.0 + fd.length()),
+                "{uv}: {g} vs {fd}"
+            );
+            checked += (g.length() > 0.1) as u32;
+        }
+        assert!(checked >= 3, "the texture must slope at most points");
+        b.filter = TexFilter::Nearest;
+        assert_eq!(
+            luminance_gradient(&TextureDesc::Bitmap(b), Vec2::new(0.3, 0.3)),
+            Vec2::ZERO
+        );
     }
 }

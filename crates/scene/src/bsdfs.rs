@@ -5,11 +5,11 @@ use std::rc::Rc;
 use glam::Vec3;
 
 use crate::context::Ctx;
-use crate::desc::{BsdfDesc, MicrofacetDistribution, Roughness};
+use crate::desc::{BsdfDesc, MicrofacetDistribution, PerturbOptions, Roughness, TexRef};
 use crate::error::SceneError;
 use crate::ior::{lookup_conductor, lookup_ior};
 use crate::props::{keywords, Props, Resolved};
-use crate::textures::{const_float, const_rgb, texref};
+use crate::textures::{const_float, const_rgb, texref, texref_opt, texture};
 use crate::xml::{invalid, Category, Value};
 
 /// Build (or fetch from cache) the BSDF `r`, returning its arena index.
@@ -36,6 +36,30 @@ fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
             reflectance: texref(ctx, &p, "reflectance", 0.5)?,
         },
         "twosided" => twosided(ctx, &p)?,
+        "mask" => BsdfDesc::Mask {
+            opacity: texref(ctx, &p, "opacity", 0.5)?,
+            nested: only_nested(ctx, &p)?,
+        },
+        "null" => BsdfDesc::Null,
+        "bumpmap" => BsdfDesc::BumpMap {
+            height: nested_texture(ctx, &p)?,
+            scale: p.float("scale", 1.0)?,
+            nested: only_nested(ctx, &p)?,
+            normals: normal_options(&p)?,
+        },
+        "normalmap" => BsdfDesc::NormalMap {
+            normals_texture: match texref_opt(ctx, &p, "normalmap")? {
+                Some(TexRef::Texture(t)) => t,
+                _ => {
+                    return Err(invalid(
+                        p.loc(),
+                        "normalmap bsdf needs a 'normalmap' texture",
+                    ))
+                }
+            },
+            nested: only_nested(ctx, &p)?,
+            normals: normal_options(&p)?,
+        },
         "conductor" => {
             let (eta, k) = conductor_ior(&p)?;
             BsdfDesc::Conductor {
@@ -109,8 +133,9 @@ fn build(ctx: &mut Ctx, r: &Resolved) -> Result<BsdfDesc, SceneError> {
         _ => {
             return Err(p.unsupported(
                 "bsdf",
-                "diffuse, twosided, conductor, roughconductor, dielectric, thindielectric, \
-                 roughdielectric, plastic, roughplastic",
+                "diffuse, twosided, mask, null, bumpmap, normalmap, conductor, \
+                 roughconductor, dielectric, thindielectric, roughdielectric, plastic, \
+                 roughplastic",
             ))
         }
     };
@@ -138,6 +163,47 @@ fn twosided(ctx: &mut Ctx, p: &Props) -> Result<BsdfDesc, SceneError> {
             ),
         )),
     }
+}
+
+/// The one nested BSDF of a wrapper plugin (`mask`, `bumpmap`, `normalmap`).
+fn only_nested(ctx: &mut Ctx, p: &Props) -> Result<usize, SceneError> {
+    let children = p.children_of(Category::Bsdf);
+    match children.as_slice() {
+        [one] => bsdf(ctx, one),
+        _ => Err(invalid(
+            p.loc(),
+            format!(
+                "{} needs exactly one nested bsdf, found {}",
+                p.what(),
+                children.len()
+            ),
+        )),
+    }
+}
+
+/// The height texture of a `bumpmap`: its one nested texture, whatever its name (Mitsuba's
+/// rule).
+fn nested_texture(ctx: &mut Ctx, p: &Props) -> Result<usize, SceneError> {
+    let children = p.children_of(Category::Texture);
+    match children.as_slice() {
+        [one] => texture(ctx, one),
+        _ => Err(invalid(
+            p.loc(),
+            format!(
+                "{} needs exactly one nested texture (the height field), found {}",
+                p.what(),
+                children.len()
+            ),
+        )),
+    }
+}
+
+/// The options `bumpmap` and `normalmap` share, with Mitsuba's defaults.
+fn normal_options(p: &Props) -> Result<PerturbOptions, SceneError> {
+    Ok(PerturbOptions {
+        flip_invalid_normals: p.bool("flip_invalid_normals", true)?,
+        use_shadowing_function: p.bool("use_shadowing_function", true)?,
+    })
 }
 
 /// Mitsuba's conductor logic: explicit `eta`/`k` (defaults 0 and 1) when

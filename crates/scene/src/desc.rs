@@ -109,6 +109,11 @@ pub struct Features {
     pub environment: bool,
     /// At least one analytic (non-triangle) shape: sphere or disk.
     pub analytic_shapes: bool,
+    /// At least one surface light passes straight through (`mask`, `null`): shadow rays
+    /// carry a transmittance and paths step through such surfaces.
+    pub pass_through: bool,
+    /// At least one shading normal is perturbed by a texture (`bumpmap`, `normalmap`).
+    pub perturbed_normals: bool,
 }
 
 /// Integrator choice and its parameters (Mitsuba's meaning of each).
@@ -573,6 +578,31 @@ pub enum BsdfDesc {
         front: usize,
         back: usize,
     },
+    /// Mitsuba's `mask`: the nested BSDF (an index into `SceneDesc::bsdfs`) where the surface
+    /// is opaque, and light passes straight through with probability `1 - opacity` (the
+    /// opacity texture's luminance, clamped to [0, 1]).
+    Mask {
+        opacity: TexRef,
+        nested: usize,
+    },
+    /// Mitsuba's `null`: the surface does not scatter; light passes straight through.
+    Null,
+    /// Mitsuba's `bumpmap`: the nested BSDF under the shading normal that the height field
+    /// `height` (a texture index; its luminance times `scale`) perturbs.
+    BumpMap {
+        height: usize,
+        scale: f32,
+        nested: usize,
+        normals: PerturbOptions,
+    },
+    /// Mitsuba's `normalmap`: the nested BSDF under the shading normal the texture
+    /// `normals_texture` gives (`2 rgb - 1`, in the tangent frame of the surface's `u`
+    /// direction).
+    NormalMap {
+        normals_texture: usize,
+        nested: usize,
+        normals: PerturbOptions,
+    },
     Conductor {
         eta: Vec3,
         k: Vec3,
@@ -619,6 +649,16 @@ pub enum BsdfDesc {
         specular_reflectance: TexRef,
         nonlinear: bool,
     },
+}
+
+/// The options Mitsuba's `bumpmap` and `normalmap` share.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PerturbOptions {
+    /// Mirror a perturbed normal that faces away from the incident direction (default on).
+    pub flip_invalid_normals: bool,
+    /// Attenuate the BSDF by the microfacet shadowing term of Estevez et al. (2019) against
+    /// the bump terminator (default on).
+    pub use_shadowing_function: bool,
 }
 
 /// A shape with its material and optional area emitter.

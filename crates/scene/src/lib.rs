@@ -341,6 +341,22 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
                 stack.extend([*front, *back]);
                 continue;
             }
+            BsdfDesc::Null => {
+                f.pass_through = true;
+                continue;
+            }
+            BsdfDesc::Mask { opacity, nested } => {
+                f.pass_through = true;
+                f.textures |= tex(opacity);
+                stack.push(*nested);
+                continue;
+            }
+            BsdfDesc::BumpMap { nested, .. } | BsdfDesc::NormalMap { nested, .. } => {
+                f.perturbed_normals = true;
+                f.textures = true;
+                stack.push(*nested);
+                continue;
+            }
             BsdfDesc::Conductor {
                 specular_reflectance: r,
                 ..
@@ -379,7 +395,12 @@ fn features(shapes: &[ShapeDesc], bsdfs: &[BsdfDesc], emitters: &[EmitterDesc]) 
         f.transmission |= transmits;
         // The specular lobe: a microfacet one in the rough variants, a delta one otherwise.
         match bsdf {
-            BsdfDesc::Diffuse { .. } | BsdfDesc::TwoSided { .. } => {}
+            BsdfDesc::Diffuse { .. }
+            | BsdfDesc::TwoSided { .. }
+            | BsdfDesc::Mask { .. }
+            | BsdfDesc::Null
+            | BsdfDesc::BumpMap { .. }
+            | BsdfDesc::NormalMap { .. } => {}
             BsdfDesc::RoughConductor { .. }
             | BsdfDesc::RoughDielectric { .. }
             | BsdfDesc::RoughPlastic { .. } => f.microfacets = true,

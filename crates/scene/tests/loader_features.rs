@@ -1054,3 +1054,75 @@ fn a_corrupt_radiance_hdr_file_is_an_error_naming_it() {
         &["sky.hdr", "cannot decode image"],
     );
 }
+
+#[test]
+fn mask_null_bumpmap_and_normalmap_wrap_their_nested_bsdf_with_mitsuba_defaults() {
+    let dir = temp_dir("wrappers");
+    write_png_grey(&dir.join("h.png"));
+    let (path, _) = write_scene_in(
+        &dir,
+        r#"<shape type="cube"><bsdf type="mask"><bsdf type="diffuse"/></bsdf></shape>
+<shape type="cube"><bsdf type="null"/></shape>
+<shape type="cube"><bsdf type="bumpmap">
+  <texture type="bitmap"><string name="filename" value="h.png"/><boolean name="raw" value="true"/></texture>
+  <float name="scale" value="2"/><bsdf type="diffuse"/></bsdf></shape>
+<shape type="cube"><bsdf type="normalmap">
+  <texture type="bitmap" name="normalmap"><string name="filename" value="h.png"/></texture>
+  <boolean name="use_shadowing_function" value="false"/><bsdf type="diffuse"/></bsdf></shape>"#,
+    );
+    let s = load_scene(&path, &[]).unwrap();
+    let b = |i: usize| &s.bsdfs[s.shapes[i].bsdf];
+    let BsdfDesc::Mask { opacity, nested } = b(0) else {
+        panic!("{:?}", b(0))
+    };
+    assert_eq!(*opacity, TexRef::Const(Vec3::splat(0.5)));
+    assert!(matches!(s.bsdfs[*nested], BsdfDesc::Diffuse { .. }));
+    assert_eq!(*b(1), BsdfDesc::Null);
+    let BsdfDesc::BumpMap { scale, normals, .. } = b(2) else {
+        panic!("{:?}", b(2))
+    };
+    assert_eq!(*scale, 2.0);
+    assert!(normals.flip_invalid_normals && normals.use_shadowing_function);
+    let BsdfDesc::NormalMap { normals, .. } = b(3) else {
+        panic!("{:?}", b(3))
+    };
+    assert!(normals.flip_invalid_normals && !normals.use_shadowing_function);
+    assert!(s.features.pass_through && s.features.perturbed_normals && s.features.textures);
+}
+
+#[test]
+fn wrappers_without_their_nested_bsdf_or_texture_are_errors_at_their_line() {
+    for (body, needle) in [
+        (r#"<bsdf type="mask" id="m"/>"#, "exactly one nested bsdf"),
+        (
+            r#"<bsdf type="bumpmap" id="m"><bsdf type="diffuse"/></bsdf>"#,
+            "nested texture",
+        ),
+        (
+            r#"<bsdf type="normalmap" id="m"><bsdf type="diffuse"/></bsdf>"#,
+            "'normalmap' texture",
+        ),
+        (
+            r#"<bsdf type="mask" id="m"><bsdf type="diffuse"/><bsdf type="diffuse"/></bsdf>"#,
+            "found 2",
+        ),
+    ] {
+        let xml = scene(&format!(
+            "{body}\n<shape type=\"cube\"><ref id=\"m\"/></shape>"
+        ));
+        let p = write_scene("wrapper-errors", &xml);
+        let e = load_scene(&p, &[]).unwrap_err();
+        assert_invalid_at(
+            &e,
+            &p,
+            line_of(&xml, "id=\"m\"/>").min(line_of(&xml, body)),
+            &[needle],
+        );
+    }
+}
+
+/// A 2x2 grey PNG.
+fn write_png_grey(path: &std::path::Path) {
+    let img = image::GrayImage::from_raw(2, 2, vec![0, 64, 128, 255]).unwrap();
+    img.save(path).unwrap();
+}

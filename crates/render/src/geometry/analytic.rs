@@ -138,6 +138,24 @@ impl Analytic {
         }
     }
 
+    /// `(dp/du, dp/dv)` at point `p` of a sphere (Mitsuba's parameterisation: `u` the
+    /// longitude, `v` the colatitude); `None` for other shapes and at the poles.
+    pub fn uv_tangents(&self, p: Vec3) -> Option<(Vec3, Vec3)> {
+        let Analytic::Sphere { center, .. } = self else {
+            return None;
+        };
+        let d = p - *center;
+        let r_xy = (d.x * d.x + d.y * d.y).sqrt();
+        if r_xy <= 0.0 || r_xy.is_nan() {
+            return None;
+        }
+        let (cos_phi, sin_phi) = (d.x / r_xy, d.y / r_xy);
+        let pi = std::f32::consts::PI;
+        let dp_du = Vec3::new(-d.y, d.x, 0.0) * (2.0 * pi);
+        let dp_dv = Vec3::new(d.z * cos_phi, d.z * sin_phi, -r_xy) * pi;
+        Some((dp_du, dp_dv))
+    }
+
     /// (geometric normal, shading normal, uv) at point `p` on the surface.
     pub fn shade(&self, p: Vec3) -> (Vec3, Vec3, Vec2) {
         match self {

@@ -97,6 +97,24 @@ pub fn shade(mesh: &TriangleMesh, tri: usize, bc: Vec2, pre: &TriShade) -> (Vec3
     (ng, ns, uv)
 }
 
+/// `(dp/du, dp/dv)` of triangle `tri` from its vertex uvs (Mitsuba's formula); `None`
+/// without uvs or when the uvs are degenerate.
+pub fn uv_tangents(mesh: &TriangleMesh, tri: usize) -> Option<(Vec3, Vec3)> {
+    let uvs = mesh.uvs.as_ref()?;
+    let [i0, i1, i2] = mesh.indices[tri].map(|i| i as usize);
+    let (p0, p1, p2) = (mesh.positions[i0], mesh.positions[i1], mesh.positions[i2]);
+    let (duv10, duv20) = (uvs[i1] - uvs[i0], uvs[i2] - uvs[i0]);
+    let det = duv10.x * duv20.y - duv10.y * duv20.x;
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let (dp0, dp1) = (p1 - p0, p2 - p0);
+    let inv = 1.0 / det;
+    let dp_du = (dp0 * duv20.y - dp1 * duv10.y) * inv;
+    let dp_dv = (dp1 * duv10.x - dp0 * duv20.x) * inv;
+    (dp_du.is_finite() && dp_dv.is_finite()).then_some((dp_du, dp_dv))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -129,5 +147,37 @@ mod tests {
                 .dot((b - a).cross(c - a).normalize())
                 > 0.9999
         );
+    }
+
+    #[test]
+    fn uv_tangents_map_uv_steps_to_the_triangle_edges() {
+        let mesh = TriangleMesh {
+            positions: vec![
+                Vec3::new(0.0, 0.0, 0.0),
+                Vec3::new(2.0, 0.3, 0.1),
+                Vec3::new(-0.4, 1.5, 0.7),
+            ],
+            uvs: Some(vec![
+                Vec2::new(0.1, 0.2),
+                Vec2::new(0.6, 0.25),
+                Vec2::new(0.2, 0.9),
+            ]),
+            indices: vec![[0, 1, 2]],
+            ..Default::default()
+        };
+        let (du, dv) = uv_tangents(&mesh, 0).unwrap();
+        let uvs = mesh.uvs.as_ref().unwrap();
+        for k in [1, 2] {
+            let duv = uvs[k] - uvs[0];
+            let edge = mesh.positions[k] - mesh.positions[0];
+            assert!((du * duv.x + dv * duv.y - edge).length() < 1e-5, "edge {k}");
+        }
+        let flat = TriangleMesh {
+            uvs: Some(vec![Vec2::ZERO; 3]),
+            ..mesh.clone()
+        };
+        assert!(uv_tangents(&flat, 0).is_none(), "degenerate uvs");
+        let bare = TriangleMesh { uvs: None, ..mesh };
+        assert!(uv_tangents(&bare, 0).is_none(), "no uvs");
     }
 }

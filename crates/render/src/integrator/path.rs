@@ -10,13 +10,14 @@
 //! `ANALYTIC`: analytic shapes exist) so a scene pays nothing for what it lacks.
 
 use glam::Vec3;
-use pathfarm_bsdf::{Bsdf, BsdfSample, Frame};
+use pathfarm_bsdf::{BsdfSample, Frame};
 
 use super::{camera_hit, depth_limit, emission_mis, light_mis, mitsuba_survival};
 use crate::geometry::{spawn_ray, Hit, Ray};
 use crate::light::LightSample;
 use crate::rng::Rng;
-use crate::scene::Scene;
+use crate::scene::{Scene, MAX_PASSES};
+use crate::shading::ShadedBsdf;
 
 /// Radiance along the camera ray `ray`, one path at a time: each bounce's light
 /// sample is tested and added at once.
@@ -31,7 +32,15 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, ray: Ray, rng: &
         return Vec3::ZERO;
     };
     lane.hit = hit;
-    while let Some(sh) = surface::<ENV>(scene, &mut lane, max_depth) {
+    loop {
+        let Some(sh) = surface::<ENV>(scene, &mut lane, max_depth, rng) else {
+            if !lane.alive {
+                break;
+            }
+            // Stepped through a mask or null surface: the same segment goes on.
+            lane.hit = accel.intersect::<ANALYTIC>(&lane.ray);
+            continue;
+        };
         let (u_select, u) = (rng.next_f32(), rng.next_2d());
         if sh.bsdf.flags().smooth {
             if let Some(ls) = lights.sample(accel, sh.p, u_select, u) {
@@ -39,8 +48,9 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, ray: Ray, rng: &
             }
         }
         if let Some((shadow, contribution)) = lane.shadow.take() {
-            if accel.unoccluded::<ANALYTIC>(&shadow) {
-                lane.result += contribution;
+            let t = scene.transmittance::<ANALYTIC>(&shadow);
+            if t > 0.0 {
+                lane.result += contribution * t;
             }
         }
         let (u_lobe, u) = (rng.next_f32(), rng.next_2d());
@@ -75,6 +85,8 @@ pub(super) struct Lane {
     pub alive: bool,
     /// `ray` is the camera ray (Mitsuba's `hide_emitters` applies to its hits).
     pub camera: bool,
+    /// Surfaces this segment has passed straight through (see [`crate::scene::MAX_PASSES`]).
+    pub passes: u32,
 }
 
 impl Lane {
@@ -94,6 +106,7 @@ impl Lane {
             shadow: None,
             alive: true,
             camera: true,
+            passes: 0,
         }
     }
 }
@@ -103,7 +116,7 @@ impl Lane {
 pub(super) struct Shading<'a> {
     pub p: Vec3,
     pub ng: Vec3,
-    pub bsdf: Bsdf<'a>,
+    pub bsdf: ShadedBsdf<'a>,
     pub frame: Frame,
     /// Direction towards the previous vertex, in the shading frame.
     pub wi: Vec3,
@@ -113,12 +126,16 @@ pub(super) struct Shading<'a> {
 
 /// The surface the lane's ray found: emission (MIS-weighted against the previous
 /// BSDF sample), then the BSDF to scatter with, unless the path ends here (escaped,
-/// or at the depth limit). Clears `lane.alive`; [`scatter`] sets it again.
+/// or at the depth limit) or steps straight through a `mask` or `null` surface (`None`
+/// with `lane.alive` set and `lane.ray` the continued segment: not a bounce, so the depth
+/// and the previous vertex, which the next emission's MIS weight refers to, stay). Clears
+/// `lane.alive`; [`scatter`] sets it again.
 #[inline(always)]
 pub(super) fn surface<'a, const ENV: bool>(
     scene: &'a Scene,
     lane: &mut Lane,
     max_depth: u32,
+    rng: &mut Rng,
 ) -> Option<Shading<'a>> {
     let lights = &scene.lights;
     lane.alive = false;
@@ -146,6 +163,15 @@ pub(super) fn surface<'a, const ENV: bool>(
         }
     }
 
+    if passes_through(scene.pass_probability(&si), rng) {
+        lane.passes += 1;
+        if lane.passes <= MAX_PASSES {
+            lane.ray = spawn_ray(si.p, si.ng, ray.d, scene.accel.offset_floor());
+            lane.alive = true;
+        }
+        return None;
+    }
+    lane.passes = 0;
     if lane.depth + 1 >= max_depth {
         return None;
     }
@@ -159,6 +185,13 @@ pub(super) fn surface<'a, const ENV: bool>(
         wi,
         offset_floor: scene.accel.offset_floor(),
     })
+}
+
+/// Whether a path meeting a surface that it passes through with probability `pass` does so
+/// (a random number is drawn only for a partly opaque surface).
+#[inline(always)]
+pub(super) fn passes_through(pass: f32, rng: &mut Rng) -> bool {
+    pass > 0.0 && (pass >= 1.0 || rng.next_f32() < pass)
 }
 
 /// Next-event estimation with light sample `ls`: its MIS-weighted contribution and

@@ -27,6 +27,7 @@ use crate::light::LightSample;
 use crate::render::{CameraSample, Estimator};
 use crate::rng::Rng;
 use crate::scene::Scene;
+use crate::shading::ShadedBsdf;
 
 /// Paths in flight per batch: enough lanes to overlap, few enough that their
 /// state stays in the first-level cache.
@@ -147,7 +148,7 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
             shading.extend(
                 lanes
                     .iter_mut()
-                    .map(|lane| surface::<ENV>(scene, lane, max_depth)),
+                    .map(|lane| surface::<ENV>(scene, lane, max_depth, &mut rngs[lane.k])),
             );
             // Next-event estimation: the random numbers, then all light samples at
             // once, then each one's BSDF value and MIS weight.
@@ -180,7 +181,10 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
                     let rng = &mut rngs[lane.k];
                     let (u_lobe, u) = (rng.next_f32(), rng.next_2d());
                     match sh.bsdf {
-                        Bsdf::Diffuse(d) => {
+                        ShadedBsdf {
+                            model: Bsdf::Diffuse(d),
+                            bump: None,
+                        } => {
                             diffuse_lanes.push(i);
                             diffuse_queries.push((d.reflectance, sh.wi.z, u));
                         }
@@ -205,9 +209,14 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
             accel.unoccluded_many::<ANALYTIC>(rays, clear);
             let mut next = clear.iter();
             for lane in lanes.iter_mut() {
-                if let Some((_, contribution)) = lane.shadow.take() {
+                if let Some((shadow, contribution)) = lane.shadow.take() {
                     if *next.next().expect("one answer per shadow ray") {
                         lane.result += contribution;
+                    } else if scene.features.pass_through {
+                        let t = scene.transmittance_through::<ANALYTIC>(&shadow);
+                        if t > 0.0 {
+                            lane.result += contribution * t;
+                        }
                     }
                 }
             }

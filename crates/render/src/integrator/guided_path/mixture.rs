@@ -148,7 +148,7 @@ impl VertexGuide {
     pub fn pdf(
         &self,
         tree: &SdTree,
-        bsdf: &Bsdf,
+        bsdf: &ShadedBsdf,
         wi: Vec3,
         wo: Vec3,
         wo_world: Vec3,
@@ -194,11 +194,11 @@ pub struct MixtureSample {
 /// Relative IOR of the crossing from local `wi` to `wo` (1 for reflection). Only the rough
 /// dielectric has smooth transmission, so only it can get a guide-sampled refraction.
 #[inline]
-pub(super) fn crossing_eta(bsdf: &Bsdf, wi: Vec3, wo: Vec3) -> f32 {
+pub(super) fn crossing_eta(bsdf: &ShadedBsdf, wi: Vec3, wo: Vec3) -> f32 {
     if wi.z * wo.z >= 0.0 {
         return 1.0;
     }
-    match bsdf {
+    match bsdf.model {
         Bsdf::RoughDielectric(b) => {
             if wi.z > 0.0 {
                 b.eta
@@ -219,7 +219,7 @@ pub(super) fn bsdf_at_outlined<'s>(
     scene: &'s Scene,
     si: &crate::geometry::SurfaceInteraction,
     d: Vec3,
-) -> (Bsdf<'s>, Frame) {
+) -> (ShadedBsdf<'s>, Frame) {
     scene.bsdf_at(si, d)
 }
 
@@ -231,7 +231,7 @@ pub(super) fn bsdf_at_outlined<'s>(
 pub(super) fn sample_mixture_into(
     tree: &SdTree,
     g: &VertexGuide,
-    bsdf: &Bsdf,
+    bsdf: &ShadedBsdf,
     frame: &Frame,
     wi: Vec3,
     rng: &mut Rng,
@@ -247,7 +247,7 @@ pub(super) fn sample_mixture_into(
 pub fn sample_mixture(
     tree: &SdTree,
     g: &VertexGuide,
-    bsdf: &Bsdf,
+    bsdf: &ShadedBsdf,
     frame: &Frame,
     wi: Vec3,
     rng: &mut Rng,

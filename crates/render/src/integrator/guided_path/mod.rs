@@ -50,7 +50,8 @@ use crate::counter::ShardedCounter;
 use crate::geometry::{spawn_ray, Ray};
 use crate::rng::Rng;
 use crate::sampling::power_heuristic;
-use crate::scene::Scene;
+use crate::scene::{Scene, MAX_PASSES};
+use crate::shading::ShadedBsdf;
 
 mod mixture;
 mod recorder;
@@ -118,7 +119,7 @@ pub struct GuideCtx<'a> {
 #[derive(Clone, Copy)]
 struct Vertex<'s> {
     si: crate::geometry::SurfaceInteraction,
-    bsdf: Bsdf<'s>,
+    bsdf: ShadedBsdf<'s>,
     frame: Frame,
     wi: Vec3,
     smooth: bool,
@@ -284,21 +285,38 @@ impl<'a> GuidedPath<'a> {
         out: &mut Option<Vertex<'a>>,
     ) -> bool {
         let (scene, lights) = (self.scene, &self.scene.lights);
-        let Some(h) = hit else {
-            if ENV {
-                let le = lights.environment_radiance(ray.d);
-                self.emitted(le, || lights.environment_pdf(ray.d));
+        let (mut ray, mut hit) = (*ray, hit);
+        let mut passes = 0;
+        let si = loop {
+            let Some(h) = hit else {
+                if ENV {
+                    let le = lights.environment_radiance(ray.d);
+                    self.emitted(le, || lights.environment_pdf(ray.d));
+                }
+                return false;
+            };
+            let si = scene.accel.interaction(&ray, &h);
+            if let Some(light) = scene.shape_light[si.shape as usize] {
+                let le = lights.area_radiance(light, si.ns, -ray.d);
+                if le != Vec3::ZERO {
+                    let prev_p = self.prev_p;
+                    self.emitted(le, || lights.area_pdf(light, prev_p, si.p, si.ns));
+                }
             }
-            return false;
+            // A mask or null surface the path steps through is not a vertex: the segment
+            // goes on, and the previous vertex stays what emission MIS and recording see.
+            if !super::path::passes_through(scene.pass_probability(&si), rng) {
+                break si;
+            }
+            passes += 1;
+            if passes > MAX_PASSES {
+                return false;
+            }
+            ray = spawn_ray(si.p, si.ng, ray.d, scene.accel.offset_floor());
+            hit = scene.accel.intersect::<ANALYTIC>(&ray);
+            self.rays += 1;
         };
-        let si = scene.accel.interaction(ray, &h);
-        if let Some(light) = scene.shape_light[si.shape as usize] {
-            let le = lights.area_radiance(light, si.ns, -ray.d);
-            if le != Vec3::ZERO {
-                let prev_p = self.prev_p;
-                self.emitted(le, || lights.area_pdf(light, prev_p, si.p, si.ns));
-            }
-        }
+        let ray = &ray;
         if self.depth + 1 >= self.max_depth {
             return false;
         }
@@ -355,7 +373,7 @@ impl<'a> GuidedPath<'a> {
     fn next_event<const ANALYTIC: bool>(
         &mut self,
         si: &crate::geometry::SurfaceInteraction,
-        bsdf: &Bsdf,
+        bsdf: &ShadedBsdf,
         frame: &Frame,
         wi: Vec3,
         vg: &mut VertexGuide,
@@ -387,9 +405,13 @@ impl<'a> GuidedPath<'a> {
                 if f != Vec3::ZERO {
                     let shadow = ls.shadow_ray(si.p, si.ng, accel.offset_floor());
                     self.rays += 1;
-                    if accel.unoccluded::<ANALYTIC>(&shadow) {
+                    let transmitted = self.scene.transmittance::<ANALYTIC>(&shadow);
+                    if transmitted > 0.0 {
+                        // The light's MIS weight, times what reaches it through mask and null
+                        // surfaces (exactly 1 without them).
                         w_light =
-                            light_mis(ls.delta, n, ls.pdf, || vg.pdf(tree, bsdf, wi, wo, ls.wi).0);
+                            light_mis(ls.delta, n, ls.pdf, || vg.pdf(tree, bsdf, wi, wo, ls.wi).0)
+                                * transmitted;
                         let c = self.throughput * f * ls.value * (w_light / (n * ls.pdf));
                         self.result += c;
                         if g.record {

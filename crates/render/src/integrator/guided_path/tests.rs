@@ -163,10 +163,13 @@ fn nee_and_hit_weights_partition_unity_with_the_same_mixture_pdf() {
                 ..VertexGuide::at(&tree, Vec3::ZERO, region)
             };
             for _ in 0..2000 {
-                let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else {
+                let Some(ms) =
+                    sample_mixture(&tree, &vg, &ShadedBsdf::plain(bsdf), &frame, wi, &mut rng)
+                else {
                     continue;
                 };
-                let (p_nee, p_b, p_g) = vg.pdf(&tree, &bsdf, wi, ms.wo, ms.wo_world);
+                let (p_nee, p_b, p_g) =
+                    vg.pdf(&tree, &ShadedBsdf::plain(bsdf), wi, ms.wo, ms.wo_world);
                 assert!(
                     (p_nee - ms.p_mix).abs() <= 1e-5 * ms.p_mix,
                     "{p_nee} vs {}",
@@ -250,7 +253,7 @@ fn mixture_sampling_is_unbiased_for_a_diffuse_bsdf() {
         let n = 200_000;
         let (mut s, mut s2) = (0.0f64, 0.0f64);
         for _ in 0..n {
-            let w = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng)
+            let w = sample_mixture(&tree, &vg, &ShadedBsdf::plain(bsdf), &frame, wi, &mut rng)
                 .map_or(0.0, |m| m.weight.x as f64);
             s += w;
             s2 += w * w;
@@ -277,7 +280,9 @@ fn roulette_reads_the_unrestricted_guide_pdf_back_from_a_restricted_sample() {
             let region = guide_region(hemisphere, cosine, bsdf.flags(), &frame, wi);
             let vg = VertexGuide::at(&tree, Vec3::ZERO, region);
             for _ in 0..2000 {
-                let Some(ms) = sample_mixture(&tree, &vg, &bsdf, &frame, wi, &mut rng) else {
+                let Some(ms) =
+                    sample_mixture(&tree, &vg, &ShadedBsdf::plain(bsdf), &frame, wi, &mut rng)
+                else {
                     continue;
                 };
                 let got = unrestricted_guide_pdf(&vg.region, &ms);
