@@ -13,7 +13,7 @@ use glam::Vec3;
 use pathfarm_bsdf::{BsdfSample, Frame};
 
 use super::{camera_hit, depth_limit, emission_mis, light_mis, mitsuba_survival};
-use crate::geometry::{spawn_ray, Hit, Ray};
+use crate::geometry::{spawn_ray, Hit, Ray, SurfaceInteraction};
 use crate::light::LightSample;
 use crate::rng::Rng;
 use crate::scene::{Scene, MAX_PASSES};
@@ -163,15 +163,9 @@ pub(super) fn surface<'a, const ENV: bool>(
         }
     }
 
-    if passes_through(scene.pass_probability(&si), rng) {
-        lane.passes += 1;
-        if lane.passes <= MAX_PASSES {
-            lane.ray = spawn_ray(si.p, si.ng, ray.d, scene.accel.offset_floor());
-            lane.alive = true;
-        }
+    if scene.features.pass_through && stepped_through(scene, lane, &si, rng) {
         return None;
     }
-    lane.passes = 0;
     if lane.depth + 1 >= max_depth {
         return None;
     }
@@ -185,6 +179,23 @@ pub(super) fn surface<'a, const ENV: bool>(
         wi,
         offset_floor: scene.accel.offset_floor(),
     })
+}
+
+/// In a scene with `mask` or `null` surfaces: whether the lane steps through the surface at
+/// `si` (its ray then continues beyond it, unless it has passed [`MAX_PASSES`] surfaces in
+/// this segment, which ends the path). Out of line: scenes without such surfaces never call it.
+#[inline(never)]
+fn stepped_through(scene: &Scene, lane: &mut Lane, si: &SurfaceInteraction, rng: &mut Rng) -> bool {
+    if !passes_through(scene.pass_probability(si), rng) {
+        lane.passes = 0;
+        return false;
+    }
+    lane.passes += 1;
+    if lane.passes <= MAX_PASSES {
+        lane.ray = spawn_ray(si.p, si.ng, lane.ray.d, scene.accel.offset_floor());
+        lane.alive = true;
+    }
+    true
 }
 
 /// Whether a path meeting a surface that it passes through with probability `pass` does so
