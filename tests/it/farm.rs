@@ -2,6 +2,7 @@
 //! `pathfarm submit`, against `pathfarm render` of the same job. Every process is killed
 //! and reaped when its guard drops (also when a test fails), every wait is bounded.
 
+use std::collections::BTreeSet;
 use std::fs;
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
@@ -398,6 +399,52 @@ fn three_worker_cluster_renders_bit_identical_to_render() {
         let left: Vec<_> = fs::read_dir(&bundles).unwrap().collect();
         assert!(left.is_empty(), "{}: {left:?}", bundles.display());
     }
+}
+
+/// Four jobs of one scene (seeds 1 to 4) submitted together to two workers: the coordinator
+/// interleaves their tiles, and each worker builds the scene once and serves every job from
+/// it (the jobs share it: same bundle and settings, seed aside); every image is the one
+/// `pathfarm render` gives for its seed.
+#[test]
+fn workers_serving_several_jobs_at_once_build_each_scene_once_and_every_image_is_exact() {
+    let farm = Farm::start("several", 2);
+    let seeds = [1u64, 2, 3, 4];
+    let spp = 16;
+    let refs: Vec<Vec<u8>> = (seeds.iter())
+        .map(|&s| render_reference_seeded(&farm.data, spp, s))
+        .collect();
+    let outs: Vec<PathBuf> = (seeds.iter())
+        .map(|s| farm.data.join(format!("several-{s}.exr")))
+        .collect();
+    let runs: Vec<Running> = (seeds.iter().zip(&outs))
+        .map(|(&s, out)| submit_seeded(&farm, spp, s, out, &[]))
+        .collect();
+    for run in runs {
+        wait_for_job(run, &farm);
+    }
+    for (out, reference) in outs.iter().zip(&refs) {
+        assert_same_exr(out, reference, &farm);
+    }
+    let mut jobs_served = 0;
+    for (i, w) in farm.workers.iter().enumerate() {
+        let log = w.stderr_text();
+        let builds = log.matches("built ahead in").count() + log.matches("scene built in").count();
+        assert!(
+            builds <= 1,
+            "worker {i} built the scene {builds} times:\n{}",
+            farm.logs()
+        );
+        let served: BTreeSet<&str> = (log.lines())
+            .filter(|l| l.contains(": rendered unit"))
+            .filter_map(|l| l.split("(job ").nth(1)?.split(')').next())
+            .collect();
+        jobs_served += served.len();
+    }
+    assert!(
+        jobs_served > seeds.len(),
+        "a worker served more than one job ({jobs_served} job-worker pairs)\n{}",
+        farm.logs()
+    );
 }
 
 #[test]

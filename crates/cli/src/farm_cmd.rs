@@ -95,6 +95,10 @@ pub struct WorkerArgs {
     /// ~/.cache, /pathfarm-worker-PID).
     #[arg(long = "cache", value_name = "DIR")]
     pub cache: Option<PathBuf>,
+    /// Memory the built scenes of the jobs this worker serves may take together, in MiB
+    /// (the least recently used scenes go beyond it; one scene is always kept).
+    #[arg(long, value_name = "MIB", default_value_t = pathfarm_farm::worker::scenes::DEFAULT_BUDGET_BYTES >> 20)]
+    pub scene_cache_mib: u64,
 }
 
 /// Coordinator connection flags shared by the client subcommands.
@@ -397,6 +401,7 @@ pub fn worker(args: WorkerArgs) -> Result<()> {
         threads,
         name: args.name.unwrap_or_default(),
         cache_dir: args.cache.unwrap_or_else(default_cache),
+        scene_cache_bytes: args.scene_cache_mib.saturating_mul(1 << 20),
     };
     let rt = runtime()?;
     let r = rt.block_on(async move {

@@ -52,6 +52,9 @@ pub struct Scene {
     pub seed: u64,
     /// Number of triangles over all meshes (for reports and memory estimates).
     pub triangle_count: usize,
+    /// The bytes of the scene's meshes and textures (its description's
+    /// [`SceneDesc::data_bytes`]); with the BVH, [`Scene::memory_bytes`].
+    data_bytes: u64,
     /// The resource limits the scene was loaded with (the renderer checks its own
     /// allocations against them).
     pub limits: Limits,
@@ -222,6 +225,7 @@ impl Scene {
             sample_count: desc.sensor.sample_count,
             seed: desc.sensor.seed,
             triangle_count,
+            data_bytes: desc.data_bytes(),
             limits: desc.limits.clone(),
         })
     }
@@ -232,6 +236,12 @@ impl Scene {
     pub fn bsdf_at(&self, si: &SurfaceInteraction, ray_d: glam::Vec3) -> (ShadedBsdf<'_>, Frame) {
         let m = &self.materials[self.shape_material[si.shape as usize] as usize];
         m.bsdf(&self.textures, si, ray_d, || self.accel.uv_tangents(si))
+    }
+
+    /// What the scene holds in memory, an upper estimate: its meshes, textures and BVH (what a
+    /// worker's scene cache budgets).
+    pub fn memory_bytes(&self) -> u64 {
+        self.data_bytes + self.triangle_count as u64 * BVH_BYTES_PER_TRIANGLE
     }
 
     /// The probability that a path meeting the surface at `si` passes straight through it

@@ -32,6 +32,7 @@ use crate::codec;
 
 mod prefetch;
 mod records;
+pub mod scenes;
 mod upload;
 
 pub use upload::MAX_JOINT_TILES;
@@ -51,6 +52,9 @@ pub struct WorkerConfig {
     pub name: String,
     /// Blob, bundle and scratch cache.
     pub cache_dir: PathBuf,
+    /// The memory the built scenes of the jobs this worker serves may take together
+    /// ([`scenes::DEFAULT_BUDGET_BYTES`] by default); the least recently used go beyond it.
+    pub scene_cache_bytes: u64,
 }
 
 /// Why a worker stopped with an error.
@@ -90,8 +94,9 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
     let shared = Arc::new(Shared {
         cache_dir: cfg.cache_dir.clone(),
         pool,
-        caches: Mutex::new(Caches::default()),
+        caches: Mutex::new(Caches::new(cfg.scene_cache_bytes)),
         tmp_counter: AtomicU64::new(0),
+        scene_builds: AtomicU64::new(0),
     });
     tokio::pin!(shutdown);
     let mut stop = false;
@@ -161,6 +166,8 @@ struct Shared {
     pool: rayon::ThreadPool,
     caches: Mutex<Caches>,
     tmp_counter: AtomicU64,
+    /// Scenes built since the worker started (for leases or ahead).
+    scene_builds: AtomicU64,
 }
 
 /// A job's built scene.
@@ -178,12 +185,13 @@ struct JobTree {
     recording: Option<u64>,
 }
 
-#[derive(Default)]
 struct Caches {
-    /// Built scenes, most recently used last (at most 2).
-    scenes: Vec<(String, Arc<JobScene>)>,
-    /// One tree per job.
+    /// Built scenes within the memory budget, shared by the jobs of one scene.
+    scenes: scenes::SceneCache,
+    /// One tree per job, at most [`JOB_TREES`].
     trees: HashMap<String, JobTree>,
+    /// The jobs of `trees`, most recently used last.
+    tree_order: Vec<String>,
     /// One estimate per job: its digest and values.
     estimates: HashMap<String, (Vec<u8>, Arc<Vec<f32>>)>,
     /// The pass inputs (trees, fractions, estimates) fetched last, most recently used last
@@ -197,6 +205,54 @@ struct Caches {
 
 const INPUT_CACHE: usize = 4;
 
+/// Trees kept for this many jobs (the most recently used): a worker serving several jobs at
+/// once keeps each one's tree version instead of fetching it again when it comes back to
+/// the job.
+const JOB_TREES: usize = 8;
+
+impl Caches {
+    fn new(scene_budget: u64) -> Self {
+        Self {
+            scenes: scenes::SceneCache::new(scene_budget),
+            trees: HashMap::new(),
+            tree_order: Vec::new(),
+            estimates: HashMap::new(),
+            inputs: Vec::new(),
+            prefetched: None,
+        }
+    }
+
+    /// Keeps `jt` as `job`'s tree, dropping the least recently used trees (and estimates)
+    /// of other jobs beyond [`JOB_TREES`], except trees holding records not yet uploaded.
+    fn keep_tree(&mut self, job: &str, jt: JobTree) {
+        self.trees.insert(job.to_string(), jt);
+        self.tree_order.retain(|j| j != job);
+        self.tree_order.push(job.to_string());
+        while self.tree_order.len() > JOB_TREES {
+            let Some(i) = (self.tree_order.iter())
+                .position(|j| self.trees.get(j).is_none_or(|t| t.recording.is_none()))
+            else {
+                break;
+            };
+            let old = self.tree_order.remove(i);
+            self.trees.remove(&old);
+            self.estimates.remove(&old);
+        }
+    }
+
+    /// Keeps `js` as the scene of `key` and `job`; the jobs whose scenes the budget pushed
+    /// out lose their trees and estimates too (unless a tree holds records not yet uploaded).
+    fn keep_scene(&mut self, key: prefetch::SceneKey, job: &str, js: Arc<JobScene>) {
+        for old in self.scenes.insert(key, job, js) {
+            if self.trees.get(&old).is_none_or(|t| t.recording.is_none()) {
+                self.trees.remove(&old);
+                self.tree_order.retain(|j| j != &old);
+            }
+            self.estimates.remove(&old);
+        }
+    }
+}
+
 /// The value of `key` in a most-recently-used-last list, moved to the end (most recent).
 fn most_recent<K: PartialEq, V: Clone>(list: &mut Vec<(K, V)>, key: &K) -> Option<V> {
     let i = list.iter().position(|(k, _)| k == key)?;
@@ -205,8 +261,6 @@ fn most_recent<K: PartialEq, V: Clone>(list: &mut Vec<(K, V)>, key: &K) -> Optio
     list.push(e);
     Some(v)
 }
-
-const SCENE_CACHE: usize = 2;
 
 /// The outcome of rendering one lease.
 enum LeaseEnd {
@@ -791,6 +845,8 @@ async fn do_lease(
 struct Prepared {
     lease: v1::Lease,
     manifest: Manifest,
+    /// The scene's cache key: its bundle and settings, seed aside.
+    scene_key: prefetch::SceneKey,
     tree_blob: Option<Arc<Vec<u8>>>,
     fractions_blob: Option<Arc<Vec<u8>>>,
     estimate_blob: Option<Arc<Vec<u8>>>,
@@ -898,15 +954,15 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
     let manifest = manifest_of(&bundle)?;
     let job = &lease.job_id;
     let caches = || shared.caches.lock().expect("cache lock");
-    let mut have_scene = caches().scenes.iter().any(|(j, _)| j == job);
+    let scene_key = prefetch::scene_key(&bundle, lease.settings.as_ref());
+    let mut have_scene = caches().scenes.get(&scene_key, job).is_some();
     if !have_scene {
-        let key = prefetch::scene_key(&bundle, lease.settings.as_ref());
-        if let Some(js) = prefetch::take(shared, &key).await {
+        if let Some(js) = prefetch::take(shared, &scene_key).await {
             tracing::info!(
                 "lease {} (job {job}): its scene was built ahead",
                 lease.lease_id
             );
-            cache_scene(&mut caches(), job, js);
+            caches().keep_scene(scene_key, job, js);
             have_scene = true;
         }
     }
@@ -926,6 +982,7 @@ async fn prepare(shared: &Shared, api: &mut Api, lease: &v1::Lease) -> Result<Pr
     Ok(Prepared {
         lease: lease.clone(),
         manifest,
+        scene_key,
         tree_blob,
         fractions_blob,
         estimate_blob,
@@ -947,13 +1004,16 @@ fn job_dir_name(job: &str) -> String {
     }
 }
 
-/// The lease's job's scene: from the cache, or built and cached.
+/// The lease's job's scene: from the cache (built for this job or another job of the same
+/// scene), or built and cached.
 fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> {
     let job = &p.lease.job_id;
-    let cached = most_recent(&mut shared.caches.lock().expect("cache lock").scenes, job);
+    let caches = || shared.caches.lock().expect("cache lock");
+    let cached = caches().scenes.get(&p.scene_key, job);
     let js = match cached {
         Some(js) => js,
         None => {
+            let t0 = Instant::now();
             let settings = p.lease.settings.as_ref();
             let js = Arc::new(build_scene(
                 shared,
@@ -961,10 +1021,11 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
                 settings,
                 &job_dir_name(job),
             )?);
-            cache_scene(
-                &mut shared.caches.lock().expect("cache lock"),
-                job,
-                js.clone(),
+            caches().keep_scene(p.scene_key, job, js.clone());
+            tracing::info!(
+                "job {job}: scene built in {:.3} s ({} scene builds by this worker)",
+                t0.elapsed().as_secs_f64(),
+                shared.scene_builds.load(Ordering::Relaxed)
             );
             js
         }
@@ -978,17 +1039,6 @@ fn load_job_scene(shared: &Shared, p: &Prepared) -> Result<Arc<JobScene>, Fail> 
         }
     }
     Ok(js)
-}
-
-/// Keeps `js` as `job`'s scene, dropping the least recently used beyond [`SCENE_CACHE`]
-/// with their jobs' trees and estimates.
-fn cache_scene(c: &mut Caches, job: &str, js: Arc<JobScene>) {
-    c.scenes.push((job.to_string(), js));
-    while c.scenes.len() > SCENE_CACHE {
-        let (old, _) = c.scenes.remove(0);
-        c.trees.remove(&old);
-        c.estimates.remove(&old);
-    }
 }
 
 /// Builds the scene of `manifest` with `settings` (integrator, defines, resolution; not the
@@ -1006,6 +1056,7 @@ fn build_scene(
             .map_err(|e| retryable(format!("{}: {e}", dest.display())))?;
     }
     let cache = shared.cache_dir.clone();
+    shared.scene_builds.fetch_add(1, Ordering::Relaxed);
     let built = bundle::materialize(manifest, |d| blob_path(&cache, d), &dest)
         .map_err(|e| retryable(format!("materialising the bundle: {e}")))
         .and_then(|_| build_in(&dest, manifest, settings));
@@ -1180,8 +1231,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
         .caches
         .lock()
         .expect("cache lock")
-        .trees
-        .insert(job.clone(), jt);
+        .keep_tree(&job, jt);
     let pixels = codec::encode_tile_pixels(&out.pixels);
     let pixels_digest = blake3::hash(&pixels).as_bytes().to_vec();
     let serialize_seconds = serialize_start.elapsed().as_secs_f64();

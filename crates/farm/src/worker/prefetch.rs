@@ -26,7 +26,7 @@ pub(super) const PREFETCH_KEEP: Duration = Duration::from_secs(60);
 
 /// What a scene is built from: a digest of the bundle and the scene settings, seed unset.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
-pub(super) struct SceneKey([u8; 32]);
+pub(super) struct SceneKey(pub(super) [u8; 32]);
 
 /// The scene built (`Ok`), or why it could not be (`Err`); `None` while being built (the
 /// builder holds the lock until it is done, so a lease waiting for it waits for the build).
