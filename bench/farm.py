@@ -16,6 +16,12 @@ Each repetition runs, one after the other (order alternating between repetitions
     means 10 ms of added round-trip time; 0 means the proxy without delay, its own cost).
 Every farm image must be byte-identical to the render's (the script fails otherwise).
 
+Many-jobs mode (`--jobs N`): each repetition renders N jobs of the scene (seeds seed to
+seed+N-1) one after another with `pathfarm render --threads W*T`, and submits the same N jobs
+together to a coordinator with W workers (`submit --wait` each, all at once); it reports the
+wall times (all N jobs), their ratio, the CPU seconds of the renders against the workers'
+and the coordinator's, and the scene builds each worker logged.
+
 Reported: the median wall time of each, the farm/render ratio per repetition, the peak
 resident memory of the render, the coordinator and a worker (VmHWM / ru_maxrss), and per
 training iteration (medians over repetitions of the coordinator's `unit finished` lines,
@@ -317,7 +323,11 @@ def main():
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "pathfarm"))
     ap.add_argument("--out", default=os.path.join(HERE, "results", "farm.md"))
     ap.add_argument("--json", default=None, help="also write every measurement here")
+    ap.add_argument("--jobs", type=int, default=0,
+                    help="many-jobs mode: N jobs at once against N renders one after another")
     a = ap.parse_args()
+    if a.jobs > 0:
+        return many_jobs(a)
     delays = [int(x) for x in a.delays.split(",") if x.strip()]
     threads = a.workers * a.threads_per_worker
     tmp = tempfile.mkdtemp(prefix="pathfarm-farm-bench-")
@@ -362,6 +372,129 @@ def main():
         report(a, runs, threads)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def cpu_seconds(ru):
+    return ru.ru_utime + ru.ru_stime
+
+
+def many_jobs_sequential(a, tmp, seeds, threads):
+    """N renders one after another: (wall, CPU seconds, images)."""
+    t0, cpu, images = time.monotonic(), 0.0, []
+    for seed in seeds:
+        out = os.path.join(tmp, f"render-{seed}.exr")
+        b = argparse.Namespace(**vars(a))
+        b.seed = seed
+        p = subprocess.Popen([a.binary, "render"] + job_flags(b) + ["--threads", str(threads), "--no-png",
+                              "-o", out], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        err = p.stderr.read()
+        _, status, ru = os.wait4(p.pid, 0)
+        if os.waitstatus_to_exitcode(status) != 0:
+            raise SystemExit(f"render failed:\n{err[-4000:]}")
+        cpu += cpu_seconds(ru)
+        images.append(open(out, "rb").read())
+    return time.monotonic() - t0, cpu, images
+
+
+def many_jobs_farm(a, tmp, seeds):
+    """A coordinator, W workers and N `submit --wait` at once: (wall, worker CPU s,
+    coordinator CPU s, images, scene builds per worker)."""
+    data = tempfile.mkdtemp(prefix="farm-jobs-", dir=tmp)
+    port = free_port()
+    env = dict(os.environ, PATHFARM_TOKEN=TOKEN, RUST_LOG="info")
+    coord = subprocess.Popen([a.binary, "coordinator", "--listen", f"127.0.0.1:{port}", "--data",
+                              os.path.join(data, "coordinator")], stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL, env=env)
+    workers, logs = [], []
+    try:
+        for _ in range(200):
+            try:
+                socket.create_connection(("127.0.0.1", port), 0.1).close()
+                break
+            except OSError:
+                time.sleep(0.05)
+        for i in range(a.workers):
+            path = os.path.join(data, f"worker-{i}.log")
+            logs.append(path)
+            workers.append(subprocess.Popen(
+                [a.binary, "worker", "--coordinator", f"http://127.0.0.1:{port}", "--threads",
+                 str(a.threads_per_worker), "--cache", os.path.join(data, f"cache-{i}")],
+                stdout=subprocess.DEVNULL, stderr=open(path, "w"), env=env))
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        subs = []
+        for seed in seeds:
+            b = argparse.Namespace(**vars(a))
+            b.seed = seed
+            out = os.path.join(data, f"farm-{seed}.exr")
+            subs.append((out, subprocess.Popen([a.binary, "submit"] + job_flags(b) + [
+                "--coordinator", f"http://127.0.0.1:{port}", "--wait", "-o", out],
+                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)))
+        for out, p in subs:
+            err = p.stderr.read()
+            if p.wait() != 0:
+                raise SystemExit(f"submit failed:\n{err[-4000:]}")
+        wall = time.monotonic() - t0
+        images = [open(out, "rb").read() for out, _ in subs]
+    finally:
+        worker_cpu, coord_cpu = 0.0, 0.0
+        for p in workers + [coord]:
+            p.terminate()
+            try:
+                _, _, ru = os.wait4(p.pid, 0)
+            except ChildProcessError:
+                continue
+            if p is coord:
+                coord_cpu = cpu_seconds(ru)
+            else:
+                worker_cpu += cpu_seconds(ru)
+    builds = []
+    for path in logs:
+        text = open(path).read()
+        builds.append(text.count("built ahead in") + text.count("scene built in"))
+    return wall, worker_cpu, coord_cpu, images, builds
+
+
+def many_jobs(a):
+    threads = a.workers * a.threads_per_worker
+    seeds = list(range(a.seed, a.seed + a.jobs))
+    tmp = tempfile.mkdtemp(prefix="pathfarm-farm-jobs-")
+    rows = []
+    try:
+        for r in range(a.reps):
+            kinds = ["render", "farm"] if r % 2 == 0 else ["farm", "render"]
+            row = {}
+            for kind in kinds:
+                print(f"rep {r + 1}/{a.reps}: {kind}", file=sys.stderr, flush=True)
+                if kind == "render":
+                    row["render"] = many_jobs_sequential(a, tmp, seeds, threads)
+                else:
+                    row["farm"] = many_jobs_farm(a, tmp, seeds)
+            if row["farm"][3] != row["render"][2]:
+                raise SystemExit(f"repetition {r + 1}: a farm image differs from pathfarm render's")
+            rows.append(row)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    lines = [f"# {a.jobs} jobs at once on the farm against one after another in one process",
+             "", f"CPU: {cpu_name()}; {a.scene} {a.res}, {a.spp} spp, guided_path, seeds {seeds[0]}-{seeds[-1]}; "
+             f"farm: {a.workers} workers x {a.threads_per_worker} threads; render: --threads {threads}.",
+             f"Command: `python3 bench/farm.py --jobs {a.jobs} --scene {a.scene} --res {a.res} --spp {a.spp} "
+             f"--reps {a.reps} --workers {a.workers} --threads-per-worker {a.threads_per_worker}`", "",
+             "| rep | renders, one after another (s) | farm, all at once (s) | farm / renders | render CPU s | "
+             "worker CPU s | coordinator CPU s | scene builds per worker |", "|---|---|---|---|---|---|---|---|"]
+    for i, row in enumerate(rows):
+        rw, rc, _ = row["render"]
+        fw, wc, cc, _, builds = row["farm"]
+        lines.append(f"| {i + 1} | {rw:.2f} | {fw:.2f} | {fw / rw:.3f} | {rc:.1f} | {wc:.1f} | {cc:.1f} | "
+                     f"{', '.join(map(str, builds))} |")
+    ratios = [row["farm"][0] / row["render"][0] for row in rows]
+    lines += ["", f"Median farm / renders: **{med(ratios):.3f}**; every farm image equals pathfarm render's."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    out = a.out[:-len("farm.md")] + "farm-jobs.md" if a.out.endswith("farm.md") else a.out
+    os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
+    with open(out, "w") as f:
+        f.write(text)
 
 
 def report(a, runs, threads):

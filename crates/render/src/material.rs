@@ -496,7 +496,9 @@ impl Material {
                 let (side, frame, _) = self.side(si, ray_d, Frame::from_normal(si.ns));
                 (ShadedBsdf::plain(side.bsdf(textures, si.uv)), frame)
             }
-            Some(p) => self.perturbed(p, textures, si, ray_d, tangents()),
+            // `si` by value: a reference escaping into the out-of-line call would keep the
+            // interaction in memory on every hit, perturbed or not.
+            Some(p) => self.perturbed(p, textures, *si, ray_d, tangents()),
         }
     }
 
@@ -508,13 +510,13 @@ impl Material {
         &'a self,
         p: &Perturb,
         textures: &[TextureDesc],
-        si: &SurfaceInteraction,
+        si: SurfaceInteraction,
         ray_d: Vec3,
         tangents: (Vec3, Vec3),
     ) -> (ShadedBsdf<'a>, Frame) {
         let base = Frame::from_normal_tangent(si.ns, tangents.0);
-        let n = p.local_normal(textures, si, &base, tangents);
-        let (side, frame, back) = self.side(si, ray_d, base);
+        let n = p.local_normal(textures, &si, &base, tangents);
+        let (side, frame, back) = self.side(&si, ray_d, base);
         let n = if back { Vec3::new(n.y, n.x, n.z) } else { n };
         let (frame, correction) = p.perturbed_frame(&frame, n, frame.to_local(-ray_d));
         let bsdf = ShadedBsdf {

@@ -163,7 +163,7 @@ pub(super) fn surface<'a, const ENV: bool>(
         }
     }
 
-    if scene.features.pass_through && stepped_through(scene, lane, &si, rng) {
+    if scene.features.pass_through && stepped_through(scene, lane, si, rng) {
         return None;
     }
     if lane.depth + 1 >= max_depth {
@@ -184,9 +184,11 @@ pub(super) fn surface<'a, const ENV: bool>(
 /// In a scene with `mask` or `null` surfaces: whether the lane steps through the surface at
 /// `si` (its ray then continues beyond it, unless it has passed [`MAX_PASSES`] surfaces in
 /// this segment, which ends the path). Out of line: scenes without such surfaces never call it.
+/// `si` by value: a reference escaping into an out-of-line call would keep the interaction in
+/// memory on every hit.
 #[inline(never)]
-fn stepped_through(scene: &Scene, lane: &mut Lane, si: &SurfaceInteraction, rng: &mut Rng) -> bool {
-    if !passes_through(scene.pass_probability(si), rng) {
+fn stepped_through(scene: &Scene, lane: &mut Lane, si: SurfaceInteraction, rng: &mut Rng) -> bool {
+    if !passes_through(scene.pass_probability(&si), rng) {
         lane.passes = 0;
         return false;
     }
