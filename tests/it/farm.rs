@@ -162,6 +162,21 @@ impl Farm {
         self.workers.push(worker);
     }
 
+    /// Waits (at most 30 s) until the coordinator has registered `n` workers (from its log).
+    fn wait_registered(&self, n: usize) {
+        let t0 = Instant::now();
+        let c = self.coordinator.as_ref().expect("a running coordinator");
+        while c.stderr_text().matches("worker registered").count() < n {
+            let late = t0.elapsed() > Duration::from_secs(30);
+            assert!(
+                !late,
+                "{n} workers not registered after 30 s\n{}",
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
     /// Waits (at most 30 s) until the coordinator accepts connections.
     fn wait_listening(&mut self) {
         let t0 = Instant::now();
@@ -373,6 +388,9 @@ fn assert_same_exr(got: &Path, reference: &[u8], farm: &Farm) {
 fn three_worker_cluster_renders_bit_identical_to_render() {
     let mut farm = Farm::start("three", 3);
     let reference = render_reference(&farm.data, 24);
+    // The job must come to a farm whose workers are all there: a worker that registers
+    // later has no scene to build ahead.
+    farm.wait_registered(3);
     let out = farm.data.join("farm.exr");
     submit_ok(&farm, 24, &out, "submit");
     assert_same_exr(&out, &reference, &farm);

@@ -96,3 +96,58 @@ fn unsupported_wrapper_combinations_are_refused_naming_the_scene() {
         "{shown}"
     );
 }
+
+/// A triangle facing the camera (+z) with its vertex normals pointing away, under a constant
+/// sky, as `obj` with `strict_normals` on or off; `flip` gives the normals the triangle's side.
+fn strict_normals_scene(tag: &str, strict: bool, flip: bool) -> Scene {
+    let dir = temp_dir(tag);
+    let n = if flip { "0 0 1" } else { "0 0 -1" };
+    std::fs::write(
+        dir.join("t.obj"),
+        format!("v -2 -2 0\nv 2 -2 0\nv 0 2 0\nvn {n}\nf 1//1 2//1 3//1\n"),
+    )
+    .unwrap();
+    let xml = format!(
+        r#"<scene version="3.0.0">
+<integrator type="path"><boolean name="strict_normals" value="{strict}"/></integrator>
+<sensor type="perspective"><float name="fov" value="30"/>
+  <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
+  <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+  <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+</sensor>
+<emitter type="constant"/>
+<shape type="obj"><string name="filename" value="t.obj"/><bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>
+</scene>"#
+    );
+    let path = dir.join("scene.xml");
+    std::fs::write(&path, xml).unwrap();
+    build_scene(&path, &[])
+}
+
+fn centre_pixel(scene: &Scene) -> f32 {
+    let settings = pathfarm_render::RenderSettings::new(Some(16), None, 1);
+    let film = pathfarm_render::render(scene, &settings, &|_| {}).0;
+    let rgb = film.mean_rgb();
+    rgb[4 * 8 + 4][0]
+}
+
+#[test]
+fn strict_normals_drop_vertices_whose_shading_normal_disagrees_with_the_surface() {
+    // Normals on the triangle's side: strict or not, the same image.
+    let lenient = centre_pixel(&strict_normals_scene("strict-agree-off", false, true));
+    let strict = centre_pixel(&strict_normals_scene("strict-agree-on", true, true));
+    assert!(lenient > 0.1, "the lit triangle: {lenient}");
+    assert_eq!(lenient.to_bits(), strict.to_bits());
+    // Normals reversed: the camera's hit is inconsistent, and strict normals drop it.
+    let lenient = centre_pixel(&strict_normals_scene("strict-flip-off", false, false));
+    let strict = centre_pixel(&strict_normals_scene("strict-flip-on", true, false));
+    assert!(
+        lenient > 0.1,
+        "without strict normals the triangle is lit: {lenient}"
+    );
+    // (Not exactly 0: the Gaussian filter reaches the sky beside the triangle.)
+    assert!(
+        strict < lenient * 1e-4,
+        "with strict normals its vertex is dropped: {strict} against {lenient}"
+    );
+}

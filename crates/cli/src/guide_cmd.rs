@@ -298,7 +298,7 @@ fn scatter(a: ScatterArgs) -> Result<()> {
         bail!("the ray through pixel {},{} hits nothing", px, py);
     };
     let si = scene.accel.interaction(&ray, &hit);
-    let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
+    let (bsdf, frame) = scene.bsdf_at(&si, hit.prim, ray.d);
     let wi = frame.to_local(-ray.d);
     let guide = if bsdf.flags().smooth {
         let region = guide_region(

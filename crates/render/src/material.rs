@@ -12,7 +12,7 @@ use pathfarm_bsdf::{
 use pathfarm_scene::{BsdfDesc, MicrofacetDistribution, Roughness, TexRef, TextureDesc};
 
 use crate::geometry::SurfaceInteraction;
-use crate::shading::{Perturb, ShadedBsdf};
+use crate::shading::{BumpCorrection, Perturb, ShadedBsdf};
 use crate::texture;
 
 /// One side of a material.
@@ -483,6 +483,9 @@ impl Material {
 
     /// The BSDF at hit `si` for a ray travelling along `ray_d`, and its frame; `tangents`
     /// gives the surface's `(dp/du, dp/dv)`, which only a perturbed normal needs.
+    ///
+    /// The model is built in one place for both cases: built in an out-of-line call for the
+    /// perturbed one, the whole returned pair was copied on every hit of every scene.
     #[inline(always)]
     pub fn bsdf<'a>(
         &'a self,
@@ -491,38 +494,39 @@ impl Material {
         ray_d: Vec3,
         tangents: impl FnOnce() -> (Vec3, Vec3),
     ) -> (ShadedBsdf<'a>, Frame) {
-        match &self.perturb {
+        let (side, frame, bump) = match &self.perturb {
             None => {
                 let (side, frame, _) = self.side(si, ray_d, Frame::from_normal(si.ns));
-                (ShadedBsdf::plain(side.bsdf(textures, si.uv)), frame)
+                (side, frame, None)
             }
             // `si` by value: a reference escaping into the out-of-line call would keep the
             // interaction in memory on every hit, perturbed or not.
-            Some(p) => self.perturbed(p, textures, *si, ray_d, tangents()),
-        }
+            Some(p) => {
+                let (side, (frame, bump)) = self.perturbed(p, textures, *si, ray_d, tangents());
+                (side, frame, Some(bump))
+            }
+        };
+        let model = side.bsdf(textures, si.uv);
+        (ShadedBsdf { model, bump }, frame)
     }
 
-    /// [`Material::bsdf`] under a bump or normal map: the perturbed normal is found in the
-    /// unperturbed frame (first axis along `dp/du`, as Mitsuba's), and seen mirrored in the
-    /// surface from a `twosided` back side (Mitsuba's `twosided` around a `bumpmap`).
+    /// The side, frame and bump correction of [`Material::bsdf`] under a bump or normal map:
+    /// the perturbed normal is found in the unperturbed frame (first axis along `dp/du`, as
+    /// Mitsuba's), and seen mirrored in the surface from a `twosided` back side (Mitsuba's
+    /// `twosided` around a `bumpmap`).
     #[inline(never)]
-    fn perturbed<'a>(
-        &'a self,
+    fn perturbed(
+        &self,
         p: &Perturb,
         textures: &[TextureDesc],
         si: SurfaceInteraction,
         ray_d: Vec3,
         tangents: (Vec3, Vec3),
-    ) -> (ShadedBsdf<'a>, Frame) {
+    ) -> (&Side, (Frame, BumpCorrection)) {
         let base = Frame::from_normal_tangent(si.ns, tangents.0);
         let n = p.local_normal(textures, &si, &base, tangents);
         let (side, frame, back) = self.side(&si, ray_d, base);
         let n = if back { Vec3::new(n.y, n.x, n.z) } else { n };
-        let (frame, correction) = p.perturbed_frame(&frame, n, frame.to_local(-ray_d));
-        let bsdf = ShadedBsdf {
-            model: side.bsdf(textures, si.uv),
-            bump: Some(correction),
-        };
-        (bsdf, frame)
+        (side, p.perturbed_frame(&frame, n, frame.to_local(-ray_d)))
     }
 }

@@ -230,12 +230,20 @@ impl Scene {
         })
     }
 
-    /// The BSDF at a hit and the shading frame to evaluate it in; `ray_d` is
-    /// the incoming ray direction (two-sided materials pick their side by it).
+    /// The BSDF at a hit (`si`, on triangle `prim` of its shape) and the shading frame to
+    /// evaluate it in; `ray_d` is the incoming ray direction (two-sided materials pick their
+    /// side by it).
     #[inline(always)]
-    pub fn bsdf_at(&self, si: &SurfaceInteraction, ray_d: glam::Vec3) -> (ShadedBsdf<'_>, Frame) {
+    pub fn bsdf_at(
+        &self,
+        si: &SurfaceInteraction,
+        prim: u32,
+        ray_d: glam::Vec3,
+    ) -> (ShadedBsdf<'_>, Frame) {
         let m = &self.materials[self.shape_material[si.shape as usize] as usize];
-        m.bsdf(&self.textures, si, ray_d, || self.accel.uv_tangents(si))
+        m.bsdf(&self.textures, si, ray_d, || {
+            self.accel.uv_tangents(si, prim)
+        })
     }
 
     /// What the scene holds in memory, an upper estimate: its meshes, textures and BVH (what a

@@ -377,6 +377,10 @@ pub struct PathParams {
     pub rr_depth: u32,
     /// Hide directly visible emitters. Default false.
     pub hide_emitters: bool,
+    /// Mitsuba 0.x's `strictNormals`: a vertex, a light sample or a scattered direction on
+    /// which the shading and the geometric normal disagree about the side is dropped.
+    /// Default false.
+    pub strict_normals: bool,
 }
 
 impl Default for PathParams {
@@ -385,6 +389,7 @@ impl Default for PathParams {
             max_depth: -1,
             rr_depth: 5,
             hide_emitters: false,
+            strict_normals: false,
         }
     }
 }

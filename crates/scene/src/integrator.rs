@@ -30,8 +30,8 @@ pub(crate) fn integrator(ctx: &Ctx, r: &Resolved) -> Result<IntegratorDesc, Scen
 /// `--integrator` keeps of the scene's own (`direct` has no depth of its own).
 pub(crate) fn shared_params(plugin: &str) -> &'static [&'static str] {
     match plugin {
-        "direct" => &["hide_emitters"],
-        _ => &["max_depth", "rr_depth", "hide_emitters"],
+        "direct" => &["hide_emitters", "strict_normals"],
+        _ => &["max_depth", "rr_depth", "hide_emitters", "strict_normals"],
     }
 }
 
@@ -43,6 +43,7 @@ fn path_params(p: &Props) -> Result<PathParams, SceneError> {
         max_depth: p.int_in("max_depth", d.max_depth as i64, -1, i32::MAX as i64)? as i32,
         rr_depth: p.int_in("rr_depth", d.rr_depth as i64, 1, u32::MAX as i64)? as u32,
         hide_emitters: p.bool("hide_emitters", d.hide_emitters)?,
+        strict_normals: p.bool("strict_normals", d.strict_normals)?,
     })
 }
 
@@ -77,6 +78,7 @@ fn direct_params(p: &Props) -> Result<PathParams, SceneError> {
     Ok(PathParams {
         max_depth: 2,
         hide_emitters: p.bool("hide_emitters", false)?,
+        strict_normals: p.bool("strict_normals", false)?,
         ..PathParams::default()
     })
 }

@@ -204,7 +204,8 @@ fn cornell_box_has_eight_shapes_and_an_orange_light() {
         IntegratorDesc::Path(PathParams {
             max_depth: 30,
             rr_depth: 5,
-            hide_emitters: false
+            hide_emitters: false,
+            strict_normals: false,
         })
     );
 }

@@ -503,24 +503,22 @@ impl Accel {
             ns,
             uv,
             shape: hit.shape,
-            prim: hit.prim,
         }
     }
 
-    /// The surface's partial derivatives `(dp/du, dp/dv)` at `si`, in world space, as Mitsuba
+    /// The surface's partial derivatives `(dp/du, dp/dv)` at `si` (on triangle `prim` of its
+    /// shape, [`Hit::prim`]), in world space, as Mitsuba
     /// computes them: from a triangle's vertex uvs, from a sphere's parameterisation, else
     /// (no uvs, a degenerate uv triangle, disks and cylinders) any tangent frame of the
     /// geometric normal. Only bump and normal maps need them, so they are not part of every
     /// interaction.
-    pub fn uv_tangents(&self, si: &SurfaceInteraction) -> (Vec3, Vec3) {
+    pub fn uv_tangents(&self, si: &SurfaceInteraction, prim: u32) -> (Vec3, Vec3) {
         let fallback = || {
             let f = pathfarm_bsdf::Frame::from_normal(si.ng);
             (f.s, f.t)
         };
         match &self.shapes[si.shape as usize] {
-            ShapeGeom::Mesh(m) => {
-                triangle::uv_tangents(m, si.prim as usize).unwrap_or_else(fallback)
-            }
+            ShapeGeom::Mesh(m) => triangle::uv_tangents(m, prim as usize).unwrap_or_else(fallback),
             ShapeGeom::Analytic(a) => a.uv_tangents(si.p).unwrap_or_else(fallback),
         }
     }

@@ -56,9 +56,6 @@ pub struct SurfaceInteraction {
     pub uv: Vec2,
     /// Index of the hit shape in the scene description.
     pub shape: u32,
-    /// Triangle index within the shape (0 for analytic shapes): what
-    /// [`Accel::uv_tangents`] needs.
-    pub prim: u32,
 }
 
 /// Offset scale for spawned rays: relative to the magnitude of the point, so

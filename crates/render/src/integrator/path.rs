@@ -44,7 +44,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, ray: Ray, rng: &
         let (u_select, u) = (rng.next_f32(), rng.next_2d());
         if sh.bsdf.flags().smooth {
             if let Some(ls) = lights.sample(accel, sh.p, u_select, u) {
-                next_event(&mut lane, &sh, &ls);
+                next_event(&mut lane, &sh, &ls, scene.path.strict_normals);
             }
         }
         if let Some((shadow, contribution)) = lane.shadow.take() {
@@ -169,11 +169,21 @@ pub(super) fn surface<'a, const ENV: bool>(
     if lane.depth + 1 >= max_depth {
         return None;
     }
-    let (bsdf, frame) = scene.bsdf_at(&si, ray.d);
+    let (bsdf, frame) = scene.bsdf_at(&si, h.prim, ray.d);
     let wi = frame.to_local(-ray.d);
+    // With strict normals, `ng` is turned to the side of the frame (the flipped one of a
+    // two-sided back): the light and scattered directions are then checked against the frame.
+    // Ray offsets do not depend on its sign.
+    let mut ng = si.ng;
+    if scene.path.strict_normals {
+        if !same_side(si.ng, si.ns, -ray.d) {
+            return None;
+        }
+        ng = side_normal(si.ng, si.ns, &frame);
+    }
     Some(Shading {
         p: si.p,
-        ng: si.ng,
+        ng,
         bsdf,
         frame,
         wi,
@@ -200,6 +210,31 @@ fn stepped_through(scene: &Scene, lane: &mut Lane, si: SurfaceInteraction, rng: 
     true
 }
 
+/// Mitsuba 0.x's `strictNormals` test: the geometric normal `ng` and the shading normal `ns`
+/// put the direction `w` on the same side.
+#[inline(always)]
+pub(super) fn same_side(ng: glam::Vec3, ns: glam::Vec3, w: glam::Vec3) -> bool {
+    ng.dot(w) * ns.dot(w) > 0.0
+}
+
+/// `ng` turned to the side of `frame`, whose normal is the shading normal `ns` or (seen from
+/// a two-sided back) its opposite: [`in_frame_side`] is then [`same_side`] for any frame.
+#[inline(always)]
+pub(super) fn side_normal(ng: glam::Vec3, ns: glam::Vec3, frame: &Frame) -> glam::Vec3 {
+    if frame.n.dot(ns) < 0.0 {
+        -ng
+    } else {
+        ng
+    }
+}
+
+/// [`same_side`] for the direction `world`, given in the frame as `local`, with `ng` from
+/// [`side_normal`].
+#[inline(always)]
+pub(super) fn in_frame_side(ng: glam::Vec3, world: glam::Vec3, local: glam::Vec3) -> bool {
+    ng.dot(world) * local.z > 0.0
+}
+
 /// Whether a path meeting a surface that it passes through with probability `pass` does so
 /// (a random number is drawn only for a partly opaque surface).
 #[inline(always)]
@@ -210,8 +245,11 @@ pub(super) fn passes_through(pass: f32, rng: &mut Rng) -> bool {
 /// Next-event estimation with light sample `ls`: its MIS-weighted contribution and
 /// the shadow ray that decides it (`lane.shadow`, for the caller to test).
 #[inline(always)]
-pub(super) fn next_event(lane: &mut Lane, sh: &Shading<'_>, ls: &LightSample) {
+pub(super) fn next_event(lane: &mut Lane, sh: &Shading<'_>, ls: &LightSample, strict: bool) {
     let wo = sh.frame.to_local(ls.wi);
+    if strict && !in_frame_side(sh.ng, ls.wi, wo) {
+        return;
+    }
     let f = sh.bsdf.eval(sh.wi, wo);
     if f != Vec3::ZERO {
         let w = light_mis(ls.delta, 1.0, ls.pdf, || sh.bsdf.pdf(sh.wi, wo));
@@ -235,6 +273,10 @@ pub(super) fn scatter(
     let Some(bs) = bs else {
         return;
     };
+    let wo = sh.frame.to_world(bs.wo);
+    if scene.path.strict_normals && !in_frame_side(sh.ng, wo, bs.wo) {
+        return;
+    }
     lane.throughput *= bs.weight;
     lane.eta *= bs.eta;
     lane.prev_p = sh.p;
@@ -253,6 +295,6 @@ pub(super) fn scatter(
     if tp_max <= 0.0 || !tp_max.is_finite() {
         return;
     }
-    lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo), sh.offset_floor);
+    lane.ray = spawn_ray(sh.p, sh.ng, wo, sh.offset_floor);
     lane.alive = true;
 }

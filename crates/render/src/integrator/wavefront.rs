@@ -169,7 +169,7 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
             scene.lights.sample_many(accel, queries, light_samples);
             for (&i, ls) in nee_lanes.iter().zip(light_samples.iter()) {
                 if let (Some(ls), Some(sh)) = (ls, &shading[i]) {
-                    next_event(&mut lanes[i], sh, ls);
+                    next_event(&mut lanes[i], sh, ls, params.strict_normals);
                 }
             }
             // BSDF sampling: the random numbers; diffuse surfaces (the common case)

@@ -218,9 +218,10 @@ pub(super) fn crossing_eta(bsdf: &ShadedBsdf, wi: Vec3, wo: Vec3) -> f32 {
 pub(super) fn bsdf_at_outlined<'s>(
     scene: &'s Scene,
     si: &crate::geometry::SurfaceInteraction,
+    prim: u32,
     d: Vec3,
 ) -> (ShadedBsdf<'s>, Frame) {
-    scene.bsdf_at(si, d)
+    scene.bsdf_at(si, prim, d)
 }
 
 /// [`sample_mixture`] into `out` (false: absorbed, `out` unchanged). The integrator's form:

@@ -45,6 +45,7 @@ use pathfarm_bsdf::frame::Frame;
 use pathfarm_bsdf::{Bsdf, BsdfFlags};
 use pathfarm_guide::{CellMask, CellWeights, LeafHandle, Record, Restriction, SLookup, SdTree};
 
+use super::path::same_side;
 use super::{camera_hit, depth_limit, emission_mis, light_mis, mitsuba_survival};
 use crate::counter::ShardedCounter;
 use crate::geometry::{spawn_ray, Ray};
@@ -287,7 +288,7 @@ impl<'a> GuidedPath<'a> {
         let (scene, lights) = (self.scene, &self.scene.lights);
         let (mut ray, mut hit) = (*ray, hit);
         let mut passes = 0;
-        let si = loop {
+        let (si, prim) = loop {
             let Some(h) = hit else {
                 if ENV {
                     let le = lights.environment_radiance(ray.d);
@@ -306,7 +307,7 @@ impl<'a> GuidedPath<'a> {
             // A mask or null surface the path steps through is not a vertex: the segment
             // goes on, and the previous vertex stays what emission MIS and recording see.
             if !super::path::passes_through(scene.pass_probability(&si), rng) {
-                break si;
+                break (si, h.prim);
             }
             passes += 1;
             if passes > MAX_PASSES {
@@ -320,8 +321,11 @@ impl<'a> GuidedPath<'a> {
         if self.depth + 1 >= self.max_depth {
             return false;
         }
-        let (bsdf, frame) = bsdf_at_outlined(scene, &si, ray.d);
+        let (bsdf, frame) = bsdf_at_outlined(scene, &si, prim, ray.d);
         let wi = frame.to_local(-ray.d);
+        if scene.path.strict_normals && !same_side(si.ng, si.ns, -ray.d) {
+            return false;
+        }
         let flags = bsdf.flags();
         // The leaf's payload is requested now and read after the light sample, so that its
         // cache misses overlap the light sampling.
@@ -400,7 +404,12 @@ impl<'a> GuidedPath<'a> {
             let mut value = 0.0f32;
             if let Some(ls) = ls {
                 let wo = frame.to_local(ls.wi);
-                let f = bsdf.eval(wi, wo);
+                let strict = self.scene.path.strict_normals;
+                let f = if strict && !same_side(si.ng, si.ns, ls.wi) {
+                    Vec3::ZERO
+                } else {
+                    bsdf.eval(wi, wo)
+                };
                 let mut w_light = 0.0;
                 if f != Vec3::ZERO {
                     let shadow = ls.shadow_ray(si.p, si.ng, accel.offset_floor());
@@ -497,6 +506,9 @@ impl<'a> GuidedPath<'a> {
         let (si, vg) = (&v.si, &v.vg);
         let mut ms = MixtureSample::default();
         if !sample_mixture_into(self.g.tree, vg, &v.bsdf, &v.frame, v.wi, rng, &mut ms) {
+            return false;
+        }
+        if self.scene.path.strict_normals && !same_side(si.ng, si.ns, ms.wo_world) {
             return false;
         }
         self.throughput *= ms.weight;
