@@ -174,13 +174,11 @@ pub(super) fn surface<'a, const ENV: bool>(
     // With strict normals, `ng` is turned to the side of the frame (the flipped one of a
     // two-sided back): the light and scattered directions are then checked against the frame.
     // Ray offsets do not depend on its sign.
-    let mut ng = si.ng;
-    if scene.path.strict_normals {
-        if !same_side(si.ng, si.ns, -ray.d) {
-            return None;
-        }
-        ng = side_normal(si.ng, si.ns, &frame);
-    }
+    let ng = if scene.path.strict_normals {
+        strict_side_normal(si.ng, si.ns, frame.n, ray.d)?
+    } else {
+        si.ng
+    };
     Some(Shading {
         p: si.p,
         ng,
@@ -217,11 +215,23 @@ pub(super) fn same_side(ng: glam::Vec3, ns: glam::Vec3, w: glam::Vec3) -> bool {
     ng.dot(w) * ns.dot(w) > 0.0
 }
 
-/// `ng` turned to the side of `frame`, whose normal is the shading normal `ns` or (seen from
-/// a two-sided back) its opposite: [`in_frame_side`] is then [`same_side`] for any frame.
+/// With strict normals: `None` if the ray along `ray_d` arrives on different sides of `ng`
+/// and `ns`, else [`side_normal`]. Out of line: other scenes never call it.
+#[inline(never)]
+fn strict_side_normal(
+    ng: glam::Vec3,
+    ns: glam::Vec3,
+    frame_n: glam::Vec3,
+    ray_d: glam::Vec3,
+) -> Option<glam::Vec3> {
+    same_side(ng, ns, -ray_d).then(|| side_normal(ng, ns, frame_n))
+}
+
+/// `ng` turned to the side of a frame whose normal `frame_n` is the shading normal `ns` or
+/// (seen from a two-sided back) its opposite: [`in_frame_side`] is then [`same_side`] for any frame.
 #[inline(always)]
-pub(super) fn side_normal(ng: glam::Vec3, ns: glam::Vec3, frame: &Frame) -> glam::Vec3 {
-    if frame.n.dot(ns) < 0.0 {
+pub(super) fn side_normal(ng: glam::Vec3, ns: glam::Vec3, frame_n: glam::Vec3) -> glam::Vec3 {
+    if frame_n.dot(ns) < 0.0 {
         -ng
     } else {
         ng
@@ -273,8 +283,7 @@ pub(super) fn scatter(
     let Some(bs) = bs else {
         return;
     };
-    let wo = sh.frame.to_world(bs.wo);
-    if scene.path.strict_normals && !in_frame_side(sh.ng, wo, bs.wo) {
+    if scene.path.strict_normals && !in_frame_side(sh.ng, sh.frame.to_world(bs.wo), bs.wo) {
         return;
     }
     lane.throughput *= bs.weight;
@@ -295,6 +304,6 @@ pub(super) fn scatter(
     if tp_max <= 0.0 || !tp_max.is_finite() {
         return;
     }
-    lane.ray = spawn_ray(sh.p, sh.ng, wo, sh.offset_floor);
+    lane.ray = spawn_ray(sh.p, sh.ng, sh.frame.to_world(bs.wo), sh.offset_floor);
     lane.alive = true;
 }
