@@ -465,6 +465,97 @@ fn workers_serving_several_jobs_at_once_build_each_scene_once_and_every_image_is
     );
 }
 
+/// A batch of frames (door-ajar with the camera moved, sharing its mesh): `pathfarm submit
+/// DIR --wait -o OUT` submits every `*.xml` in DIR as a frame, uploads the shared mesh once,
+/// writes each frame's EXR, equal to `pathfarm render`'s, and `pathfarm status` shows the
+/// batch.
+#[test]
+fn a_batch_of_frames_is_submitted_together_and_every_frame_is_exact() {
+    let farm = Farm::start("batch", 2);
+    let frames = farm.data.join("shot-7");
+    fs::create_dir_all(&frames).unwrap();
+    let src = project_scene("door-ajar");
+    let dir = src.parent().unwrap();
+    fs::copy(dir.join("icosphere.obj"), frames.join("icosphere.obj")).unwrap();
+    let xml = fs::read_to_string(&src).unwrap();
+    let origin = r#"origin="0.4, 1.3, 3.6""#;
+    assert!(xml.contains(origin));
+    let (spp, seed) = (16, 5);
+    let defines = ["integrator=guided_path", "resx=40", "resy=24"];
+    let mut refs = Vec::new();
+    for (i, x) in ["0.4", "0.5", "0.6"].iter().enumerate() {
+        let frame = frames.join(format!("frame-{}.xml", i + 1));
+        fs::write(
+            &frame,
+            xml.replace(origin, &format!(r#"origin="{x}, 1.3, 3.6""#)),
+        )
+        .unwrap();
+        let out = farm.data.join(format!("ref-{}.exr", i + 1));
+        let mut args: Vec<String> = vec!["render".into(), path_str(&frame).into()];
+        for d in defines {
+            args.extend(["-D".into(), d.into()]);
+        }
+        args.extend(
+            [
+                "--spp",
+                &spp.to_string(),
+                "--seed",
+                &seed.to_string(),
+                "--no-png",
+                "-o",
+            ]
+            .map(String::from),
+        );
+        args.push(path_str(&out).into());
+        let r = Running::start(&as_strs(&args), &[]).wait(Duration::from_secs(300));
+        assert!(r.status.success(), "render: {}", r.describe());
+        refs.push(fs::read(&out).unwrap());
+    }
+    assert_ne!(refs[0], refs[1], "the frames differ");
+    let out = farm.data.join("shot-7-out");
+    let mut args: Vec<String> = vec!["submit".into(), path_str(&frames).into()];
+    for d in defines {
+        args.extend(["-D".into(), d.into()]);
+    }
+    args.extend(["--spp", &spp.to_string(), "--seed", &seed.to_string()].map(String::from));
+    args.extend([
+        "--coordinator".into(),
+        farm.url.clone(),
+        "--tile".into(),
+        "8".into(),
+    ]);
+    args.extend(["--wait".into(), "-o".into(), path_str(&out).into()]);
+    let ended = farm
+        .start_client(&as_strs(&args), &[])
+        .wait(Duration::from_secs(300));
+    assert_submitted(&ended, &farm, "submit of a batch");
+    assert!(
+        ended.stderr.contains("batch shot-7: 3 frames submitted"),
+        "{}",
+        ended.describe()
+    );
+    // The mesh the frames share went up with the first frame only.
+    let uploads: Vec<&str> = (ended.stderr.lines())
+        .filter(|l| l.contains("uploaded") && l.contains("of 2 files"))
+        .collect();
+    assert_eq!(uploads.len(), 3, "{}", ended.describe());
+    assert!(uploads[0].contains("uploaded 2 of 2"), "{uploads:?}");
+    assert!(
+        uploads[1..].iter().all(|l| l.contains("uploaded 1 of 2")),
+        "{uploads:?}"
+    );
+    for (i, reference) in refs.iter().enumerate() {
+        assert_same_exr(&out.join(format!("frame-{}.exr", i + 1)), reference, &farm);
+    }
+    let status = with_token(&["status", "--coordinator", &farm.url]);
+    assert!(status.status.success(), "{}", status.describe());
+    assert!(
+        status.stdout.contains("batch shot-7: 3 frames (3 done)"),
+        "{}",
+        status.describe()
+    );
+}
+
 #[test]
 fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     let mut farm = Farm::start("kill", 2);

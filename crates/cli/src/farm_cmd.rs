@@ -156,16 +156,24 @@ fn parse_resolution(s: &str) -> Result<(u32, u32), String> {
 
 #[derive(Args)]
 pub struct SubmitArgs {
-    /// The Mitsuba 3 XML scene.
-    pub scene: PathBuf,
+    /// The Mitsuba 3 XML scene; or several, the frames of a batch (each a job): files, or
+    /// directories whose `*.xml` files are the frames, in name order. Files the frames share
+    /// are uploaded once.
+    #[arg(required = true, num_args = 1..)]
+    pub scenes: Vec<PathBuf>,
     #[command(flatten)]
     pub conn: ConnArgs,
-    /// Wait for the job to finish (with a progress bar).
+    /// Wait for the job (every frame of a batch) to finish (with a progress bar).
     #[arg(long)]
     pub wait: bool,
-    /// With --wait: write the result here (EXR, plus a PNG preview beside it).
+    /// With --wait: write the result here (EXR, plus a PNG preview beside it); for a batch,
+    /// a directory that gets each frame's EXR and PNG, named after its scene file.
     #[arg(short, long)]
     pub output: Option<PathBuf>,
+    /// The batch's name, which `pathfarm status` groups its frames by (default, for more
+    /// than one frame: the first frame's directory name).
+    #[arg(long)]
+    pub batch: Option<String>,
     #[command(flatten)]
     pub job: JobArgs,
     /// Scheduling priority (higher first).
@@ -458,6 +466,7 @@ fn job_options(
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default(),
+        batch: String::new(),
     })
 }
 
@@ -546,24 +555,45 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
     if args.output.is_some() && !args.wait {
         bail!("-o/--output needs --wait (or use `pathfarm fetch JOB -o OUT.exr` later)");
     }
-    let opts = job_options(&args.job, &args.scene, args.tile, args.priority)?;
+    let frames = batch_frames(&args.scenes)?;
+    let batch = match (&args.batch, frames.len()) {
+        (Some(b), _) => b.clone(),
+        (None, 1) => String::new(),
+        (None, _) => default_batch_name(&frames[0]),
+    };
+    let outputs = frame_outputs(&frames, args.output.as_deref())?;
+    let mut opts = Vec::with_capacity(frames.len());
+    for frame in &frames {
+        let mut o = job_options(&args.job, frame, args.tile, args.priority)?;
+        o.batch = batch.clone();
+        opts.push(o);
+    }
     let rt = runtime()?;
     rt.block_on(async move {
         let mut signals = Signals::new()?;
-        let outs = match &args.output {
-            Some(o) => Some(open_outputs(o)?),
-            None => None,
-        };
+        let mut outs = Vec::new();
+        for o in &outputs {
+            outs.push(o.as_deref().map(open_outputs).transpose()?);
+        }
         let work = async {
             let mut client = client::connect(&args.conn.remote()?).await?;
-            let job = client.submit(&args.scene, &opts).await?;
-            println!("{job}");
+            let mut jobs = Vec::with_capacity(frames.len());
+            for (frame, o) in frames.iter().zip(&opts) {
+                let job = client.submit(frame, o).await?;
+                println!("{job}");
+                jobs.push(job);
+            }
+            if !batch.is_empty() {
+                eprintln!("batch {batch}: {} frames submitted", jobs.len());
+            }
             if args.wait {
-                let status = wait_for(&mut client, &job).await?;
-                if let Some(outs) = outs {
-                    write_results(&mut client, &job, outs).await?;
+                for (job, outs) in jobs.iter().zip(outs) {
+                    let status = wait_for(&mut client, job).await?;
+                    if let Some(outs) = outs {
+                        write_results(&mut client, job, outs).await?;
+                    }
+                    print_summary(&status);
                 }
-                print_summary(&status);
             }
             anyhow::Ok(())
         };
@@ -572,6 +602,125 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
             _ = signals.recv() => bail!("interrupted"),
         }
     })
+}
+
+/// The scene files of `paths`: each file as given, each directory's `*.xml` files in name
+/// order.
+fn batch_frames(paths: &[PathBuf]) -> Result<Vec<PathBuf>> {
+    let mut frames = Vec::new();
+    for p in paths {
+        if !p.is_dir() {
+            frames.push(p.clone());
+            continue;
+        }
+        let mut xml: Vec<PathBuf> = std::fs::read_dir(p)
+            .with_context(|| format!("{}: reading the directory", p.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|f| f.is_file() && f.extension().is_some_and(|x| x.eq_ignore_ascii_case("xml")))
+            .collect();
+        if xml.is_empty() {
+            bail!("{}: no .xml scene files in the directory", p.display());
+        }
+        xml.sort();
+        frames.extend(xml);
+    }
+    Ok(frames)
+}
+
+/// A batch's default name: its first frame's directory.
+fn default_batch_name(first: &Path) -> String {
+    let dir = std::path::absolute(first).ok().and_then(|p| {
+        p.parent()
+            .and_then(|d| d.file_name())
+            .map(|n| n.to_os_string())
+    });
+    dir.map_or_else(|| "batch".into(), |n| n.to_string_lossy().into_owned())
+}
+
+/// Where each frame's result goes: `output` itself for one frame; for several, the
+/// directory `output` (created) with an EXR per frame named after its scene file (after its
+/// directory and file where two files share a name).
+fn frame_outputs(frames: &[PathBuf], output: Option<&Path>) -> Result<Vec<Option<PathBuf>>> {
+    let Some(out) = output else {
+        return Ok(vec![None; frames.len()]);
+    };
+    if frames.len() == 1 {
+        return Ok(vec![Some(out.to_path_buf())]);
+    }
+    if out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("exr"))
+    {
+        bail!(
+            "{}: a batch of {} frames writes into a directory, not one .exr file",
+            out.display(),
+            frames.len()
+        );
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("{}: creating it", out.display()))?;
+    let stem = |f: &Path| {
+        f.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    let stems: Vec<String> = frames.iter().map(|f| stem(f)).collect();
+    let mut names = Vec::with_capacity(frames.len());
+    for (f, s) in frames.iter().zip(&stems) {
+        let unique = stems.iter().filter(|t| *t == s).count() == 1;
+        let name = if unique {
+            s.clone()
+        } else {
+            let parent = std::path::absolute(f)
+                .ok()
+                .and_then(|p| {
+                    p.parent()
+                        .and_then(|d| d.file_name())
+                        .map(|n| n.to_string_lossy().into_owned())
+                })
+                .unwrap_or_default();
+            format!("{parent}-{s}")
+        };
+        if names.contains(&name) {
+            bail!("two frames would both write {name}.exr: name the scene files apart");
+        }
+        names.push(name);
+    }
+    Ok(names
+        .into_iter()
+        .map(|n| Some(out.join(format!("{n}.exr"))))
+        .collect())
+}
+
+/// A line per batch of frames among `jobs` (in the order of their first frame): how many
+/// frames are in each state.
+fn print_batches(jobs: &[v1::JobStatus]) {
+    let mut batches: Vec<(&str, Vec<&v1::JobStatus>)> = Vec::new();
+    for s in jobs.iter().filter(|s| !s.batch.is_empty()) {
+        match batches.iter_mut().find(|(b, _)| *b == s.batch) {
+            Some((_, frames)) => frames.push(s),
+            None => batches.push((&s.batch, vec![s])),
+        }
+    }
+    if batches.is_empty() {
+        return;
+    }
+    println!();
+    for (batch, frames) in batches {
+        let mut counts: Vec<(&str, usize)> = Vec::new();
+        for s in &frames {
+            let state = state_name(s.state);
+            match counts.iter_mut().find(|(n, _)| *n == state) {
+                Some((_, c)) => *c += 1,
+                None => counts.push((state, 1)),
+            }
+        }
+        let states: Vec<String> = counts.iter().map(|(n, c)| format!("{c} {n}")).collect();
+        println!(
+            "batch {batch}: {} frames ({})",
+            frames.len(),
+            states.join(", ")
+        );
+    }
 }
 
 /// A finished job's summary line, in the form of `pathfarm render`'s.
@@ -654,6 +803,7 @@ pub fn status(args: StatusArgs) -> Result<()> {
         for s in &jobs {
             print_job_row(s);
         }
+        print_batches(&jobs);
         let workers = client.list_workers().await?;
         println!();
         println!(

@@ -252,6 +252,8 @@ pub struct SubmitOptions {
     pub tile_size: Option<u32>,
     pub priority: i32,
     pub name: String,
+    /// The batch the job is a frame of (empty: none).
+    pub batch: String,
 }
 
 /// A connection to the coordinator's `Jobs` service.
@@ -428,6 +430,12 @@ impl Client {
             };
             self.upload_file(&locals[i], &manifest.files[i]).await?;
         }
+        tracing::info!(
+            "{}: uploaded {} of {} files (the coordinator had the others)",
+            manifest.root,
+            missing.len(),
+            manifest.files.len()
+        );
         let (spp, time) = match opts.budget {
             Some(Budget::Spp(n)) => (Some(n), None),
             Some(Budget::Seconds(t)) => (None, Some(t)),
@@ -461,6 +469,7 @@ impl Client {
             }),
             priority: opts.priority,
             name: opts.name.clone(),
+            batch: opts.batch.clone(),
         };
         let r = self.jobs.submit_job(req).await?.into_inner();
         Ok(r.job_id)

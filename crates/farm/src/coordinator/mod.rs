@@ -691,6 +691,9 @@ impl Shared {
         if req.name.len() > 256 {
             return Err(bad("name: more than 256 bytes"));
         }
+        if req.batch.len() > 256 {
+            return Err(bad("batch: more than 256 bytes"));
+        }
         let settings = req.settings.clone().unwrap_or_default();
         let scene_settings = settings.scene.clone().unwrap_or_default();
         let overrides = overrides_of(&scene_settings)?;
@@ -1649,6 +1652,7 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
     let mut s = v1::JobStatus {
         job_id: job_name(n),
         name: request.name.clone(),
+        batch: request.batch.clone(),
         state: r.state,
         iteration: r.iteration,
         samples_done: r.samples_done,
