@@ -101,7 +101,8 @@ fn bumps_agree_with_mitsuba() {
 /// unbiased, so the images agree where guiding meets a black emitter BSDF and scaling
 /// rotations (lamp-room), an environment map's mapping (envmap-sky), a spot light's cone
 /// (spotlight), analytic cylinders (cylinders), instancing (instances), surfaces paths pass
-/// through (cutouts) and perturbed normals (bumps).
+/// through (cutouts), perturbed normals (bumps) and a Mitsuba 0.6 file's features
+/// (legacy-0.6: serialized meshes, includes, spectra).
 #[test]
 fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
     let guided = ["--pf-integrator", "guided_path", "-D", "integrator=path"];
@@ -112,6 +113,7 @@ fn guided_path_agrees_with_mitsuba_on_the_scenes_of_mitsuba_features() {
         "cylinders",
         "instances",
         "bumps",
+        "legacy-0.6",
     ] {
         crosscheck(&project_scene(scene), &guided);
     }
