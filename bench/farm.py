@@ -252,6 +252,16 @@ def proxy_main(port, target, one_way):
     asyncio.run(serve())
 
 
+def wait_listening(port):
+    """Waits (at most 10 s) until something accepts connections on 127.0.0.1:port."""
+    for _ in range(200):
+        try:
+            socket.create_connection(("127.0.0.1", port), 0.1).close()
+            return
+        except OSError:
+            time.sleep(0.05)
+
+
 def run_farm_proxied(a, tmp, delay_ms, tag):
     """Coordinator + workers (through a delaying proxy) + submit --wait; returns wall,
     coordinator log, worker logs, output path."""
@@ -268,12 +278,7 @@ def run_farm_proxied(a, tmp, delay_ms, tag):
         procs.append(subprocess.Popen([a.binary, "coordinator", "--listen", f"127.0.0.1:{port}",
                                        "--data", os.path.join(data, "coordinator")],
                                       stdout=subprocess.DEVNULL, stderr=clog, env=env))
-        for _ in range(200):
-            try:
-                socket.create_connection(("127.0.0.1", port), 0.1).close()
-                break
-            except OSError:
-                time.sleep(0.05)
+        wait_listening(port)
         proxy = DelayProxy(port, delay_ms / 2000.0)
         for i in range(a.workers):
             wlog = open(os.path.join(data, f"worker-{i}.log"), "w+")
@@ -407,12 +412,7 @@ def many_jobs_farm(a, tmp, seeds):
                              stderr=subprocess.DEVNULL, env=env)
     workers, logs = [], []
     try:
-        for _ in range(200):
-            try:
-                socket.create_connection(("127.0.0.1", port), 0.1).close()
-                break
-            except OSError:
-                time.sleep(0.05)
+        wait_listening(port)
         for i in range(a.workers):
             path = os.path.join(data, f"worker-{i}.log")
             logs.append(path)
