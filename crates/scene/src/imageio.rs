@@ -79,6 +79,9 @@ fn image_size(path: &Path) -> Result<(u32, u32), String> {
         let size = header.layer_size;
         return Ok((size.width() as u32, size.height() as u32));
     }
+    if let Some(d) = renamed_radiance(path)? {
+        return Ok(image::ImageDecoder::dimensions(&d));
+    }
     image::ImageReader::open(path)
         .map_err(|e| format!("cannot read: {e}"))?
         .with_guessed_format()
@@ -86,6 +89,35 @@ fn image_size(path: &Path) -> Result<(u32, u32), String> {
         .into_dimensions()
         .map_err(|e| format!("cannot decode image: {e}"))
 }
+
+/// The decoder of a Radiance RGBE file whose signature line names another program than
+/// RADIANCE (Mitsuba writes `#?RGBE`; the format allows any `#?name`), reading it as
+/// `#?RADIANCE`, the only signature the image crate's decoder accepts. `None` for every other
+/// file (only its first line is read).
+fn renamed_radiance(path: &Path) -> Result<Option<RenamedRadiance>, String> {
+    use std::io::{BufRead, Read};
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read: {e}"))?;
+    let mut rest = std::io::BufReader::new(file);
+    let mut first = Vec::new();
+    (&mut rest)
+        .take(256)
+        .read_until(b'\n', &mut first)
+        .map_err(|e| format!("cannot read: {e}"))?;
+    let other = first.starts_with(b"#?") && !first.starts_with(b"#?RADIANCE");
+    if !other || !first.ends_with(b"\n") {
+        return Ok(None);
+    }
+    let renamed = std::io::Cursor::new(&b"#?RADIANCE\n"[..]).chain(rest);
+    image::codecs::hdr::HdrDecoder::new(std::io::BufReader::new(renamed))
+        .map(Some)
+        .map_err(|e| format!("cannot decode image: {e}"))
+}
+
+type RenamedRadiance = image::codecs::hdr::HdrDecoder<
+    std::io::BufReader<
+        std::io::Chain<std::io::Cursor<&'static [u8]>, std::io::BufReader<std::fs::File>>,
+    >,
+>;
 
 fn is_exr(path: &Path) -> bool {
     path.extension()
@@ -123,18 +155,23 @@ fn load_image(path: &Path, raw: bool, max_alloc: u64) -> Result<LoadedImage, Str
 }
 
 fn load_ldr(path: &Path, raw: bool, max_alloc: u64) -> Result<LoadedImage, String> {
-    let reader = image::ImageReader::open(path).map_err(|e| format!("cannot read: {e}"))?;
-    let mut reader = reader
-        .with_guessed_format()
-        .map_err(|e| format!("cannot read: {e}"))?;
     // The size was checked against our limits; the decoder's own default (512 MiB) would
     // refuse a valid 16k x 16k texture.
     let mut limits = image::Limits::no_limits();
     limits.max_alloc = Some(max_alloc);
-    reader.limits(limits);
-    let dynimg = reader
-        .decode()
-        .map_err(|e| format!("cannot decode image: {e}"))?;
+    let decoded = match renamed_radiance(path)? {
+        Some(mut d) => image::ImageDecoder::set_limits(&mut d, limits)
+            .and_then(|_| image::DynamicImage::from_decoder(d)),
+        None => {
+            let reader = image::ImageReader::open(path).map_err(|e| format!("cannot read: {e}"))?;
+            let mut reader = reader
+                .with_guessed_format()
+                .map_err(|e| format!("cannot read: {e}"))?;
+            reader.limits(limits);
+            reader.decode()
+        }
+    };
+    let dynimg = decoded.map_err(|e| format!("cannot decode image: {e}"))?;
     let (width, height) = (dynimg.width(), dynimg.height());
     let conv = |v: f32| if raw { v } else { srgb_to_linear(v) };
     let texels = match &dynimg {

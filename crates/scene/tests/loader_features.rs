@@ -689,6 +689,40 @@ fn radiance_hdr_and_bmp_images_load_the_hdr_as_linear() {
     assert_eq!(texels[0], Vec3::new(2.5, 0.5, 8.0));
 }
 
+/// The Radiance format names the writing program on its first line; Mitsuba writes
+/// `#?RGBE`, and the image crate's decoder knows only `#?RADIANCE`.
+#[test]
+fn radiance_files_signed_by_another_program_load_as_the_same_pixels() {
+    let d = temp_dir("hdr-rgbe");
+    let hdr = image::Rgb32FImage::from_pixel(4, 3, image::Rgb([2.5f32, 0.5, 8.0]));
+    image::DynamicImage::ImageRgb32F(hdr)
+        .save(d.join("radiance.hdr"))
+        .unwrap();
+    let bytes = std::fs::read(d.join("radiance.hdr")).unwrap();
+    assert!(bytes.starts_with(b"#?RADIANCE\n"));
+    let mut rgbe = b"#?RGBE\n".to_vec();
+    rgbe.extend_from_slice(&bytes[b"#?RADIANCE\n".len()..]);
+    std::fs::write(d.join("sky.hdr"), rgbe).unwrap();
+    let body = r#"<emitter type="envmap"><string name="filename" value="sky.hdr"/></emitter>"#;
+    let (p, _) = write_scene_in(&d, body);
+    let s = load_scene(&p, &[]).unwrap();
+    let EmitterDesc::EnvMap {
+        texels,
+        width,
+        height,
+        ..
+    } = &s.emitters[0]
+    else {
+        panic!("not an envmap")
+    };
+    assert_eq!((*width, *height), (4, 3));
+    assert!(texels.iter().all(|t| *t == Vec3::new(2.5, 0.5, 8.0)));
+    // A file that only looks like one is still refused, naming the file.
+    std::fs::write(d.join("sky.hdr"), b"#?RGBE\ngarbage").unwrap();
+    let e = load_scene(&p, &[]).unwrap_err().to_string();
+    assert!(e.contains("sky.hdr"), "{e}");
+}
+
 #[test]
 fn mitsuba_0_6_files_are_upgraded_as_mitsuba_3_does() {
     let d = temp_dir("v06");
