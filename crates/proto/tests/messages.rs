@@ -194,6 +194,7 @@ fn job_and_tile_messages_round_trip() {
         started_unix_ms: 1_767_225_601_000,
         nonfinite: 3,
         blocked_workers: vec!["render-07/gpu: lease 12: pixels: a sum is not finite".into()],
+        batch: "shot-7".into(),
     });
     round_trip(&v1::SubmitJobRequest {
         bundle: Some(v1::Bundle {
@@ -207,6 +208,7 @@ fn job_and_tile_messages_round_trip() {
         }),
         priority: 10,
         name: "quick".into(),
+        batch: "shot-7".into(),
     });
     round_trip(&v1::TileUpload {
         part: Some(tile_upload::Part::Header(v1::TileHeader {

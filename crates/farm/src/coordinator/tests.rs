@@ -197,6 +197,7 @@ pub(super) fn submit_request(file: v1::BundleFile) -> v1::SubmitJobRequest {
         }),
         priority: 0,
         name: "test".into(),
+        batch: String::new(),
     }
 }
 
