@@ -460,11 +460,6 @@ impl Material {
         }
     }
 
-    /// Whether light can pass straight through the surface somewhere.
-    pub fn passes_light(&self) -> bool {
-        !matches!(self.opacity, Opacity::Opaque)
-    }
-
     /// The side a ray travelling along `ray_d` sees, the frame `base` flipped for a back side,
     /// and whether it is the back.
     #[inline(always)]
