@@ -366,3 +366,29 @@ fn killing_a_render_leaves_no_temporary_file() {
     }
     signal_while_writing("outputs-sigkill-writing", libc::SIGKILL);
 }
+
+/// A log written to a file is plain text (no ANSI colour codes, whether or not NO_COLOR is
+/// set), and `render` names the scene's effects in words: the furnace scene's constant
+/// environment, its spheres, its glass.
+#[test]
+fn a_log_to_a_file_is_plain_text_and_names_the_scenes_effects_in_words() {
+    let (scene, dir) = scene_in_dir("outputs-plain-log", 8);
+    let exr = dir.join("plain.exr");
+    for no_color in ["", "1"] {
+        let args = render_args(&scene, &exr, &["--spp", "1"]);
+        let r = Running::start(&args, &[("NO_COLOR", no_color)]).wait(QUICK);
+        assert!(r.status.success(), "{}", r.describe());
+        assert!(
+            !r.stderr.contains('\x1b'),
+            "NO_COLOR={no_color:?}: colour codes in a log to a file:\n{}",
+            r.stderr
+        );
+        let line = (r.stderr.lines())
+            .find(|l| l.contains("effects: "))
+            .unwrap_or_else(|| panic!("no effects line:\n{}", r.stderr));
+        for word in ["environment light", "transmission", "analytic shapes"] {
+            assert!(line.contains(word), "{word} missing from {line}");
+        }
+        assert!(!line.contains("Features {"), "a debug dump: {line}");
+    }
+}

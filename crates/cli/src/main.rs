@@ -61,8 +61,13 @@ fn main() {
         Command::Converge(_) => "warn",
         _ => "info",
     };
+    // Colour only for a person at a terminal: a log written to a file or a pipe stays plain
+    // text, and NO_COLOR (https://no-color.org) turns it off anywhere.
+    let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
+        && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
+        .with_ansi(colour)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
         )

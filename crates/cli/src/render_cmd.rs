@@ -192,7 +192,7 @@ pub fn render(args: RenderArgs) -> Result<()> {
     }
     let scene = Scene::build(&desc)?;
     tracing::info!(
-        "loaded {} in {:.2} s: {}x{}, {} shapes, {} triangles, {} lights; features {:?}",
+        "loaded {} in {:.2} s: {}x{}, {} shapes, {} triangles, {} lights; effects: {}",
         args.scene.display(),
         t_load.elapsed().as_secs_f64(),
         scene.width,

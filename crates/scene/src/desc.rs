@@ -116,6 +116,37 @@ pub struct Features {
     pub perturbed_normals: bool,
 }
 
+impl Features {
+    /// The effects the scene uses, in words (for logs: "area lights, analytic shapes").
+    pub fn names(&self) -> Vec<&'static str> {
+        let all = [
+            (self.area_lights, "area lights"),
+            (self.delta_lights, "point or directional lights"),
+            (self.environment, "environment light"),
+            (self.textures, "textures"),
+            (self.transmission, "transmission"),
+            (self.delta_bsdfs, "perfectly specular surfaces"),
+            (self.microfacets, "rough (microfacet) surfaces"),
+            (self.analytic_shapes, "analytic shapes"),
+            (self.pass_through, "cut-outs (mask, null)"),
+            (self.perturbed_normals, "bump or normal maps"),
+        ];
+        all.into_iter()
+            .filter(|(on, _)| *on)
+            .map(|(_, n)| n)
+            .collect()
+    }
+}
+
+impl std::fmt::Display for Features {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.names().as_slice() {
+            [] => f.write_str("none"),
+            names => f.write_str(&names.join(", ")),
+        }
+    }
+}
+
 /// Integrator choice and its parameters (Mitsuba's meaning of each).
 #[derive(Clone, Debug, PartialEq)]
 pub enum IntegratorDesc {
