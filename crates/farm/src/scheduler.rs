@@ -468,7 +468,15 @@ struct Worker {
     tiles_done: u64,
     /// Jobs this worker gets no leases of (it sent them bad tiles).
     blocked: BTreeSet<JobId>,
+    /// The jobs it was leased tiles of most recently (most recent last, at most
+    /// [`AFFINITY_JOBS`]): it holds their scenes and trees, so it prefers them.
+    served: Vec<JobId>,
 }
+
+/// Jobs a worker is taken to hold the scenes and trees of: the most recent it served, as
+/// many as a worker keeps trees of (its scenes are kept within a memory budget, usually
+/// more).
+pub const AFFINITY_JOBS: usize = 8;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Ending {
@@ -657,6 +665,7 @@ impl Scheduler {
             held,
             tiles_done: 0,
             blocked: BTreeSet::new(),
+            served: Vec::new(),
         };
         self.workers.insert(worker, record);
         Ok(())
@@ -743,7 +752,13 @@ impl Scheduler {
         if record.draining || record.held.len() >= self.config.leases_per_worker as usize {
             return None;
         }
-        let job = self.pick_job(&record.blocked)?;
+        let job = self.pick_job(record)?;
+        let served = &mut self.workers.get_mut(&worker).expect("checked").served;
+        served.retain(|&j| j != job);
+        served.push(job);
+        if served.len() > AFFINITY_JOBS {
+            served.remove(0);
+        }
         Some(self.issue(worker, job, now))
     }
 
@@ -1018,9 +1033,20 @@ impl Scheduler {
         }
     }
 
-    fn pick_job(&self, blocked: &BTreeSet<JobId>) -> Option<JobId> {
-        let mut ids = self.order.iter().map(|&(_, _, job)| job);
-        ids.find(|job| !blocked.contains(job) && self.jobs[job].ready() > 0)
+    /// The job `worker` gets its next tile of: among the ready jobs of the highest
+    /// priority, one it served recently (it holds that scene: switching costs it nothing),
+    /// else the oldest. Affinity never idles a worker and never passes a higher priority.
+    fn pick_job(&self, worker: &Worker) -> Option<JobId> {
+        let mut ready = (self.order.iter())
+            .filter(|&&(_, _, job)| !worker.blocked.contains(&job) && self.jobs[&job].ready() > 0);
+        let &(top, _, first) = ready.next()?;
+        if worker.served.contains(&first) {
+            return Some(first);
+        }
+        let held = ready
+            .take_while(|&&(priority, _, _)| priority == top)
+            .find(|&&(_, _, job)| worker.served.contains(&job));
+        Some(held.map_or(first, |&(_, _, job)| job))
     }
 
     fn issue(&mut self, worker: WorkerId, job: JobId, now: Millis) -> Lease {
@@ -1653,6 +1679,44 @@ mod tests {
         assert_eq!(listed, vec![J2, J3, J1]);
     }
 
+    /// Affinity: among ready jobs of the highest priority a worker keeps to one it served
+    /// (it holds the scene), a worker that served none of them takes the oldest, and a
+    /// higher priority comes first whatever a worker served.
+    #[test]
+    fn a_worker_keeps_to_the_ready_job_it_served_among_equal_priorities() {
+        let mut s = Scheduler::new(wide());
+        for w in [W1, W2] {
+            s.register_worker(w, 8, Millis(0)).unwrap();
+        }
+        s.add_job(J1, 0, secs(0)).unwrap();
+        s.offer_unit(J1, 0, 1).unwrap();
+        let job =
+            |s: &mut Scheduler, w: WorkerId, t: u64| s.next_lease(w, secs(t)).unwrap().key.job;
+        assert_eq!(job(&mut s, W1, 1), J1);
+        s.add_job(J2, 0, secs(1)).unwrap();
+        s.offer_unit(J2, 0, 4).unwrap();
+        assert_eq!(job(&mut s, W2, 2), J2, "the only ready job");
+        s.offer_unit(J1, 1, 4).unwrap();
+        assert_eq!(job(&mut s, W2, 3), J2, "W2 holds J2's scene, not J1's");
+        assert_eq!(job(&mut s, W1, 3), J1);
+        s.register_worker(W3, 8, secs(3)).unwrap();
+        assert_eq!(
+            job(&mut s, W3, 3),
+            J1,
+            "a worker that served neither: the oldest"
+        );
+        s.add_job(J3, 5, secs(4)).unwrap();
+        s.offer_unit(J3, 0, 4).unwrap();
+        assert_eq!(job(&mut s, W2, 4), J3, "a higher priority first");
+        assert_eq!(job(&mut s, W2, 4), J3, "and then kept to");
+        let rest: Vec<JobId> = (0..6).map(|_| job(&mut s, W1, 5)).collect();
+        assert_eq!(
+            rest,
+            vec![J3, J3, J1, J1, J2, J2],
+            "priority, then served, then oldest"
+        );
+    }
+
     #[test]
     fn retried_tiles_go_before_untouched_tiles_lowest_first() {
         let mut s = with_job(wide(), &[W1], 5);
@@ -2045,6 +2109,8 @@ mod tests {
         live: BTreeSet<LeaseId>,
         /// Leases it sent a result for, to send again.
         sent: Vec<LeaseId>,
+        /// The jobs of its last leases, most recent last, at most [`AFFINITY_JOBS`].
+        served: Vec<JobId>,
         next_heartbeat: Millis,
     }
 
@@ -2292,6 +2358,7 @@ mod tests {
                 pending,
                 live,
                 sent,
+                served: Vec::new(),
                 next_heartbeat,
             });
         }
@@ -2550,13 +2617,16 @@ mod tests {
             }
         }
 
-        /// Highest priority, then arrival; returned tiles (lowest first) before fresh ones.
+        /// Highest priority; among those, a job the worker served of its last
+        /// [`AFFINITY_JOBS`], else arrival; returned tiles (lowest first) before fresh ones.
         fn expected_pick(&self, wi: usize) -> Option<TaskKey> {
             if self.workers[wi].live.len() >= SLOTS {
                 return None;
             }
             let candidates = self.jobs.iter().filter(|job| !job.ready().is_empty());
-            let job = candidates.min_by_key(|job| (Reverse(job.priority), job.seq))?;
+            let served = &self.workers[wi].served;
+            let job = candidates
+                .min_by_key(|job| (Reverse(job.priority), !served.contains(&job.id), job.seq))?;
             let ready = job.ready();
             let retried = ready
                 .iter()
@@ -2573,6 +2643,12 @@ mod tests {
             self.last_lease = Some(lease.id);
             assert_eq!(lease.deadline, self.now + LEASE_TIMEOUT);
             let (key, tile) = (lease.key, lease.key.tile as usize);
+            let served = &mut self.workers[wi].served;
+            served.retain(|&j| j != key.job);
+            served.push(key.job);
+            if served.len() > AFFINITY_JOBS {
+                served.remove(0);
+            }
             let job = &mut self.jobs[job_index(key.job)];
             assert_eq!(lease.attempt, job.failures[tile] + 1, "attempt of {key}");
             job.holder[tile] = Some(lease.id);
