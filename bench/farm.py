@@ -22,6 +22,13 @@ together to a coordinator with W workers (`submit --wait` each, all at once); it
 wall times (all N jobs), their ratio, the CPU seconds of the renders against the workers'
 and the coordinator's, and the scene builds each worker logged.
 
+Batch mode (`--frames N`): N frames of the scene, its camera moved a little further along its
+right axis each frame (the files written beside a copy of the scene's folders, so every
+frame shares the meshes and textures), rendered one after another by one process against
+submitted as one batch (`pathfarm submit FRAMES... --wait -o DIR`); reported as in
+many-jobs mode, with the bytes the coordinator sent the workers (scene files, trees,
+fractions, estimates: `pathfarm_blob_bytes_sent`) per worker.
+
 Reported: the median wall time of each, the farm/render ratio per repetition, the peak
 resident memory of the render, the coordinator and a worker (VmHWM / ru_maxrss), and per
 training iteration (medians over repetitions of the coordinator's `unit finished` lines,
@@ -50,6 +57,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, ".."))
@@ -330,8 +338,10 @@ def main():
     ap.add_argument("--json", default=None, help="also write every measurement here")
     ap.add_argument("--jobs", type=int, default=0,
                     help="many-jobs mode: N jobs at once against N renders one after another")
+    ap.add_argument("--frames", type=int, default=0,
+                    help="batch mode: N frames (the camera moved) as one batch against N renders")
     a = ap.parse_args()
-    if a.jobs > 0:
+    if a.jobs > 0 or a.frames > 0:
         return many_jobs(a)
     delays = [int(x) for x in a.delays.split(",") if x.strip()]
     threads = a.workers * a.threads_per_worker
@@ -383,13 +393,46 @@ def cpu_seconds(ru):
     return ru.ru_utime + ru.ru_stime
 
 
-def many_jobs_sequential(a, tmp, seeds, threads):
+def frame_jobs(a, tmp):
+    """The --frames mode's frames: (scene, seed) per frame, files beside a copy of the
+    scene's folders, the camera moved by 2 % of its distance from the origin a frame."""
+    src = scene_path(a.scene)
+    base = os.path.dirname(os.path.abspath(src))
+    d = os.path.join(tmp, "frames")
+    os.makedirs(d, exist_ok=True)
+    for entry in os.listdir(base):  # copies: a bundle's files are confined to its folder
+        if os.path.isdir(os.path.join(base, entry)):
+            shutil.copytree(os.path.join(base, entry), os.path.join(d, entry))
+    text = open(src).read()
+    m = re.search(r'(<sensor.*?<matrix value=")([^"]+)(")', text, re.S)
+    if not m:
+        raise SystemExit(f"{src}: no sensor matrix to move the camera by")
+    v = [float(x) for x in m.group(2).split()]
+    step = 0.02 * (v[3] ** 2 + v[7] ** 2 + v[11] ** 2) ** 0.5
+    jobs = []
+    for i in range(a.frames):
+        w = list(v)
+        for row in range(3):  # along the camera's x axis (the matrix's first column)
+            w[4 * row + 3] += i * step * v[4 * row]
+        path = os.path.join(d, f"frame-{i + 1:03}.xml")
+        with open(path, "w") as f:
+            f.write(text[:m.start(2)] + " ".join(repr(x) for x in w) + text[m.end(2):])
+        jobs.append((path, a.seed))
+    return jobs
+
+
+def with_job(a, scene, seed):
+    b = argparse.Namespace(**vars(a))
+    b.scene, b.seed = scene, seed
+    return b
+
+
+def many_jobs_sequential(a, tmp, jobs, threads):
     """N renders one after another: (wall, CPU seconds, images)."""
     t0, cpu, images = time.monotonic(), 0.0, []
-    for seed in seeds:
-        out = os.path.join(tmp, f"render-{seed}.exr")
-        b = argparse.Namespace(**vars(a))
-        b.seed = seed
+    for i, (scene, seed) in enumerate(jobs):
+        out = os.path.join(tmp, f"render-{i}.exr")
+        b = with_job(a, scene, seed)
         p = subprocess.Popen([a.binary, "render"] + job_flags(b) + ["--threads", str(threads), "--no-png",
                               "-o", out], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         err = p.stderr.read()
@@ -401,16 +444,17 @@ def many_jobs_sequential(a, tmp, seeds, threads):
     return time.monotonic() - t0, cpu, images
 
 
-def many_jobs_farm(a, tmp, seeds):
-    """A coordinator, W workers and N `submit --wait` at once: (wall, worker CPU s,
-    coordinator CPU s, images, scene builds per worker)."""
+def many_jobs_farm(a, tmp, jobs):
+    """A coordinator, W workers and the N jobs submitted at once (`submit --wait` each; one
+    batch `submit` in --frames mode): (wall, worker CPU s, coordinator CPU s, images, scene
+    builds per worker, blob bytes sent)."""
     data = tempfile.mkdtemp(prefix="farm-jobs-", dir=tmp)
-    port = free_port()
+    port, mport = free_port(), free_port()
     env = dict(os.environ, PATHFARM_TOKEN=TOKEN, RUST_LOG="info")
     coord = subprocess.Popen([a.binary, "coordinator", "--listen", f"127.0.0.1:{port}", "--data",
-                              os.path.join(data, "coordinator")], stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, env=env)
-    workers, logs = [], []
+                              os.path.join(data, "coordinator"), "--metrics", f"127.0.0.1:{mport}"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    workers, logs, sent = [], [], float("nan")
     try:
         wait_listening(port)
         for i in range(a.workers):
@@ -422,20 +466,35 @@ def many_jobs_farm(a, tmp, seeds):
                 stdout=subprocess.DEVNULL, stderr=open(path, "w"), env=env))
         time.sleep(0.5)
         t0 = time.monotonic()
-        subs = []
-        for seed in seeds:
-            b = argparse.Namespace(**vars(a))
-            b.seed = seed
-            out = os.path.join(data, f"farm-{seed}.exr")
-            subs.append((out, subprocess.Popen([a.binary, "submit"] + job_flags(b) + [
-                "--coordinator", f"http://127.0.0.1:{port}", "--wait", "-o", out],
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)))
-        for out, p in subs:
+        coordinator = ["--coordinator", f"http://127.0.0.1:{port}", "--wait"]
+        if a.frames:
+            outdir = os.path.join(data, "frames-out")
+            flags = job_flags(a)[1:]  # the frames replace the scene
+            subs = [(None, subprocess.Popen([a.binary, "submit"] + [s for s, _ in jobs] + flags
+                                            + coordinator + ["--batch", "bench", "-o", outdir],
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                            env=env, text=True))]
+            outs = [os.path.join(outdir, os.path.splitext(os.path.basename(s))[0] + ".exr")
+                    for s, _ in jobs]
+        else:
+            subs, outs = [], []
+            for i, (scene, seed) in enumerate(jobs):
+                out = os.path.join(data, f"farm-{i}.exr")
+                outs.append(out)
+                subs.append((out, subprocess.Popen(
+                    [a.binary, "submit"] + job_flags(with_job(a, scene, seed)) + coordinator
+                    + ["-o", out], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                    text=True)))
+        for _, p in subs:
             err = p.stderr.read()
             if p.wait() != 0:
                 raise SystemExit(f"submit failed:\n{err[-4000:]}")
         wall = time.monotonic() - t0
-        images = [open(out, "rb").read() for out, _ in subs]
+        images = [open(out, "rb").read() for out in outs]
+        with urllib.request.urlopen(f"http://127.0.0.1:{mport}/metrics", timeout=10) as r:
+            for line in r.read().decode().splitlines():
+                if line.startswith("pathfarm_blob_bytes_sent"):
+                    sent = float(line.rsplit(" ", 1)[1])
     finally:
         worker_cpu, coord_cpu = 0.0, 0.0
         for p in workers + [coord]:
@@ -452,13 +511,20 @@ def many_jobs_farm(a, tmp, seeds):
     for path in logs:
         text = open(path).read()
         builds.append(text.count("built ahead in") + text.count("scene built in"))
-    return wall, worker_cpu, coord_cpu, images, builds
+    return wall, worker_cpu, coord_cpu, images, builds, sent
 
 
 def many_jobs(a):
     threads = a.workers * a.threads_per_worker
-    seeds = list(range(a.seed, a.seed + a.jobs))
     tmp = tempfile.mkdtemp(prefix="pathfarm-farm-jobs-")
+    if a.frames:
+        jobs = frame_jobs(a, tmp)
+        what = f"a batch of {a.frames} frames (the camera moved)"
+        mode = f"--frames {a.frames}"
+    else:
+        jobs = [(a.scene, s) for s in range(a.seed, a.seed + a.jobs)]
+        what = f"{a.jobs} jobs at once"
+        mode = f"--jobs {a.jobs}"
     rows = []
     try:
         for r in range(a.reps):
@@ -467,31 +533,34 @@ def many_jobs(a):
             for kind in kinds:
                 print(f"rep {r + 1}/{a.reps}: {kind}", file=sys.stderr, flush=True)
                 if kind == "render":
-                    row["render"] = many_jobs_sequential(a, tmp, seeds, threads)
+                    row["render"] = many_jobs_sequential(a, tmp, jobs, threads)
                 else:
-                    row["farm"] = many_jobs_farm(a, tmp, seeds)
+                    row["farm"] = many_jobs_farm(a, tmp, jobs)
             if row["farm"][3] != row["render"][2]:
                 raise SystemExit(f"repetition {r + 1}: a farm image differs from pathfarm render's")
             rows.append(row)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    lines = [f"# {a.jobs} jobs at once on the farm against one after another in one process",
+    seeds = sorted({s for _, s in jobs})
+    lines = [f"# {what} on the farm against one after another in one process",
              "", f"CPU: {cpu_name()}; {a.scene} {a.res}, {a.spp} spp, guided_path, seeds {seeds[0]}-{seeds[-1]}; "
              f"farm: {a.workers} workers x {a.threads_per_worker} threads; render: --threads {threads}.",
-             f"Command: `python3 bench/farm.py --jobs {a.jobs} --scene {a.scene} --res {a.res} --spp {a.spp} "
+             f"Command: `python3 bench/farm.py {mode} --scene {a.scene} --res {a.res} --spp {a.spp} "
              f"--reps {a.reps} --workers {a.workers} --threads-per-worker {a.threads_per_worker}`", "",
-             "| rep | renders, one after another (s) | farm, all at once (s) | farm / renders | render CPU s | "
-             "worker CPU s | coordinator CPU s | scene builds per worker |", "|---|---|---|---|---|---|---|---|"]
+             "| rep | renders, one after another (s) | farm (s) | farm / renders | render CPU s | "
+             "worker CPU s | coordinator CPU s | scene builds per worker | MB sent per worker |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for i, row in enumerate(rows):
         rw, rc, _ = row["render"]
-        fw, wc, cc, _, builds = row["farm"]
+        fw, wc, cc, _, builds, sent = row["farm"]
         lines.append(f"| {i + 1} | {rw:.2f} | {fw:.2f} | {fw / rw:.3f} | {rc:.1f} | {wc:.1f} | {cc:.1f} | "
-                     f"{', '.join(map(str, builds))} |")
+                     f"{', '.join(map(str, builds))} | {sent / a.workers / 1e6:.1f} |")
     ratios = [row["farm"][0] / row["render"][0] for row in rows]
     lines += ["", f"Median farm / renders: **{med(ratios):.3f}**; every farm image equals pathfarm render's."]
     text = "\n".join(lines) + "\n"
     print(text)
-    out = a.out[:-len("farm.md")] + "farm-jobs.md" if a.out.endswith("farm.md") else a.out
+    name = "farm-frames.md" if a.frames else "farm-jobs.md"
+    out = a.out[:-len("farm.md")] + name if a.out.endswith("farm.md") else a.out
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
     with open(out, "w") as f:
         f.write(text)

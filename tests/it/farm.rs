@@ -556,6 +556,51 @@ fn a_batch_of_frames_is_submitted_together_and_every_frame_is_exact() {
     );
 }
 
+/// The benchmark swarm (`bench/farm_swarm.py`): one process of three simulated workers
+/// (`--instances 3 --simulate-seconds-per-sample 0`) registers three workers that take the
+/// job's tiles between them (each its own control stream and upload key), and the job
+/// completes with every tile accepted, its image black (the simulation renders nothing).
+#[test]
+fn a_swarm_of_simulated_workers_in_one_process_completes_a_job() {
+    let mut farm = Farm::start("swarm", 0);
+    let cache = farm.data.join("swarm");
+    let args = [
+        "worker",
+        "--coordinator",
+        &farm.url,
+        "--threads",
+        "1",
+        "--cache",
+        path_str(&cache),
+        "--instances",
+        "3",
+        "--simulate-seconds-per-sample",
+        "0",
+    ];
+    let swarm = farm.start_client(&args, &[("RUST_LOG", "info")]);
+    farm.workers.push(swarm);
+    farm.wait_registered(3);
+    let out = farm.data.join("swarm.exr");
+    submit_ok(&farm, 8, &out, "the swarm's job");
+    let log = farm.workers[0].stderr_text();
+    let names: BTreeSet<&str> = (log.lines())
+        .filter(|l| l.contains("tiles accepted"))
+        .filter_map(|l| {
+            l.split("name=sim-")
+                .nth(1)?
+                .split(|c: char| !c.is_ascii_digit())
+                .next()
+        })
+        .collect();
+    assert_eq!(names.len(), 3, "tiles from every instance\n{}", farm.logs());
+    let (_, _, image) = pathfarm_render::output::read_exr_rgb(&out).expect("the result");
+    assert!(
+        image.iter().all(|p| *p == [0.0; 3]),
+        "a simulated render is black\n{}",
+        farm.logs()
+    );
+}
+
 #[test]
 fn worker_killed_mid_iteration_still_gives_bit_identical_image() {
     let mut farm = Farm::start("kill", 2);

@@ -99,6 +99,14 @@ pub struct WorkerArgs {
     /// (the least recently used scenes go beyond it; one scene is always kept).
     #[arg(long, value_name = "MIB", default_value_t = pathfarm_farm::worker::scenes::DEFAULT_BUDGET_BYTES >> 20)]
     pub scene_cache_mib: u64,
+    /// Benchmarks only: instead of rendering, sleep this many seconds a sample and upload
+    /// zero radiance (`bench/farm_swarm.py`: the coordinator's work at many workers).
+    #[arg(long, value_name = "SECONDS", hide = true)]
+    pub simulate_seconds_per_sample: Option<f64>,
+    /// Benchmarks only: run this many workers in this process (each with its own cache
+    /// folder, control stream and render thread pool), for simulated swarms.
+    #[arg(long, default_value_t = 1, hide = true)]
+    pub instances: usize,
 }
 
 /// Coordinator connection flags shared by the client subcommands.
@@ -396,29 +404,82 @@ fn default_threads() -> usize {
 }
 
 pub fn worker(args: WorkerArgs) -> Result<()> {
+    let cfgs = worker_configs(args)?;
+    let rt = runtime()?;
+    let r = rt.block_on(run_workers(cfgs));
+    log_peak_memory("worker");
+    r
+}
+
+/// One configuration per `--instances` (one, but for benchmark swarms), each with its own
+/// name and cache folder when there are several.
+fn worker_configs(args: WorkerArgs) -> Result<Vec<pathfarm_farm::worker::WorkerConfig>> {
     let threads = args.threads.unwrap_or_else(default_threads);
     if threads == 0 {
         bail!("--threads must be at least 1");
     }
-    let cfg = pathfarm_farm::worker::WorkerConfig {
-        coordinator: remote(
-            &args.coordinator,
-            args.token.as_deref(),
-            args.tls_ca.as_deref(),
-        )?,
-        threads,
-        name: args.name.unwrap_or_default(),
-        cache_dir: args.cache.unwrap_or_else(default_cache),
-        scene_cache_bytes: args.scene_cache_mib.saturating_mul(1 << 20),
+    if args.instances == 0 {
+        bail!("--instances must be at least 1");
+    }
+    let rendering = match args.simulate_seconds_per_sample {
+        None => pathfarm_farm::worker::Rendering::Real,
+        Some(s) if s.is_finite() && s >= 0.0 => pathfarm_farm::worker::Rendering::Simulated {
+            seconds_per_sample: s,
+        },
+        Some(s) => bail!("--simulate-seconds-per-sample {s}: not a duration"),
     };
-    let rt = runtime()?;
-    let r = rt.block_on(async move {
-        let mut signals = Signals::new()?;
-        pathfarm_farm::worker::run(cfg, async move { signals.recv().await }).await?;
-        Ok(())
-    });
-    log_peak_memory("worker");
-    r
+    let cache = args.cache.clone().unwrap_or_else(default_cache);
+    let config = |i: usize| -> Result<pathfarm_farm::worker::WorkerConfig> {
+        let (name, cache_dir) = match args.instances {
+            1 => (args.name.clone().unwrap_or_default(), cache.clone()),
+            _ => {
+                let name = args.name.as_deref().unwrap_or("sim");
+                (format!("{name}-{i}"), cache.join(format!("instance-{i}")))
+            }
+        };
+        Ok(pathfarm_farm::worker::WorkerConfig {
+            coordinator: remote(
+                &args.coordinator,
+                args.token.as_deref(),
+                args.tls_ca.as_deref(),
+            )?,
+            threads,
+            name,
+            cache_dir,
+            scene_cache_bytes: args.scene_cache_mib.saturating_mul(1 << 20),
+            rendering,
+        })
+    };
+    (0..args.instances).map(config).collect()
+}
+
+/// Runs the workers until a signal (then each drains) or until one of them fails.
+async fn run_workers(cfgs: Vec<pathfarm_farm::worker::WorkerConfig>) -> Result<()> {
+    let mut signals = Signals::new()?;
+    let (stop, _) = tokio::sync::broadcast::channel::<()>(1);
+    let several = cfgs.len() > 1;
+    let mut workers = tokio::task::JoinSet::new();
+    for cfg in cfgs {
+        let mut stopped = stop.subscribe();
+        // Several instances log into one stream: each line of an instance's session names it.
+        let span = match several {
+            false => tracing::Span::none(),
+            true => tracing::info_span!("worker", name = %cfg.name),
+        };
+        let run = pathfarm_farm::worker::run(cfg, async move {
+            let _ = stopped.recv().await;
+        });
+        workers.spawn(tracing::Instrument::instrument(run, span));
+    }
+    tokio::select! {
+        _ = signals.recv() => {}
+        Some(r) = workers.join_next() => r??,
+    }
+    let _ = stop.send(());
+    while let Some(r) = workers.join_next().await {
+        r??;
+    }
+    Ok(())
 }
 
 /// With `--integrator`, says on stderr what the replacement replaces and drops in `scene`

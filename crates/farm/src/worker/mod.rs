@@ -33,7 +33,10 @@ use crate::codec;
 mod prefetch;
 mod records;
 pub mod scenes;
+mod simulated;
 mod upload;
+
+pub use simulated::Rendering;
 
 pub use upload::MAX_JOINT_TILES;
 use upload::{
@@ -55,6 +58,8 @@ pub struct WorkerConfig {
     /// The memory the built scenes of the jobs this worker serves may take together
     /// ([`scenes::DEFAULT_BUDGET_BYTES`] by default); the least recently used go beyond it.
     pub scene_cache_bytes: u64,
+    /// The path tracer, or a simulation of its time for benchmarks.
+    pub rendering: Rendering,
 }
 
 /// Why a worker stopped with an error.
@@ -97,6 +102,7 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
         caches: Mutex::new(Caches::new(cfg.scene_cache_bytes)),
         tmp_counter: AtomicU64::new(0),
         scene_builds: AtomicU64::new(0),
+        rendering: cfg.rendering,
     });
     tokio::pin!(shutdown);
     let mut stop = false;
@@ -168,6 +174,7 @@ struct Shared {
     tmp_counter: AtomicU64,
     /// Scenes built since the worker started (for leases or ahead).
     scene_builds: AtomicU64,
+    rendering: Rendering,
 }
 
 /// A job's built scene.
@@ -1217,9 +1224,14 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
             seed,
             tile_size: 8,
         };
-        shared
-            .pool
-            .install(|| render_unit(&inputs, &spec, region, &|_| {}))
+        match shared.rendering {
+            Rendering::Real => {
+                (shared.pool).install(|| render_unit(&inputs, &spec, region, &|_| {}))
+            }
+            Rendering::Simulated { seconds_per_sample } => {
+                simulated::simulate_unit(&spec, region, seconds_per_sample)
+            }
+        }
     };
     let seconds = t0.elapsed().as_secs_f64();
     let serialize_start = Instant::now();
