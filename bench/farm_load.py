@@ -209,6 +209,15 @@ def run(a, n, tmp):
         logs.close()
 
 
+def report(text, out):
+    """Prints a result table and, with `out`, appends it to that file under a heading of
+    the date and the command."""
+    print(text)
+    if out:
+        with open(out, "a") as f:
+            f.write(f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{' '.join(sys.argv)}`\n\n{text}\n")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workers", default="8,32,128")
@@ -247,11 +256,7 @@ def main():
             f"<= {r['heartbeat_p99_ms']:.2f} ({r['heartbeat_n']}) | "
             f"<= {r['other_p99_ms']:.1f} ({r['other_n']}) | "
             f"{r['cpu_s_per_unit']:.3f} | {r['peak_mb']:.0f} |")
-    text = "\n".join(lines)
-    print(text)
-    if a.out:
-        with open(a.out, "a") as f:
-            f.write(f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{' '.join(sys.argv)}`\n\n{text}\n")
+    report("\n".join(lines), a.out)
 
 
 if __name__ == "__main__":

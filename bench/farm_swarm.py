@@ -46,7 +46,7 @@ import tempfile
 import time
 
 from farm import ANSI, cpu_name, free_port, parse_units  # this directory's farm benchmark
-from farm_load import counter, proc_cpu_seconds, scrape
+from farm_load import counter, proc_cpu_seconds, report, scrape
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.normpath(os.path.join(HERE, ".."))
@@ -184,11 +184,7 @@ def main():
             f"**{100 * (1 - r['rendering_per_worker'] / r['wall']):.1f} %** | "
             f"{r['coordinator_cpu']:.1f} ({100 * r['coordinator_cpu'] / r['wall']:.0f} %) | {r['swarm_cpu']:.1f} | "
             f"{r['merge']:.1f} | {r['ends']:.1f} | {r['sent_per_worker'] / 1e6:.0f} |")
-    text = "\n".join(lines)
-    print(text)
-    if a.out:
-        with open(a.out, "a") as f:
-            f.write(f"\n## {time.strftime('%Y-%m-%d %H:%M')} `{' '.join(sys.argv)}`\n\n{text}\n")
+    report("\n".join(lines), a.out)
 
 
 if __name__ == "__main__":
