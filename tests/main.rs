@@ -8,6 +8,7 @@ mod it {
     pub mod bad_input;
     pub mod converge;
     pub mod crosscheck;
+    pub mod dashboard;
     pub mod determinism;
     pub mod farm;
     pub mod farm_sim;

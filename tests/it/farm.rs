@@ -10,10 +10,10 @@ use std::time::{Duration, Instant};
 
 use crate::common::*;
 
-const TOKEN: &str = "farm-test-token-7f3a";
+pub(super) const TOKEN: &str = "farm-test-token-7f3a";
 
 /// A free loopback port (bound, read, released; the coordinator binds it right after).
-fn free_port() -> u16 {
+pub(super) fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .expect("a free port")
@@ -21,11 +21,11 @@ fn free_port() -> u16 {
 }
 
 /// A coordinator and its workers.
-struct Farm {
-    url: String,
-    data: PathBuf,
+pub(super) struct Farm {
+    pub(super) url: String,
+    pub(super) data: PathBuf,
     coordinator: Option<Running>,
-    workers: Vec<Running>,
+    pub(super) workers: Vec<Running>,
     port: u16,
     /// With TLS: the CA certificate, the coordinator's certificate and key (PEM files).
     tls: Option<TlsFiles>,
@@ -64,11 +64,20 @@ impl TlsFiles {
 }
 
 impl Farm {
-    fn start(tag: &str, workers: usize) -> Farm {
+    pub(super) fn start(tag: &str, workers: usize) -> Farm {
         Farm::start_with(tag, workers, Security::Plain)
     }
 
     fn start_with(tag: &str, workers: usize, security: Security) -> Farm {
+        Farm::start_full(tag, workers, security, &[])
+    }
+
+    /// A farm whose coordinator is started with `extra` arguments.
+    pub(super) fn start_args(tag: &str, workers: usize, extra: &[&str]) -> Farm {
+        Farm::start_full(tag, workers, Security::Plain, extra)
+    }
+
+    fn start_full(tag: &str, workers: usize, security: Security, extra: &[&str]) -> Farm {
         let data = temp_dir(&format!("farm-{tag}"));
         let port = free_port();
         let tls = (security == Security::Tls).then(|| TlsFiles::make(&data));
@@ -85,7 +94,7 @@ impl Farm {
             port,
             tls,
         };
-        farm.start_coordinator();
+        farm.start_coordinator_with(extra);
         for _ in 0..workers {
             farm.add_worker();
         }
@@ -131,7 +140,7 @@ impl Farm {
 
     /// Starts `pathfarm ARGS` talking to this farm ([`Farm::client_env`], with `extra_env`
     /// replacing or adding variables).
-    fn start_client(&self, args: &[&str], extra_env: &[(&str, &str)]) -> Running {
+    pub(super) fn start_client(&self, args: &[&str], extra_env: &[(&str, &str)]) -> Running {
         let base = self.client_env();
         let mut env: Vec<(&str, &str)> = base.iter().map(|(k, v)| (*k, v.as_str())).collect();
         for (k, v) in extra_env {
@@ -141,7 +150,7 @@ impl Farm {
         Running::start(args, &env)
     }
 
-    fn add_worker(&mut self) {
+    pub(super) fn add_worker(&mut self) {
         self.add_worker_env(&[]);
     }
 
@@ -163,7 +172,7 @@ impl Farm {
     }
 
     /// Waits (at most 30 s) until the coordinator has registered `n` workers (from its log).
-    fn wait_registered(&self, n: usize) {
+    pub(super) fn wait_registered(&self, n: usize) {
         let t0 = Instant::now();
         let c = self.coordinator.as_ref().expect("a running coordinator");
         while c.stderr_text().matches("worker registered").count() < n {
@@ -194,7 +203,7 @@ impl Farm {
         }
     }
 
-    fn logs(&self) -> String {
+    pub(super) fn logs(&self) -> String {
         let mut out = String::new();
         if let Some(c) = &self.coordinator {
             out += &format!("--- coordinator\n{}\n", c.stderr_text());
@@ -223,7 +232,7 @@ impl Drop for Farm {
 
 /// The job the tests render: the shipped door-ajar scene (gaussian filter: tiles need their
 /// halo) with guided_path's pathfarm preset, small, an spp budget.
-fn job_args(spp: u32) -> Vec<String> {
+pub(super) fn job_args(spp: u32) -> Vec<String> {
     job_args_seeded(spp, 5)
 }
 
@@ -267,7 +276,7 @@ fn with_token(args: &[&str]) -> Ended {
     Running::start(args, &[("PATHFARM_TOKEN", TOKEN)]).wait(Duration::from_secs(60))
 }
 
-fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Running {
+pub(super) fn submit(farm: &Farm, spp: u32, out: &Path, extra_env: &[(&str, &str)]) -> Running {
     submit_seeded(farm, spp, 5, out, extra_env)
 }
 
@@ -330,7 +339,7 @@ fn wait_for_tiles(farm: &Farm, run: &mut Running, n: usize, what: &str) {
 }
 
 /// Waits (at most 300 s) for `pathfarm submit --wait` to end, and checks it succeeded.
-fn wait_for_job(mut run: Running, farm: &Farm) {
+pub(super) fn wait_for_job(mut run: Running, farm: &Farm) {
     let t0 = Instant::now();
     while run.poll().is_none() {
         let late = t0.elapsed() > Duration::from_secs(300);
@@ -348,7 +357,7 @@ fn assert_submitted(ended: &Ended, farm: &Farm, what: &str) {
 
 /// Submits the job (at `spp`, into `out`), waits for it (at most 300 s) and checks that it
 /// succeeded.
-fn submit_ok(farm: &Farm, spp: u32, out: &Path, what: &str) -> Ended {
+pub(super) fn submit_ok(farm: &Farm, spp: u32, out: &Path, what: &str) -> Ended {
     let ended = submit(farm, spp, out, &[]).wait(Duration::from_secs(300));
     assert_submitted(&ended, farm, what);
     ended

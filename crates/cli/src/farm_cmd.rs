@@ -32,6 +32,10 @@ pub struct CoordinatorArgs {
     /// Prometheus metrics address (serves GET /metrics).
     #[arg(long, value_name = "ADDR")]
     pub metrics: Option<SocketAddr>,
+    /// Serve the web dashboard on this address (e.g. 127.0.0.1:8080): jobs, workers, a
+    /// job's preview; sign in with the token. Needs --token; not with TLS yet.
+    #[arg(long, value_name = "ADDR")]
+    pub http: Option<SocketAddr>,
     /// Serve TLS only, with this certificate chain (PEM); needs --tls-key.
     #[arg(long, value_name = "PEM", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -332,10 +336,22 @@ async fn serve_coordinator(
         token: args.token,
         tls,
         metrics: args.metrics,
+        http: args.http,
         limits: Limits::default(),
         bundle_limits,
         default_tile: None,
     };
+    if cfg.http.is_some() && cfg.token.is_none() {
+        bail!(
+            "--http: the dashboard needs the API token (--token or PATHFARM_TOKEN) to sign in with"
+        );
+    }
+    if cfg.http.is_some() && cfg.tls.is_some() {
+        bail!(
+            "--http: the dashboard does not serve TLS yet, and a token typed into it would cross \
+             the network in clear: serve it behind a TLS proxy on 127.0.0.1, or leave --http off"
+        );
+    }
     coordinator::serve(cfg, shutdown).await?;
     Ok(())
 }

@@ -23,6 +23,7 @@
 //! workers' channels; it is never held across an `.await`.
 
 mod checkpoints;
+mod dashboard;
 mod db;
 #[cfg(test)]
 mod hardening_tests;
@@ -82,6 +83,9 @@ pub struct CoordinatorConfig {
     pub tls: Option<TlsIdentity>,
     /// If set, Prometheus metrics (text format) are served at `GET /metrics` on this address.
     pub metrics: Option<SocketAddr>,
+    /// If set, the web dashboard is served on this address (plain HTTP: it needs the token
+    /// and is refused with TLS, which it does not serve yet).
+    pub http: Option<SocketAddr>,
     /// Scene loading limits (files are always confined to the bundle).
     pub limits: Limits,
     /// What a bundle may hold.
@@ -594,6 +598,37 @@ impl Shared {
     }
 
     /// The job view of `n`, if there is such a job.
+    /// The blob of job `n`'s result `kind` (the running job's preview for a PNG before it
+    /// is done), or why there is none yet. Takes the state lock: call off the executor.
+    pub(crate) fn result_blob(&self, n: u64, kind: v1::ResultKind) -> Result<Digest, String> {
+        let st = self.lock();
+        let job = st.jobs.get(&n).ok_or_else(|| "no such job".to_string())?;
+        let r = &job.record;
+        let done = r.state == v1::JobState::Done as i32;
+        let running_preview = job.active().and_then(|a| a.preview);
+        if let (v1::ResultKind::PngPreview, Some(p), false) = (kind, running_preview, done) {
+            return Ok(p);
+        }
+        let d = match kind {
+            v1::ResultKind::Unspecified => return Err("kind: unspecified".into()),
+            v1::ResultKind::Exr => &r.exr,
+            v1::ResultKind::PngPreview => &r.png,
+            v1::ResultKind::SdTree => &r.tree,
+        };
+        let not_yet = || {
+            format!(
+                "the result {kind:?} is available once the job is DONE (a PNG preview once \
+                 its first iteration is done)"
+            )
+        };
+        if !done || d.is_empty() {
+            return Err(not_yet());
+        }
+        <[u8; 32]>::try_from(d.as_slice())
+            .map(Digest)
+            .map_err(|_| "a stored result digest is not 32 bytes".to_string())
+    }
+
     pub(crate) fn view(&self, n: u64) -> Option<JobView> {
         let views = self.views.read().unwrap_or_else(|e| e.into_inner());
         views.get(&n).cloned()

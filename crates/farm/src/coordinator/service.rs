@@ -99,6 +99,16 @@ pub(super) async fn run(
         }
         None => None,
     };
+    let dashboard = match shared.cfg.http {
+        Some(haddr) => {
+            let l = TcpListener::bind(haddr)
+                .await
+                .map_err(|error| CoordinatorError::Bind { addr: haddr, error })?;
+            tracing::info!("dashboard on http://{}/", l.local_addr().unwrap_or(haddr));
+            Some(tokio::spawn(super::dashboard::serve(shared.clone(), l)))
+        }
+        None => None,
+    };
     let closer = shared.clone();
     let shutdown = async move {
         shutdown.await;
@@ -146,9 +156,9 @@ pub(super) async fn run(
         .await;
     ticker.abort();
     let _ = ticker.await;
-    if let Some(m) = metrics {
-        m.abort();
-        let _ = m.await;
+    for server in [metrics, dashboard].into_iter().flatten() {
+        server.abort();
+        let _ = server.await;
     }
     released(shared).await;
     result.map_err(CoordinatorError::from)
@@ -521,38 +531,16 @@ impl Jobs for Svc {
         let n = self.job_number(&req.job_id)?;
         let kind = v1::ResultKind::try_from(req.kind).unwrap_or(v1::ResultKind::Unspecified);
         let job_id = resources::truncate(&req.job_id, 64);
+        if kind == v1::ResultKind::Unspecified {
+            return Err(Status::invalid_argument("kind: unspecified"));
+        }
         let digest = self
-            .off(move |svc| {
-                let st = svc.shared.lock();
-                let r = &st.jobs[&n].record;
-                let d = match kind {
-                    v1::ResultKind::Unspecified => {
-                        return Err(Status::invalid_argument("kind: unspecified"))
-                    }
-                    v1::ResultKind::Exr => r.exr.clone(),
-                    v1::ResultKind::PngPreview => r.png.clone(),
-                    v1::ResultKind::SdTree => r.tree.clone(),
-                };
-                // while the job runs, the preview of the image so far
-                let running_preview = st.jobs[&n].active().and_then(|a| a.preview);
-                if let (v1::ResultKind::PngPreview, Some(p), false) =
-                    (kind, running_preview, r.state == v1::JobState::Done as i32)
-                {
-                    Ok(p.0.to_vec())
-                } else if r.state != v1::JobState::Done as i32 || d.is_empty() {
-                    return Err(Status::failed_precondition(format!(
-                        "{}: the result {kind:?} is available once the job is DONE (a PNG \
-                     preview once its first iteration is done)",
-                        job_id
-                    )));
-                } else {
-                    Ok(d)
-                }
-            })
-            .await?;
-        let path = self.shared.blobs.path(&digest_from(&digest, "result")?);
+            .off(move |svc| svc.shared.result_blob(n, kind))
+            .await
+            .map_err(|why| Status::failed_precondition(format!("{job_id}: {why}")))?;
+        let path = self.shared.blobs.path(&digest);
         self.count_fetch(&path);
-        Ok(Response::new(chunk_stream(path, digest)?))
+        Ok(Response::new(chunk_stream(path, digest.0.to_vec())?))
     }
 
     async fn list_workers(

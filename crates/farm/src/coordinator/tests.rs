@@ -61,6 +61,7 @@ pub(super) fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         token: token.map(str::to_string),
         tls: None,
         metrics: None,
+        http: None,
         limits: Limits::default(),
         bundle_limits: BundleLimits::default(),
         scheduler: SchedulerConfig::default(),
