@@ -248,6 +248,23 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
     );
     let png = request(port, "GET", "/jobs/job-1/preview.png", &c, "");
     assert!(png.body.starts_with(b"\x89PNG"), "a PNG");
+    let guide = request(port, "GET", "/jobs/job-1/guide.png?x=20&y=12", &c, "");
+    assert_eq!(guide.status, 200, "{}", guide.text());
+    assert!(
+        guide.body.starts_with(b"\x89PNG"),
+        "the guide's picture is a PNG"
+    );
+    let outside = request(port, "GET", "/jobs/job-1/guide.png?x=40&y=0", &c, "");
+    assert_eq!(outside.status, 404);
+    assert!(
+        outside.text().contains("outside the 40x24 image"),
+        "{}",
+        outside.text()
+    );
+    let hostile = request(port, "GET", "/jobs/job-1/guide.png?x=-1&y=1e9", &c, "");
+    assert_eq!(hostile.status, 400);
+    let r = request(port, "GET", "/jobs/job-1/guide.png?x=1&y=1", &[], "");
+    assert_eq!(r.status, 401);
     let workers = request(port, "GET", "/workers", &c, "");
     assert_eq!(
         workers.text().matches("rendering").count() + workers.text().matches("idle").count(),

@@ -257,7 +257,8 @@ pub(crate) fn render(shared: &Shared) -> String {
     out
 }
 
-const STATES: [v1::JobState; 7] = [
+/// Every job state a job can be in (the metrics' and the dashboard's order).
+pub(crate) const STATES: [v1::JobState; 7] = [
     v1::JobState::Queued,
     v1::JobState::Training,
     v1::JobState::FinalPass,

@@ -25,6 +25,7 @@
 mod checkpoints;
 mod dashboard;
 mod db;
+mod guide_view;
 #[cfg(test)]
 mod hardening_tests;
 mod ledger;
@@ -195,6 +196,22 @@ pub(crate) struct Shared {
     /// before anything else ([`Shared::lock`]), so its handling never waits for the lock and
     /// its effect (the worker alive, its leases extended) is as of its arrival.
     pub(crate) beats: Mutex<Vec<Beat>>,
+    /// The scene and tree the dashboard's last guide picture was drawn from.
+    pub(crate) guide_cache: Mutex<guide_view::GuideCache>,
+}
+
+/// Why a stored bundle's scene did not load ([`Shared::load_bundle`]).
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum BundleLoad {
+    /// Its files could not be laid out.
+    #[error("bundle: {0}")]
+    Bundle(String),
+    /// The scene did not load or build.
+    #[error("{0}")]
+    Scene(String),
+    /// The resolution override is out of the limits.
+    #[error("settings.scene.resolution: {0}")]
+    Resolution(String),
 }
 
 /// A heartbeat waiting to be applied ([`Shared::beats`]).
@@ -508,6 +525,7 @@ impl Shared {
             keys: Default::default(),
             workers_view: Default::default(),
             beats: Mutex::new(Vec::new()),
+            guide_cache: Mutex::new(Default::default()),
             cfg,
             blobs,
             db,
@@ -708,6 +726,39 @@ impl Shared {
         }
     }
 
+    /// The scene of a bundle whose files are in the blob store, with `settings` (built for
+    /// `purpose`), from a temporary materialisation that is removed again. Messages name
+    /// files by their bundle paths. Slow: call off the executor.
+    pub(crate) fn load_bundle(
+        &self,
+        manifest: &Manifest,
+        settings: &v1::SceneSettings,
+        overrides: &[(String, String)],
+        purpose: Purpose,
+    ) -> Result<Scene, BundleLoad> {
+        let dir = self.blobs.temp_path("bundle");
+        let local =
+            |e: &dyn std::fmt::Display| e.to_string().replace(&format!("{}/", dir.display()), "");
+        let result = (|| {
+            bundle::materialize(manifest, |d| self.blobs.path(d), &dir)
+                .map_err(|e| BundleLoad::Bundle(e.to_string()))?;
+            let limits = Limits {
+                confine_files: true,
+                ..self.cfg.limits.clone()
+            };
+            let integrator = settings.integrator.as_deref();
+            let mut desc = bundle::check(manifest, &dir, overrides, integrator, &limits)
+                .map_err(|e| BundleLoad::Scene(local(&e)))?;
+            if let Some(r) = &settings.resolution {
+                bundle::override_resolution(&mut desc, r.width, r.height, &limits)
+                    .map_err(|e| BundleLoad::Resolution(e.to_string()))?;
+            }
+            Scene::build_for(&desc, purpose).map_err(|e| BundleLoad::Scene(local(&e)))
+        })();
+        let _ = std::fs::remove_dir_all(&dir);
+        result
+    }
+
     pub(crate) fn prepare(&self, req: &v1::SubmitJobRequest) -> Result<Prepared, Status> {
         let bundle = req.bundle.as_ref().ok_or_else(|| bad("bundle: missing"))?;
         let manifest = manifest_from_proto(bundle)?;
@@ -732,31 +783,14 @@ impl Shared {
         let settings = req.settings.clone().unwrap_or_default();
         let scene_settings = settings.scene.clone().unwrap_or_default();
         let overrides = overrides_of(&scene_settings)?;
-        let dir = self.blobs.temp_path("bundle");
-        let result = (|| {
-            bundle::materialize(&manifest, |d| self.blobs.path(d), &dir)
-                .map_err(|e| bad(format!("bundle: {e}")))?;
-            let limits = Limits {
-                confine_files: true,
-                ..self.cfg.limits.clone()
-            };
-            // The client bundled the scene without decoding it: a bad mesh or image is
-            // found here, and named by its bundle path, not by this coordinator's.
-            let refuse = |e: &dyn std::fmt::Display| {
-                let msg = e.to_string().replace(&format!("{}/", dir.display()), "");
-                bad(format!("scene {:?}: {msg}", manifest.root))
-            };
-            let integrator = scene_settings.integrator.as_deref();
-            let mut desc = bundle::check(&manifest, &dir, &overrides, integrator, &limits)
-                .map_err(|e| refuse(&e))?;
-            if let Some(r) = &scene_settings.resolution {
-                bundle::override_resolution(&mut desc, r.width, r.height, &limits)
-                    .map_err(|e| bad(format!("settings.scene.resolution: {e}")))?;
-            }
-            Scene::build_for(&desc, Purpose::Inspect).map_err(|e| refuse(&e))
-        })();
-        let _ = std::fs::remove_dir_all(&dir);
-        let scene = result?;
+        // The client bundled the scene without decoding it: a bad mesh or image is found
+        // here, and named by its bundle path, not by this coordinator's.
+        let scene = (self.load_bundle(&manifest, &scene_settings, &overrides, Purpose::Inspect))
+            .map_err(|e| match e {
+                BundleLoad::Bundle(m) => bad(format!("bundle: {m}")),
+                BundleLoad::Scene(m) => bad(format!("scene {:?}: {m}", manifest.root)),
+                BundleLoad::Resolution(m) => bad(format!("settings.scene.resolution: {m}")),
+            })?;
         let Some(params) = scene.guided.clone() else {
             let integrator = (scene_settings.integrator.as_deref())
                 .map_or_else(|| "of the scene".to_string(), resources::echo);

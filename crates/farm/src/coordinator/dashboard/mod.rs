@@ -71,6 +71,7 @@ fn router(dash: Arc<Dash>) -> Router {
         .route("/workers", get(workers_page))
         .route("/jobs/{id}", get(job_page))
         .route("/jobs/{id}/cancel", post(cancel))
+        .route("/jobs/{id}/guide.png", get(guide))
         .route("/jobs/{id}/{file}", get(download))
         .route("/events", get(events))
         .route("/assets/{file}", get(asset))
@@ -91,7 +92,7 @@ fn guarded(mut r: Response) -> Response {
     set(
         h,
         header::CONTENT_SECURITY_POLICY,
-        "default-src 'self'; img-src 'self'; style-src 'self'; script-src 'self'; \
+        "default-src 'self'; img-src 'self' blob:; style-src 'self'; script-src 'self'; \
          connect-src 'self'; form-action 'self'; frame-ancestors 'none'; base-uri 'none'",
     );
     r
@@ -254,6 +255,12 @@ async fn job_page(State(d): Dashboard, headers: HeaderMap, Path(id): Path<String
     html(StatusCode::OK, pages::job(&page))
 }
 
+/// The job `id` names, for a request with a session (else 401, or 404 for no such job).
+fn signed_in_job(d: &Dash, headers: &HeaderMap, id: &str) -> Result<u64, Response> {
+    session(d, headers, false)?;
+    job_number(d, id)
+}
+
 /// Refuses a request another site made the browser send: `Sec-Fetch-Site` other than
 /// same-origin (or none), or an `Origin` that is not the `Host` it was sent to.
 fn same_site(headers: &HeaderMap) -> Result<(), Response> {
@@ -314,6 +321,34 @@ async fn cancel(
     }
 }
 
+#[derive(serde::Deserialize)]
+struct PixelQuery {
+    x: u32,
+    y: u32,
+}
+
+/// `/jobs/ID/guide.png?x=X&y=Y`: the directions the job's latest tree learned at the first
+/// hit of pixel (X, Y) (`guide_view`).
+async fn guide(
+    State(d): Dashboard,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    q: Query<PixelQuery>,
+) -> Response {
+    let n = match signed_in_job(&d, &headers, &id) {
+        Ok(n) => n,
+        Err(r) => return r,
+    };
+    let shared = d.shared.clone();
+    let (x, y) = (q.x, q.y);
+    let drawn = tokio::task::spawn_blocking(move || shared.guide_picture(n, x, y)).await;
+    match drawn {
+        Ok(Ok(png)) => guarded(([(header::CONTENT_TYPE, "image/png")], png).into_response()),
+        Ok(Err(e)) => plain(StatusCode::NOT_FOUND, e.to_string()),
+        Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("guide: {e}")),
+    }
+}
+
 /// `/jobs/ID/FILE`: `preview.png` (the image so far, or the final PNG), and once the job is
 /// done `result.exr`, `result.png` and `tree.sdt`.
 async fn download(
@@ -321,10 +356,7 @@ async fn download(
     headers: HeaderMap,
     Path((id, file)): Path<(String, String)>,
 ) -> Response {
-    if let Err(r) = session(&d, &headers, false) {
-        return r;
-    }
-    let n = match job_number(&d, &id) {
+    let n = match signed_in_job(&d, &headers, &id) {
         Ok(n) => n,
         Err(r) => return r,
     };

@@ -122,6 +122,13 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                     } @else {
                         p.muted { "The preview appears once the first iteration is done." }
                     }
+                    figcaption { "Click the image: what the guide learned at that pixel's first hit." }
+                }
+                section.card.guide {
+                    h2 { "The guide at a pixel" }
+                    p #guide-caption .muted { "Click a pixel of the preview." }
+                    img #guide hidden alt="the learned distribution of incident light" data-job=(j.job_id);
+                    p.muted { "Incident light over the sphere of directions (across: cos theta of the world z axis, down: phi), brighter where the guide sends more paths." }
                 }
                 section.card #status data-live={ "/events?job=" (j.job_id) } { (job_status(j)) }
                 section.card {
@@ -229,15 +236,7 @@ pub(super) fn workers(workers: &[v1::WorkerInfo], now_unix_ms: u64) -> Markup {
 }
 
 /// The states the jobs table can be filtered by.
-pub(super) const STATES: [v1::JobState; 7] = [
-    v1::JobState::Queued,
-    v1::JobState::Training,
-    v1::JobState::FinalPass,
-    v1::JobState::Assembling,
-    v1::JobState::Done,
-    v1::JobState::Failed,
-    v1::JobState::Cancelled,
-];
+pub(super) use super::super::metrics::STATES;
 
 pub(super) fn state_of(j: &v1::JobStatus) -> v1::JobState {
     v1::JobState::try_from(j.state).unwrap_or(v1::JobState::Unspecified)

@@ -33,7 +33,34 @@ function exposure() {
   });
 }
 
+// Clicking the preview asks for the guide's picture at the pixel clicked.
+function guideOnClick() {
+  const img = document.getElementById("preview");
+  const guide = document.getElementById("guide");
+  if (!img || !guide) return;
+  const caption = document.getElementById("guide-caption");
+  img.addEventListener("click", (e) => {
+    const x = Math.floor(e.offsetX * img.naturalWidth / img.clientWidth);
+    const y = Math.floor(e.offsetY * img.naturalHeight / img.clientHeight);
+    const url = "/jobs/" + encodeURIComponent(guide.dataset.job) + "/guide.png?x=" + x + "&y=" + y;
+    caption.textContent = "Pixel " + x + ", " + y + ": loading the guide...";
+    fetch(url).then((r) => {
+      if (!r.ok) return r.text().then((t) => { throw new Error(t); });
+      return r.blob();
+    }).then((b) => {
+      if (guide.src.startsWith("blob:")) URL.revokeObjectURL(guide.src);
+      guide.src = URL.createObjectURL(b);
+      guide.hidden = false;
+      caption.textContent = "Pixel " + x + ", " + y + ":";
+    }).catch((err) => {
+      guide.hidden = true;
+      caption.textContent = "Pixel " + x + ", " + y + ": " + err.message;
+    });
+  });
+}
+
 document.addEventListener("DOMContentLoaded", () => {
   document.querySelectorAll("[data-live]").forEach(live);
   exposure();
+  guideOnClick();
 });
