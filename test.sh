@@ -19,4 +19,6 @@ if [ "$#" -eq 0 ]; then
     tests/k8s/validate.sh
     # The docker-compose farm (builds the image; skips without Docker unless CI=true).
     tests/compose/compose_test.sh
+    # The web dashboard in headless Chromium (skips without it unless CI=true).
+    tests/browser/run.sh
 fi

@@ -3,12 +3,14 @@
 
 const CSS: &str = include_str!("assets/app.css");
 const JS: &str = include_str!("assets/app.js");
+const ICON: &str = include_str!("assets/icon.svg");
 
 /// An asset's body and content type, by file name.
 pub(super) fn get(name: &str) -> Option<(&'static str, &'static str)> {
     match name {
         "app.css" => Some((CSS, "text/css; charset=utf-8")),
         "app.js" => Some((JS, "text/javascript; charset=utf-8")),
+        "icon.svg" => Some((ICON, "image/svg+xml")),
         _ => None,
     }
 }
@@ -16,7 +18,7 @@ pub(super) fn get(name: &str) -> Option<(&'static str, &'static str)> {
 /// Every asset's bytes: the page's budget (`tests`).
 #[cfg(test)]
 pub(super) fn total_bytes() -> usize {
-    CSS.len() + JS.len()
+    CSS.len() + JS.len() + ICON.len()
 }
 
 #[cfg(test)]

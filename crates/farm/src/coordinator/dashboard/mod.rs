@@ -75,6 +75,7 @@ fn router(dash: Arc<Dash>) -> Router {
         .route("/jobs/{id}/{file}", get(download))
         .route("/events", get(events))
         .route("/assets/{file}", get(asset))
+        .route("/favicon.ico", get(|| asset(Path("icon.svg".to_string()))))
         .fallback(|| async { plain(StatusCode::NOT_FOUND, "not found") })
         .with_state(dash)
 }
@@ -88,7 +89,9 @@ fn guarded(mut r: Response) -> Response {
     set(h, header::CACHE_CONTROL, "no-store");
     set(h, header::X_CONTENT_TYPE_OPTIONS, "nosniff");
     set(h, header::X_FRAME_OPTIONS, "DENY");
-    set(h, header::REFERRER_POLICY, "no-referrer");
+    // `same-origin`, not `no-referrer`: with no referrer a browser sends `Origin: null` on a
+    // form POST, and the origin check below could not tell a page of ours from a sandbox.
+    set(h, header::REFERRER_POLICY, "same-origin");
     set(
         h,
         header::CONTENT_SECURITY_POLICY,
