@@ -130,9 +130,8 @@ def run(a, n, s, tmp):
         clog.close()
     units = parse_units(open(clog_path).read())
     render = sum(float(u["render_s"]) for u in units)
-    span = max(float(u["job_s"]) + float(u["wall_s"]) for u in units) if units else 0.0
     return {"workers": n, "wall": wall, "units": len(units), "render": render,
-            "rendering_per_worker": render / n, "span": span, "coordinator_cpu": cpu, "swarm_cpu": swarm_cpu,
+            "rendering_per_worker": render / n, "coordinator_cpu": cpu, "swarm_cpu": swarm_cpu,
             "sent_per_worker": sent / n,
             "merge": sum(float(u["decode_s"]) + float(u["merge_s"]) for u in units),
             "ends": sum(float(u["end_s"]) + float(u["checkpoint_s"]) + float(u["publish_s"])

@@ -81,15 +81,7 @@ impl Shared {
         n: u64,
         req: &v1::SubmitJobRequest,
     ) -> Result<Arc<Scene>, GuideViewError> {
-        let cached = (self
-            .guide_cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .scene)
-            .as_ref()
-            .filter(|(job, _)| *job == n)
-            .map(|(_, s)| s.clone());
-        if let Some(s) = cached {
+        if let Some(s) = cached(&self.guide_cache, |c| &c.scene, &n) {
             return Ok(s);
         }
         let scene = Arc::new(self.build_job_scene(req).map_err(GuideViewError::Scene)?);
@@ -109,15 +101,7 @@ impl Shared {
     }
 
     fn guide_tree(&self, d: Digest) -> Result<Arc<SdTree>, GuideViewError> {
-        let cached = (self
-            .guide_cache
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .tree)
-            .as_ref()
-            .filter(|(digest, _)| *digest == d)
-            .map(|(_, t)| t.clone());
-        if let Some(t) = cached {
+        if let Some(t) = cached(&self.guide_cache, |c| &c.tree, &d) {
             return Ok(t);
         }
         let bytes = std::fs::read(self.blobs.path(&d))
@@ -131,4 +115,17 @@ impl Shared {
             .tree = Some((d, tree.clone()));
         Ok(tree)
     }
+}
+
+/// The value in `slot` of the cache if it was kept for `key`.
+fn cached<K: PartialEq, V: Clone>(
+    cache: &std::sync::Mutex<GuideCache>,
+    slot: impl Fn(&GuideCache) -> &Option<(K, V)>,
+    key: &K,
+) -> Option<V> {
+    let c = cache.lock().unwrap_or_else(|e| e.into_inner());
+    slot(&c)
+        .as_ref()
+        .filter(|(k, _)| k == key)
+        .map(|(_, v)| v.clone())
 }

@@ -633,14 +633,11 @@ impl Shared {
             v1::ResultKind::PngPreview => &r.png,
             v1::ResultKind::SdTree => &r.tree,
         };
-        let not_yet = || {
-            format!(
+        if !done || d.is_empty() {
+            return Err(format!(
                 "the result {kind:?} is available once the job is DONE (a PNG preview once \
                  its first iteration is done)"
-            )
-        };
-        if !done || d.is_empty() {
-            return Err(not_yet());
+            ));
         }
         <[u8; 32]>::try_from(d.as_slice())
             .map(Digest)

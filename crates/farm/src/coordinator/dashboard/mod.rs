@@ -152,11 +152,7 @@ async fn login(State(d): Dashboard, form: Form<LoginForm>) -> Response {
         auth::COOKIE,
         auth::LIFETIME.as_secs()
     );
-    let mut r = see_other("/");
-    if let Ok(v) = HeaderValue::from_str(&cookie) {
-        r.headers_mut().insert(header::SET_COOKIE, v);
-    }
-    r
+    with_cookie(see_other("/"), &cookie)
 }
 
 async fn logout(State(d): Dashboard, headers: HeaderMap) -> Response {
@@ -165,12 +161,16 @@ async fn logout(State(d): Dashboard, headers: HeaderMap) -> Response {
     }
     let cookie = headers.get(header::COOKIE).and_then(|v| v.to_str().ok());
     d.sessions.sign_out(cookie);
-    let mut r = see_other("/login");
     let gone = format!(
         "{}=; HttpOnly; SameSite=Strict; Path=/; Max-Age=0",
         auth::COOKIE
     );
-    if let Ok(v) = HeaderValue::from_str(&gone) {
+    with_cookie(see_other("/login"), &gone)
+}
+
+/// `r` setting the cookie `value` (a `Set-Cookie` header's value).
+fn with_cookie(mut r: Response, value: &str) -> Response {
+    if let Ok(v) = HeaderValue::from_str(value) {
         r.headers_mut().insert(header::SET_COOKIE, v);
     }
     r

@@ -83,7 +83,7 @@ pub(super) fn job_rows(jobs: &[v1::JobStatus]) -> Markup {
         @for j in jobs {
             tr {
                 td { a href={ "/jobs/" (j.job_id) } { (j.job_id) } @if !j.name.is_empty() { " " span.muted { (j.name) } } }
-                td { span class={ "state " (state_class(j.state)) } { (state_name(state_of(j))) } }
+                td { (badge(state_of(j))) }
                 td.num { (j.iteration) }
                 td.num { (j.tiles_done) " / " (j.tiles_total) " tiles" }
                 td.num { (j.spp_done) }
@@ -166,7 +166,7 @@ pub(super) fn job_status(j: &v1::JobStatus) -> Markup {
         h2 { "Status" }
         span hidden data-version=(version) data-preview=(j.preview_available) {}
         dl {
-            dt { "state" } dd { span class={ "state " (state_class(j.state)) } { (state_name(state_of(j))) } }
+            dt { "state" } dd { (badge(state_of(j))) }
             dt { "iteration" } dd { (j.iteration) ", unit " (j.unit) ": " (j.tiles_done) " / " (j.tiles_total) " tiles" }
             dt { "samples per pixel" } dd { (j.spp_done) }
             dt { "ETA" } dd { (eta(j.eta_seconds)) }
@@ -257,14 +257,16 @@ pub(super) fn state_name(s: v1::JobState) -> &'static str {
     }
 }
 
-fn state_class(state: i32) -> &'static str {
-    match v1::JobState::try_from(state).unwrap_or(v1::JobState::Unspecified) {
+/// A state as a coloured badge.
+fn badge(s: v1::JobState) -> Markup {
+    let class = match s {
         v1::JobState::Done => "ok",
         v1::JobState::Failed => "bad",
         v1::JobState::Cancelled => "off",
         v1::JobState::Queued | v1::JobState::Unspecified => "wait",
         _ => "busy",
-    }
+    };
+    html! { span class={ "state " (class) } { (state_name(s)) } }
 }
 
 pub(super) fn is_terminal(s: v1::JobState) -> bool {
