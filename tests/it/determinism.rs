@@ -1,5 +1,7 @@
 //! The same job and seed give the same bits however the work is split.
 
+use glam::Vec3;
+use pathfarm_render::film::PixelStats;
 use pathfarm_render::{
     path_estimator, render, render_into, sample_region, Film, Region, RenderSettings, Scene,
     UnitSplat,
@@ -86,6 +88,16 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             let new =
                 |firsts: &[u64]| UnitSplat::new(scene.filter, (w, h), (&settings, spp), firsts);
             let (mut splat, mut shifted) = (new(&firsts), new(&[firsts[0] + 1]));
+            // A farm coordinator's way: a splat reused from another unit, over a film that
+            // still holds that unit's pixels, each region prepared apart by the plan; and a
+            // one-process render's way over such a film.
+            let mut dirty = Film::new(w, h);
+            let smudge = |p: &mut PixelStats| p.add(0.75, Vec3::splat(2.0));
+            dirty.pixels.iter_mut().for_each(smudge);
+            let (mut reused, mut reused_added) = (new(&[firsts[0] + 7]), new(&[firsts[0] + 7]));
+            reused.reuse((&settings, spp), &firsts, dirty.clone());
+            reused_added.reuse((&settings, spp), &firsts, dirty);
+            let plan = reused.plan().clone();
             for &r in &tiles {
                 let mut values = Vec::new();
                 for &first in &firsts {
@@ -94,6 +106,8 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
                     values.extend(v);
                 }
                 splat.add(r, &values);
+                reused.add_prepared(&plan.prepare(r, &values));
+                reused_added.add(r, &values);
                 if calls == 1 {
                     shifted.add(r, &values);
                 }
@@ -104,6 +118,14 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
                 film_bits(&splat.finish(&tiles)),
                 film_bits(&whole),
                 "{what}"
+            );
+            let reused = reused.finish(&tiles);
+            assert_eq!(film_bits(&reused), film_bits(&whole), "reused: {what}");
+            let reused = reused_added.finish(&tiles);
+            assert_eq!(
+                film_bits(&reused),
+                film_bits(&whole),
+                "reused, added: {what}"
             );
             if calls == 1 {
                 // positions drawn from other streams give another film: they are really drawn

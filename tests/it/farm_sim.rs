@@ -281,6 +281,9 @@ fn spoil(p: &mut Pending, how: u64) {
     let nan = |p: &mut Pending| match &mut p.out.pixels {
         TilePixels::Sums(film) => film.pixels[0].sum_wl[0] = f64::NAN,
         TilePixels::Samples(v) => v[0].x = f32::NAN,
+        TilePixels::Prepared(_) => {
+            unreachable!("the simulation renders samples, not prepared ones")
+        }
     };
     match how % 3 {
         0 => nan(p),

@@ -155,6 +155,7 @@ pub fn decode_pixels(bytes: &[u8], region: Region) -> Result<Film, CodecError> {
 pub fn encode_tile_pixels(pixels: &TilePixels) -> Vec<u8> {
     match pixels {
         TilePixels::Sums(film) => encode_pixels(film),
+        TilePixels::Prepared(r) => encode_tile_pixels(&TilePixels::Samples(r.values())),
         TilePixels::Samples(values) => {
             let mut v = header(b"PFSM");
             v.reserve(4 + values.len() * 12);

@@ -7,6 +7,7 @@
 //! depend on threads or tiles.
 
 use glam::Vec3;
+use rayon::prelude::*;
 
 /// The running sums of one pixel: everything needed for its filter-weighted mean and the variance
 /// of that mean, in f64 so that long renders do not lose precision.
@@ -135,22 +136,121 @@ impl Film {
     /// into it: the pixel sums add.
     pub fn merge(&mut self, other: &Film) {
         assert_eq!((self.width, self.height), (other.width, other.height));
-        for (p, q) in self.pixels.iter_mut().zip(&other.pixels) {
-            p.sum_w += q.sum_w;
-            p.sum_w2 += q.sum_w2;
-            for c in 0..3 {
-                p.sum_wl[c] += q.sum_wl[c];
-                p.sum_w2l[c] += q.sum_w2l[c];
-                p.sum_w2l2[c] += q.sum_w2l2[c];
-            }
-            p.count += q.count;
+        // Pixel by pixel, so the same sums however the pixels are shared among threads (a
+        // farm coordinator merges a 1920x1080 unit, 190 MB, at every unit's end).
+        (self.pixels.par_iter_mut().zip(&other.pixels))
+            .with_min_len(1 << 14)
+            .for_each(|(p, q)| p.merge(q));
+    }
+}
+
+impl PixelStats {
+    /// Adds `q`'s sums to these.
+    #[inline]
+    fn merge(&mut self, q: &PixelStats) {
+        self.sum_w += q.sum_w;
+        self.sum_w2 += q.sum_w2;
+        for c in 0..3 {
+            self.sum_wl[c] += q.sum_wl[c];
+            self.sum_w2l[c] += q.sum_w2l[c];
+            self.sum_w2l2[c] += q.sum_w2l2[c];
         }
+        self.count += q.count;
+    }
+}
+
+/// A pixel's sums while samples are added to it one after another: [`PixelStats::add`]'s
+/// operations lane by lane in two arrays, which the compiler turns into a few vector
+/// instructions (a coordinator gathers about twenty samples into every pixel of a unit).
+/// The same operations on the same operands as `add` (`w * 1` is `w`), so the same bits.
+#[derive(Clone, Copy, Default)]
+pub(crate) struct Accumulator {
+    /// sum w, sum w L (3), sum w^2, sum w^2 L (3).
+    a: [f64; 8],
+    /// (unused), sum w^2 L^2 (3).
+    b: [f64; 4],
+}
+
+impl Accumulator {
+    /// The sums of `p`, to add to.
+    #[inline(always)]
+    pub(crate) fn of(p: &PixelStats) -> Self {
+        let (l, m, q) = (p.sum_wl, p.sum_w2l, p.sum_w2l2);
+        Accumulator {
+            a: [p.sum_w, l[0], l[1], l[2], p.sum_w2, m[0], m[1], m[2]],
+            b: [0.0, q[0], q[1], q[2]],
+        }
+    }
+
+    /// Adds one sample `v` with filter weight `w`, as [`PixelStats::add`] does.
+    #[inline(always)]
+    pub(crate) fn add(&mut self, w: f32, v: Vec3) {
+        let w = w as f64;
+        let w2 = w * w;
+        let x = [1.0, v.x as f64, v.y as f64, v.z as f64];
+        let mut m = [0.0f64; 8];
+        for k in 0..4 {
+            m[k] = w * x[k];
+            m[4 + k] = w2 * x[k];
+        }
+        for k in 0..8 {
+            self.a[k] += m[k];
+        }
+        for k in 0..4 {
+            self.b[k] += m[4 + k] * x[k];
+        }
+    }
+
+    /// Writes the sums back into `p` (its count is the caller's).
+    #[inline(always)]
+    pub(crate) fn store(self, p: &mut PixelStats) {
+        let a = self.a;
+        p.sum_w = a[0];
+        p.sum_wl = [a[1], a[2], a[3]];
+        p.sum_w2 = a[4];
+        p.sum_w2l = [a[5], a[6], a[7]];
+        p.sum_w2l2 = [self.b[1], self.b[2], self.b[3]];
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_accumulator_adds_the_bits_pixel_stats_add_adds() {
+        // Deterministic identity (no significance level): long random runs of weights and
+        // radiance over many magnitudes, from a pixel holding sums already.
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        };
+        for run in 0..200 {
+            let mut p = PixelStats::default();
+            p.add(0.3, Vec3::new(1.0, 2.0, 3.0));
+            let mut acc = Accumulator::of(&p);
+            for _ in 0..(run % 40) {
+                let w = if next() < 0.2 { 0.0 } else { next() };
+                let scale = 10f32.powi((next() * 12.0) as i32 - 6);
+                let v = Vec3::new(next(), next(), next()) * scale;
+                p.add(w, v);
+                acc.add(w, v);
+            }
+            let mut q = p;
+            q.sum_w = -1.0;
+            q.sum_w2l2 = [7.0; 3];
+            acc.store(&mut q);
+            let bits = |p: &PixelStats| {
+                let mut out = Vec::new();
+                p.write_le(&mut out);
+                out
+            };
+            assert_eq!(bits(&q), bits(&p), "run {run}");
+        }
+    }
 
     #[test]
     fn unit_weights_give_mean_and_variance_of_the_mean() {

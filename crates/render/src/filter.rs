@@ -11,7 +11,7 @@ use pathfarm_scene::RFilter;
 
 /// A separable reconstruction filter: a sample at offset (dx, dy) from a pixel centre weighs
 /// `eval(dx) * eval(dy)`. Weights need not integrate to 1 (pixels divide by their weight sum).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Filter {
     /// Constant weight 1 within `radius` of the centre.
     Box {

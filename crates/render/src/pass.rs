@@ -118,6 +118,10 @@ pub enum TilePixels {
     /// image once every tile is in ([`crate::splat_samples`]), which gives the bits a
     /// whole-image render gives.
     Samples(Vec<glam::Vec3>),
+    /// [`TilePixels::Samples`] prepared by the unit's splat plan ([`crate::SplatPlan::prepare`]:
+    /// film positions drawn, the region's interior gathered), as a farm coordinator does off
+    /// its lock before it hands a tile to the session.
+    Prepared(Box<crate::splat::RegionSplat>),
 }
 
 impl TilePixels {
@@ -130,6 +134,11 @@ impl TilePixels {
             }
             TilePixels::Samples(v) => {
                 spec.sample_form() && v.len() as u64 == region.pixels() as u64 * spec.unit_spp()
+            }
+            TilePixels::Prepared(r) => {
+                spec.sample_form()
+                    && r.region() == region
+                    && r.plan().samples(region) as u64 == region.pixels() as u64 * spec.unit_spp()
             }
         }
     }
@@ -263,6 +272,7 @@ impl RegionOut {
                 values.extend_from_slice(&v);
                 st
             }
+            TilePixels::Prepared(_) => unreachable!("a region renders into sums or samples"),
         };
         self.invalid += st.invalid_samples;
     }

@@ -551,6 +551,7 @@ impl<'a> PassCtx<'a> {
             region: self.region,
             halo: self.halo,
             tile: self.settings.tile_size.max(1) as usize,
+            threads: crate::splat::Threads::Pool,
             buffer: &self.buffer,
         };
         pass.add_to(n as usize, &mut self.weights, film, self.region);

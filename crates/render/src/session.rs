@@ -545,6 +545,14 @@ impl Session {
         }
     }
 
+    /// How the samples of `unit`, in flight, are splatted: what preparing its tiles apart
+    /// needs ([`crate::SplatPlan::prepare`], [`crate::pass::TilePixels::Prepared`]). `None`
+    /// for a unit of pixel sums or one not in flight.
+    pub fn splat_plan(&self, unit: u64) -> Option<&crate::SplatPlan> {
+        let p = self.pending.iter().find(|p| p.spec.unit == unit)?;
+        p.pixels.plan()
+    }
+
     /// Accepts the rendered tile `index` of `unit` (`stats`: its guide statistics, from
     /// [`SdTree::take_stats`] on the worker's copy of the tree; `None` when they were
     /// recorded into [`Session::tree`] directly, as the one-process render does). When the
@@ -1203,7 +1211,7 @@ fn check_tile(p: &Pending, index: usize, out: &TileOutput) -> Result<(), TileErr
             expected: tile,
         });
     }
-    if !out.pixels.fits(&p.spec, tile) {
+    if !out.pixels.fits(&p.spec, tile) || !p.pixels.accepts(&out.pixels) {
         let expected = if p.spec.sample_form() {
             "the samples of its pixels"
         } else {

@@ -8,14 +8,17 @@
 use glam::Vec2;
 use rayon::prelude::*;
 
-use crate::film::Film;
+use crate::film::{Accumulator, Film, PixelStats};
 use crate::filter::Filter;
-use crate::render::{pass_ranges, Region, RenderSettings};
-use crate::rng::Rng;
+use crate::render::{Region, RenderSettings};
+
+mod plan;
+
+pub use plan::{RegionSplat, SplatPlan};
 
 /// One camera sample, kept until it has been splatted: its film position
 /// within its pixel and its radiance estimate.
-#[derive(Clone, Copy, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(crate) struct SampleRec {
     pub(crate) offset: Vec2,
     pub(crate) value: glam::Vec3,
@@ -37,6 +40,16 @@ pub(crate) fn axis_weights(filter: &Filter, reach: i32, offset: Vec2, out: &mut 
     }
 }
 
+/// Who does a splat's work (the film is the same either way).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Threads {
+    /// The rayon pool, rows and runs of samples as work items: a whole image's pass.
+    Pool,
+    /// The calling thread alone: a farm tile prepared beside other uploads, or a unit's
+    /// thin bands, where handing work to the pool costs more than the work.
+    Caller,
+}
+
 /// One pass's samples of `halo`'s pixels (`n` a pixel, in `buffer`), to be gathered into the
 /// pixels of `region` (inside `halo`) of a `size` image.
 pub(crate) struct Splat<'a> {
@@ -46,6 +59,8 @@ pub(crate) struct Splat<'a> {
     pub(crate) halo: Region,
     /// Pixels per parallel work item (does not change the film).
     pub(crate) tile: usize,
+    /// Whether the rayon pool shares the work (neither changes the film).
+    pub(crate) threads: Threads,
     pub(crate) buffer: &'a [SampleRec],
 }
 
@@ -70,14 +85,17 @@ impl Splat<'_> {
         let span = 2 * reach as usize + 1;
         // (every entry is written below: resizing keeps old values instead of zeroing)
         weights.resize(self.halo.pixels() * n * 2 * span, 0.0);
-        weights
-            .par_chunks_mut(tile * n * 2 * span)
-            .zip(self.buffer.par_chunks(tile * n))
-            .for_each(|(out, recs)| {
-                for (wt, rec) in out.chunks_mut(2 * span).zip(recs) {
-                    axis_weights(&filter, reach, rec.offset, wt);
-                }
-            });
+        let weigh = |(out, recs): (&mut [f32], &[SampleRec])| {
+            for (wt, rec) in out.chunks_mut(2 * span).zip(recs) {
+                axis_weights(&filter, reach, rec.offset, wt);
+            }
+        };
+        match self.threads {
+            Threads::Pool => (weights.par_chunks_mut(tile * n * 2 * span))
+                .zip(self.buffer.par_chunks(tile * n))
+                .for_each(weigh),
+            Threads::Caller => weigh((weights, self.buffer)),
+        }
         let (buf, wts) = (self.buffer, &*weights);
         let (region, halo) = (self.region, self.halo);
         let (h, hw) = (self.size.1 as i32, halo.width() as usize);
@@ -87,49 +105,42 @@ impl Splat<'_> {
             (region.x0 - film_region.x0) as usize,
             (region.y0 - film_region.y0) as usize,
         );
-        film.pixels
-            .par_chunks_mut(fw)
-            .skip(dy)
-            .take(region.height() as usize)
-            .enumerate()
-            .for_each(|(row, line)| {
-                let y = region.y0 as i32 + row as i32;
-                let pixels = &mut line[dx..dx + region.width() as usize];
-                for (i, stats) in pixels.iter_mut().enumerate() {
-                    let x = region.x0 as i32 + i as i32;
-                    stats.count += n as u32;
-                    for qy in (y - reach).max(0)..=(y + reach).min(h - 1) {
-                        let ky = span + (y - qy + reach) as usize;
-                        let row_q = (qy - halo.y0 as i32) as usize * hw;
-                        for qx in (x - reach).max(0)..=(x + reach).min(w - 1) {
-                            let kx = (x - qx + reach) as usize;
-                            let q = row_q + (qx - halo.x0 as i32) as usize;
-                            let recs = &buf[q * n..(q + 1) * n];
-                            let ws = wts[q * n * 2 * span..(q + 1) * n * 2 * span]
-                                .chunks_exact(2 * span);
-                            for (rec, wt) in recs.iter().zip(ws) {
-                                // Added even at weight zero (it adds exact zeros: the sums
-                                // are unchanged), which is cheaper than a branch that the
-                                // random sample positions make unpredictable.
-                                stats.add(wt[kx] * wt[ky], rec.value);
-                            }
+        let stride = 2 * span;
+        let gather_row = |(row, line): (usize, &mut [PixelStats])| {
+            let y = region.y0 as i32 + row as i32;
+            let pixels = &mut line[dx..dx + region.width() as usize];
+            for (i, stats) in pixels.iter_mut().enumerate() {
+                let x = region.x0 as i32 + i as i32;
+                stats.count += n as u32;
+                let mut acc = Accumulator::of(stats);
+                for qy in (y - reach).max(0)..=(y + reach).min(h - 1) {
+                    let ky = span + (y - qy + reach) as usize;
+                    let row_q = (qy - halo.y0 as i32) as usize * hw;
+                    for qx in (x - reach).max(0)..=(x + reach).min(w - 1) {
+                        let kx = (x - qx + reach) as usize;
+                        let q = row_q + (qx - halo.x0 as i32) as usize;
+                        for k in q * n..(q + 1) * n {
+                            let wt = &wts[k * stride..(k + 1) * stride];
+                            // Added even at weight zero (it adds exact zeros: the sums are
+                            // unchanged), which is cheaper than a branch that the random
+                            // sample positions make unpredictable.
+                            acc.add(wt[kx] * wt[ky], buf[k].value);
                         }
                     }
                 }
-            });
+                acc.store(stats);
+            }
+        };
+        let rows = region.height() as usize;
+        match self.threads {
+            Threads::Pool => (film.pixels.par_chunks_mut(fw).skip(dy).take(rows))
+                .enumerate()
+                .for_each(gather_row),
+            Threads::Caller => (film.pixels.chunks_mut(fw).skip(dy).take(rows))
+                .enumerate()
+                .for_each(gather_row),
+        }
     }
-}
-
-/// One splat pass of a [`UnitSplat`]: its samples `s0..s0 + n` of a render call whose
-/// first random stream is `first_sample`, for every pixel of the image.
-#[derive(Clone)]
-struct UnitPass {
-    call: usize,
-    first_sample: u64,
-    s0: u32,
-    n: u32,
-    /// `n` records a pixel, the image row-major (filled in as regions arrive).
-    recs: Vec<SampleRec>,
 }
 
 /// A whole image's film from samples that arrive region by region ([`crate::sample_region`]
@@ -137,17 +148,15 @@ struct UnitPass {
 /// [`crate::render_region_into`] of the whole image splats from the same samples: each
 /// render call's samples are splatted in the same passes, and every pixel gathers the same
 /// samples in the same order. A region's pixels whose filter reaches no other region are
-/// gathered as soon as it arrives ([`UnitSplat::add`]); the rest, a band `reach` pixels wide
+/// gathered as soon as it arrives ([`UnitSplat::add`], or apart by [`SplatPlan::prepare`]
+/// and put in place by [`UnitSplat::add_prepared`]); the rest, a band `reach` pixels wide
 /// along its edges inside the image, once every region is in ([`UnitSplat::finish`]).
 #[derive(Clone)]
 pub struct UnitSplat {
-    filter: Filter,
-    size: (u32, u32),
-    seed: u64,
-    /// Samples per pixel of each render call (the calls' random streams follow
-    /// `first_samples`).
-    spp: u32,
-    passes: Vec<UnitPass>,
+    plan: SplatPlan,
+    /// Per splat pass of the plan: its `n` records a pixel, the image row-major (filled in
+    /// as regions arrive).
+    recs: Vec<Vec<SampleRec>>,
     film: Film,
     weights: Vec<f32>,
 }
@@ -155,9 +164,9 @@ pub struct UnitSplat {
 impl std::fmt::Debug for UnitSplat {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("UnitSplat")
-            .field("size", &self.size)
-            .field("spp", &self.spp)
-            .field("passes", &self.passes.len())
+            .field("size", &self.plan.size)
+            .field("spp", &self.plan.spp)
+            .field("passes", &self.plan.passes.len())
             .finish_non_exhaustive()
     }
 }
@@ -173,148 +182,174 @@ impl UnitSplat {
         first_samples: &[u64],
     ) -> Self {
         let mut s = UnitSplat {
-            filter,
-            size,
-            seed: settings.seed,
-            spp,
-            passes: Vec::new(),
+            plan: SplatPlan::new(filter, size, (settings, spp), first_samples),
+            recs: Vec::new(),
             film: Film::new(size.0, size.1),
             weights: Vec::new(),
         };
-        s.plan((settings, spp), first_samples);
+        s.size_buffers(Vec::new());
         s
     }
 
     /// This splat made the splat of another unit of the same image, filter and seed (as
-    /// [`UnitSplat::new`] would make it), into `film` (all zero, of the image's size): its
-    /// buffers are reused (a unit's are tens of megabytes, faulted in again if allocated
-    /// anew for every unit).
+    /// [`UnitSplat::new`] would make it), into `film` (of the image's size, whatever its
+    /// pixels hold: every pixel is overwritten, by a region's interior or by a band gathered
+    /// into zeros): its buffers are reused (a unit's are tens of megabytes, faulted in again
+    /// if allocated anew for every unit, and zeroing them cost as much as splatting).
     pub fn reuse(
         &mut self,
         (settings, spp): (&RenderSettings, u32),
         first_samples: &[u64],
         film: Film,
     ) {
-        assert_eq!((film.width, film.height), self.size);
+        assert_eq!((film.width, film.height), self.plan.size);
         self.film = film;
-        self.seed = settings.seed;
-        self.spp = spp;
-        self.plan((settings, spp), first_samples);
+        let (filter, size) = (self.plan.filter, self.plan.size);
+        self.plan = SplatPlan::new(filter, size, (settings, spp), first_samples);
+        let old = std::mem::take(&mut self.recs);
+        self.size_buffers(old);
     }
 
-    /// The passes of the unit's render calls, their buffers (reused where there are some)
-    /// the image's size.
-    fn plan(&mut self, (settings, spp): (&RenderSettings, u32), first_samples: &[u64]) {
-        let (w, h) = self.size;
-        let npix = w as usize * h as usize;
-        let ranges = pass_ranges(w, h, settings, spp);
-        let mut old = std::mem::take(&mut self.passes).into_iter();
-        for (call, &first_sample) in first_samples.iter().enumerate() {
-            for &(s0, s1) in &ranges {
-                let mut recs = old.next().map(|p| p.recs).unwrap_or_default();
-                // every record is written by `add` before it is read (the regions cover the
-                // image): no need to clear reused ones
-                recs.resize(npix * (s1 - s0) as usize, SampleRec::default());
-                self.passes.push(UnitPass {
-                    call,
-                    first_sample,
-                    s0,
-                    n: s1 - s0,
-                    recs,
-                });
-            }
+    /// The sample records of the plan's passes, from `old` buffers where there are some.
+    fn size_buffers(&mut self, old: Vec<Vec<SampleRec>>) {
+        let npix = self.plan.size.0 as usize * self.plan.size.1 as usize;
+        let mut old = old.into_iter();
+        for pass in &self.plan.passes {
+            let mut recs = old.next().unwrap_or_default();
+            // every record is written by `add` before it is read (the regions cover the
+            // image): no need to clear reused ones
+            recs.resize(npix * pass.n as usize, SampleRec::default());
+            self.recs.push(recs);
         }
+    }
+
+    /// How this unit's samples are splatted: what preparing a region apart needs.
+    pub fn plan(&self) -> &SplatPlan {
+        &self.plan
     }
 
     /// The samples of `region`: for each render call, every pixel of the region row-major,
     /// its `spp` samples in index order (`values.len()` must be that). Gathers the region's
-    /// pixels whose filter reaches no other region.
+    /// pixels whose filter reaches no other region, with the rayon pool (a one-process
+    /// render adds the whole image at once).
     pub fn add(&mut self, region: Region, values: &[glam::Vec3]) {
-        let (w, spp) = (self.size.0 as usize, self.spp as usize);
-        let per_call = region.pixels() * spp;
-        assert_eq!(values.len(), per_call * self.calls(), "{region:?}");
-        let (rw, seed) = (region.width() as usize, self.seed);
-        for pass in &mut self.passes {
-            let (n, s0) = (pass.n as usize, pass.s0 as usize);
-            let call = &values[pass.call * per_call..(pass.call + 1) * per_call];
-            for (i, px) in call.chunks_exact(spp).enumerate() {
-                let (x, y) = (region.x0 as usize + i % rw, region.y0 as usize + i / rw);
-                let pixel = y * w + x;
-                let recs = &mut pass.recs[pixel * n..(pixel + 1) * n];
-                for (k, rec) in recs.iter_mut().enumerate() {
-                    let index = pass.first_sample + (s0 + k) as u64;
-                    rec.offset = Rng::for_sample(seed, pixel as u64, index).next_2d();
-                    rec.value = px[s0 + k];
-                }
+        let full = Region::full(self.plan.size.0, self.plan.size.1);
+        self.plan
+            .write_records(region, values, (&mut self.recs, full));
+        if let Some(inner) = self.plan.interior(region) {
+            // (a reused film holds an earlier unit's pixels)
+            zero_rows(&mut self.film, inner);
+            let target = Target {
+                region: inner,
+                film: &mut self.film,
+                film_region: full,
+            };
+            let recs = (&self.recs[..], full);
+            gather(&self.plan, recs, target, &mut self.weights, Threads::Pool);
+        }
+    }
+
+    /// A region [`SplatPlan::prepare`]d with this unit's plan (it panics otherwise): its
+    /// samples and its gathered interior put in place. The interior's pixels are zero in the
+    /// film until then and gathered nowhere else, so copying them is gathering them here.
+    pub fn add_prepared(&mut self, r: &RegionSplat) {
+        assert_eq!(r.plan, self.plan, "a region prepared for another unit");
+        let (w, region) = (self.plan.size.0 as usize, r.region);
+        for ((dst, src), pass) in self.recs.iter_mut().zip(&r.recs).zip(&self.plan.passes) {
+            let line = region.width() as usize * pass.n as usize;
+            for (row, src) in src.chunks_exact(line).enumerate() {
+                let y = region.y0 as usize + row;
+                let start = (y * w + region.x0 as usize) * pass.n as usize;
+                dst[start..start + line].copy_from_slice(src);
             }
         }
-        if let Some(inner) = self.interior(region) {
-            self.gather(inner);
+        if let Some((inner, film)) = &r.interior {
+            put_rows(&mut self.film, *inner, film);
         }
     }
 
     /// The film, once every region of the image was added: the pixels `add` left (those
     /// within the filter's reach of another of `regions`) gathered now.
     pub fn finish(&mut self, regions: &[Region]) -> Film {
+        let full = Region::full(self.plan.size.0, self.plan.size.1);
         for &r in regions {
-            let inner = self.interior(r);
+            let inner = self.plan.interior(r);
             for band in bands(r, inner) {
-                self.gather(band);
+                // (a reused film holds an earlier unit's pixels: the bands are gathered into
+                // zeros, the interiors were copied over)
+                zero_rows(&mut self.film, band);
+                let target = Target {
+                    region: band,
+                    film: &mut self.film,
+                    film_region: full,
+                };
+                let recs = (&self.recs[..], full);
+                gather(&self.plan, recs, target, &mut self.weights, Threads::Caller);
             }
         }
         std::mem::replace(&mut self.film, Film::new(0, 0))
     }
+}
 
-    fn calls(&self) -> usize {
-        self.passes.last().map_or(0, |p| p.call + 1)
+/// Sets the pixels of `r` of the whole-image `film` to zero.
+fn zero_rows(film: &mut Film, r: Region) {
+    let (w, rw) = (film.width as usize, r.width() as usize);
+    for y in r.y0 as usize..r.y1 as usize {
+        let start = y * w + r.x0 as usize;
+        film.pixels[start..start + rw].fill(Default::default());
     }
+}
 
-    /// The pixels of `r` whose filter (clipped to the image) reaches no pixel outside `r`.
-    fn interior(&self, r: Region) -> Option<Region> {
-        let reach = self.filter.reach() as u32;
-        let (w, h) = self.size;
-        let lo = |a: u32| if a == 0 { 0 } else { a + reach };
-        let hi = |b: u32, end: u32| {
-            if b == end {
-                end
-            } else {
-                b.saturating_sub(reach)
-            }
-        };
-        let inner = Region {
-            x0: lo(r.x0),
-            y0: lo(r.y0),
-            x1: hi(r.x1, w),
-            y1: hi(r.y1, h),
-        };
-        (inner.x0 < inner.x1 && inner.y0 < inner.y1).then_some(inner)
+/// Copies the `inner`-sized `src` into `inner` of the whole-image `dst`.
+fn put_rows(dst: &mut Film, inner: Region, src: &Film) {
+    let (w, iw) = (dst.width as usize, inner.width() as usize);
+    for (row, line) in src.pixels.chunks_exact(iw).enumerate() {
+        let start = (inner.y0 as usize + row) * w + inner.x0 as usize;
+        dst.pixels[start..start + iw].copy_from_slice(line);
     }
+}
 
-    /// Gathers the pixels of `target` in every pass, in pass order.
-    fn gather(&mut self, target: Region) {
-        let reach = self.filter.reach() as u32;
-        let (w, h) = self.size;
-        let halo = target.grown(reach, w, h);
-        let full = Region::full(w, h);
-        let mut buffer = Vec::new();
-        for pass in &self.passes {
-            let n = pass.n as usize;
-            buffer.clear();
-            for y in halo.y0..halo.y1 {
-                let row = y as usize * w as usize;
-                let (a, b) = (row + halo.x0 as usize, row + halo.x1 as usize);
-                buffer.extend_from_slice(&pass.recs[a * n..b * n]);
-            }
-            let splat = Splat {
-                filter: &self.filter,
-                size: self.size,
-                region: target,
-                halo,
-                tile: crate::render::DEFAULT_TILE as usize,
-                buffer: &buffer,
-            };
-            splat.add_to(n, &mut self.weights, &mut self.film, full);
+/// Where a gather writes: the pixels of `region`, in `film`, which covers `film_region`.
+struct Target<'a> {
+    region: Region,
+    film: &'a mut Film,
+    film_region: Region,
+}
+
+/// Gathers the pixels of `target.region` in every pass of `plan`, in pass order, from the
+/// sample records `recs` (per pass, `n` a pixel, `layout`'s pixels row-major; `layout` holds
+/// the target's filter halo).
+fn gather(
+    plan: &SplatPlan,
+    (recs, layout): (&[Vec<SampleRec>], Region),
+    target: Target,
+    weights: &mut Vec<f32>,
+    threads: Threads,
+) {
+    let reach = plan.filter.reach() as u32;
+    let (w, h) = plan.size;
+    let halo = target.region.grown(reach, w, h);
+    let lw = layout.width() as usize;
+    let mut buffer = Vec::new();
+    for (pass, recs) in plan.passes.iter().zip(recs) {
+        let n = pass.n as usize;
+        buffer.clear();
+        for y in halo.y0..halo.y1 {
+            let row = (y - layout.y0) as usize * lw;
+            let a = row + (halo.x0 - layout.x0) as usize;
+            let b = row + (halo.x1 - layout.x0) as usize;
+            buffer.extend_from_slice(&recs[a * n..b * n]);
         }
+        let splat = Splat {
+            filter: &plan.filter,
+            size: plan.size,
+            region: target.region,
+            halo,
+            tile: crate::render::DEFAULT_TILE as usize,
+            threads,
+            buffer: &buffer,
+        };
+        splat.add_to(n, weights, target.film, target.film_region);
     }
 }
 
@@ -349,6 +384,7 @@ fn bands(r: Region, inner: Option<Region>) -> Vec<Region> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::Rng;
 
     #[test]
     fn separable_splat_weights_equal_the_per_pair_filter_bits() {

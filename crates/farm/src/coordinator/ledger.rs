@@ -10,6 +10,20 @@ use pathfarm_render::pass::PassSpec;
 
 use super::Metrics;
 
+/// CPU seconds the calling thread has run (0 where the clock is missing).
+pub(crate) fn thread_cpu_seconds() -> f64 {
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime only writes the timespec we pass.
+    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) };
+    match rc {
+        0 => t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9,
+        _ => 0.0,
+    }
+}
+
 /// The accounts of the unit in flight.
 #[derive(Clone, Debug)]
 pub(crate) struct UnitLedger {
@@ -25,7 +39,9 @@ pub(crate) struct UnitLedger {
     pub(crate) prepare_s: f64,
     pub(crate) serialize_s: f64,
     /// Sums over its accepted tiles of the coordinator's seconds: receiving the upload
-    /// (first to last message), checking and decoding it, handing it to the session.
+    /// (first to last message), checking, decoding and preparing it (CPU seconds of its
+    /// thread: uploads are decoded side by side, [`thread_cpu_seconds`]), handing it to the
+    /// session.
     pub(crate) receive_s: f64,
     pub(crate) decode_s: f64,
     pub(crate) merge_s: f64,

@@ -4,7 +4,7 @@
 use crate::film::Film;
 use crate::pass::{PassSpec, TilePixels};
 use crate::render::{Region, RenderSettings, DEFAULT_TILE};
-use crate::splat::UnitSplat;
+use crate::splat::{SplatPlan, UnitSplat};
 
 use super::Splatting;
 
@@ -29,13 +29,12 @@ pub(super) struct Spares {
 }
 
 impl Spares {
-    /// An all-zero film of `w x h` pixels.
+    /// A film of `w x h` pixels to be overwritten: a kept one holds an earlier unit's
+    /// pixels, which is fine for a unit's pixels (a unit of sums copies its tiles over every
+    /// pixel; a splat overwrites every pixel, [`UnitSplat::reuse`]).
     fn film(&mut self, (w, h): (u32, u32)) -> Film {
         match self.films.pop() {
-            Some(mut f) if (f.width, f.height) == (w, h) => {
-                f.pixels.fill(Default::default());
-                f
-            }
+            Some(f) if (f.width, f.height) == (w, h) => f,
             _ => Film::new(w, h),
         }
     }
@@ -95,7 +94,25 @@ impl UnitPixels {
                 }
             }
             (UnitPixels::Samples(dst), TilePixels::Samples(src)) => dst.add(region, src),
+            (UnitPixels::Samples(dst), TilePixels::Prepared(src)) => dst.add_prepared(src),
             _ => unreachable!("checked by check_tile"),
+        }
+    }
+
+    /// How the unit's samples are splatted (`None` for a unit of sums).
+    pub(super) fn plan(&self) -> Option<&SplatPlan> {
+        match self {
+            UnitPixels::Sums(_) => None,
+            UnitPixels::Samples(splat) => Some(splat.plan()),
+        }
+    }
+
+    /// Whether `tile`, which fits the unit's pass ([`TilePixels::fits`]), was prepared by
+    /// this unit's plan if it was prepared at all.
+    pub(super) fn accepts(&self, tile: &TilePixels) -> bool {
+        match tile {
+            TilePixels::Prepared(r) => self.plan() == Some(r.plan()),
+            _ => true,
         }
     }
 

@@ -18,6 +18,10 @@ use std::time::Instant;
 use tokio::sync::OwnedSemaphorePermit;
 
 use super::*;
+use pathfarm_render::pass::TilePixels;
+use pathfarm_render::{Region, SplatPlan};
+
+use super::ledger::thread_cpu_seconds;
 use crate::driver::TileIn;
 
 /// Why an upload is refused, and whether its sender is to blame (a stale upload, whose
@@ -230,25 +234,38 @@ impl Svc {
         bytes: Vec<u8>,
         receive_s: f64,
     ) -> v1::TileAck {
-        let decode_start = Instant::now();
+        let cpu_start = thread_cpu_seconds();
         let total = bytes.len() as u64;
-        let decoded = split_and_decode(&header, &bytes);
-        // Decoding is timed apart from waiting for the state lock (another upload's merge, a
-        // unit's end, a checkpoint): the ledger's decode column is CPU, not queueing.
-        let mut decode_s = decode_start.elapsed().as_secs_f64();
         let shared = &self.shared;
+        // The lock is held only to look the tiles up: decoding and preparing their pixels
+        // (most of a unit's splatting) runs beside other uploads.
+        let checked = split_and_decode(&header, &bytes).and_then(|(parts, stats)| {
+            let look = look_up(&shared.lock(), sender, &header)?;
+            let tiles = decode_tiles(&look, &header, &parts)?;
+            Ok((look, tiles, stats))
+        });
         let mut st = shared.lock();
         let st = &mut *st;
-        let (parts, stats) = match decoded {
-            Ok(d) => d,
+        let (look, tiles, stats) = match checked {
+            Ok(c) => c,
             Err(r) => return self.refuse(st, sender, &header, r),
         };
-        let pixels_start = Instant::now();
-        let (named, tiles) = match check_tiles(st, sender, &header, &parts) {
-            Ok(checked) => checked,
+        // The lock was let go while the pixels were decoded: the upload must still name the
+        // same tiles of the same unit in flight.
+        match look_up(st, sender, &header) {
+            Ok(again) if again.same_tiles(&look) => {}
+            Ok(_) => {
+                let r = Refusal::stale(
+                    v1::TileRejectReason::Superseded,
+                    "the unit was re-tiled while the upload was decoded",
+                );
+                return self.refuse(st, sender, &header, r);
+            }
             Err(r) => return self.refuse(st, sender, &header, r),
-        };
-        decode_s += pixels_start.elapsed().as_secs_f64();
+        }
+        let named = look.named;
+        // (CPU, not time waiting for the lock: another upload's merge, a unit's end)
+        let decode_s = thread_cpu_seconds() - cpu_start;
         let (n, unit, spec) = (named.job, named.unit, named.spec);
         let now = shared.now();
         let ids: Vec<LeaseId> = tiles.iter().map(|t| t.lease).collect();
@@ -552,22 +569,33 @@ fn split_and_decode<'a>(header: &v1::TileHeader, bytes: &'a [u8]) -> Result<Deco
     Ok((parts, stats))
 }
 
+/// An upload's tiles, looked up under the lock: the unit they name, each one's lease, index
+/// and region, and how the unit's samples are splatted (for a unit of samples).
+struct Lookup {
+    named: Named,
+    tiles: Vec<(LeaseId, usize, Region)>,
+    plan: Option<SplatPlan>,
+}
+
+impl Lookup {
+    /// Whether `self` names the tiles `other` named (of the same unit).
+    fn same_tiles(&self, other: &Lookup) -> bool {
+        (self.named.job, self.named.unit) == (other.named.job, other.named.unit)
+            && self.tiles == other.tiles
+    }
+}
+
 /// Checks every tile of an upload against its lease (the sender's, of the header's job and
-/// unit, still in flight, the lease's region) and decodes and checks its pixels.
-fn check_tiles(
-    st: &State,
-    sender: WorkerId,
-    header: &v1::TileHeader,
-    parts: &[&[u8]],
-) -> Result<(Named, Vec<Accepting>), Refusal> {
+/// unit, still in flight, the lease's region).
+fn look_up(st: &State, sender: WorkerId, header: &v1::TileHeader) -> Result<Lookup, Refusal> {
     let named = named(st, sender, header)?;
-    let a = st.jobs[&named.job].active().expect("named");
-    let tiles = a.session().tiles_of(named.unit).expect("named");
-    let mut out = Vec::with_capacity(parts.len());
-    for (t, bytes) in header.tiles.iter().zip(parts) {
+    let session = st.jobs[&named.job].active().expect("named").session();
+    let regions = session.tiles_of(named.unit).expect("named");
+    let mut tiles = Vec::with_capacity(header.tiles.len());
+    for t in &header.tiles {
         let lease_id = t.lease_id;
         let key = st.sched.lease(LeaseId(lease_id)).expect("named").key;
-        let region = *tiles.get(key.tile as usize).ok_or_else(|| {
+        let region = *regions.get(key.tile as usize).ok_or_else(|| {
             Refusal::stale(v1::TileRejectReason::Superseded, "the unit was re-tiled")
         })?;
         if t.tile != Some(codec::region_to_proto(region)) {
@@ -575,12 +603,38 @@ fn check_tiles(
                 "the tile of lease {lease_id} is not its lease's ({key})"
             )));
         }
-        let pixels = codec::decode_tile_pixels(bytes, &named.spec, region)
-            .map_err(|e| Refusal::corrupt(format!("lease {lease_id}: pixels: {e}")))?;
+        tiles.push((LeaseId(lease_id), key.tile as usize, region));
+    }
+    let plan = session.splat_plan(named.unit).cloned();
+    Ok(Lookup { named, tiles, plan })
+}
+
+/// Decodes and checks the pixels of every tile `look` found, and prepares the samples of a
+/// unit of samples by its plan (their film positions drawn, each tile's interior gathered):
+/// the CPU of an upload, done off the lock.
+fn decode_tiles(
+    look: &Lookup,
+    header: &v1::TileHeader,
+    parts: &[&[u8]],
+) -> Result<Vec<Accepting>, Refusal> {
+    let mut out = Vec::with_capacity(parts.len());
+    for ((&(lease, index, region), t), bytes) in look.tiles.iter().zip(&header.tiles).zip(parts) {
+        let pixels = codec::decode_tile_pixels(bytes, &look.named.spec, region)
+            .map_err(|e| Refusal::corrupt(format!("lease {}: pixels: {e}", lease.0)))?;
+        let pixels = match (pixels, &look.plan) {
+            (TilePixels::Samples(v), Some(plan)) if v.len() == plan.samples(region) => {
+                TilePixels::Prepared(Box::new(plan.prepare(region, &v)))
+            }
+            (TilePixels::Samples(_), Some(_)) => {
+                let detail = format!("lease {}: samples not of the unit's plan", lease.0);
+                return Err(Refusal::corrupt(detail));
+            }
+            (pixels, _) => pixels,
+        };
         let c = t.counters.unwrap_or_default();
         out.push(Accepting {
-            lease: LeaseId(lease_id),
-            index: key.tile as usize,
+            lease,
+            index,
             out: TileOutput {
                 region,
                 pixels,
@@ -593,7 +647,7 @@ fn check_tiles(
             counters: c,
         });
     }
-    Ok((named, out))
+    Ok(out)
 }
 
 /// The most tiles one upload may carry.
