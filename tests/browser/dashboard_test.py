@@ -3,8 +3,9 @@
 chromium-driver, driven by selenium) against a real coordinator and two workers on
 127.0.0.1. Signs in (a wrong token first), sees a job submitted after the page loaded
 appear in the jobs table without a reload, watches a running job's preview change between
-iterations, clicks a pixel of the preview and gets the guide's picture, cancels a job from
-its page and sees it cancelled, and checks the browser logged no error on any page.
+iterations and its iterations table fill in, clicks a pixel of the preview and gets the
+guide's picture, cancels a job from its page and sees it cancelled, kills a worker and
+sees it marked lost, and checks the browser logged no error on any page.
 Screenshots go to target/browser-screenshots/ (not committed).
 
 Usage: python3 tests/browser/dashboard_test.py [--binary target/release/pathfarm]
@@ -60,6 +61,14 @@ def no_console_errors(d, page):
     assert not errors, f"{page}: the browser logged errors: {errors}"
 
 
+def row_state(d, name):
+    """The state badge of the workers table's row of worker `name`, or None."""
+    for row in d.find_elements(By.CSS_SELECTOR, "tbody tr"):
+        if name in row.text:
+            return row.find_element(By.CSS_SELECTOR, "span.state").text
+    return None
+
+
 def shot(d, name):
     os.makedirs(SHOTS, exist_ok=True)
     d.save_screenshot(os.path.join(SHOTS, name + ".png"))
@@ -109,6 +118,9 @@ def run(a, tmp, procs):
         first = wait("a preview version", lambda: d.find_element(By.ID, "preview").get_attribute("src"))
         wait("the preview to change", lambda: d.find_element(By.ID, "preview").get_attribute("src") != first, 120)
         shot(d, "job-running")
+        # The iterations' chart and table, kept current by the live updates.
+        wait("an iteration row", lambda: d.find_elements(By.CSS_SELECTOR, "#iterations table.iterations tbody tr"))
+        assert d.find_elements(By.CSS_SELECTOR, "#iterations svg.chart rect.bar"), d.page_source
         # A click on the preview draws the guide at that pixel.
         img = d.find_element(By.ID, "preview")
         d.execute_script("arguments[0].scrollIntoView()", img)
@@ -130,6 +142,12 @@ def run(a, tmp, procs):
         d.get(web + "/workers")
         assert d.page_source.count("node-") == 2, d.page_source
         no_console_errors(d, "workers")
+        # A killed worker is marked lost (and job-1 still finishes on the other).
+        procs[2].kill()
+        wait("node-1 marked lost", lambda: d.refresh() or row_state(d, "node-1") == "lost", 60)
+        assert row_state(d, "node-0") in ("rendering", "idle"), d.page_source
+        shot(d, "workers-lost")
+        no_console_errors(d, "workers after the kill")
         assert job1.wait(timeout=300) == 0, "job-1 did not finish"
     finally:
         d.quit()

@@ -233,6 +233,16 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
     assert!(!failed.text().contains("/jobs/job-1"));
     let page = request(port, "GET", "/jobs/job-1", &c, "");
     assert_eq!(page.status, 200);
+    // The iterations, kept in the job's record once its session is gone: a chart and a
+    // table with the training iterations and the final one.
+    let rows = page.text().matches("<td>training</td>").count();
+    assert!(
+        rows >= 2,
+        "{rows} training iterations listed:\n{}",
+        page.text()
+    );
+    assert_eq!(page.text().matches("<td>final</td>").count(), 1);
+    assert!(page.text().contains("<svg class=\"chart\""));
     for part in ["result.exr", "tree.sdt", "preview.png", "resx=40"] {
         assert!(
             page.text().contains(part),

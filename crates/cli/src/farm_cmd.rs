@@ -888,8 +888,10 @@ pub fn status(args: StatusArgs) -> Result<()> {
             "WORKER", "NAME", "HOST", "THREADS", "TILES", "STATE", "HEARTBEAT"
         );
         for w in &workers {
-            let state = if !w.connected {
-                "gone"
+            let state = if !w.connected && w.draining {
+                "left"
+            } else if !w.connected {
+                "lost"
             } else if w.draining {
                 "draining"
             } else {

@@ -195,6 +195,17 @@ fn job_and_tile_messages_round_trip() {
         nonfinite: 3,
         blocked_workers: vec!["render-07/gpu: lease 12: pixels: a sum is not finite".into()],
         batch: "shot-7".into(),
+        iterations: vec![v1::IterationInfo {
+            index: 2,
+            spp: 4,
+            variance: 3.5e-4,
+            seconds: 1.25,
+            tree_nodes: 41,
+            tree_leaves: 21,
+            training: true,
+            rays_per_sample: 7.5,
+        }],
+        fell_back_after: Some(3),
     });
     round_trip(&v1::SubmitJobRequest {
         bundle: Some(v1::Bundle {

@@ -461,6 +461,12 @@ impl Session {
         Ok(())
     }
 
+    /// The training iteration after which the path fallback gave guiding up for path
+    /// tracing, if it did.
+    pub fn fell_back_after(&self) -> Option<u32> {
+        self.fallback.fell_back_after
+    }
+
     /// Samples per pixel rendered so far (guided and unguided).
     pub fn spp_done(&self) -> u64 {
         self.spp_done + self.fallback.path_spp

@@ -56,6 +56,11 @@ pub(crate) struct JobRecord {
     /// Samples and guide records dropped for a NaN or infinite value (final once done).
     #[prost(uint64, tag = "18")]
     pub nonfinite: u64,
+    /// The iterations and the path fallback's verdict (kept once the session is gone).
+    #[prost(message, repeated, tag = "19")]
+    pub iterations: Vec<v1::IterationInfo>,
+    #[prost(uint32, optional, tag = "20")]
+    pub fell_back_after: Option<u32>,
 }
 
 pub(crate) struct Db {

@@ -25,6 +25,7 @@
 mod checkpoints;
 mod dashboard;
 mod db;
+mod departed;
 mod guide_view;
 #[cfg(test)]
 mod hardening_tests;
@@ -422,6 +423,8 @@ pub(crate) struct State {
     pub(crate) jobs: BTreeMap<u64, Job>,
     pub(crate) workers: BTreeMap<u64, WorkerConn>,
 
+    /// Workers that left recently, shown as lost or left.
+    pub(crate) departed: departed::Departed,
     pub(crate) next_job: u64,
     pub(crate) next_worker: u64,
     /// Blobs that jobs stopped referring to, deleted by the next
@@ -443,6 +446,27 @@ pub(crate) fn slots(workers: &BTreeMap<u64, WorkerConn>) -> usize {
 /// The memory a job's session takes on the coordinator (its films and samples).
 pub(crate) fn session_memory(record: &JobRecord) -> u64 {
     pathfarm_render::scene::guided_session_bytes(record.width, record.height)
+}
+
+/// What `ListWorkers` says of connected worker `id`.
+fn worker_info(st: &State, id: u64, w: &WorkerConn) -> v1::WorkerInfo {
+    let held = st.sched.held_by(WorkerId(id));
+    v1::WorkerInfo {
+        worker_id: id,
+        host_name: w.register.host_name.clone(),
+        worker_name: w.register.worker_name.clone(),
+        threads: w.register.threads,
+        tiles_done: w.tiles_done,
+        last_heartbeat_unix_ms: w.last_unix_ms,
+        lease_ids: held.into_iter().map(|l| l.0).collect(),
+        build_id: w.register.build_id.clone(),
+        protocol_version: w.register.protocol_version,
+        draining: w.draining,
+        registered_unix_ms: w.registered_unix_ms,
+        connected: true,
+        departed_reason: String::new(),
+        departed_unix_ms: 0,
+    }
 }
 
 pub(crate) fn unix_ms() -> u64 {
@@ -511,7 +535,7 @@ impl Shared {
             sched: Scheduler::new(cfg.scheduler.clone()),
             jobs: BTreeMap::new(),
             workers: BTreeMap::new(),
-
+            departed: Default::default(),
             next_job: 1,
             next_worker: 1,
             garbage: Vec::new(),
@@ -652,35 +676,24 @@ impl Shared {
     /// Forgets connected worker `id` (if it still is): its stream ends with `why`, so a
     /// worker that is still running sees it and registers again.
     pub(crate) fn forget_worker(&self, st: &mut State, id: u64, why: &str) {
+        if let Some(w) = st.workers.get(&id) {
+            let last = worker_info(st, id, w);
+            st.departed.record(last, why, unix_ms());
+        }
         if let Some(w) = st.workers.remove(&id) {
             let mut keys = self.keys.write().unwrap_or_else(|e| e.into_inner());
             keys.remove(&w.upload_key);
             let status = Status::unavailable(format!("worker {id} {why}; register again"));
             let _ = w.tx.try_send(Err(status));
         }
+        self.refresh_workers_view(st);
     }
 
-    /// Refreshes what `ListWorkers` answers.
+    /// Refreshes what `ListWorkers` answers: the connected workers in registration order,
+    /// then the departed ones, newest first.
     pub(crate) fn refresh_workers_view(&self, st: &State) {
-        let workers = (st.workers.iter())
-            .map(|(&id, w)| {
-                let held = st.sched.held_by(WorkerId(id));
-                v1::WorkerInfo {
-                    worker_id: id,
-                    host_name: w.register.host_name.clone(),
-                    worker_name: w.register.worker_name.clone(),
-                    threads: w.register.threads,
-                    tiles_done: w.tiles_done,
-                    last_heartbeat_unix_ms: w.last_unix_ms,
-                    lease_ids: held.into_iter().map(|l| l.0).collect(),
-                    build_id: w.register.build_id.clone(),
-                    protocol_version: w.register.protocol_version,
-                    draining: w.draining,
-                    registered_unix_ms: w.registered_unix_ms,
-                    connected: true,
-                }
-            })
-            .collect();
+        let connected = (st.workers.iter()).map(|(&id, w)| worker_info(st, id, w));
+        let workers = connected.chain(st.departed.iter().cloned()).collect();
         *self.workers_view.write().unwrap_or_else(|e| e.into_inner()) = workers;
     }
 
@@ -1199,6 +1212,8 @@ impl Shared {
         job.record.spp_done = a.session().spp_done();
         job.record.iteration = a.session().iteration();
         job.record.nonfinite = a.session().nonfinite();
+        job.record.iterations = iterations_of(a.session());
+        job.record.fell_back_after = a.session().fell_back_after();
         let released = a.blobs();
         let _ = st.sched.remove_job(JobId(n));
         self.publish_status(st, n);
@@ -1731,10 +1746,14 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         priority: request.priority,
         started_unix_ms: r.started_unix_ms,
         nonfinite: r.nonfinite,
+        iterations: r.iterations.clone(),
+        fell_back_after: r.fell_back_after,
         ..Default::default()
     };
     if let Some(a) = a {
         let session = a.session();
+        s.iterations = iterations_of(session);
+        s.fell_back_after = session.fell_back_after();
         let (done, total) = session.tiles_done();
         s.iteration = session.iteration();
         s.tiles_done = done as u32;
@@ -1760,6 +1779,22 @@ pub(crate) fn status_of(n: u64, r: &JobRecord, a: Option<&Active>) -> v1::JobSta
         }
     }
     s
+}
+
+/// The iterations a session has rendered, as `JobStatus` gives them.
+fn iterations_of(session: &Session) -> Vec<v1::IterationInfo> {
+    (session.iterations().iter())
+        .map(|it| v1::IterationInfo {
+            index: it.index,
+            spp: it.spp,
+            variance: it.variance,
+            seconds: it.seconds,
+            tree_nodes: it.nodes as u64,
+            tree_leaves: it.leaves as u64,
+            training: it.training,
+            rays_per_sample: it.rays_per_sample,
+        })
+        .collect()
 }
 
 /// Seconds until the job is done: with an spp budget, the time so far scaled by the samples

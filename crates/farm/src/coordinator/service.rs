@@ -774,6 +774,8 @@ impl Workers for Svc {
                     .write()
                     .unwrap_or_else(|e| e.into_inner())
                     .insert(upload_key, id);
+                st.departed
+                    .returned(&conn.register.host_name, &conn.register.worker_name);
                 st.workers.insert(id, conn);
                 svc.shared.refresh_workers_view(&st);
                 Ok::<u64, Status>(id)

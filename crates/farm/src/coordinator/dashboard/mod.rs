@@ -15,6 +15,7 @@
 
 mod assets;
 mod auth;
+mod iterations;
 mod pages;
 
 use std::sync::Arc;
@@ -439,16 +440,21 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
     let dash = d.clone();
     tokio::spawn(async move {
         let _permit = permit;
-        let mut last = String::new();
+        let (mut last, mut last_iterations) = (String::new(), String::new());
         loop {
-            let (name, now) = match job {
+            let (name, now, iterations) = match job {
                 Some(n) => match dash.shared.view(n) {
-                    Some(v) => ("job", pages::job_status(&v.status.borrow()).into_string()),
+                    Some(v) => {
+                        let s = v.status.borrow();
+                        let its = iterations::iterations(&s).into_string();
+                        ("job", pages::job_status(&s).into_string(), Some(its))
+                    }
                     None => return,
                 },
                 None => (
                     "jobs",
                     pages::job_rows(&job_list(&dash, filter)).into_string(),
+                    None,
                 ),
             };
             if now != last {
@@ -460,6 +466,13 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
                     return;
                 }
                 last = now;
+            }
+            if let Some(its) = iterations.filter(|its| *its != last_iterations) {
+                let event = Event::default().event("iterations").data(&its);
+                if tx.send(Ok(event)).await.is_err() {
+                    return;
+                }
+                last_iterations = its;
             }
             tokio::select! {
                 _ = tokio::time::sleep(POLL) => {}

@@ -132,6 +132,7 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                     p.muted { "Incident light over the sphere of directions (across: cos theta of the world z axis, down: phi), brighter where the guide sends more paths." }
                 }
                 section.card #status data-live={ "/events?job=" (j.job_id) } { (job_status(j)) }
+                section.card.wide #iterations { (super::iterations::iterations(j)) }
                 section.card {
                     h2 { "Scene" }
                     (settings(p))
@@ -222,18 +223,35 @@ pub(super) fn workers(workers: &[v1::WorkerInfo], now_unix_ms: u64) -> Markup {
                             td { (w.worker_id) @if !w.worker_name.is_empty() { " " span.muted { (w.worker_name) } } }
                             td { (w.host_name) }
                             td.num { (w.threads) }
-                            td { (worker_state(w)) }
+                            td {
+                                span class={ "state " (worker_class(w)) } { (worker_state(w)) }
+                                @if !w.connected {
+                                    " " span.muted title=(w.departed_reason) {
+                                        (ago(now_unix_ms, w.departed_unix_ms))
+                                    }
+                                }
+                            }
                             td.num { (w.tiles_done) }
                             td.num { (w.lease_ids.len()) }
                             td.num { (ago(now_unix_ms, w.last_heartbeat_unix_ms)) }
                             td { code { (w.build_id) } }
                         }
                     }
-                    @if workers.is_empty() { tr { td colspan="8" .muted { "No workers connected." } } }
+                    @if workers.is_empty() { tr { td colspan="8" .muted { "No workers." } } }
                 }
             }
         },
     )
+}
+
+/// A worker state's badge colour.
+fn worker_class(w: &v1::WorkerInfo) -> &'static str {
+    match worker_state(w) {
+        "lost" => "bad",
+        "left" => "off",
+        "rendering" => "busy",
+        _ => "ok",
+    }
 }
 
 /// The states the jobs table can be filtered by.
@@ -276,9 +294,12 @@ pub(super) fn is_terminal(s: v1::JobState) -> bool {
     )
 }
 
+/// A worker's state: a departed one "left" after draining, "lost" otherwise (killed,
+/// silent past the heartbeat timeout, cut off).
 fn worker_state(w: &v1::WorkerInfo) -> &'static str {
     match (w.connected, w.draining, w.lease_ids.is_empty()) {
-        (false, _, _) => "lost",
+        (false, true, _) => "left",
+        (false, false, _) => "lost",
         (true, true, _) => "draining",
         (true, false, false) => "rendering",
         (true, false, true) => "idle",

@@ -1,12 +1,17 @@
 // Live updates and the preview's exposure. Every element with data-live="URL" is kept
 // current by the server-sent events at URL: `jobs` events replace a table's rows, `job`
-// events a job's status block (and reload the preview when its iteration or state moved).
+// events a job's status block (and reload the preview when its iteration or state moved),
+// `iterations` events its iterations' chart and table.
 "use strict";
 
 function live(el) {
   const source = new EventSource(el.dataset.live);
   source.addEventListener("jobs", (e) => {
     el.querySelector("tbody").innerHTML = e.data;
+  });
+  source.addEventListener("iterations", (e) => {
+    const section = document.getElementById("iterations");
+    if (section) section.innerHTML = e.data;
   });
   source.addEventListener("job", (e) => {
     el.innerHTML = e.data;
