@@ -4,8 +4,9 @@ chromium-driver, driven by selenium) against a real coordinator and two workers 
 127.0.0.1. Signs in (a wrong token first), sees a job submitted after the page loaded
 appear in the jobs table without a reload, watches a running job's preview change between
 iterations and its iterations table fill in, clicks a pixel of the preview and gets the
-guide's picture, cancels a job from its page and sees it cancelled, kills a worker and
-sees it marked lost, and checks the browser logged no error on any page.
+guide's picture, changes a job's priority and cancels it from its page and sees it
+cancelled, kills a worker and sees it marked lost, and checks the browser logged no error
+on any page.
 Screenshots go to target/browser-screenshots/ (not committed).
 
 Usage: python3 tests/browser/dashboard_test.py [--binary target/release/pathfarm]
@@ -135,6 +136,12 @@ def run(a, tmp, procs):
         procs.append(submit(a.binary, env, url, "door-ajar", 100000, (64, 36), False))
         wait("job-2", lambda: d.get(web + "/jobs/job-2") or "Cancel the job" in d.page_source)
         d.get_log("browser")  # the 404s of job-2's page before it was submitted
+        # Its priority changed from its page.
+        field = d.find_element(By.ID, "priority")
+        field.clear()
+        field.send_keys("5")
+        d.find_element(By.CSS_SELECTOR, "form.priority button").click()
+        wait("priority 5", lambda: "<dt>priority</dt><dd>5</dd>" in d.page_source)
         d.find_element(By.CSS_SELECTOR, "button.danger").click()
         wait("job-2 cancelled", lambda: ">cancelled</span>" in d.page_source or d.refresh())
         shot(d, "job-cancelled")

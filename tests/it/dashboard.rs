@@ -302,6 +302,35 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
         request(port, "POST", "/jobs/job-2/cancel", &evil, &form).status,
         403
     );
+    // Its priority, changed from its page (refused cross-site, with a forged token, for a
+    // number that is none) and by `pathfarm priority`.
+    let set = |headers: &[(&str, &str)], body: &str| {
+        request(port, "POST", "/jobs/job-2/priority", headers, body)
+    };
+    assert_eq!(set(&cross, &format!("{form}&priority=3")).status, 403);
+    assert_eq!(set(&c, "csrf=forged&priority=3").status, 403);
+    let bad = set(&c, &format!("{form}&priority=1e99"));
+    assert_eq!(bad.status, 400);
+    assert!(bad.text().contains("\"1e99\""), "{}", bad.text());
+    let r = set(&c, &format!("{form}&priority=7"));
+    assert_eq!((r.status, r.header("location")), (303, Some("/jobs/job-2")));
+    let shown = |p: i32| {
+        let page = request(port, "GET", "/jobs/job-2", &c, "").text();
+        page.contains(&format!("<dt>priority</dt><dd>{p}</dd>"))
+    };
+    assert!(shown(7), "priority 7 not shown");
+    let cli = farm.start_client(
+        &["priority", "job-2", "-4", "--coordinator", &farm.url],
+        &[],
+    );
+    let out = cli.wait(Duration::from_secs(30));
+    assert!(
+        out.status.success() && out.stdout.contains("job-2: priority -4"),
+        "{} {}",
+        out.stdout,
+        out.stderr
+    );
+    assert!(shown(-4), "priority -4 not shown");
     let r = request(port, "POST", "/jobs/job-2/cancel", &c, "csrf=forged");
     assert_eq!(r.status, 403);
     assert_eq!(

@@ -1,5 +1,5 @@
-//! The farm's subcommands: `coordinator`, `worker`, `submit`, `status`, `cancel`, `fetch`
-//! and `cluster` (a coordinator and N workers on this machine, for one job).
+//! The farm's subcommands: `coordinator`, `worker`, `submit`, `status`, `cancel`,
+//! `priority`, `fetch` and `cluster` (a coordinator and N workers on this machine, for one job).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -225,6 +225,16 @@ pub struct HealthArgs {
 #[derive(Args)]
 pub struct CancelArgs {
     pub job: String,
+    #[command(flatten)]
+    pub conn: ConnArgs,
+}
+
+#[derive(Args)]
+pub struct PriorityArgs {
+    pub job: String,
+    /// The new priority (higher first; negative numbers after `--`).
+    #[arg(allow_negative_numbers = true)]
+    pub priority: i32,
     #[command(flatten)]
     pub conn: ConnArgs,
 }
@@ -939,6 +949,20 @@ pub fn cancel(args: CancelArgs) -> Result<()> {
             println!("{}: cancelled", args.job);
         } else {
             println!("{}: not cancelled (already {state})", args.job);
+        }
+        Ok(())
+    })
+}
+
+pub fn priority(args: PriorityArgs) -> Result<()> {
+    runtime()?.block_on(async move {
+        let mut client = client::connect(&args.conn.remote()?).await?;
+        let r = client.set_priority(&args.job, args.priority).await?;
+        let state = r.status.map_or("unknown", |s| state_name(s.state));
+        if r.changed {
+            println!("{}: priority {}", args.job, args.priority);
+        } else {
+            println!("{}: priority not changed (already {state})", args.job);
         }
         Ok(())
     })

@@ -41,6 +41,8 @@ enum Command {
     Status(farm_cmd::StatusArgs),
     /// Cancel a job.
     Cancel(farm_cmd::CancelArgs),
+    /// Change a queued or running job's priority.
+    Priority(farm_cmd::PriorityArgs),
     /// Download a finished job's image (EXR, plus a PNG preview beside it).
     Fetch(farm_cmd::FetchArgs),
     /// Render one scene on a local farm: a coordinator and N worker processes.
@@ -83,6 +85,7 @@ fn main() {
         Command::Submit(a) => farm_cmd::submit(a),
         Command::Status(a) => farm_cmd::status(a),
         Command::Cancel(a) => farm_cmd::cancel(a),
+        Command::Priority(a) => farm_cmd::priority(a),
         Command::Fetch(a) => farm_cmd::fetch(a),
         Command::Cluster(a) => farm_cmd::cluster(a),
         Command::Health(a) => farm_cmd::health(a),

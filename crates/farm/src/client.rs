@@ -616,6 +616,19 @@ impl Client {
             .into_inner())
     }
 
+    /// Sets `job`'s priority (higher first).
+    pub async fn set_priority(
+        &mut self,
+        job: &str,
+        priority: i32,
+    ) -> Result<v1::SetJobPriorityResponse, ClientError> {
+        let req = v1::SetJobPriorityRequest {
+            job_id: job.to_string(),
+            priority,
+        };
+        Ok(self.jobs.set_job_priority(req).await?.into_inner())
+    }
+
     /// Downloads one result of `job`, verified against the header's size and digest.
     pub async fn download(
         &mut self,

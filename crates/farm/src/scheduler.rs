@@ -584,6 +584,17 @@ impl Scheduler {
         Ok(())
     }
 
+    /// Job `job` is now of `priority`: its place in the scheduling order moves (leases
+    /// already out stay).
+    pub fn set_priority(&mut self, job: JobId, priority: i32) -> Result<(), SchedError> {
+        let record = self.jobs.get_mut(&job).ok_or(SchedError::UnknownJob(job))?;
+        let arrival = record.arrival;
+        self.order.remove(&(Reverse(record.priority), arrival, job));
+        record.priority = priority;
+        self.order.insert((Reverse(priority), arrival, job));
+        Ok(())
+    }
+
     /// Adds unit `unit` (`tiles` tiles, ready in tile order) to the job's units. It must be
     /// numbered above the units offered before, and fewer than [`MAX_UNITS_IN_FLIGHT`] of
     /// those may be incomplete; the complete ones' bookkeeping is dropped.
@@ -1677,6 +1688,28 @@ mod tests {
         assert_eq!(order, vec![(2, 0), (2, 1), (3, 0), (3, 1), (1, 0), (1, 1)]);
         let listed: Vec<JobId> = s.jobs().iter().map(|info| info.job).collect();
         assert_eq!(listed, vec![J2, J3, J1]);
+    }
+
+    #[test]
+    fn a_changed_priority_moves_the_job_for_the_next_leases() {
+        let mut s = Scheduler::new(wide());
+        s.register_worker(W1, 8, Millis(0)).unwrap();
+        for (job, priority, t) in [(J1, 0, 0), (J2, 5, 1)] {
+            s.add_job(job, priority, secs(t)).unwrap();
+            s.offer_unit(job, 0, 2).unwrap();
+        }
+        assert_eq!(s.next_lease(W1, secs(3)).unwrap().key.job, J2);
+        s.set_priority(J1, 9).unwrap();
+        let next: Vec<JobId> = (0..3)
+            .map(|_| s.next_lease(W1, secs(3)).unwrap().key.job)
+            .collect();
+        assert_eq!(next, vec![J1, J1, J2], "J1 first once raised above J2");
+        let listed: Vec<JobId> = s.jobs().iter().map(|info| info.job).collect();
+        assert_eq!(listed, vec![J1, J2]);
+        assert_eq!(
+            s.set_priority(JobId(77), 1),
+            Err(SchedError::UnknownJob(JobId(77)))
+        );
     }
 
     /// Affinity: among ready jobs of the highest priority a worker keeps to one it served

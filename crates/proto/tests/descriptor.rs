@@ -138,6 +138,13 @@ fn descriptor_set_holds_the_two_services_and_their_rpcs() {
                 false
             ),
             (
+                "SetJobPriority",
+                "SetJobPriorityRequest",
+                "SetJobPriorityResponse",
+                false,
+                false
+            ),
+            (
                 "DownloadResult",
                 "DownloadResultRequest",
                 "DataChunk",

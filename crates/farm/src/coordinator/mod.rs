@@ -1374,6 +1374,25 @@ impl Shared {
         true
     }
 
+    /// Job `n` (not ended) is now of `priority`: stored, and applied to its admission
+    /// and its next leases. False if the job has ended.
+    pub(crate) fn set_priority(self: &Arc<Self>, st: &mut State, n: u64, priority: i32) -> bool {
+        let Some(job) = st.jobs.get_mut(&n).filter(|j| !j.is_ended()) else {
+            return false;
+        };
+        if let Some(r) = job.record.request.as_mut() {
+            r.priority = priority;
+        }
+        // (a job not yet admitted is not in the scheduler)
+        let _ = st.sched.set_priority(JobId(n), priority);
+        tracing::info!(job = %job_name(n), priority, "priority changed");
+        self.persist(st, n);
+        self.publish_status(st, n);
+        self.admit(st);
+        self.dispatch(st);
+        true
+    }
+
     pub(crate) fn persist(&self, st: &State, n: u64) {
         if let Some(job) = st.jobs.get(&n) {
             if let Err(e) = self.db.put(n, &job.record) {

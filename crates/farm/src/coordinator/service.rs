@@ -521,6 +521,26 @@ impl Jobs for Svc {
         Ok(Response::new(answer))
     }
 
+    async fn set_job_priority(
+        &self,
+        req: Request<v1::SetJobPriorityRequest>,
+    ) -> Result<Response<v1::SetJobPriorityResponse>, Status> {
+        let req = req.into_inner();
+        let n = self.job_number(&req.job_id)?;
+        let answer = self
+            .off(move |svc| {
+                let mut st = svc.shared.lock();
+                let changed = svc.shared.set_priority(&mut st, n, req.priority);
+                let status = st.jobs[&n].status(n);
+                v1::SetJobPriorityResponse {
+                    changed,
+                    status: Some(status),
+                }
+            })
+            .await;
+        Ok(Response::new(answer))
+    }
+
     type DownloadResultStream = ChunkStream;
 
     async fn download_result(

@@ -72,6 +72,7 @@ fn router(dash: Arc<Dash>) -> Router {
         .route("/workers", get(workers_page))
         .route("/jobs/{id}", get(job_page))
         .route("/jobs/{id}/cancel", post(cancel))
+        .route("/jobs/{id}/priority", post(set_priority))
         .route("/jobs/{id}/guide.png", get(guide))
         .route("/jobs/{id}/{file}", get(download))
         .route("/events", get(events))
@@ -289,26 +290,33 @@ struct ActionForm {
     csrf: String,
 }
 
+#[derive(serde::Deserialize)]
+struct PriorityForm {
+    csrf: String,
+    priority: String,
+}
+
+/// The job an action's POST names, once the request passed an action's checks: a session,
+/// from this site, with the session's anti-forgery token.
+fn action_job(d: &Dash, headers: &HeaderMap, id: &str, csrf: &str) -> Result<u64, Response> {
+    let s = session(d, headers, false)?;
+    same_site(headers)?;
+    if csrf != s.csrf {
+        return Err(plain(
+            StatusCode::FORBIDDEN,
+            "refused: the form's token is not this session's",
+        ));
+    }
+    job_number(d, id)
+}
+
 async fn cancel(
     State(d): Dashboard,
     headers: HeaderMap,
     Path(id): Path<String>,
     form: Form<ActionForm>,
 ) -> Response {
-    let s = match session(&d, &headers, false) {
-        Ok(s) => s,
-        Err(r) => return r,
-    };
-    if let Err(r) = same_site(&headers) {
-        return r;
-    }
-    if form.csrf != s.csrf {
-        return plain(
-            StatusCode::FORBIDDEN,
-            "refused: the form's token is not this session's",
-        );
-    }
-    let n = match job_number(&d, &id) {
+    let n = match action_job(&d, &headers, &id, &form.csrf) {
         Ok(n) => n,
         Err(r) => return r,
     };
@@ -322,6 +330,35 @@ async fn cancel(
     match ended {
         Ok(_) => see_other(&format!("/jobs/{}", super::job_name(n))),
         Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("cancel: {e}")),
+    }
+}
+
+async fn set_priority(
+    State(d): Dashboard,
+    headers: HeaderMap,
+    Path(id): Path<String>,
+    form: Form<PriorityForm>,
+) -> Response {
+    let n = match action_job(&d, &headers, &id, &form.csrf) {
+        Ok(n) => n,
+        Err(r) => return r,
+    };
+    let Ok(priority) = form.priority.trim().parse::<i32>() else {
+        let echo = super::resources::echo(&form.priority);
+        return plain(
+            StatusCode::BAD_REQUEST,
+            format!("priority: {echo} is not a whole number (a 32-bit integer)"),
+        );
+    };
+    let shared = d.shared.clone();
+    let set = tokio::task::spawn_blocking(move || {
+        let mut st = shared.lock();
+        shared.set_priority(&mut st, n, priority)
+    })
+    .await;
+    match set {
+        Ok(_) => see_other(&format!("/jobs/{}", super::job_name(n))),
+        Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("priority: {e}")),
     }
 }
 

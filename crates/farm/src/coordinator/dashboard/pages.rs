@@ -147,6 +147,13 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                         }
                     }
                     @if !is_terminal(state_of(j)) {
+                        form.priority method="post" action={ "/jobs/" (j.job_id) "/priority" } {
+                            input type="hidden" name="csrf" value=(p.csrf);
+                            label { "priority "
+                                input #priority type="number" name="priority" step="1" value=(j.priority);
+                            }
+                            " " button { "Set" }
+                        }
                         form method="post" action={ "/jobs/" (j.job_id) "/cancel" } {
                             input type="hidden" name="csrf" value=(p.csrf);
                             button.danger { "Cancel the job" }
