@@ -3,7 +3,7 @@
 chromium-driver, driven by selenium) against a real coordinator and two workers on
 127.0.0.1. Signs in (a wrong token first), sees a job submitted after the page loaded
 appear in the jobs table without a reload, watches a running job's preview change between
-iterations and its iterations table fill in, clicks a pixel of the preview and gets the
+iterations and its iterations table and log fill in, clicks a pixel of the preview and gets the
 guide's picture, changes a job's priority and cancels it from its page and sees it
 cancelled, kills a worker and sees it marked lost, and checks the browser logged no error
 on any page.
@@ -122,6 +122,8 @@ def run(a, tmp, procs):
         # The iterations' chart and table, kept current by the live updates.
         wait("an iteration row", lambda: d.find_elements(By.CSS_SELECTOR, "#iterations table.iterations tbody tr"))
         assert d.find_elements(By.CSS_SELECTOR, "#iterations svg.chart rect.bar"), d.page_source
+        # The job's log lines, live too.
+        wait("a log line", lambda: "unit finished" in d.find_element(By.ID, "log").text)
         # A click on the preview draws the guide at that pixel.
         img = d.find_element(By.ID, "preview")
         d.execute_script("arguments[0].scrollIntoView()", img)

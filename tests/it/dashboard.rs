@@ -243,6 +243,14 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
     );
     assert_eq!(page.text().matches("<td>final</td>").count(), 1);
     assert!(page.text().contains("<svg class=\"chart\""));
+    // The job's last log lines, from the coordinator's log.
+    let log = page
+        .text()
+        .split("<pre class=\"log\">")
+        .nth(1)
+        .unwrap_or("")
+        .to_string();
+    assert!(log.contains("INFO unit finished unit=0"), "{}", page.text());
     for part in ["result.exr", "tree.sdt", "preview.png", "resx=40"] {
         assert!(
             page.text().contains(part),

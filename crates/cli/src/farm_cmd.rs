@@ -10,6 +10,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pathfarm_farm::client::{self, Budget, Client, Remote, SubmitOptions};
+use pathfarm_farm::coordinator::JobLogs;
 use pathfarm_proto::v1;
 use pathfarm_render::output;
 use pathfarm_scene::Limits;
@@ -296,12 +297,13 @@ impl Signals {
     }
 }
 
-pub fn coordinator(args: CoordinatorArgs) -> Result<()> {
+/// `pathfarm coordinator`; `job_logs` is fed by the process's log subscriber.
+pub fn coordinator(args: CoordinatorArgs, job_logs: JobLogs) -> Result<()> {
     let rt = runtime()?;
     let r = rt.block_on(async move {
         let mut signals = Signals::new()?;
         let shutdown = async move { signals.recv().await };
-        serve_coordinator(args, shutdown).await
+        serve_coordinator(args, job_logs, shutdown).await
     });
     log_peak_memory("coordinator");
     r
@@ -321,6 +323,7 @@ fn log_peak_memory(what: &str) {
 
 async fn serve_coordinator(
     args: CoordinatorArgs,
+    job_logs: JobLogs,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> Result<()> {
     use pathfarm_farm::coordinator::{self, CoordinatorConfig};
@@ -349,6 +352,7 @@ async fn serve_coordinator(
         http: args.http,
         limits: Limits::default(),
         bundle_limits,
+        job_logs,
         default_tile: None,
     };
     if cfg.http.is_some() && cfg.token.is_none() {

@@ -10,6 +10,9 @@ mod render_cmd;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
+use tracing_subscriber::filter::LevelFilter;
+use tracing_subscriber::layer::{Layer, SubscriberExt};
+use tracing_subscriber::util::SubscriberInitExt;
 
 #[derive(Parser)]
 #[command(
@@ -67,20 +70,27 @@ fn main() {
     // text, and NO_COLOR (https://no-color.org) turns it off anywhere.
     let colour = std::io::IsTerminal::is_terminal(&std::io::stderr())
         && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
-    tracing_subscriber::fmt()
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into());
+    let output = tracing_subscriber::fmt::layer()
         .with_writer(std::io::stderr)
         .with_ansi(colour)
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
-        )
-        .with_target(false)
+        .with_target(false);
+    // A coordinator also keeps each job's last lines for the job's dashboard page, at info
+    // whatever RUST_LOG asks of the output.
+    let job_logs = matches!(cli.command, Command::Coordinator(_))
+        .then(pathfarm_farm::coordinator::JobLogs::default);
+    let job_layer = (job_logs.clone()).map(|l| l.with_filter(LevelFilter::INFO));
+    tracing_subscriber::registry()
+        .with(output.with_filter(filter))
+        .with(job_layer)
         .init();
     let result: Result<()> = match cli.command {
         Command::Render(a) => render_cmd::render(a),
         Command::Converge(a) => converge::converge(a),
         Command::Info(a) => render_cmd::info(a),
         Command::Guide(c) => guide_cmd::run(c),
-        Command::Coordinator(a) => farm_cmd::coordinator(a),
+        Command::Coordinator(a) => farm_cmd::coordinator(a, job_logs.unwrap_or_default()),
         Command::Worker(a) => farm_cmd::worker(a),
         Command::Submit(a) => farm_cmd::submit(a),
         Command::Status(a) => farm_cmd::status(a),

@@ -29,6 +29,7 @@ mod departed;
 mod guide_view;
 #[cfg(test)]
 mod hardening_tests;
+mod job_log;
 mod ledger;
 mod metrics;
 mod resources;
@@ -38,6 +39,7 @@ mod sweep;
 #[cfg(test)]
 mod tests;
 
+pub use job_log::JobLogs;
 pub use resources::Resources;
 
 use std::collections::{BTreeMap, HashMap};
@@ -96,6 +98,9 @@ pub struct CoordinatorConfig {
     pub scheduler: SchedulerConfig,
     /// What jobs, uploads and peers may take.
     pub resources: Resources,
+    /// Each job's last log lines, shown on its dashboard page: fed by the process's
+    /// `tracing` subscriber when it installs this as a layer (empty otherwise).
+    pub job_logs: JobLogs,
     /// Tile edge when a job does not set one; `None` (the default): a few tiles per
     /// worker thread, of equal cost as measured in the job's earlier units
     /// ([`crate::tiling`]).

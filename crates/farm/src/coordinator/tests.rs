@@ -66,6 +66,7 @@ pub(super) fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         bundle_limits: BundleLimits::default(),
         scheduler: SchedulerConfig::default(),
         resources: Resources::default(),
+        job_logs: Default::default(),
         default_tile: Some(8),
     }
 }

@@ -250,12 +250,14 @@ async fn job_page(State(d): Dashboard, headers: HeaderMap, Path(id): Path<String
         Err(r) => return r,
     };
     let status = view.status.borrow().clone();
+    let log = d.shared.cfg.job_logs.lines(&status.job_id);
     let page = pages::JobPage {
         status: &status,
         settings: view.settings.as_ref(),
         root: &view.root,
         image: view.image,
         csrf: &s.csrf,
+        log: &log,
     };
     html(StatusCode::OK, pages::job(&page))
 }
@@ -477,14 +479,19 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
     let dash = d.clone();
     tokio::spawn(async move {
         let _permit = permit;
-        let (mut last, mut last_iterations) = (String::new(), String::new());
+        let mut last = String::new();
+        let mut parts_sent = [String::new(), String::new()];
         loop {
-            let (name, now, iterations) = match job {
+            let (name, now, parts) = match job {
                 Some(n) => match dash.shared.view(n) {
                     Some(v) => {
                         let s = v.status.borrow();
-                        let its = iterations::iterations(&s).into_string();
-                        ("job", pages::job_status(&s).into_string(), Some(its))
+                        let log = dash.shared.cfg.job_logs.lines(&s.job_id);
+                        let parts = [
+                            iterations::iterations(&s).into_string(),
+                            pages::job_log(&log).into_string(),
+                        ];
+                        ("job", pages::job_status(&s).into_string(), Some(parts))
                     }
                     None => return,
                 },
@@ -504,12 +511,16 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
                 }
                 last = now;
             }
-            if let Some(its) = iterations.filter(|its| *its != last_iterations) {
-                let event = Event::default().event("iterations").data(&its);
+            // A job page's other live sections, each sent when it changed.
+            for (k, part) in parts.into_iter().flatten().enumerate() {
+                if part == parts_sent[k] {
+                    continue;
+                }
+                let event = Event::default().event(["iterations", "log"][k]).data(&part);
                 if tx.send(Ok(event)).await.is_err() {
                     return;
                 }
-                last_iterations = its;
+                parts_sent[k] = part;
             }
             tokio::select! {
                 _ = tokio::time::sleep(POLL) => {}

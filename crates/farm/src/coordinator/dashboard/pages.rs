@@ -104,6 +104,8 @@ pub(super) struct JobPage<'a> {
     pub(super) root: &'a str,
     pub(super) image: Option<v1::Resolution>,
     pub(super) csrf: &'a str,
+    /// The job's last log lines, oldest first.
+    pub(super) log: &'a [String],
 }
 
 /// A job's page: its preview (with an exposure control), status, settings and actions.
@@ -133,6 +135,7 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                 }
                 section.card #status data-live={ "/events?job=" (j.job_id) } { (job_status(j)) }
                 section.card.wide #iterations { (super::iterations::iterations(j)) }
+                section.card.wide #log { (job_log(p.log)) }
                 section.card {
                     h2 { "Scene" }
                     (settings(p))
@@ -163,6 +166,18 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
             }
         },
     )
+}
+
+/// A job's last log lines (sent again by the live updates), newest at the bottom.
+pub(super) fn job_log(lines: &[String]) -> Markup {
+    html! {
+        h2 { "Log" span.muted { " (the last " (lines.len()) " lines of the coordinator's log for this job)" } }
+        @if lines.is_empty() {
+            p.muted { "Nothing logged for this job yet." }
+        } @else {
+            pre.log { @for l in lines { (l) "\n" } }
+        }
+    }
 }
 
 /// A job's status block (sent again by the live updates).

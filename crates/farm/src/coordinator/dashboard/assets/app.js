@@ -1,7 +1,7 @@
 // Live updates and the preview's exposure. Every element with data-live="URL" is kept
 // current by the server-sent events at URL: `jobs` events replace a table's rows, `job`
 // events a job's status block (and reload the preview when its iteration or state moved),
-// `iterations` events its iterations' chart and table.
+// `iterations` and `log` events its iterations' chart and table and its last log lines.
 "use strict";
 
 function live(el) {
@@ -9,10 +9,15 @@ function live(el) {
   source.addEventListener("jobs", (e) => {
     el.querySelector("tbody").innerHTML = e.data;
   });
-  source.addEventListener("iterations", (e) => {
-    const section = document.getElementById("iterations");
-    if (section) section.innerHTML = e.data;
-  });
+  for (const part of ["iterations", "log"]) {
+    source.addEventListener(part, (e) => {
+      const section = document.getElementById(part);
+      if (!section) return;
+      section.innerHTML = e.data;
+      const pre = section.querySelector("pre");
+      if (pre) pre.scrollTop = pre.scrollHeight;
+    });
+  }
   source.addEventListener("job", (e) => {
     el.innerHTML = e.data;
     const mark = el.querySelector("[data-version]");
