@@ -101,8 +101,15 @@ fn dechunk(mut b: &[u8]) -> Vec<u8> {
 }
 
 /// Signs in: the session cookie (`name=value`).
+/// The dashboard's second token: it may look, not act.
+const VIEWER: &str = "viewer-secret";
+
 fn sign_in(port: u16) -> String {
-    let r = request(port, "POST", "/login", &[], &format!("token={TOKEN}"));
+    sign_in_with(port, TOKEN)
+}
+
+fn sign_in_with(port: u16, token: &str) -> String {
+    let r = request(port, "POST", "/login", &[], &format!("token={token}"));
     assert_eq!(r.status, 303, "{}", r.text());
     let cookie = r.header("set-cookie").expect("a session cookie");
     for attribute in ["HttpOnly", "SameSite=Strict", "Path=/"] {
@@ -123,7 +130,7 @@ fn csrf_of(page: &str) -> String {
 fn start(tag: &str, workers: usize) -> (Farm, u16) {
     let port = free_port();
     let addr = format!("127.0.0.1:{port}");
-    let farm = Farm::start_args(tag, workers, &["--http", &addr]);
+    let farm = Farm::start_args(tag, workers, &["--http", &addr, "--viewer-token", VIEWER]);
     let t0 = Instant::now();
     while TcpStream::connect(("127.0.0.1", port)).is_err() {
         assert!(
@@ -341,6 +348,16 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
     assert!(shown(-4), "priority -4 not shown");
     let r = request(port, "POST", "/jobs/job-2/cancel", &c, "csrf=forged");
     assert_eq!(r.status, 403);
+    // A viewer sees the page without its forms, and is refused an action even with a valid
+    // anti-forgery token.
+    let viewer = sign_in_with(port, VIEWER);
+    let v = [("Cookie", viewer.as_str())];
+    let seen = request(port, "GET", "/jobs/job-2", &v, "").text();
+    assert!(seen.contains("you can look, not act") && !seen.contains("name=\"csrf\""));
+    let vform = format!("csrf={}", csrf_of(&page));
+    let r = request(port, "POST", "/jobs/job-2/cancel", &v, &vform);
+    assert_eq!(r.status, 403);
+    assert!(r.text().contains("may look, not act"), "{}", r.text());
     assert_eq!(
         request(port, "POST", "/jobs/job-2/cancel", &[], &form).status,
         401

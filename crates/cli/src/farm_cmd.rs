@@ -37,6 +37,15 @@ pub struct CoordinatorArgs {
     /// job's preview; sign in with the token. Needs --token; not with TLS yet.
     #[arg(long, value_name = "ADDR")]
     pub http: Option<SocketAddr>,
+    /// A second token for the dashboard: signing in with it may look but not act (no
+    /// cancel, no priority change). Needs --http; not a token of the API.
+    #[arg(
+        long,
+        env = "PATHFARM_VIEWER_TOKEN",
+        value_name = "TOKEN",
+        requires = "http"
+    )]
+    pub viewer_token: Option<String>,
     /// Serve TLS only, with this certificate chain (PEM); needs --tls-key.
     #[arg(long, value_name = "PEM", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
@@ -350,6 +359,7 @@ async fn serve_coordinator(
         tls,
         metrics: args.metrics,
         http: args.http,
+        viewer_token: args.viewer_token,
         limits: Limits::default(),
         bundle_limits,
         job_logs,
@@ -359,6 +369,16 @@ async fn serve_coordinator(
         bail!(
             "--http: the dashboard needs the API token (--token or PATHFARM_TOKEN) to sign in with"
         );
+    }
+    if cfg.viewer_token.is_some() && cfg.viewer_token == cfg.token {
+        bail!("--viewer-token: the same as --token, so it would act, not only look");
+    }
+    if cfg
+        .viewer_token
+        .as_ref()
+        .is_some_and(|t| t.is_empty() || t.len() > 4096)
+    {
+        bail!("--viewer-token: empty or longer than 4096 bytes");
     }
     if cfg.http.is_some() && cfg.tls.is_some() {
         bail!(

@@ -90,6 +90,9 @@ pub struct CoordinatorConfig {
     /// If set, the web dashboard is served on this address (plain HTTP: it needs the token
     /// and is refused with TLS, which it does not serve yet).
     pub http: Option<SocketAddr>,
+    /// If set, signing in to the dashboard with this token gives a session that may look
+    /// but not act (no cancel, no priority change). Not a token of the API.
+    pub viewer_token: Option<String>,
     /// Scene loading limits (files are always confined to the bundle).
     pub limits: Limits,
     /// What a bundle may hold.

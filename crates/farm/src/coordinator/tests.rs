@@ -62,6 +62,7 @@ pub(super) fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         tls: None,
         metrics: None,
         http: None,
+        viewer_token: None,
         limits: Limits::default(),
         bundle_limits: BundleLimits::default(),
         scheduler: SchedulerConfig::default(),

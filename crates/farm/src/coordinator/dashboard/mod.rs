@@ -33,7 +33,7 @@ use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
 
 use super::{parse_job, resources, unix_ms, Shared};
-use auth::{Session, Sessions};
+use auth::{Role, Session, Sessions};
 
 /// Live-update streams open at once (each is one task polling the views); more are refused
 /// with 503 until one closes.
@@ -54,9 +54,10 @@ type Dashboard = State<Arc<Dash>>;
 /// token (checked when it starts).
 pub(crate) async fn serve(shared: Arc<Shared>, listener: TcpListener) {
     let token = shared.cfg.token.clone().unwrap_or_default();
+    let sessions = Sessions::new(&token, shared.cfg.viewer_token.as_deref());
     let dash = Arc::new(Dash {
         shared,
-        sessions: Sessions::new(&token),
+        sessions,
         streams: Arc::new(Semaphore::new(MAX_STREAMS)),
     });
     if let Err(e) = axum::serve(listener, router(dash)).await {
@@ -258,6 +259,7 @@ async fn job_page(State(d): Dashboard, headers: HeaderMap, Path(id): Path<String
         image: view.image,
         csrf: &s.csrf,
         log: &log,
+        can_act: s.role == Role::Operator,
     };
     html(StatusCode::OK, pages::job(&page))
 }
@@ -303,6 +305,12 @@ struct PriorityForm {
 fn action_job(d: &Dash, headers: &HeaderMap, id: &str, csrf: &str) -> Result<u64, Response> {
     let s = session(d, headers, false)?;
     same_site(headers)?;
+    if s.role != Role::Operator {
+        return Err(plain(
+            StatusCode::FORBIDDEN,
+            "refused: this session may look, not act (signed in with the viewer token)",
+        ));
+    }
     if csrf != s.csrf {
         return Err(plain(
             StatusCode::FORBIDDEN,

@@ -106,6 +106,8 @@ pub(super) struct JobPage<'a> {
     pub(super) csrf: &'a str,
     /// The job's last log lines, oldest first.
     pub(super) log: &'a [String],
+    /// Whether the session may act (an operator's) or only look (a viewer's).
+    pub(super) can_act: bool,
 }
 
 /// A job's page: its preview (with an exposure control), status, settings and actions.
@@ -149,7 +151,10 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                             a.button href={ "/jobs/" (j.job_id) "/tree.sdt" } download { "SD-tree" }
                         }
                     }
-                    @if !is_terminal(state_of(j)) {
+                    @if !p.can_act {
+                        p.muted { "Signed in as a viewer: you can look, not act." }
+                    }
+                    @if p.can_act && !is_terminal(state_of(j)) {
                         form.priority method="post" action={ "/jobs/" (j.job_id) "/priority" } {
                             input type="hidden" name="csrf" value=(p.csrf);
                             label { "priority "
