@@ -418,16 +418,14 @@ fn wait_until(farm: &Farm, port: u16, c: &[(&str, &str)], path: &str, states: &[
     }
 }
 
-/// With TLS the coordinator refuses `--http` (the page would take the token in clear), and
-/// says why.
+/// With TLS the dashboard is served over TLS with the coordinator's certificate: `curl`
+/// with the CA signs in and gets a `Secure` session cookie; plain HTTP gets no page.
 #[test]
-fn the_dashboard_is_refused_beside_tls_with_the_reason() {
+fn with_tls_the_dashboard_speaks_tls_only_and_its_cookie_is_secure() {
     let dir = crate::common::temp_dir("dash-tls");
-    let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
-    std::fs::write(&cert, "not read").unwrap();
-    std::fs::write(&key, "not read").unwrap();
-    let listen = format!("127.0.0.1:{}", free_port());
-    let http = format!("127.0.0.1:{}", free_port());
+    let tls = super::farm::TlsFiles::make(&dir);
+    let (listen, port) = (free_port(), free_port());
+    let (listen, http) = (format!("127.0.0.1:{listen}"), format!("127.0.0.1:{port}"));
     let data = dir.join("data");
     let args = [
         "coordinator",
@@ -438,16 +436,48 @@ fn the_dashboard_is_refused_beside_tls_with_the_reason() {
         "--http",
         &http,
         "--tls-cert",
-        crate::common::path_str(&cert),
+        crate::common::path_str(&tls.cert),
         "--tls-key",
-        crate::common::path_str(&key),
+        crate::common::path_str(&tls.key),
     ];
-    let ended = crate::common::Running::start(&args, &[("PATHFARM_TOKEN", TOKEN)])
-        .wait(Duration::from_secs(30));
-    assert!(!ended.status.success());
+    let _coordinator = crate::common::Running::start(&args, &[("PATHFARM_TOKEN", TOKEN)]);
+    let t0 = Instant::now();
+    while TcpStream::connect(("127.0.0.1", port)).is_err() {
+        assert!(t0.elapsed() < Duration::from_secs(30), "no dashboard");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let curl = |extra: &[&str]| {
+        let out = std::process::Command::new("curl")
+            .args(["-sS", "-i", "--max-time", "10", "--cacert"])
+            .arg(&tls.ca)
+            .args(extra)
+            .output()
+            .expect("curl (installed by .ci/run)");
+        let err = String::from_utf8_lossy(&out.stderr);
+        format!("{}{err}", String::from_utf8_lossy(&out.stdout))
+    };
+    let login = format!("https://127.0.0.1:{port}/login");
+    let form = curl(&[&login]);
+    assert!(form.starts_with("HTTP/1.1 200"), "{form}");
+    let signed = curl(&["--data", &format!("token={TOKEN}"), &login]);
+    assert!(signed.starts_with("HTTP/1.1 303"), "{signed}");
+    let cookie = (signed.lines())
+        .find(|l| l.to_ascii_lowercase().starts_with("set-cookie:"))
+        .unwrap_or("");
     assert!(
-        ended.stderr.contains("does not serve TLS"),
+        cookie.contains("; Secure") && cookie.contains("HttpOnly"),
+        "{signed}"
+    );
+    // Plain HTTP to the TLS port: no HTTP response (a TLS alert, or the connection closed).
+    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+    s.write_all(b"GET /login HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        .unwrap();
+    let mut raw = Vec::new();
+    let _ = s.read_to_end(&mut raw);
+    assert!(
+        !raw.starts_with(b"HTTP/"),
         "{}",
-        ended.describe()
+        String::from_utf8_lossy(&raw)
     );
 }

@@ -31,18 +31,21 @@ pub(super) struct Farm {
     tls: Option<TlsFiles>,
 }
 
-struct TlsFiles {
-    ca: PathBuf,
-    cert: PathBuf,
-    key: PathBuf,
+pub(super) struct TlsFiles {
+    pub(super) ca: PathBuf,
+    pub(super) cert: PathBuf,
+    pub(super) key: PathBuf,
 }
 
 impl TlsFiles {
     /// A CA and a certificate it signs for localhost and 127.0.0.1, made now, written to `dir`.
-    fn make(dir: &Path) -> TlsFiles {
-        use rcgen::{BasicConstraints, CertificateParams, IsCa, KeyPair};
+    pub(super) fn make(dir: &Path) -> TlsFiles {
+        use rcgen::{BasicConstraints, CertificateParams, DnType, IsCa, KeyPair};
         let mut ca_params = CertificateParams::new(Vec::<String>::new()).unwrap();
         ca_params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        // (a name of its own: OpenSSL, curl's, takes a leaf whose issuer is named as the
+        // leaf itself for a self-signed one)
+        (ca_params.distinguished_name).push(DnType::CommonName, "pathfarm test CA");
         let ca_key = KeyPair::generate().unwrap();
         let ca = ca_params.self_signed(&ca_key).unwrap();
         let names = vec!["localhost".to_string(), "127.0.0.1".to_string()];

@@ -34,7 +34,7 @@ pub struct CoordinatorArgs {
     #[arg(long, value_name = "ADDR")]
     pub metrics: Option<SocketAddr>,
     /// Serve the web dashboard on this address (e.g. 127.0.0.1:8080): jobs, workers, a
-    /// job's preview; sign in with the token. Needs --token; not with TLS yet.
+    /// job's preview; sign in with the token. Needs --token; over TLS with --tls-cert.
     #[arg(long, value_name = "ADDR")]
     pub http: Option<SocketAddr>,
     /// A second token for the dashboard: signing in with it may look but not act (no
@@ -379,12 +379,6 @@ async fn serve_coordinator(
         .is_some_and(|t| t.is_empty() || t.len() > 4096)
     {
         bail!("--viewer-token: empty or longer than 4096 bytes");
-    }
-    if cfg.http.is_some() && cfg.tls.is_some() {
-        bail!(
-            "--http: the dashboard does not serve TLS yet, and a token typed into it would cross \
-             the network in clear: serve it behind a TLS proxy on 127.0.0.1, or leave --http off"
-        );
     }
     coordinator::serve(cfg, shutdown).await?;
     Ok(())

@@ -87,8 +87,8 @@ pub struct CoordinatorConfig {
     pub tls: Option<TlsIdentity>,
     /// If set, Prometheus metrics (text format) are served at `GET /metrics` on this address.
     pub metrics: Option<SocketAddr>,
-    /// If set, the web dashboard is served on this address (plain HTTP: it needs the token
-    /// and is refused with TLS, which it does not serve yet).
+    /// If set, the web dashboard is served on this address (it needs the token; over TLS
+    /// with the same certificate when `tls` is set).
     pub http: Option<SocketAddr>,
     /// If set, signing in to the dashboard with this token gives a session that may look
     /// but not act (no cancel, no priority change). Not a token of the API.

@@ -104,7 +104,13 @@ pub(super) async fn run(
             let l = TcpListener::bind(haddr)
                 .await
                 .map_err(|error| CoordinatorError::Bind { addr: haddr, error })?;
-            tracing::info!("dashboard on http://{}/", l.local_addr().unwrap_or(haddr));
+            let scheme = if shared.cfg.tls.is_some() {
+                "https"
+            } else {
+                "http"
+            };
+            let at = l.local_addr().unwrap_or(haddr);
+            tracing::info!("dashboard on {scheme}://{at}/");
             Some(tokio::spawn(super::dashboard::serve(shared.clone(), l)))
         }
         None => None,

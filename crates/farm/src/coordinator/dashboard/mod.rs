@@ -1,13 +1,16 @@
 //! The farm's web dashboard, served by the coordinator itself (`--http ADDR`) from the same
-//! state the API reads: the jobs (live), a job's page with its preview, status, settings,
-//! downloads and cancel, and the workers. Server-rendered HTML ([`pages`]), a little plain
-//! JavaScript and CSS compiled into the binary ([`assets`]): nothing comes from elsewhere.
+//! state the API reads: the jobs (live), a job's page with its preview, the guide at a
+//! pixel, status, iterations, log, settings, downloads, priority and cancel, and the
+//! workers (the departed ones marked lost or left). Server-rendered HTML ([`pages`]), a
+//! little plain JavaScript and CSS compiled into the binary ([`assets`]): nothing comes
+//! from elsewhere.
 //!
 //! Security: behind the API token ([`auth`]: a sign-in form buys an `HttpOnly`,
-//! `SameSite=Strict` session cookie); every action is a POST carrying the session's
-//! anti-forgery token and refused from another site (`Sec-Fetch-Site`, `Origin`); every
-//! response is `no-store` with a strict content security policy. Reads use the views the API
-//! reads (never the state lock); an action takes the lock on a blocking thread.
+//! `SameSite=Strict` session cookie; a viewer token buys one that may only look); every
+//! action is a POST carrying the session's anti-forgery token and refused from another site
+//! (`Sec-Fetch-Site`, `Origin`); every response is `no-store` with a strict content security
+//! policy; with the coordinator's TLS, TLS only ([`tls`]). Reads use the views the API reads
+//! (never the state lock); an action takes the lock on a blocking thread.
 
 // A handler's refusal is its response, returned early: its size on the error path of an
 // HTTP request costs nothing worth boxing.
@@ -17,6 +20,7 @@ mod assets;
 mod auth;
 mod iterations;
 mod pages;
+mod tls;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -60,8 +64,14 @@ pub(crate) async fn serve(shared: Arc<Shared>, listener: TcpListener) {
         sessions,
         streams: Arc::new(Semaphore::new(MAX_STREAMS)),
     });
-    if let Err(e) = axum::serve(listener, router(dash)).await {
-        tracing::error!("dashboard server: {e}");
+    match dash.shared.cfg.tls.as_ref().map(tls::acceptor) {
+        None => {
+            if let Err(e) = axum::serve(listener, router(dash)).await {
+                tracing::error!("dashboard server: {e}");
+            }
+        }
+        Some(Ok(acceptor)) => tls::serve(listener, acceptor, router(dash)).await,
+        Some(Err(e)) => tracing::error!("dashboard server: TLS: {e}"),
     }
 }
 
@@ -155,7 +165,7 @@ async fn login(State(d): Dashboard, form: Form<LoginForm>) -> Response {
         auth::COOKIE,
         auth::LIFETIME.as_secs()
     );
-    with_cookie(see_other("/"), &cookie)
+    with_cookie(&d, see_other("/"), &cookie)
 }
 
 async fn logout(State(d): Dashboard, headers: HeaderMap) -> Response {
@@ -168,12 +178,17 @@ async fn logout(State(d): Dashboard, headers: HeaderMap) -> Response {
         "{}=; HttpOnly; SameSite=Strict; Path=/; Max-Age=0",
         auth::COOKIE
     );
-    with_cookie(see_other("/login"), &gone)
+    with_cookie(&d, see_other("/login"), &gone)
 }
 
-/// `r` setting the cookie `value` (a `Set-Cookie` header's value).
-fn with_cookie(mut r: Response, value: &str) -> Response {
-    if let Ok(v) = HeaderValue::from_str(value) {
+/// `r` setting the cookie `value` (a `Set-Cookie` header's value), `Secure` when the
+/// dashboard is served over TLS (the browser then never sends it in clear).
+fn with_cookie(d: &Dash, mut r: Response, value: &str) -> Response {
+    let secure = match d.shared.cfg.tls {
+        Some(_) => "; Secure",
+        None => "",
+    };
+    if let Ok(v) = HeaderValue::from_str(&format!("{value}{secure}")) {
         r.headers_mut().insert(header::SET_COOKIE, v);
     }
     r
