@@ -684,11 +684,9 @@ impl Shared {
     /// Forgets connected worker `id` (if it still is): its stream ends with `why`, so a
     /// worker that is still running sees it and registers again.
     pub(crate) fn forget_worker(&self, st: &mut State, id: u64, why: &str) {
-        if let Some(w) = st.workers.get(&id) {
-            let last = worker_info(st, id, w);
-            st.departed.record(last, why, unix_ms());
-        }
         if let Some(w) = st.workers.remove(&id) {
+            let last = worker_info(st, id, &w);
+            st.departed.record(last, why, unix_ms());
             let mut keys = self.keys.write().unwrap_or_else(|e| e.into_inner());
             keys.remove(&w.upload_key);
             let status = Status::unavailable(format!("worker {id} {why}; register again"));

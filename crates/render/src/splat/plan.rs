@@ -81,11 +81,6 @@ impl SplatPlan {
     /// On the calling thread alone: a farm coordinator prepares several uploads side by
     /// side, and a tile's work is less than handing it to the rayon pool costs.
     pub fn prepare(&self, region: Region, values: &[Vec3]) -> RegionSplat {
-        self.prepare_on(region, values, Threads::Caller)
-    }
-
-    /// [`SplatPlan::prepare`], the interior gathered by `threads`.
-    fn prepare_on(&self, region: Region, values: &[Vec3], threads: Threads) -> RegionSplat {
         let mut recs: Vec<Vec<SampleRec>> = (self.passes.iter())
             .map(|pass| vec![SampleRec::default(); region.pixels() * pass.n as usize])
             .collect();
@@ -97,7 +92,13 @@ impl SplatPlan {
                 film: &mut film,
                 film_region: inner,
             };
-            gather(self, (&recs, region), target, &mut Vec::new(), threads);
+            gather(
+                self,
+                (&recs, region),
+                target,
+                &mut Vec::new(),
+                Threads::Caller,
+            );
             (inner, film)
         });
         RegionSplat {

@@ -345,16 +345,26 @@ async fn cancel(
         Ok(n) => n,
         Err(r) => return r,
     };
-    let shared = d.shared.clone();
-    let ended = tokio::task::spawn_blocking(move || {
-        let mut st = shared.lock();
+    act(&d, n, "cancel", move |shared, st| {
         let why = "cancelled from the dashboard".to_string();
-        shared.end_job(&mut st, n, v1::JobState::Cancelled, why)
+        shared.end_job(st, n, v1::JobState::Cancelled, why);
     })
-    .await;
-    match ended {
-        Ok(_) => see_other(&format!("/jobs/{}", super::job_name(n))),
-        Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("cancel: {e}")),
+    .await
+}
+
+/// Does `f` to the state (under the lock, on a blocking thread), then sends the browser
+/// back to job `n`'s page.
+async fn act(
+    d: &Dash,
+    n: u64,
+    what: &str,
+    f: impl FnOnce(&Arc<Shared>, &mut super::State) + Send + 'static,
+) -> Response {
+    let shared = d.shared.clone();
+    let done = tokio::task::spawn_blocking(move || f(&shared, &mut shared.lock())).await;
+    match done {
+        Ok(()) => see_other(&format!("/jobs/{}", super::job_name(n))),
+        Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("{what}: {e}")),
     }
 }
 
@@ -375,16 +385,10 @@ async fn set_priority(
             format!("priority: {echo} is not a whole number (a 32-bit integer)"),
         );
     };
-    let shared = d.shared.clone();
-    let set = tokio::task::spawn_blocking(move || {
-        let mut st = shared.lock();
-        shared.set_priority(&mut st, n, priority)
+    act(&d, n, "priority", move |shared, st| {
+        shared.set_priority(st, n, priority);
     })
-    .await;
-    match set {
-        Ok(_) => see_other(&format!("/jobs/{}", super::job_name(n))),
-        Err(e) => plain(StatusCode::INTERNAL_SERVER_ERROR, format!("priority: {e}")),
-    }
+    .await
 }
 
 #[derive(serde::Deserialize)]
