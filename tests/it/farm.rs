@@ -104,10 +104,6 @@ impl Farm {
         farm
     }
 
-    fn start_coordinator(&mut self) {
-        self.start_coordinator_with(&[]);
-    }
-
     fn start_coordinator_with(&mut self, extra: &[&str]) {
         let listen = format!("127.0.0.1:{}", self.port);
         let data = self.data.join("coordinator");
@@ -756,7 +752,9 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_kept
 
 #[test]
 fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results() {
-    let mut farm = Farm::start("restart", 2);
+    // Checkpoints at every iteration's end, so one is durable early in the job.
+    let every = ["--checkpoint-interval-s", "0"];
+    let mut farm = Farm::start_args("restart", 2, &every);
     // A job finished before the kill.
     let small = render_reference(&farm.data, 24);
     let first = farm.data.join("first.exr");
@@ -792,7 +790,7 @@ fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results()
         .unwrap()
         .wait(Duration::from_secs(10));
     assert!(!dead.status.success());
-    farm.start_coordinator();
+    farm.start_coordinator_with(&every);
     wait_for_job(run, &farm);
     assert_same_exr(&out, &reference, &farm);
     assert!(

@@ -83,6 +83,10 @@ pub struct CoordinatorArgs {
     /// Seconds a lease lives without a heartbeat listing it (default 60).
     #[arg(long, value_name = "SECONDS")]
     pub lease_timeout_s: Option<f64>,
+    /// Seconds between a running job's checkpoints on disk, taken at iterations' ends (0:
+    /// at every iteration's end). A restarted coordinator resumes a job from its last one.
+    #[arg(long, value_name = "SECONDS", default_value_t = 30.0)]
+    pub checkpoint_interval_s: f64,
     /// Seconds a lease can live however often heartbeats list it (default 600).
     #[arg(long, value_name = "SECONDS")]
     pub max_lease_lifetime_s: Option<f64>,
@@ -363,6 +367,14 @@ async fn serve_coordinator(
         limits: Limits::default(),
         bundle_limits,
         job_logs,
+        checkpoint_interval: std::time::Duration::try_from_secs_f64(args.checkpoint_interval_s)
+            .ok()
+            .with_context(|| {
+                format!(
+                    "--checkpoint-interval-s {}: not a number of seconds",
+                    args.checkpoint_interval_s
+                )
+            })?,
         default_tile: None,
     };
     if cfg.http.is_some() && cfg.token.is_none() {

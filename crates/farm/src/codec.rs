@@ -31,6 +31,8 @@ pub enum CodecError {
     NonFinite(usize),
     #[error("tile samples: sample {index} has value {value:e}, beyond {MAX_SAMPLE_VALUE:e}")]
     OutOfRange { index: usize, value: f32 },
+    #[error("tile estimate: pixel {index} has value {value:e}, not a finite value >= 0")]
+    BadEstimate { index: usize, value: f32 },
     #[error("tile pixels: pixel {index}: {why}")]
     BadSums { index: usize, why: &'static str },
 }
@@ -111,6 +113,76 @@ pub fn encode_estimate(estimate: &[f32]) -> Vec<u8> {
         v.extend_from_slice(&x.to_le_bytes());
     }
     v
+}
+
+/// The most bytes of estimate a lease carries inline (`Lease.tile_estimate`); a larger
+/// tile's lease names the whole estimate's blob instead.
+pub const MAX_TILE_ESTIMATE_BYTES: usize = 1 << 20;
+
+/// The frame's pixel `estimate` (`width` pixels a row) over `region`, as a lease carries
+/// it (`Lease.estimate`), or `None` if its values are more than [`MAX_TILE_ESTIMATE_BYTES`]
+/// (or there is no estimate).
+pub fn encode_tile_estimate(
+    estimate: &[f32],
+    width: u32,
+    region: Region,
+) -> Option<v1::PixelEstimate> {
+    let bytes = region.pixels() * 4;
+    if estimate.is_empty() || bytes > MAX_TILE_ESTIMATE_BYTES {
+        return None;
+    }
+    let mut v = Vec::with_capacity(bytes);
+    for y in region.y0..region.y1 {
+        let row = (y * width) as usize;
+        let line = &estimate[row + region.x0 as usize..row + region.x1 as usize];
+        line.iter()
+            .for_each(|x| v.extend_from_slice(&x.to_le_bytes()));
+    }
+    Some(v1::PixelEstimate {
+        region: Some(region_to_proto(region)),
+        values: v,
+    })
+}
+
+/// A frame-sized (`width x height`) estimate holding a lease's part `e` (as
+/// [`encode_tile_estimate`] wrote it) over its region and zero elsewhere. Refused unless
+/// its region lies in the frame and contains `tile` (the lease reads the estimate there),
+/// and it holds exactly the region's pixels, each finite and not negative.
+pub fn decode_tile_estimate(
+    e: &v1::PixelEstimate,
+    (width, height): (u32, u32),
+    tile: Region,
+) -> Result<Vec<f32>, CodecError> {
+    let region = region_from_proto(&e.region.unwrap_or_default(), width, height)?;
+    let contains = region.x0 <= tile.x0
+        && region.y0 <= tile.y0
+        && tile.x1 <= region.x1
+        && tile.y1 <= region.y1;
+    if !contains {
+        return Err(CodecError::Region(region));
+    }
+    let bytes = &e.values;
+    let expected = region.pixels() * 4;
+    if bytes.len() != expected {
+        let what = "lease estimate";
+        let got = bytes.len();
+        return Err(CodecError::Length {
+            what,
+            got,
+            expected,
+        });
+    }
+    let mut out = vec![0.0f32; width as usize * height as usize];
+    let values = (bytes.chunks_exact(4)).map(|b| f32::from_le_bytes(b.try_into().unwrap()));
+    let (w, rw) = (width as usize, region.width() as usize);
+    for (i, v) in values.enumerate() {
+        if !(v.is_finite() && v >= 0.0) {
+            return Err(CodecError::BadEstimate { index: i, value: v });
+        }
+        let (x, y) = (region.x0 as usize + i % rw, region.y0 as usize + i / rw);
+        out[y * w + x] = v;
+    }
+    Ok(out)
 }
 
 pub fn decode_estimate(bytes: &[u8]) -> Result<Vec<f32>, CodecError> {
@@ -379,6 +451,61 @@ mod tests {
             decode_pixels(&bad, region),
             Err(CodecError::Header { .. })
         ));
+    }
+
+    #[test]
+    fn a_leases_estimate_travels_alone_and_lands_where_the_frames_was() {
+        let (w, h) = (5u32, 4u32);
+        let frame: Vec<f32> = (0..w * h).map(|i| i as f32 * 0.25).collect();
+        let region = Region {
+            x0: 1,
+            y0: 1,
+            x1: 4,
+            y1: 3,
+        };
+        let e = encode_tile_estimate(&frame, w, region).unwrap();
+        assert_eq!(e.values.len(), 6 * 4);
+        let tile = Region { x1: 3, ..region };
+        let back = decode_tile_estimate(&e, (w, h), tile).unwrap();
+        for y in 0..h {
+            for x in 0..w {
+                let i = (y * w + x) as usize;
+                let inside = region.x0 <= x && x < region.x1 && region.y0 <= y && y < region.y1;
+                let want = if inside { frame[i] } else { 0.0 };
+                assert_eq!(back[i].to_bits(), want.to_bits(), "pixel ({x}, {y})");
+            }
+        }
+        assert!(encode_tile_estimate(&[], w, region).is_none());
+        let huge = Region {
+            x0: 0,
+            y0: 0,
+            x1: 1024,
+            y1: 257,
+        };
+        assert!(encode_tile_estimate(&vec![1.0; 1024 * 257], 1024, huge).is_none());
+        // refused: a short payload, a region outside the frame or not containing the tile,
+        // a bad value
+        let mut short = e.clone();
+        short.values.truncate(20);
+        let r = decode_tile_estimate(&short, (w, h), tile);
+        assert!(matches!(r, Err(CodecError::Length { .. })), "{r:?}");
+        let outside = v1::PixelEstimate {
+            region: Some(region_to_proto(Region { x1: 6, ..region })),
+            values: vec![0u8; 8 * 4],
+        };
+        assert!(decode_tile_estimate(&outside, (w, h), tile).is_err());
+        let wider = Region { x0: 0, ..region };
+        let r = decode_tile_estimate(&e, (w, h), wider);
+        assert!(r.is_err(), "the tile must lie inside: {r:?}");
+        for bad in [f32::NAN, f32::INFINITY, -1.0] {
+            let mut b = e.clone();
+            b.values[8..12].copy_from_slice(&bad.to_le_bytes());
+            let r = decode_tile_estimate(&b, (w, h), tile);
+            assert!(
+                matches!(r, Err(CodecError::BadEstimate { index: 2, .. })),
+                "{r:?}"
+            );
+        }
     }
 
     #[test]

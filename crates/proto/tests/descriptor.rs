@@ -224,6 +224,7 @@ fn key_messages_keep_their_field_numbers() {
             ("settings", 8),
             ("image", 9),
             ("pass", 10),
+            ("estimate", 11),
         ])
     );
     assert_eq!(

@@ -74,6 +74,15 @@ fn sample_lease() -> v1::Lease {
             hold_records: true,
             records_epoch: 1_733_333_333_333,
         }),
+        estimate: Some(v1::PixelEstimate {
+            region: Some(v1::Rect {
+                x0: 63,
+                y0: 31,
+                x1: 129,
+                y1: 97,
+            }),
+            values: [0.5f32, 2.0].iter().flat_map(|x| x.to_le_bytes()).collect(),
+        }),
     }
 }
 

@@ -118,7 +118,7 @@ impl Film {
         Self {
             width,
             height,
-            pixels: vec![PixelStats::default(); (width * height) as usize],
+            pixels: zeroed_pixels(width as usize * height as usize),
         }
     }
 
@@ -141,6 +141,47 @@ impl Film {
         (self.pixels.par_iter_mut().zip(&other.pixels))
             .with_min_len(1 << 14)
             .for_each(|(p, q)| p.merge(q));
+    }
+}
+
+/// `n` pixels of [`PixelStats::default`], whose bits are all zero: from the allocator's
+/// zeroed memory, which for a large film is fresh pages the kernel zeroes as they are
+/// first touched, instead of a pass writing defaults over them. A large film asks for
+/// huge pages: a 1920x1080 film is 190 MB, 46 000 page faults of 4 KiB each where 2 MiB
+/// pages take 95, and a farm coordinator allocates several such films an iteration (its
+/// page faults, under the state lock, took longer than a worker's share of a pass).
+fn zeroed_pixels(n: usize) -> Vec<PixelStats> {
+    if n == 0 {
+        return Vec::new();
+    }
+    let layout = std::alloc::Layout::array::<PixelStats>(n).expect("a film's size");
+    // SAFETY: `layout` has a nonzero size; the memory is allocated by the global allocator
+    // with the layout of a `Vec<PixelStats>` of capacity `n`, and all-zero bytes are a
+    // valid `PixelStats` (f64 0.0 and u32 0), so all `n` are initialised.
+    unsafe {
+        let ptr = std::alloc::alloc_zeroed(layout);
+        if ptr.is_null() {
+            std::alloc::handle_alloc_error(layout);
+        }
+        advise_huge_pages(ptr, layout.size());
+        Vec::from_raw_parts(ptr.cast::<PixelStats>(), n, n)
+    }
+}
+
+/// Asks the kernel for transparent huge pages over the whole 2 MiB pages of an allocation
+/// of `len` bytes at `ptr` (a hint: ignored where huge pages are off, and for small
+/// allocations).
+fn advise_huge_pages(ptr: *mut u8, len: usize) {
+    const HUGE: usize = 2 << 20;
+    let (start, end) = (ptr as usize, ptr as usize + len);
+    let (a, b) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
+    if b <= a {
+        return;
+    }
+    #[cfg(target_os = "linux")]
+    // SAFETY: [a, b) lies inside the live allocation; madvise changes no memory contents.
+    unsafe {
+        libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE);
     }
 }
 

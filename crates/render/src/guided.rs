@@ -33,7 +33,7 @@ use pathfarm_scene::{
     GuidedSpatialFilter,
 };
 
-use crate::film::Film;
+use crate::film::{Film, PixelStats};
 use crate::pass::{render_unit, UnitInputs};
 use crate::render::{Progress, Region, RenderSettings};
 use crate::scene::Scene;
@@ -213,22 +213,45 @@ pub fn combine_films(films: &[&Film], weights: &[f64]) -> Film {
             continue;
         }
         for (o, p) in out.pixels.iter_mut().zip(&f.pixels) {
-            o.count += p.count;
-            if p.sum_w <= 0.0 {
-                continue;
-            }
-            let l = wk / p.sum_w;
-            let l2 = l * l;
-            o.sum_w += l * p.sum_w;
-            o.sum_w2 += l2 * p.sum_w2;
-            for c in 0..3 {
-                o.sum_wl[c] += l * p.sum_wl[c];
-                o.sum_w2l[c] += l2 * p.sum_w2l[c];
-                o.sum_w2l2[c] += l2 * p.sum_w2l2[c];
-            }
+            combine_pixel(o, p, wk);
         }
     }
     out
+}
+
+/// The pixel values ([`PixelStats::mean`]) of [`combine_films`]'s film, the same bits,
+/// without the film: a frame of values (12 bytes a pixel) instead of a frame of sums (96).
+pub fn combined_means(films: &[&Film], weights: &[f64]) -> Vec<[f32; 3]> {
+    let pixels = films[0].pixels.len();
+    (0..pixels)
+        .map(|i| {
+            let mut o = PixelStats::default();
+            for (f, &wk) in films.iter().zip(weights) {
+                if wk != 0.0 {
+                    combine_pixel(&mut o, &f.pixels[i], wk);
+                }
+            }
+            o.mean()
+        })
+        .collect()
+}
+
+/// Adds pixel `p` of a film of weight `wk` to the combined pixel `o`.
+#[inline]
+fn combine_pixel(o: &mut PixelStats, p: &PixelStats, wk: f64) {
+    o.count += p.count;
+    if p.sum_w <= 0.0 {
+        return;
+    }
+    let l = wk / p.sum_w;
+    let l2 = l * l;
+    o.sum_w += l * p.sum_w;
+    o.sum_w2 += l2 * p.sum_w2;
+    for c in 0..3 {
+        o.sum_wl[c] += l * p.sum_wl[c];
+        o.sum_w2l[c] += l2 * p.sum_w2l[c];
+        o.sum_w2l2[c] += l2 * p.sum_w2l2[c];
+    }
 }
 
 /// What a guided render reports as it goes and how its path fallback decides, beyond what
@@ -288,7 +311,7 @@ pub fn render_guided(
             scene,
             params,
             tree: session.tree(),
-            estimate: session.estimate(),
+            estimate: session.pass_estimate(),
             seed: settings.seed,
             tile_size: settings.tile_size,
         };

@@ -104,14 +104,22 @@ pub fn srgb_encode(x: f32) -> f32 {
 /// The 8-bit sRGB PNG preview of `film` (clamped, no exposure change), marked
 /// as pathfarm's.
 pub fn encode_png(film: &Film) -> Result<Vec<u8>, RenderError> {
-    let mean = film.mean_rgb();
+    encode_png_of_means(film.width, film.height, &film.mean_rgb())
+}
+
+/// [`encode_png`] of a film whose pixel values ([`Film::mean_rgb`]) are `mean`.
+pub fn encode_png_of_means(
+    width: u32,
+    height: u32,
+    mean: &[[f32; 3]],
+) -> Result<Vec<u8>, RenderError> {
     let mut bytes = Vec::with_capacity(mean.len() * 3);
-    for p in &mean {
+    for p in mean {
         for c in p {
             bytes.push((srgb_encode(*c) * 255.0 + 0.5) as u8);
         }
     }
-    encode_png_rgb8(film.width, film.height, &bytes)
+    encode_png_rgb8(width, height, &bytes)
 }
 
 /// An 8-bit RGB PNG of `rgb` (row-major, 3 bytes a pixel), marked as pathfarm's

@@ -89,6 +89,22 @@ impl PassSpec {
         self.unit_spp() <= SAMPLES_MAX_SPP
     }
 
+    /// The pixels whose samples a unit's render of `region` (of a `size` image whose
+    /// reconstruction filter is `filter`) draws, so whose pixel estimate it may read: the
+    /// region alone for a unit of samples, the region and its filter halo for one of sums
+    /// ([`crate::render_region_into`]).
+    pub fn sampled_pixels(
+        &self,
+        region: Region,
+        filter: &crate::filter::Filter,
+        size: (u32, u32),
+    ) -> Region {
+        match self.sample_form() {
+            true => region,
+            false => region.grown(filter.reach() as u32, size.0, size.1),
+        }
+    }
+
     /// The unit's render calls: how many, and the samples per pixel of each. Each is
     /// rendered and splatted on its own, the `p`-th from random stream `first_sample + p x
     /// spp`: the plain path tracer renders the whole unit in one call, the guided integrator

@@ -260,6 +260,22 @@ impl Preview {
         let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
         combine_films(&refs, &self.weights)
     }
+
+    /// [`Preview::film`]'s pixel values, without the film (a frame of sums less to
+    /// allocate at every iteration's end).
+    pub fn mean_rgb(&self) -> Vec<[f32; 3]> {
+        if self.weights.iter().all(|&w| !(w > 0.0)) {
+            return self.films.last().expect("a preview has a film").mean_rgb();
+        }
+        let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
+        crate::guided::combined_means(&refs, &self.weights)
+    }
+
+    /// The image's width and height.
+    pub fn size(&self) -> (u32, u32) {
+        let f = self.films.last().expect("a preview has a film");
+        (f.width, f.height)
+    }
 }
 
 /// What a session needs to splat units whose tiles come back as samples
@@ -418,6 +434,16 @@ impl Session {
     /// The pixel estimate guided roulette reads (whole image; empty until an iteration ended).
     pub fn estimate(&self) -> &[f32] {
         &self.estimate
+    }
+
+    /// The pixel estimate the passes read: [`Session::estimate`] with guided roulette, empty
+    /// otherwise (the path fallback reads the estimate here, in the session; a farm need not
+    /// ship a frame-sized array to every worker for it).
+    pub fn pass_estimate(&self) -> &[f32] {
+        match self.params.russian_roulette {
+            GuidedRoulette::Guided => &self.estimate,
+            _ => &[],
+        }
     }
 
     /// Changes whenever [`Session::estimate`] does.
@@ -1229,6 +1255,12 @@ fn check_tile(p: &Pending, index: usize, out: &TileOutput) -> Result<(), TileErr
 }
 
 impl Session {
+    /// Whether no unit is in flight and the next iteration is not planned yet: when
+    /// [`Session::checkpoint`] can be taken.
+    pub fn between_iterations(&self) -> bool {
+        self.pending.is_empty() && matches!(self.phase, Phase::Plan)
+    }
+
     /// The session's state ([`crate::checkpoint`]), between iterations only (when no unit is
     /// in flight and the next iteration is not planned yet): `None` otherwise. The tree is
     /// not in it: keep [`Session::tree`]'s encoding with it (a farm publishes that anyway).
@@ -1241,7 +1273,7 @@ impl Session {
     /// one by one, skipping films it stored before: a finished iteration's film is the same
     /// `Arc` in every later checkpoint) off it.
     pub fn checkpoint_parts(&self) -> Option<CheckpointParts> {
-        if !self.pending.is_empty() || !matches!(self.phase, Phase::Plan) {
+        if !self.between_iterations() {
             return None;
         }
         let mut o = Out::default();

@@ -110,7 +110,8 @@ pub(crate) fn take_parts(record: &mut JobRecord) -> Vec<Digest> {
 }
 
 impl Shared {
-    /// Takes job `n`'s checkpoint if one can be taken now (between iterations). The tree blob
+    /// Takes job `n`'s checkpoint if one can be taken now (between iterations) and is due
+    /// ([`super::CoordinatorConfig::checkpoint_interval`]). The tree blob
     /// is stored now (the next unit publishes it); the rest is written in the background and
     /// recorded when it is durable. Returns the seconds spent here, on the critical path.
     pub(crate) fn save_checkpoint(self: &Arc<Self>, st: &mut State, n: u64) -> f64 {
@@ -118,9 +119,14 @@ impl Shared {
         let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active_mut()) else {
             return 0.0;
         };
+        let now = self.now();
+        if now < a.checkpoint_due {
+            return 0.0;
+        }
         let Some(cp) = a.session().checkpoint_parts() else {
             return 0.0;
         };
+        a.checkpoint_due = now + self.cfg.checkpoint_interval;
         let version = a.session().tree_version();
         let tree = match a.tree_digest {
             Some((v, d)) if v == version => d,

@@ -104,6 +104,14 @@ pub struct CoordinatorConfig {
     /// Each job's last log lines, shown on its dashboard page: fed by the process's
     /// `tracing` subscriber when it installs this as a layer (empty otherwise).
     pub job_logs: JobLogs,
+    /// How often a running job's session is written to disk, at an iteration's end: a
+    /// restarted coordinator, or a job rolled back after losing records, resumes from the
+    /// last one written (the same bits; what was rendered since is rendered again). The
+    /// first at the first iteration's end this long after the job started, each next this
+    /// long after the one before; zero: at every iteration's end. A 1920x1080 session
+    /// writes 190 MB a new iteration film, which on a job of seconds an iteration costs
+    /// the coordinator more CPU than the splat (`docs/decisions/checkpoint-interval.md`).
+    pub checkpoint_interval: Duration,
     /// Tile edge when a job does not set one; `None` (the default): a few tiles per
     /// worker thread, of equal cost as measured in the job's earlier units
     /// ([`crate::tiling`]).
@@ -288,6 +296,8 @@ pub(crate) struct Active {
     /// Checkpoints taken so far (a background write records its checkpoint only if no later
     /// one was taken meanwhile).
     pub(crate) checkpoint_seq: u64,
+    /// When the next checkpoint is due ([`CoordinatorConfig::checkpoint_interval`]).
+    pub(crate) checkpoint_due: Millis,
     /// The PNG preview of the image so far (updated at every iteration's end).
     pub(crate) preview: Option<Digest>,
     /// The films the last recorded checkpoint stored, so the next one stores only new films.
@@ -864,10 +874,7 @@ impl Shared {
     /// in): checkpoint the session (between iterations), log the units' accounts, and go on
     /// with the next units.
     pub(crate) fn end_units(self: &Arc<Self>, st: &mut State, n: u64, ended: &[PassSpec]) {
-        let checkpoint_s = self.save_checkpoint(st, n);
-        if checkpoint_s > 0.0 {
-            self.update_preview(st, n);
-        }
+        let checkpoint_s = self.between_iterations(st, n);
         if let Some(a) = st.jobs.get_mut(&n).and_then(|j| j.active_mut()) {
             for spec in ended {
                 let Some(i) = a.ledgers.iter().position(|l| l.0 == spec.unit) else {
@@ -882,6 +889,20 @@ impl Shared {
         self.drive(st, n);
     }
 
+    /// What is done between two iterations of job `n` (if it is between two now): the
+    /// preview updated and, when due, a checkpoint taken. Returns the seconds the
+    /// checkpoint took on the critical path.
+    fn between_iterations(self: &Arc<Self>, st: &mut State, n: u64) -> f64 {
+        let Some(a) = st.jobs.get(&n).and_then(|j| j.active()) else {
+            return 0.0;
+        };
+        if !a.session().between_iterations() {
+            return 0.0;
+        }
+        self.update_preview(st, n);
+        self.save_checkpoint(st, n)
+    }
+
     /// Renders job `n`'s image so far as its PNG preview, in the background.
     fn update_preview(self: &Arc<Self>, st: &mut State, n: u64) {
         let Some(preview) = st
@@ -894,7 +915,9 @@ impl Shared {
         };
         let shared = self.clone();
         tokio::task::spawn_blocking(move || {
-            let png = match pathfarm_render::output::encode_png(&preview.film()) {
+            let (w, h) = preview.size();
+            let png = match pathfarm_render::output::encode_png_of_means(w, h, &preview.mean_rgb())
+            {
                 Ok(p) => p,
                 Err(e) => return tracing::warn!(job = %job_name(n), "preview: {e}"),
             };
@@ -1041,6 +1064,7 @@ impl Shared {
             seed: p.seed,
             ledgers: Vec::new(),
             checkpoint_seq: 0,
+            checkpoint_due: self.now() + self.cfg.checkpoint_interval,
             preview: None,
             film_digests: Vec::new(),
             tree_digest: None,
@@ -1198,10 +1222,7 @@ impl Shared {
             .records_ledger
             .take()
             .unwrap_or_else(|| RecordsLedger::start(0));
-        let checkpoint_s = self.save_checkpoint(st, n);
-        if checkpoint_s > 0.0 {
-            self.update_preview(st, n);
-        }
+        let checkpoint_s = self.between_iterations(st, n);
         let ended = RecordsEnd {
             end_s,
             checkpoint_s,
@@ -1481,9 +1502,18 @@ impl Shared {
                 .map(|d| d.0.to_vec())
                 .unwrap_or_default();
         }
+        let mut tile_estimate = None;
         if spec.kind != PassKind::Path {
-            let estimate = a.estimate_digest.flatten();
-            pass.estimate_digest = estimate.map(|d| d.0.to_vec()).unwrap_or_default();
+            let estimate = a.session().pass_estimate();
+            let size = (job.record.width, job.record.height);
+            let read = spec.sampled_pixels(region, &a.prepared.splatting.filter, size);
+            match codec::encode_tile_estimate(estimate, size.0, read) {
+                Some(part) => tile_estimate = Some(part),
+                None => {
+                    let estimate = a.estimate_digest.flatten();
+                    pass.estimate_digest = estimate.map(|d| d.0.to_vec()).unwrap_or_default();
+                }
+            }
         }
         let mut settings = request
             .settings
@@ -1506,6 +1536,7 @@ impl Shared {
                     height: job.record.height,
                 }),
                 pass: Some(pass),
+                estimate: tile_estimate,
             }),
         })
     }

@@ -68,6 +68,7 @@ pub(super) fn config(data: PathBuf, token: Option<&str>) -> CoordinatorConfig {
         scheduler: SchedulerConfig::default(),
         resources: Resources::default(),
         job_logs: Default::default(),
+        checkpoint_interval: Duration::ZERO,
         default_tile: Some(8),
     }
 }
@@ -531,14 +532,17 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
             tree.set_fraction_states(&codec::decode_fractions(&f).unwrap())
                 .unwrap();
         }
-        let estimate = if pass.estimate_digest.is_empty() {
+        let region =
+            codec::region_from_proto(lease.tile.as_ref().unwrap(), scene.width, scene.height)
+                .unwrap();
+        let size = (scene.width, scene.height);
+        let estimate = if let Some(part) = &lease.estimate {
+            codec::decode_tile_estimate(part, size, region).unwrap()
+        } else if pass.estimate_digest.is_empty() {
             Vec::new()
         } else {
             codec::decode_estimate(&fetch(&mut workers, &pass.estimate_digest).await).unwrap()
         };
-        let region =
-            codec::region_from_proto(lease.tile.as_ref().unwrap(), scene.width, scene.height)
-                .unwrap();
         let inputs = UnitInputs {
             scene,
             params: &params,

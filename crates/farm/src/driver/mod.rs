@@ -233,7 +233,8 @@ impl JobDriver {
         let unit = spec.unit;
         (self.session.retile(tiles)).map_err(|source| DriverError::Tiling { unit, source })?;
         let fractions = Some((spec.tree_version, spec.fraction_version));
-        let estimate = Some(self.session.estimate_version());
+        let uses_estimate = !self.session.pass_estimate().is_empty();
+        let estimate = uses_estimate.then(|| self.session.estimate_version());
         let offer = Offer {
             spec,
             tiles: self.session.tiles().len() as u32,
@@ -262,7 +263,7 @@ impl JobDriver {
 
     /// The pixel estimate, as workers fetch it; empty if the session has none.
     pub fn encode_estimate(&self) -> Vec<u8> {
-        let estimate = self.session.estimate();
+        let estimate = self.session.pass_estimate();
         match estimate.is_empty() {
             true => Vec::new(),
             false => codec::encode_estimate(estimate),

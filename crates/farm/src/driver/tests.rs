@@ -103,7 +103,8 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
     let mut d = driver(&scene, 8);
     let w = WorkerId(3);
     let first = offer(d.step(Millis(0), 1).unwrap());
-    assert!(first.new_tree && first.new_fractions && first.new_estimate);
+    assert!(first.new_tree && first.new_fractions);
+    assert!(!first.new_estimate, "no estimate before an iteration ended");
     assert_eq!(d.published_tree(), Some(first.spec.tree_version));
     assert_eq!(first.tiles, 4, "16x16 in tiles of 8");
     assert!(first.spec.record(), "the first unit trains the guide");
@@ -158,6 +159,11 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
         next.new_tree && next.new_fractions,
         "a refined tree is published"
     );
+    // The estimate is published for the passes only if they read it (guided roulette).
+    let guided_roulette = scene.guided.as_ref().unwrap().russian_roulette;
+    let reads = guided_roulette == pathfarm_scene::GuidedRoulette::Guided;
+    assert_eq!(next.new_estimate, reads, "{guided_roulette:?}");
+    assert_eq!(d.encode_estimate().is_empty(), !reads);
 }
 
 #[test]

@@ -1166,8 +1166,18 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
     Ok(jt)
 }
 
-/// The lease's pixel estimate (guided roulette), cached per job by digest.
-fn lease_estimate(shared: &Shared, p: &Prepared) -> Result<Arc<Vec<f32>>, Fail> {
+/// The lease's pixel estimate (guided roulette) over a `size` frame: its tile's part from
+/// the lease, or the whole estimate's blob, cached per job by digest.
+fn lease_estimate(
+    shared: &Shared,
+    p: &Prepared,
+    size: (u32, u32),
+    region: pathfarm_render::Region,
+) -> Result<Arc<Vec<f32>>, Fail> {
+    if let Some(part) = &p.lease.estimate {
+        let e = codec::decode_tile_estimate(part, size, region);
+        return Ok(Arc::new(e.map_err(|e| fatal(format!("lease: {e}")))?));
+    }
     let Some(bytes) = &p.estimate_blob else {
         return Ok(Arc::new(Vec::new()));
     };
@@ -1206,7 +1216,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     let tree_start = Instant::now();
     let mut jt = lease_tree(shared, &p, &js)?;
     let tree_seconds = tree_start.elapsed().as_secs_f64();
-    let estimate = lease_estimate(shared, &p)?;
+    let estimate = lease_estimate(shared, &p, (scene.width, scene.height), region)?;
     let seed = p
         .lease
         .settings
