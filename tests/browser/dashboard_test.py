@@ -150,6 +150,8 @@ def run(a, tmp, procs):
         no_console_errors(d, "job-2")
         d.get(web + "/workers")
         assert d.page_source.count("node-") == 2, d.page_source
+        assert "Samples a second accepted" in d.page_source, "the farm's throughput chart"
+        shot(d, "workers")
         no_console_errors(d, "workers")
         # A killed worker is marked lost (and job-1 still finishes on the other).
         procs[2].kill()

@@ -295,6 +295,16 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
         workers.text().matches("rendering").count() + workers.text().matches("idle").count(),
         2
     );
+    // job-1's tiles are in the last minutes' throughput: a bar chart, and its tiles counted.
+    let text = workers.text();
+    let legend = text.split("Samples a second accepted").nth(1).unwrap_or("");
+    let tiles: u64 = (legend.split(" tiles.").next().unwrap_or(""))
+        .rsplit(' ')
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(0);
+    assert!(tiles > 0, "the throughput counts job-1's tiles:\n{text}");
+    assert!(text.contains("<rect class=\"bar\""), "{text}");
 
     let long = submit(&farm, 100_000, &farm.data.join("long.exr"), &[]);
     wait_until(&farm, port, &c, "/jobs/job-2", &["training", "final-pass"]);

@@ -38,6 +38,7 @@ mod store;
 mod sweep;
 #[cfg(test)]
 mod tests;
+mod throughput;
 
 pub use job_log::JobLogs;
 pub use resources::Resources;
@@ -205,6 +206,8 @@ pub(crate) struct Shared {
     /// merge or a refinement may hold it for most of a second): see [`JobView`].
     pub(crate) views: std::sync::RwLock<BTreeMap<u64, JobView>>,
     pub(crate) workers_view: std::sync::RwLock<Vec<v1::WorkerInfo>>,
+    /// The work accepted over the last minutes (its own lock: the dashboard reads it).
+    pub(crate) throughput: Mutex<throughput::Throughput>,
     /// Connected workers by their upload key (`Registered.upload_key`): an upload's sender,
     /// found without the state lock.
     pub(crate) keys: std::sync::RwLock<HashMap<[u8; 32], u64>>,
@@ -566,6 +569,7 @@ impl Shared {
             views: Default::default(),
             keys: Default::default(),
             workers_view: Default::default(),
+            throughput: Default::default(),
             beats: Mutex::new(Vec::new()),
             guide_cache: Mutex::new(Default::default()),
             cfg,

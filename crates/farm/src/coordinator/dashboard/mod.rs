@@ -20,6 +20,7 @@ mod assets;
 mod auth;
 mod iterations;
 mod pages;
+mod throughput;
 mod tls;
 
 use std::sync::Arc;
@@ -242,7 +243,11 @@ async fn workers_page(State(d): Dashboard, headers: HeaderMap) -> Response {
     let workers = (d.shared.workers_view.read())
         .unwrap_or_else(|e| e.into_inner())
         .clone();
-    html(StatusCode::OK, pages::workers(&workers, unix_ms()))
+    let series = (d.shared.throughput.lock())
+        .unwrap_or_else(|e| e.into_inner())
+        .series(d.shared.now());
+    let page = pages::workers(&workers, unix_ms(), &throughput::chart(&series));
+    html(StatusCode::OK, page)
 }
 
 /// The job `id` names, or 404.

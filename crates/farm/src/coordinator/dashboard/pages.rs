@@ -233,12 +233,13 @@ fn settings(p: &JobPage<'_>) -> Markup {
 }
 
 /// The workers table.
-pub(super) fn workers(workers: &[v1::WorkerInfo], now_unix_ms: u64) -> Markup {
+pub(super) fn workers(workers: &[v1::WorkerInfo], now_unix_ms: u64, throughput: &Markup) -> Markup {
     layout(
         "Workers",
         true,
         html! {
             h1 { "Workers" }
+            (throughput)
             table {
                 thead { tr {
                     th { "worker" } th { "host" } th { "threads" } th { "state" } th { "tiles done" }

@@ -353,6 +353,9 @@ impl Svc {
             }
         }
         job.record.samples_done += samples;
+        (self.shared.throughput.lock())
+            .unwrap_or_else(|e| e.into_inner())
+            .add(self.shared.now(), samples, tiles.len() as u64);
         if let Some(w) = st.workers.get_mut(&sender.0) {
             w.tiles_done += tiles.len() as u64;
         }
