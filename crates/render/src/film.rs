@@ -145,11 +145,9 @@ impl Film {
 }
 
 /// `n` pixels of [`PixelStats::default`], whose bits are all zero: from the allocator's
-/// zeroed memory, which for a large film is fresh pages the kernel zeroes as they are
-/// first touched, instead of a pass writing defaults over them. A large film asks for
-/// huge pages: a 1920x1080 film is 190 MB, 46 000 page faults of 4 KiB each where 2 MiB
-/// pages take 95, and a farm coordinator allocates several such films an iteration (its
-/// page faults, under the state lock, took longer than a worker's share of a pass).
+/// zeroed memory, which for a large film is fresh pages the kernel zeroes as they are first
+/// touched, instead of a pass writing defaults over all of them at once (a 1920x1080 film is
+/// 190 MB; a farm coordinator made one under its state lock at every iteration's start).
 fn zeroed_pixels(n: usize) -> Vec<PixelStats> {
     if n == 0 {
         return Vec::new();
@@ -163,25 +161,7 @@ fn zeroed_pixels(n: usize) -> Vec<PixelStats> {
         if ptr.is_null() {
             std::alloc::handle_alloc_error(layout);
         }
-        advise_huge_pages(ptr, layout.size());
         Vec::from_raw_parts(ptr.cast::<PixelStats>(), n, n)
-    }
-}
-
-/// Asks the kernel for transparent huge pages over the whole 2 MiB pages of an allocation
-/// of `len` bytes at `ptr` (a hint: ignored where huge pages are off, and for small
-/// allocations).
-fn advise_huge_pages(ptr: *mut u8, len: usize) {
-    const HUGE: usize = 2 << 20;
-    let (start, end) = (ptr as usize, ptr as usize + len);
-    let (a, b) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
-    if b <= a {
-        return;
-    }
-    #[cfg(target_os = "linux")]
-    // SAFETY: [a, b) lies inside the live allocation; madvise changes no memory contents.
-    unsafe {
-        libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE);
     }
 }
 

@@ -10,8 +10,9 @@
 //!
 //! Training passes are pipelined: a recording unit samples with the learned fractions stepped
 //! on every unit of its iteration but the one just before it, so unit `u` can be issued as
-//! soon as unit `u - 2` is in, while `u - 1` still renders (at most two units in flight, both
-//! recording, of one iteration). A unit's fraction gradients are held apart by unit parity
+//! soon as unit `u - 2` is in, while `u - 1` still renders (at most two units in flight of
+//! one iteration: both recording, or, with an spp budget, the iteration's unrecorded first
+//! pass and the recording unit after it). A unit's fraction gradients are held apart by unit parity
 //! ([`pathfarm_guide::GradTarget::Held`]) until its step is due: when the unit is in and the
 //! next one has been issued. The quality cost of the one-pass lag was measured:
 //! docs/decisions/fraction-steps-pipelined.md.
@@ -726,10 +727,18 @@ impl Session {
     /// With a unit in flight: the next recording unit of the iteration if it may overlap it
     /// (see the module documentation), else `Wait`.
     fn next_overlapping(&mut self, now: f64) -> Next {
-        let overlappable = self.pending.len() == 1 && self.pending[0].spec.record();
         let Phase::Iterate(it) = &self.phase else {
             return Next::Wait;
         };
+        // A recording unit may have the next beside it. So may a training iteration's
+        // unrecorded first pass with an spp budget: nothing the next unit samples with
+        // depends on it (it takes no fraction step), and only a time budget reads what
+        // it costs (`guided_pass_seconds`), which it must then be timed alone for.
+        let in_flight = self.pending.first().map(|p| p.spec);
+        let overlappable = self.pending.len() == 1
+            && in_flight.is_some_and(|s| {
+                s.record() || (it.record && !it.stopped && matches!(self.budget, Budget::Spp(_)))
+            });
         if !overlappable {
             return Next::Wait;
         }
@@ -891,22 +900,22 @@ impl Session {
 
     fn end_unit(&mut self, p: Pending, now: f64) {
         let spec = p.spec;
-        let film = p.pixels.film(&p.tiles, &mut self.spares);
+        let mut film = p.pixels.film(&p.tiles, &mut self.spares);
         let seconds = now - p.issued_at.max(self.last_end);
         self.last_end = now;
         match &mut self.phase {
             Phase::Iterate(it) => {
-                it.film.merge(&film);
-                if spec.record() {
-                    self.deferred.push(spec.unit);
-                    self.uncollected = self.records == Records::PerIteration;
+                if it.passes == 0 {
+                    // The iteration's first unit: its film becomes the iteration's. The same
+                    // bits as adding it to zeros (a gathered sum starts at +0.0, so it is
+                    // never -0.0), without first touching the fresh film's pages (190 MB at
+                    // 1920x1080) here, under a farm coordinator's lock; the fresh film is
+                    // kept as a spare instead.
+                    std::mem::swap(&mut it.film, &mut film);
+                } else {
+                    it.film.merge(&film);
                 }
-                it.last_pass = seconds / spec.passes.max(1) as f64;
-                if it.passes == 0 && it.record && !spec.record() && !it.stopped {
-                    self.fallback.guided_pass_seconds = it.last_pass;
-                }
-                it.passes += spec.passes;
-                self.spp_done += spec.unit_spp();
+                self.unit_in_iteration(spec, seconds);
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
@@ -928,6 +937,24 @@ impl Session {
             }
         }
         self.spares.keep(film);
+    }
+
+    /// The bookkeeping of a unit of the iteration in progress that ended after `seconds`
+    /// (its film already in the iteration's).
+    fn unit_in_iteration(&mut self, spec: PassSpec, seconds: f64) {
+        let Phase::Iterate(it) = &mut self.phase else {
+            unreachable!("called in an iteration")
+        };
+        if spec.record() {
+            self.deferred.push(spec.unit);
+            self.uncollected = self.records == Records::PerIteration;
+        }
+        it.last_pass = seconds / spec.passes.max(1) as f64;
+        if it.passes == 0 && it.record && !spec.record() && !it.stopped {
+            self.fallback.guided_pass_seconds = it.last_pass;
+        }
+        it.passes += spec.passes;
+        self.spp_done += spec.unit_spp();
     }
 
     /// The iteration's passes are done. Automatic combination may turn a training
