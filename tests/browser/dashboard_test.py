@@ -70,9 +70,17 @@ def row_state(d, name):
     return None
 
 
-def shot(d, name):
+def shot(d, name, height=None):
+    """Saves the window as NAME.png; with `height`, the window that tall for this shot (a
+    whole page, for the README's picture)."""
     os.makedirs(SHOTS, exist_ok=True)
+    size = d.get_window_size()
+    if height:
+        d.set_window_size(size["width"], height)
+        d.execute_script("window.scrollTo(0, 0)")
     d.save_screenshot(os.path.join(SHOTS, name + ".png"))
+    if height:
+        d.set_window_size(size["width"], size["height"])
 
 
 def submit(binary, env, url, scene, spp, res, wait_for_it):
@@ -130,9 +138,10 @@ def run(a, tmp, procs):
         webdriver.ActionChains(d).move_to_element_with_offset(img, -img.size["width"] // 3, img.size["height"] // 4).click().perform()
         guide = d.find_element(By.ID, "guide")
         wait("the guide's picture", lambda: guide.is_displayed() and d.execute_script(
-            "return arguments[0].complete && arguments[0].naturalWidth", guide) == 256)
+            "return arguments[0].complete && arguments[0].naturalWidth", guide) == 3 * 256 + 2 * 8)
         assert d.find_element(By.ID, "guide-caption").text.startswith("Pixel "), d.find_element(By.ID, "guide-caption").text
         shot(d, "job-guide")
+        shot(d, "job-page", height=1500)
         no_console_errors(d, "job-1")
         # A job cancelled from its page.
         procs.append(submit(a.binary, env, url, "door-ajar", 100000, (64, 36), False))

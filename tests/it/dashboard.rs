@@ -279,6 +279,13 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
         guide.body.starts_with(b"\x89PNG"),
         "the guide's picture is a PNG"
     );
+    // Three panels of 256x128 (BSDF sampling, guided mixture, learned quadtree), 8 apart.
+    let size = |at: usize| u32::from_be_bytes(guide.body[at..at + 4].try_into().unwrap());
+    assert_eq!(
+        (size(16), size(20)),
+        (3 * 256 + 2 * 8, 128),
+        "the PNG's IHDR"
+    );
     let outside = request(port, "GET", "/jobs/job-1/guide.png?x=40&y=0", &c, "");
     assert_eq!(outside.status, 404);
     assert!(

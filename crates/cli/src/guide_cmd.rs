@@ -8,10 +8,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use glam::{Vec2, Vec3};
-use pathfarm_guide::{mapping, viz, SamplingDTree, SdTree};
+use pathfarm_guide::{viz, SamplingDTree, SdTree};
 use pathfarm_render::guided::{self, Budget};
-use pathfarm_render::integrator::guided_path::{guide_region, sample_mixture, VertexGuide};
-use pathfarm_render::rng::Rng;
+use pathfarm_render::integrator::guided_path::{scatter_at, scatter_panels};
 use pathfarm_render::{RenderSettings, Scene};
 use pathfarm_scene::{load_scene, GuidedParams, IntegratorDesc, Limits};
 
@@ -248,23 +247,6 @@ fn show(a: ShowArgs) -> Result<()> {
     Ok(())
 }
 
-/// Histogram of directions over the cylindrical (u, v) map, as heat colours.
-fn histogram_image(dirs: &[Vec3], width: usize) -> Vec<f32> {
-    let height = width / 2;
-    let mut counts = vec![0u32; width * height];
-    for d in dirs {
-        let uv = mapping::dir_to_uv(*d);
-        let x = ((uv.x * width as f32) as usize).min(width - 1);
-        let y = ((uv.y * height as f32) as usize).min(height - 1);
-        counts[y * width + x] += 1;
-    }
-    let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
-    counts
-        .iter()
-        .flat_map(|&c| viz::heat(c as f32 / max))
-        .collect()
-}
-
 fn scatter(a: ScatterArgs) -> Result<()> {
     let w = a.width.max(16);
     check_picture(3 * w + 8, w / 2, &format!("--width {}", a.width))?;
@@ -291,62 +273,19 @@ fn scatter(a: ScatterArgs) -> Result<()> {
         Some(t) => read_tree(t)?,
         None => train_tree(&scene, &params, 64, 0),
     };
-    let ray = scene
-        .camera
-        .ray(Vec2::new(px.floor() + 0.5, py.floor() + 0.5));
-    let Some(hit) = scene.accel.intersect::<true>(&ray) else {
+    let Some(s) = scatter_at(&scene, &params, &tree, Vec2::new(px, py), a.samples) else {
         bail!("the ray through pixel {},{} hits nothing", px, py);
     };
-    let si = scene.accel.interaction(&ray, &hit);
-    let (bsdf, frame) = scene.bsdf_at(&si, hit.prim, ray.d);
-    let wi = frame.to_local(-ray.d);
-    let guide = if bsdf.flags().smooth {
-        let region = guide_region(
-            params.guide_hemisphere,
-            params.guide_cosine,
-            bsdf.flags(),
-            &frame,
-            wi,
-        );
-        VertexGuide::at(&tree, si.p, region)
-    } else {
-        VertexGuide::unguided()
-    };
-    let mut rng = Rng::new(7, 11);
-    let mut from_bsdf = Vec::new();
-    let mut from_mixture = Vec::new();
-    for _ in 0..a.samples {
-        if let Some(s) = bsdf.sample(wi, rng.next_f32(), rng.next_2d()) {
-            from_bsdf.push(frame.to_world(s.wo));
-        }
-        if let Some(s) = sample_mixture(&tree, &guide, &bsdf, &frame, wi, &mut rng) {
-            from_mixture.push(s.wo_world);
-        }
-    }
     let h = w / 2;
-    let panels = [
-        histogram_image(&from_bsdf, w),
-        histogram_image(&from_mixture, w),
-        quadtree_image(&tree.leaf(tree.leaf_index(si.p)).sampling, w),
-    ];
-    let gap = 4;
-    let total_w = 3 * w + 2 * gap;
-    let mut img = vec![0.5f32; total_w * h * 3];
-    for (i, panel) in panels.iter().enumerate() {
-        let x0 = i * (w + gap);
-        for y in 0..h {
-            let dst = (y * total_w + x0) * 3;
-            img[dst..dst + w * 3].copy_from_slice(&panel[y * w * 3..(y + 1) * w * 3]);
-        }
-    }
+    let (total_w, img) = scatter_panels(&s, &tree, w, 4);
     write_png(out, total_w, h, &img)?;
     println!(
         "first hit at {} (shape {}), bsdf-sampling fraction {:.3}; panels: BSDF sampling ({} dirs) | guided mixture ({} dirs) | learned quadtree; u across = (cos theta + 1) / 2 of world z, v down = phi / 2pi",
-        si.p,
-        si.shape,
-        if guide.guided { guide.alpha } else { 1.0 },
-        from_bsdf.len(),
-        from_mixture.len()
+        s.point,
+        s.shape,
+        s.bsdf_fraction,
+        s.from_bsdf.len(),
+        s.from_mixture.len()
     );
     Ok(())
 }

@@ -28,6 +28,23 @@ pub fn heat(t: f32) -> [f32; 3] {
     ]
 }
 
+/// A heat map of how many of `dirs` fall in each pixel of a `width x width / 2` picture of
+/// the sphere of directions laid out as [`rasterize_pdf`] lays out a quadtree (column: `u`,
+/// row: `v` of [`crate::mapping::dir_to_uv`]), scaled to the fullest pixel: RGB, row major,
+/// 3 floats a pixel.
+pub fn histogram(dirs: &[glam::Vec3], width: usize) -> Vec<f32> {
+    let height = width / 2;
+    let mut counts = vec![0u32; width * height];
+    for d in dirs {
+        let uv = crate::mapping::dir_to_uv(*d);
+        let x = ((uv.x * width as f32) as usize).min(width - 1);
+        let y = ((uv.y * height as f32) as usize).min(height - 1);
+        counts[y * width + x] += 1;
+    }
+    let max = counts.iter().copied().max().unwrap_or(0).max(1) as f32;
+    counts.iter().flat_map(|&c| heat(c as f32 / max)).collect()
+}
+
 /// Rasterises the pdf over `(u, v)` of `tree` into a `width * height` RGB image, row major,
 /// 3 floats per pixel: column x covers `u` in `[x/width, (x+1)/width)`, row y covers `v` in
 /// `[y/height, (y+1)/height)` (pixel centres sampled). Values are `pdf / max pdf` through

@@ -1,7 +1,8 @@
-//! What the guide learned at a pixel: the directional distribution (the quadtree picture
-//! `pathfarm guide show` draws) in the spatial leaf of the pixel's first hit, for a job's
-//! latest tree. For the dashboard: a person clicks the preview and sees where the farm
-//! learned the light comes from there.
+//! What the guide learned at a pixel, for a job's latest tree, as `pathfarm guide scatter`
+//! draws it: at the pixel's first hit, directions drawn by BSDF sampling alone, directions
+//! drawn from the guided mixture, and the directional distribution (quadtree) the guide
+//! learned there. For the dashboard: a person clicks the preview and sees where the farm
+//! learned the light comes from there, and how that changes where paths go.
 //!
 //! The coordinator renders nothing else, so it builds the job's scene (with its BVH) only
 //! for this, once, and keeps the last one asked for with its decoded tree.
@@ -9,15 +10,20 @@
 use std::sync::Arc;
 
 use glam::Vec2;
-use pathfarm_guide::{viz, SdTree};
+use pathfarm_guide::SdTree;
 use pathfarm_proto::v1;
+use pathfarm_render::integrator::guided_path::{scatter_at, scatter_panels};
 use pathfarm_render::{Purpose, Scene};
 
 use super::{manifest_from_proto, overrides_of, Shared};
 use crate::bundle::Digest;
 
-/// The picture's width in pixels (its height is half: the sphere of directions, unrolled).
+/// A panel's width in pixels (its height is half: the sphere of directions, unrolled).
 pub(crate) const WIDTH: usize = 256;
+/// The grey between panels.
+const GAP: usize = 8;
+/// Directions drawn each way for the two sampling panels.
+const SAMPLES: u32 = 50_000;
 
 /// The scene and tree the last picture was drawn from.
 #[derive(Default)]
@@ -42,8 +48,9 @@ pub(crate) enum GuideViewError {
 }
 
 impl Shared {
-    /// The PNG of the directional distribution at the first hit of pixel (`x`, `y`) of job
-    /// `n`, from its latest tree. Slow (it may build the scene): call off the executor.
+    /// The PNG of the three panels (BSDF sampling, guided mixture, learned quadtree) at the
+    /// first hit of pixel (`x`, `y`) of job `n`, from its latest tree. Slow (it may build the
+    /// scene): call off the executor.
     pub(crate) fn guide_picture(&self, n: u64, x: u32, y: u32) -> Result<Vec<u8>, GuideViewError> {
         let (request, tree_digest) = self.job_tree(n)?;
         let scene = self.guide_scene(n, &request)?;
@@ -51,15 +58,15 @@ impl Shared {
             return Err(GuideViewError::Outside(x, y, scene.width, scene.height));
         }
         let tree = self.guide_tree(tree_digest)?;
-        let ray = (scene.camera).ray(Vec2::new(x as f32 + 0.5, y as f32 + 0.5));
-        let hit = (scene.accel.intersect::<true>(&ray)).ok_or(GuideViewError::Miss(x, y))?;
-        let si = scene.accel.interaction(&ray, &hit);
-        let leaf = tree.leaf(tree.leaf_index(si.p));
-        let rgb = viz::rasterize_pdf(&leaf.sampling, WIDTH, WIDTH / 2, true);
+        let params = scene.guided.clone().unwrap_or_default();
+        let pixel = Vec2::new(x as f32, y as f32);
+        let s =
+            scatter_at(&scene, &params, &tree, pixel, SAMPLES).ok_or(GuideViewError::Miss(x, y))?;
+        let (width, rgb) = scatter_panels(&s, &tree, WIDTH, GAP);
         let bytes: Vec<u8> = (rgb.iter())
             .map(|&c| (c.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
             .collect();
-        pathfarm_render::output::encode_png_rgb8(WIDTH as u32, WIDTH as u32 / 2, &bytes)
+        pathfarm_render::output::encode_png_rgb8(width as u32, WIDTH as u32 / 2, &bytes)
             .map_err(|e| GuideViewError::Scene(e.to_string()))
     }
 

@@ -129,13 +129,14 @@ pub(super) fn job(p: &JobPage<'_>) -> Markup {
                     }
                     figcaption { "Click the image: what the guide learned at that pixel's first hit." }
                 }
-                section.card.guide {
+                section.card #status data-live={ "/events?job=" (j.job_id) } { (job_status(j)) }
+                section.card.guide.wide {
                     h2 { "The guide at a pixel" }
                     p #guide-caption .muted { "Click a pixel of the preview." }
                     img #guide hidden alt="the learned distribution of incident light" data-job=(j.job_id);
-                    p.muted { "Incident light over the sphere of directions (across: cos theta of the world z axis, down: phi), brighter where the guide sends more paths." }
+                    div.panel-names #guide-names hidden { span { "BSDF sampling" } span { "guided mixture" } span { "learned distribution" } }
+                    p.muted { "Each panel is the sphere of directions (across: cos theta of the world z axis, down: phi) at the pixel's first hit: where sampling the surface alone sends paths, where the guided mixture sends them, and the incident light the guide learned, brighter where more." }
                 }
-                section.card #status data-live={ "/events?job=" (j.job_id) } { (job_status(j)) }
                 section.card.wide #iterations { (super::iterations::iterations(j)) }
                 section.card.wide #log { (job_log(p.log)) }
                 section.card {

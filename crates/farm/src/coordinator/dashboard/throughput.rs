@@ -34,7 +34,8 @@ pub(super) fn chart(series: &[Bucket]) -> Markup {
                     }
                 }
                 p.muted.legend {
-                    "Samples a second accepted, per " (BUCKET.as_secs()) " s: "
+                    "Samples a second accepted, per " (BUCKET.as_secs()) " s, from "
+                    (SPAN.as_secs() / 60) " minutes ago (left) to now (right): "
                     (rate(last_full)) " in the last full bucket, peak " (rate(peak)) "; "
                     (tiles) " tiles."
                 }

@@ -57,6 +57,7 @@ use crate::shading::ShadedBsdf;
 mod mixture;
 mod recorder;
 mod roulette;
+mod scatter;
 #[cfg(test)]
 mod tests;
 
@@ -67,6 +68,7 @@ pub use recorder::*;
 pub use roulette::*;
 #[allow(unused_imports)]
 use roulette::*;
+pub use scatter::{scatter_at, scatter_panels, Scatter};
 
 /// What the guided estimator does in the current pass.
 #[derive(Clone, Copy, Debug)]

@@ -49,6 +49,7 @@ function guideOnClick() {
   const guide = document.getElementById("guide");
   if (!img || !guide) return;
   const caption = document.getElementById("guide-caption");
+  const names = document.getElementById("guide-names");
   img.addEventListener("click", (e) => {
     const x = Math.floor(e.offsetX * img.naturalWidth / img.clientWidth);
     const y = Math.floor(e.offsetY * img.naturalHeight / img.clientHeight);
@@ -61,9 +62,11 @@ function guideOnClick() {
       if (guide.src.startsWith("blob:")) URL.revokeObjectURL(guide.src);
       guide.src = URL.createObjectURL(b);
       guide.hidden = false;
+      names.hidden = false;
       caption.textContent = "Pixel " + x + ", " + y + ":";
     }).catch((err) => {
       guide.hidden = true;
+      names.hidden = true;
       caption.textContent = "Pixel " + x + ", " + y + ": " + err.message;
     });
   });
