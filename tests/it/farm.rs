@@ -433,7 +433,9 @@ fn three_worker_cluster_renders_bit_identical_to_render() {
 /// `pathfarm render` gives for its seed.
 #[test]
 fn workers_serving_several_jobs_at_once_build_each_scene_once_and_every_image_is_exact() {
-    let farm = Farm::start("several", 2);
+    // (With checkpoints an hour apart, none is written: the restart test checks that one is
+    // written with checkpoints at every iteration's end.)
+    let farm = Farm::start_args("several", 2, &["--checkpoint-interval-s", "3600"]);
     let seeds = [1u64, 2, 3, 4];
     let spp = 16;
     let refs: Vec<Vec<u8>> = (seeds.iter())
@@ -451,6 +453,7 @@ fn workers_serving_several_jobs_at_once_build_each_scene_once_and_every_image_is
     for (out, reference) in outs.iter().zip(&refs) {
         assert_same_exr(out, reference, &farm);
     }
+    assert_eq!(checkpoints_recorded(&farm), 0, "{}", farm.logs());
     let mut jobs_served = 0;
     for (i, w) in farm.workers.iter().enumerate() {
         let log = w.stderr_text();

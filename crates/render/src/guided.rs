@@ -206,16 +206,23 @@ pub fn film_relative_variance(film: &Film, estimate: &[f32]) -> f64 {
 /// `weights[k] / sum_w_k`, so the mean is `sum_k weights[k] mean_k` and the variance
 /// sums of the merged samples give the combined variance.
 pub fn combine_films(films: &[&Film], weights: &[f64]) -> Film {
+    use rayon::prelude::*;
     let first = films[0];
     let mut out = Film::new(first.width, first.height);
-    for (f, &wk) in films.iter().zip(weights) {
-        if wk == 0.0 {
-            continue;
+    // Rows over the pool, each pixel taking the films in order: the same sums however the
+    // rows are shared out.
+    let row = first.width.max(1) as usize;
+    (out.pixels.par_chunks_mut(row).enumerate()).for_each(|(y, line)| {
+        for (f, &wk) in films.iter().zip(weights) {
+            if wk == 0.0 {
+                continue;
+            }
+            let src = &f.pixels[y * row..y * row + line.len()];
+            for (o, p) in line.iter_mut().zip(src) {
+                combine_pixel(o, p, wk);
+            }
         }
-        for (o, p) in out.pixels.iter_mut().zip(&f.pixels) {
-            combine_pixel(o, p, wk);
-        }
-    }
+    });
     out
 }
 
