@@ -565,6 +565,58 @@ fn a_batch_of_frames_is_submitted_together_and_every_frame_is_exact() {
         "{}",
         status.describe()
     );
+    // The same frames again as a long batch: its priority changed and cancelled batch-wide.
+    let mut args: Vec<String> = vec!["submit".into(), path_str(&frames).into()];
+    for d in defines {
+        args.extend(["-D".into(), d.into()]);
+    }
+    args.extend(["--spp", "100000", "--batch", "long-7", "--coordinator"].map(String::from));
+    args.push(farm.url.clone());
+    let submitted = with_token(&as_strs(&args));
+    assert!(submitted.status.success(), "{}", submitted.describe());
+    let batch = |verb: &[&str]| {
+        let mut a = verb.to_vec();
+        a.extend(["--batch", "long-7", "--coordinator", &farm.url]);
+        with_token(&a)
+    };
+    let p = batch(&["priority", "3"]);
+    assert!(p.status.success(), "{}", p.describe());
+    assert_eq!(
+        p.stdout.matches(": priority 3").count(),
+        3,
+        "{}",
+        p.describe()
+    );
+    let c = batch(&["cancel"]);
+    assert!(c.status.success(), "{}", c.describe());
+    assert_eq!(
+        c.stdout.matches(": cancelled").count(),
+        3,
+        "{}",
+        c.describe()
+    );
+    let status = with_token(&["status", "--coordinator", &farm.url]);
+    assert!(
+        status
+            .stdout
+            .contains("batch long-7: 3 frames (3 cancelled)"),
+        "{}",
+        status.describe()
+    );
+    // Nothing left to cancel; an unknown batch is an error naming it.
+    let again = batch(&["cancel"]);
+    assert!(
+        again.status.success() && again.stdout.is_empty(),
+        "{}",
+        again.describe()
+    );
+    let unknown = with_token(&["cancel", "--batch", "nope", "--coordinator", &farm.url]);
+    assert!(!unknown.status.success());
+    assert!(
+        unknown.stderr.contains("--batch nope: no such batch"),
+        "{}",
+        unknown.describe()
+    );
 }
 
 /// The benchmark swarm (`bench/farm_swarm.py`): one process of three simulated workers

@@ -238,19 +238,58 @@ pub struct HealthArgs {
 
 #[derive(Args)]
 pub struct CancelArgs {
-    pub job: String,
+    /// The job (`job-N`).
+    #[arg(required_unless_present = "batch", conflicts_with = "batch")]
+    pub job: Option<String>,
+    /// Every frame of this batch (`pathfarm submit --batch`, or its default name) that has
+    /// not ended, instead of one job.
+    #[arg(long)]
+    pub batch: Option<String>,
     #[command(flatten)]
     pub conn: ConnArgs,
 }
 
 #[derive(Args)]
 pub struct PriorityArgs {
-    pub job: String,
-    /// The new priority (higher first; negative numbers after `--`).
-    #[arg(allow_negative_numbers = true)]
-    pub priority: i32,
+    /// JOB PRIORITY, or with --batch PRIORITY alone (higher first; negative numbers too).
+    #[arg(num_args = 1..=2, required = true, allow_negative_numbers = true, value_names = ["JOB", "PRIORITY"])]
+    pub args: Vec<String>,
+    /// Every frame of this batch that has not ended, instead of one job.
+    #[arg(long)]
+    pub batch: Option<String>,
     #[command(flatten)]
     pub conn: ConnArgs,
+}
+
+/// Who a cancel or priority change is for.
+enum Target {
+    Job(String),
+    Batch(String),
+}
+
+impl Target {
+    /// The jobs it names now: the job, or the batch's frames that have not ended.
+    async fn jobs(&self, client: &mut Client) -> Result<Vec<String>> {
+        let name = match self {
+            Target::Job(j) => return Ok(vec![j.clone()]),
+            Target::Batch(b) => b,
+        };
+        let jobs = client.list_jobs().await?;
+        let frames: Vec<&v1::JobStatus> = jobs.iter().filter(|s| &s.batch == name).collect();
+        if frames.is_empty() {
+            bail!("--batch {}: no such batch", bounded(name));
+        }
+        let open = frames.iter().filter(|s| !is_terminal(s.state));
+        Ok(open.map(|s| s.job_id.clone()).collect())
+    }
+}
+
+/// At most 64 characters of `s`, for echoing input in an error.
+fn bounded(s: &str) -> String {
+    match s.char_indices().nth(64) {
+        Some((i, _)) => format!("{}...", &s[..i]),
+        None => s.to_string(),
+    }
 }
 
 #[derive(Args)]
@@ -619,6 +658,12 @@ async fn write_results(
     outfile::commit_all(vec![(outs.0, exr.as_slice()), (outs.1, png.as_slice())])
 }
 
+/// Whether a job in state `s` has ended (done, failed or cancelled).
+fn is_terminal(s: i32) -> bool {
+    use v1::JobState::{Cancelled, Done, Failed};
+    matches!(v1::JobState::try_from(s), Ok(Done | Failed | Cancelled))
+}
+
 fn state_name(s: i32) -> &'static str {
     match v1::JobState::try_from(s) {
         Ok(v1::JobState::Queued) => "queued",
@@ -971,28 +1016,45 @@ pub fn health(args: HealthArgs) -> Result<()> {
 }
 
 pub fn cancel(args: CancelArgs) -> Result<()> {
+    let target = match (args.job, args.batch) {
+        (_, Some(b)) => Target::Batch(b),
+        (Some(j), None) => Target::Job(j),
+        (None, None) => bail!("name a job, or a batch with --batch"),
+    };
     runtime()?.block_on(async move {
         let mut client = client::connect(&args.conn.remote()?).await?;
-        let r = client.cancel(&args.job).await?;
-        let state = r.status.map_or("unknown", |s| state_name(s.state));
-        if r.cancelled {
-            println!("{}: cancelled", args.job);
-        } else {
-            println!("{}: not cancelled (already {state})", args.job);
+        for job in target.jobs(&mut client).await? {
+            let r = client.cancel(&job).await?;
+            let state = r.status.map_or("unknown", |s| state_name(s.state));
+            if r.cancelled {
+                println!("{job}: cancelled");
+            } else {
+                println!("{job}: not cancelled (already {state})");
+            }
         }
         Ok(())
     })
 }
 
 pub fn priority(args: PriorityArgs) -> Result<()> {
+    let (target, p) = match (args.batch, args.args.as_slice()) {
+        (Some(b), [p]) => (Target::Batch(b), p),
+        (None, [j, p]) => (Target::Job(j.clone()), p),
+        (Some(_), _) => bail!("with --batch, give the priority alone"),
+        (None, _) => bail!("give a job and its priority (or --batch NAME and a priority)"),
+    };
+    let priority: i32 =
+        (p.parse()).with_context(|| format!("priority {}: not a whole number", bounded(p)))?;
     runtime()?.block_on(async move {
         let mut client = client::connect(&args.conn.remote()?).await?;
-        let r = client.set_priority(&args.job, args.priority).await?;
-        let state = r.status.map_or("unknown", |s| state_name(s.state));
-        if r.changed {
-            println!("{}: priority {}", args.job, args.priority);
-        } else {
-            println!("{}: priority not changed (already {state})", args.job);
+        for job in target.jobs(&mut client).await? {
+            let r = client.set_priority(&job, priority).await?;
+            let state = r.status.map_or("unknown", |s| state_name(s.state));
+            if r.changed {
+                println!("{job}: priority {priority}");
+            } else {
+                println!("{job}: priority not changed (already {state})");
+            }
         }
         Ok(())
     })

@@ -42,9 +42,9 @@ enum Command {
     Submit(farm_cmd::SubmitArgs),
     /// Show the coordinator's jobs and workers, or one job.
     Status(farm_cmd::StatusArgs),
-    /// Cancel a job.
+    /// Cancel a job, or every frame of a batch that has not ended (--batch).
     Cancel(farm_cmd::CancelArgs),
-    /// Change a queued or running job's priority.
+    /// Change a queued or running job's priority, or every such frame's of a batch (--batch).
     Priority(farm_cmd::PriorityArgs),
     /// Download a finished job's image (EXR, plus a PNG preview beside it).
     Fetch(farm_cmd::FetchArgs),
