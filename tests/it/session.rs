@@ -92,6 +92,10 @@ struct Driven {
     tree: SdTree,
     kinds: Vec<PassKind>,
     overlapped: usize,
+    /// Path-fallback probes issued while a unit of the iteration they check was in flight.
+    probes_beside: usize,
+    /// The iterations' accounts (the fallback's rule reads their rays a sample).
+    iterations: Vec<pathfarm_render::guided::GuidedIteration>,
 }
 
 impl Driven {
@@ -158,6 +162,7 @@ fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
     let mut workers = fresh();
     let mut kinds = Vec::new();
     let mut overlapped = 0;
+    let mut probes_beside = 0;
     let mut flights: Vec<Flight> = Vec::new();
     let mut pick = TestRng::new(order_seed);
     let mut clock = 0.0;
@@ -178,6 +183,7 @@ fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
             };
             kinds.push(spec.kind);
             overlapped += usize::from(!flights.is_empty());
+            probes_beside += usize::from(!flights.is_empty() && spec.kind == PassKind::Probe);
             if tile == 0 {
                 let edge = 3 + (spec.unit % 11) as u32;
                 session.retile(Region::tiles(w, h, edge)).expect("retile");
@@ -244,12 +250,14 @@ fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
             "the job restarted between iterations ({restored} times)"
         );
     }
-    let (film, _, tree) = session.finish();
+    let (film, stats, tree) = session.finish();
     Driven {
         film,
         tree,
         kinds,
         overlapped,
+        probes_beside,
+        iterations: stats.iterations,
     }
 }
 
@@ -480,6 +488,51 @@ fn tiled_session_equals_one_process_through_the_path_fallback() {
     assert!(d.kinds.contains(&PassKind::Probe), "{:?}", d.kinds);
     assert!(d.kinds.contains(&PassKind::Path), "{:?}", d.kinds);
     assert_same(&(d.film, d.tree), &single, "forced fallback");
+}
+
+#[test]
+fn a_probe_beside_its_iterations_last_unit_gives_the_fallback_rule_one_process_numbers() {
+    // The path fallback's own rule, and probes issued while the iteration they check still
+    // renders, their tiles handed in among its last unit's: every iteration's accounts
+    // (rays a sample, which the rule weighs), the image and the tree must be one process's.
+    let scene = door_ajar((29, 17));
+    let params = scene.guided.clone().expect("guided");
+    assert!(params.path_fallback, "the preset checks its iterations");
+    let (spp, seed) = (24, 3);
+    let settings = RenderSettings::new(Some(spp), None, seed);
+    let options = GuidedOptions::default();
+    let (film, stats, tree) = render_guided(&scene, &params, Budget::Spp(spp), &settings, options);
+    let mut beside = 0;
+    for order_seed in [5, 6, 7] {
+        let d = render_tiled(
+            &scene,
+            &params,
+            Drive {
+                spp,
+                seed,
+                tile: 6,
+                order_seed,
+                policy: FallbackPolicy::Rule,
+                restarts: Restarts::Never,
+                records: RecordsAt::Tiles,
+            },
+        );
+        beside += d.probes_beside;
+        let rays = |its: &[pathfarm_render::guided::GuidedIteration]| -> Vec<u64> {
+            its.iter().map(|i| i.rays_per_sample.to_bits()).collect()
+        };
+        assert_eq!(
+            rays(&d.iterations),
+            rays(&stats.iterations),
+            "order {order_seed}"
+        );
+        let what = format!("probes beside, order {order_seed}");
+        assert_same(&(d.film, d.tree), &(film.clone(), tree.clone()), &what);
+    }
+    assert!(
+        beside >= 1,
+        "no probe was issued beside its iteration's last unit"
+    );
 }
 
 #[test]

@@ -12,7 +12,8 @@
 //! on every unit of its iteration but the one just before it, so unit `u` can be issued as
 //! soon as unit `u - 2` is in, while `u - 1` still renders (at most two units in flight of
 //! one iteration: both recording, or, with an spp budget, the iteration's unrecorded first
-//! pass and the recording unit after it). A unit's fraction gradients are held apart by unit parity
+//! pass and the recording unit after it; or, with an spp budget, the iteration's last unit
+//! and the path fallback's probe that checks it, which samples nothing the iteration learns). A unit's fraction gradients are held apart by unit parity
 //! ([`pathfarm_guide::GradTarget::Held`]) until its step is due: when the unit is in and the
 //! next one has been issued. The quality cost of the one-pass lag was measured:
 //! docs/decisions/fraction-steps-pipelined.md.
@@ -194,7 +195,8 @@ struct Iteration {
     last_pass: f64,
     film: Film,
     t0: f64,
-    rays_before: u64,
+    /// Rays traced by the iteration's units (not by a probe beside them).
+    rays: u64,
     spp_before: u64,
     remaining_before: f64,
     nodes: usize,
@@ -652,6 +654,8 @@ impl Session {
         while self.pending.first().is_some_and(|p| p.left == 0) {
             let p = self.pending.remove(0);
             self.end_unit(p, now);
+            // (the iteration ends before a probe issued beside its last unit does)
+            self.settle(now);
         }
         self.catch_up_steps();
         self.settle(now);
@@ -713,7 +717,11 @@ impl Session {
     /// taken before the next [`Session::next`].
     fn settle(&mut self, now: f64) {
         let done = match &self.phase {
-            Phase::Iterate(it) => self.pending.is_empty() && self.iteration_unit(it, now).is_none(),
+            Phase::Iterate(it) => {
+                // (a probe in flight is the one issued beside the iteration's last unit)
+                let probes = self.pending.iter().all(|p| p.spec.kind == PassKind::Probe);
+                probes && self.iteration_unit(it, now).is_none()
+            }
             _ => false,
         };
         if done {
@@ -739,6 +747,10 @@ impl Session {
             && in_flight.is_some_and(|s| {
                 s.record() || (it.record && !it.stopped && matches!(self.budget, Budget::Spp(_)))
             });
+        if self.probes_early(it, now) {
+            let spec = self.probe_unit();
+            return self.issue(spec, now);
+        }
         if !overlappable {
             return Next::Wait;
         }
@@ -746,6 +758,23 @@ impl Session {
             Some(spec) if spec.record() => self.issue(spec, now),
             _ => Next::Wait,
         }
+    }
+
+    /// Whether the path fallback's probe may be issued now, beside the iteration's last unit
+    /// (`it` is the iteration in progress, one unit in flight): the iteration will be
+    /// checked, and nothing the probe samples depends on what is still to come. The probe is
+    /// plain path tracing from its own random streams, so it needs nothing of the
+    /// iteration; but a time budget times it alone, and automatic combination may yet turn
+    /// the iteration into the final one (then there is no check).
+    fn probes_early(&self, it: &Iteration, now: f64) -> bool {
+        matches!(self.budget, Budget::Spp(_))
+            && self.params.sample_combination != GuidedCombination::Automatic
+            && it.record
+            && !it.stopped
+            && self.checks()
+            && self.pending.len() == 1
+            && self.pending[0].spec.kind != PassKind::Probe
+            && self.iteration_unit(it, now).is_none()
     }
 
     /// Takes the deferred fraction steps that are due: a unit's once the unit after it has
@@ -782,15 +811,20 @@ impl Session {
     /// Issues `spec` as unit `next_unit`, with the fractions its kind samples with: a
     /// recording unit after the steps that are due, any other after every step.
     fn issue(&mut self, mut spec: PassSpec, now: f64) -> Next {
+        let early_probe = spec.kind == PassKind::Probe && !self.pending.is_empty();
         if spec.record() {
             self.catch_up_steps();
-        } else {
+        } else if !early_probe {
+            // (a probe beside the iteration's last unit leaves the steps to the iteration's
+            // end, as one after it finds them taken; it samples no fractions)
             self.flush_steps();
         }
         spec.fraction_version = self.fraction_version;
         self.next_unit += 1;
         if let Phase::Iterate(it) = &mut self.phase {
-            it.issued += spec.passes;
+            if !early_probe {
+                it.issued += spec.passes;
+            }
         }
         if spec.record() {
             // One process records straight into the tree: into the unit's held slot.
@@ -849,7 +883,7 @@ impl Session {
             last_pass: 0.0,
             film: Film::new(self.width, self.height),
             t0: now,
-            rays_before: self.rays,
+            rays: 0,
             spp_before: self.spp_done,
             remaining_before: match budget {
                 Budget::Spp(s) => (schedule::total_passes(s, spp) - self.passes_done) as f64,
@@ -915,7 +949,7 @@ impl Session {
                 } else {
                     it.film.merge(&film);
                 }
-                self.unit_in_iteration(spec, seconds);
+                self.unit_in_iteration(spec, seconds, p.rays);
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
@@ -939,12 +973,13 @@ impl Session {
         self.spares.keep(film);
     }
 
-    /// The bookkeeping of a unit of the iteration in progress that ended after `seconds`
-    /// (its film already in the iteration's).
-    fn unit_in_iteration(&mut self, spec: PassSpec, seconds: f64) {
+    /// The bookkeeping of a unit of the iteration in progress that ended after `seconds`,
+    /// having traced `rays` (its film already in the iteration's).
+    fn unit_in_iteration(&mut self, spec: PassSpec, seconds: f64, rays: u64) {
         let Phase::Iterate(it) = &mut self.phase else {
             unreachable!("called in an iteration")
         };
+        it.rays += rays;
         if spec.record() {
             self.deferred.push(spec.unit);
             self.uncollected = self.records == Records::PerIteration;
@@ -1012,8 +1047,7 @@ impl Session {
             leaves: it.leaves,
             variance: film_variance(&it.film),
             seconds: secs,
-            rays_per_sample: (self.rays - it.rays_before) as f64
-                / (spp as f64 * npix as f64).max(1.0),
+            rays_per_sample: it.rays as f64 / (spp as f64 * npix as f64).max(1.0),
             training,
         });
         if self.params.russian_roulette == GuidedRoulette::Guided || self.fallback.enabled {
@@ -1053,7 +1087,8 @@ impl Session {
     fn probe_unit(&self) -> PassSpec {
         let f = &self.fallback;
         let mut spec = self.spec(PassKind::Probe, PATH_STREAM + f.path_spp, 1, false);
-        spec.spp_before = self.spp_done + f.path_spp;
+        // (issued beside the iteration's last unit, that unit's samples count as done)
+        spec.spp_before = self.spp_issued() + f.path_spp;
         spec
     }
 
