@@ -399,23 +399,41 @@ fn a_jobs_page_and_downloads_are_the_apis_and_a_job_is_cancelled_from_its_page()
 
 /// Live updates: the jobs table's event stream sends the rows at once.
 #[test]
-fn the_jobs_table_streams_its_rows() {
+fn the_jobs_table_and_the_workers_page_stream_their_content() {
     let (_farm, port) = start("dash-events", 0);
     let cookie = sign_in(port);
-    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    let req = format!("GET /events HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nCookie: {cookie}\r\n\r\n");
-    s.write_all(req.as_bytes()).unwrap();
-    let mut got = Vec::new();
-    let mut buf = [0u8; 4096];
-    while !String::from_utf8_lossy(&got).contains("No jobs.") {
-        let n = s.read(&mut buf).expect("an event within 10 s");
-        assert!(n > 0, "the stream ended: {}", String::from_utf8_lossy(&got));
-        got.extend_from_slice(&buf[..n]);
-    }
-    let text = String::from_utf8_lossy(&got);
+    let stream = |path: &str, until: &str| -> String {
+        let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let req =
+            format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nCookie: {cookie}\r\n\r\n");
+        s.write_all(req.as_bytes()).unwrap();
+        let mut got = Vec::new();
+        let mut buf = [0u8; 4096];
+        while !String::from_utf8_lossy(&got).contains(until) {
+            let n = s.read(&mut buf).expect("an event within 10 s");
+            assert!(n > 0, "the stream ended: {}", String::from_utf8_lossy(&got));
+            got.extend_from_slice(&buf[..n]);
+        }
+        String::from_utf8_lossy(&got).into_owned()
+    };
+    let text = stream("/events", "No jobs.");
     assert!(text.contains("text/event-stream"), "{text}");
     assert!(text.contains("event: jobs"), "{text}");
+    let text = stream("/events?view=workers", "No workers.");
+    assert!(text.contains("event: workers"), "{text}");
+    assert!(text.contains("Throughput, last 10 minutes"), "{text}");
+    let c = [("Cookie", cookie.as_str())];
+    let bad = request(port, "GET", "/events?view=%3Cb%3Ex", &c, "");
+    assert_eq!(bad.status, 400);
+    // (echoed bounded and quoted, as plain text a browser does not render)
+    assert_eq!(
+        bad.header("content-type"),
+        Some("text/plain; charset=utf-8")
+    );
+    assert!(bad.text().contains("no view"), "{}", bad.text());
+    let both = request(port, "GET", "/events?view=workers&job=job-1", &c, "");
+    assert_eq!(both.status, 400);
 }
 
 /// Polls `path` (at most 60 s) until its page shows one of `states` as the job's state.

@@ -199,6 +199,37 @@ fn with_cookie(d: &Dash, mut r: Response, value: &str) -> Response {
 struct Filter {
     state: Option<String>,
     job: Option<String>,
+    /// `workers`: the workers page's live content instead of jobs.
+    view: Option<String>,
+}
+
+/// What a live stream sends.
+#[derive(Clone, Copy)]
+enum Live {
+    Jobs(Option<v1::JobState>),
+    Job(u64),
+    Workers,
+}
+
+/// What `/events` streams for the query `q`: a job's page (`?job=`), the workers page
+/// (`?view=workers`) or the jobs table (`?state=`, optional); `Err` for anything else.
+fn live_of(d: &Dash, q: &Filter) -> Result<Live, Response> {
+    match (q.job.as_deref(), q.view.as_deref()) {
+        (Some(id), None) => job_number(d, id).map(Live::Job),
+        (None, Some("workers")) => Ok(Live::Workers),
+        (None, None) => state_filter(q).map(Live::Jobs),
+        (Some(_), Some(_)) => Err(plain(
+            StatusCode::BAD_REQUEST,
+            "job and view: one or the other",
+        )),
+        (None, Some(v)) => {
+            let echo = resources::echo(v);
+            Err(plain(
+                StatusCode::BAD_REQUEST,
+                format!("view: no view {echo}"),
+            ))
+        }
+    }
 }
 
 /// `?state=NAME` as a state: `Err` for a name that is none of them.
@@ -240,14 +271,18 @@ async fn workers_page(State(d): Dashboard, headers: HeaderMap) -> Response {
     if let Err(r) = session(&d, &headers, true) {
         return r;
     }
+    html(StatusCode::OK, pages::workers(workers_now(&d)))
+}
+
+/// The workers page's content as it stands: the throughput chart and the workers table.
+fn workers_now(d: &Dash) -> maud::Markup {
     let workers = (d.shared.workers_view.read())
         .unwrap_or_else(|e| e.into_inner())
         .clone();
     let series = (d.shared.throughput.lock())
         .unwrap_or_else(|e| e.into_inner())
         .series(d.shared.now());
-    let page = pages::workers(&workers, unix_ms(), &throughput::chart(&series));
-    html(StatusCode::OK, page)
+    pages::workers_body(&workers, unix_ms(), &throughput::chart(&series))
 }
 
 /// The job `id` names, or 404.
@@ -495,14 +530,9 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
     if let Err(r) = session(&d, &headers, false) {
         return r;
     }
-    let filter = match state_filter(&q) {
-        Ok(f) => f,
+    let live = match live_of(&d, &q) {
+        Ok(l) => l,
         Err(r) => return r,
-    };
-    let job = match q.job.as_deref().map(|id| job_number(&d, id)) {
-        Some(Ok(n)) => Some(n),
-        Some(Err(r)) => return r,
-        None => None,
     };
     let Ok(permit) = d.streams.clone().try_acquire_owned() else {
         return plain(StatusCode::SERVICE_UNAVAILABLE, "too many live pages open");
@@ -514,8 +544,8 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
         let mut last = String::new();
         let mut parts_sent = [String::new(), String::new()];
         loop {
-            let (name, now, parts) = match job {
-                Some(n) => match dash.shared.view(n) {
+            let (name, now, parts) = match live {
+                Live::Job(n) => match dash.shared.view(n) {
                     Some(v) => {
                         let s = v.status.borrow();
                         let log = dash.shared.cfg.job_logs.lines(&s.job_id);
@@ -527,11 +557,12 @@ async fn events(State(d): Dashboard, headers: HeaderMap, q: Query<Filter>) -> Re
                     }
                     None => return,
                 },
-                None => (
+                Live::Jobs(filter) => (
                     "jobs",
                     pages::job_rows(&job_list(&dash, filter)).into_string(),
                     None,
                 ),
+                Live::Workers => ("workers", workers_now(&dash).into_string(), None),
             };
             if now != last {
                 if tx

@@ -233,44 +233,55 @@ fn settings(p: &JobPage<'_>) -> Markup {
     }
 }
 
-/// The workers table.
-pub(super) fn workers(workers: &[v1::WorkerInfo], now_unix_ms: u64, throughput: &Markup) -> Markup {
+/// The workers page: its content ([`workers_body`]) kept current by the live updates.
+pub(super) fn workers(body: Markup) -> Markup {
     layout(
         "Workers",
         true,
         html! {
             h1 { "Workers" }
-            (throughput)
-            table {
-                thead { tr {
-                    th { "worker" } th { "host" } th { "threads" } th { "state" } th { "tiles done" }
-                    th { "leases" } th { "last heartbeat" } th { "build" }
-                } }
-                tbody {
-                    @for w in workers {
-                        tr {
-                            td { (w.worker_id) @if !w.worker_name.is_empty() { " " span.muted { (w.worker_name) } } }
-                            td { (w.host_name) }
-                            td.num { (w.threads) }
-                            td {
-                                span class={ "state " (worker_class(w)) } { (worker_state(w)) }
-                                @if !w.connected {
-                                    " " span.muted title=(w.departed_reason) {
-                                        (ago(now_unix_ms, w.departed_unix_ms))
-                                    }
-                                }
-                            }
-                            td.num { (w.tiles_done) }
-                            td.num { (w.lease_ids.len()) }
-                            td.num { (ago(now_unix_ms, w.last_heartbeat_unix_ms)) }
-                            td { code { (w.build_id) } }
-                        }
-                    }
-                    @if workers.is_empty() { tr { td colspan="8" .muted { "No workers." } } }
-                }
-            }
+            div #workers data-live="/events?view=workers" { (body) }
         },
     )
+}
+
+/// The farm's throughput and the workers table.
+pub(super) fn workers_body(
+    workers: &[v1::WorkerInfo],
+    now_unix_ms: u64,
+    throughput: &Markup,
+) -> Markup {
+    html! {
+        (throughput)
+        table {
+            thead { tr {
+                th { "worker" } th { "host" } th { "threads" } th { "state" } th { "tiles done" }
+                th { "leases" } th { "last heartbeat" } th { "build" }
+            } }
+            tbody {
+                @for w in workers {
+                    tr {
+                        td { (w.worker_id) @if !w.worker_name.is_empty() { " " span.muted { (w.worker_name) } } }
+                        td { (w.host_name) }
+                        td.num { (w.threads) }
+                        td {
+                            span class={ "state " (worker_class(w)) } { (worker_state(w)) }
+                            @if !w.connected {
+                                " " span.muted title=(w.departed_reason) {
+                                    (ago(now_unix_ms, w.departed_unix_ms))
+                                }
+                            }
+                        }
+                        td.num { (w.tiles_done) }
+                        td.num { (w.lease_ids.len()) }
+                        td.num { (ago(now_unix_ms, w.last_heartbeat_unix_ms)) }
+                        td { code { (w.build_id) } }
+                    }
+                }
+                @if workers.is_empty() { tr { td colspan="8" .muted { "No workers." } } }
+            }
+        }
+    }
 }
 
 /// A worker state's badge colour.

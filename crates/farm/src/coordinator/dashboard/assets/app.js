@@ -9,6 +9,9 @@ function live(el) {
   source.addEventListener("jobs", (e) => {
     el.querySelector("tbody").innerHTML = e.data;
   });
+  source.addEventListener("workers", (e) => {
+    el.innerHTML = e.data;
+  });
   for (const part of ["iterations", "log"]) {
     source.addEventListener(part, (e) => {
       const section = document.getElementById(part);
