@@ -286,10 +286,7 @@ impl Target {
 
 /// At most 64 characters of `s`, for echoing input in an error.
 fn bounded(s: &str) -> String {
-    match s.char_indices().nth(64) {
-        Some((i, _)) => format!("{}...", &s[..i]),
-        None => s.to_string(),
-    }
+    pathfarm_scene::shown_bounded(s, 64)
 }
 
 #[derive(Args)]

@@ -11,10 +11,10 @@
 //! Training passes are pipelined: a recording unit samples with the learned fractions stepped
 //! on every unit of its iteration but the one just before it, so unit `u` can be issued as
 //! soon as unit `u - 2` is in, while `u - 1` still renders (at most two units in flight of
-//! one iteration: both recording, or, with an spp budget, the iteration's unrecorded first
-//! pass and the recording unit after it; or, with an spp budget, the iteration's last unit
-//! and the path fallback's probe that checks it, which samples nothing the iteration learns). A unit's fraction gradients are held apart by unit parity
-//! ([`pathfarm_guide::GradTarget::Held`]) until its step is due: when the unit is in and the
+//! one iteration: both recording; or, with an spp budget, the iteration's unrecorded first
+//! pass and the recording unit after it, or its last unit and the path fallback's probe
+//! that checks it, which samples nothing the iteration learns). A unit's fraction gradients
+//! are held apart by unit parity ([`pathfarm_guide::GradTarget::Held`]) until its step is due: when the unit is in and the
 //! next one has been issued. The quality cost of the one-pass lag was measured:
 //! docs/decisions/fraction-steps-pipelined.md.
 //!
@@ -254,18 +254,9 @@ pub struct Preview {
 }
 
 impl Preview {
-    /// The films combined as the final image would combine them (the last film alone while
-    /// no film has a weight yet).
-    pub fn film(&self) -> Film {
-        if self.weights.iter().all(|&w| !(w > 0.0)) {
-            return (**self.films.last().expect("a preview has a film")).clone();
-        }
-        let refs: Vec<&Film> = self.films.iter().map(|f| &**f).collect();
-        combine_films(&refs, &self.weights)
-    }
-
-    /// [`Preview::film`]'s pixel values, without the film (a frame of sums less to
-    /// allocate at every iteration's end).
+    /// The pixel values of the films combined as the final image would combine them (the
+    /// last film alone while no film has a weight yet), without making the combined film (a
+    /// frame of sums less to allocate at every iteration's end).
     pub fn mean_rgb(&self) -> Vec<[f32; 3]> {
         if self.weights.iter().all(|&w| !(w > 0.0)) {
             return self.films.last().expect("a preview has a film").mean_rgb();
@@ -666,7 +657,7 @@ impl Session {
     /// would combine them (`None` before the first iteration ends). A farm shows it as a
     /// preview while the job runs.
     ///
-    /// Cheap: the [`Preview`] shares the films, and [`Preview::film`] combines them, which a
+    /// Cheap: the [`Preview`] shares the films, and [`Preview::mean_rgb`] combines them, which a
     /// driver can do off its critical path.
     pub fn preview(&self) -> Option<Preview> {
         if self.films.is_empty() {
@@ -742,11 +733,13 @@ impl Session {
         // unrecorded first pass with an spp budget: nothing the next unit samples with
         // depends on it (it takes no fraction step), and only a time budget reads what
         // it costs (`guided_pass_seconds`), which it must then be timed alone for.
-        let in_flight = self.pending.first().map(|p| p.spec);
-        let overlappable = self.pending.len() == 1
-            && in_flight.is_some_and(|s| {
-                s.record() || (it.record && !it.stopped && matches!(self.budget, Budget::Spp(_)))
-            });
+        let overlappable = match self.pending.as_slice() {
+            [p] => {
+                let spp_budget = matches!(self.budget, Budget::Spp(_));
+                p.spec.record() || (it.record && !it.stopped && spp_budget)
+            }
+            _ => false,
+        };
         if self.probes_early(it, now) {
             let spec = self.probe_unit();
             return self.issue(spec, now);
@@ -949,7 +942,17 @@ impl Session {
                 } else {
                     it.film.merge(&film);
                 }
-                self.unit_in_iteration(spec, seconds, p.rays);
+                it.rays += p.rays;
+                if spec.record() {
+                    self.deferred.push(spec.unit);
+                    self.uncollected = self.records == Records::PerIteration;
+                }
+                it.last_pass = seconds / spec.passes.max(1) as f64;
+                if it.passes == 0 && it.record && !spec.record() && !it.stopped {
+                    self.fallback.guided_pass_seconds = it.last_pass;
+                }
+                it.passes += spec.passes;
+                self.spp_done += spec.unit_spp();
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
@@ -971,25 +974,6 @@ impl Session {
             }
         }
         self.spares.keep(film);
-    }
-
-    /// The bookkeeping of a unit of the iteration in progress that ended after `seconds`,
-    /// having traced `rays` (its film already in the iteration's).
-    fn unit_in_iteration(&mut self, spec: PassSpec, seconds: f64, rays: u64) {
-        let Phase::Iterate(it) = &mut self.phase else {
-            unreachable!("called in an iteration")
-        };
-        it.rays += rays;
-        if spec.record() {
-            self.deferred.push(spec.unit);
-            self.uncollected = self.records == Records::PerIteration;
-        }
-        it.last_pass = seconds / spec.passes.max(1) as f64;
-        if it.passes == 0 && it.record && !spec.record() && !it.stopped {
-            self.fallback.guided_pass_seconds = it.last_pass;
-        }
-        it.passes += spec.passes;
-        self.spp_done += spec.unit_spp();
     }
 
     /// The iteration's passes are done. Automatic combination may turn a training

@@ -18,3 +18,12 @@ pub enum SceneError {
         message: String,
     },
 }
+
+/// At most the first `max_chars` characters of `text` (then `...`): input echoed in a
+/// message, bounded.
+pub fn shown_bounded(text: &str, max_chars: usize) -> String {
+    match text.char_indices().nth(max_chars) {
+        Some((i, _)) => format!("{}...", &text[..i]),
+        None => text.to_string(),
+    }
+}

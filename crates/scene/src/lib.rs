@@ -35,7 +35,7 @@ mod transform;
 mod xml;
 
 pub use desc::*;
-pub use error::SceneError;
+pub use error::{shown_bounded, SceneError};
 pub use imageio::srgb_to_linear;
 pub use limits::Limits;
 

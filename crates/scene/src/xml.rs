@@ -455,10 +455,7 @@ enum Element {
 
 /// At most the first 120 characters of `s`, for messages.
 fn bounded(s: &str) -> String {
-    match s.char_indices().nth(120) {
-        Some((i, _)) => format!("{}...", &s[..i]),
-        None => s.to_string(),
-    }
+    crate::shown_bounded(s, 120)
 }
 
 /// A Mitsuba 0.x parameter name as Mitsuba 3 reads it: camelCase to snake_case, a run of

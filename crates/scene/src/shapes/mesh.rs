@@ -228,10 +228,7 @@ pub(crate) fn text_of(line: u64, bytes: &[u8]) -> Result<&str, String> {
 
 /// At most the first 40 characters of `token`, for messages.
 pub(crate) fn shown(token: &str) -> String {
-    match token.char_indices().nth(40) {
-        Some((i, _)) => format!("{}...", &token[..i]),
-        None => token.to_string(),
-    }
+    crate::shown_bounded(token, 40)
 }
 
 /// "1234 vertices, more than the limit of 1000 (Limits::max_mesh_vertices)" when
