@@ -70,6 +70,11 @@ def calibrate(binary, tmp):
     return secs / (w * h * spp)
 
 
+def minor_faults(pid):
+    """The process's minor page faults so far (/proc/PID/stat, field 10)."""
+    return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[7])
+
+
 def run(a, n, s, tmp):
     env = dict(os.environ, PATHFARM_TOKEN=TOKEN, NO_COLOR="1", RUST_LOG="info")
     port, mport = free_port(), free_port()
@@ -77,8 +82,9 @@ def run(a, n, s, tmp):
     clog_path = os.path.join(tmp, f"coord-{n}.log")
     clog = open(clog_path, "w")
     coord = subprocess.Popen(
-        [a.binary, "coordinator", "--listen", f"127.0.0.1:{port}", "--data",
-         os.path.join(tmp, f"coord-{n}"), "--metrics", f"127.0.0.1:{mport}"],
+        a.coordinator_prefix.split() + [a.binary, "coordinator", "--listen", f"127.0.0.1:{port}", "--data",
+         os.path.join(tmp, f"coord-{n}"), "--metrics", f"127.0.0.1:{mport}"]
+        + a.coordinator_arg,
         env=env, stderr=clog, stdout=subprocess.DEVNULL)
     swarm = None
     try:
@@ -103,6 +109,7 @@ def run(a, n, s, tmp):
             time.sleep(0.2)
         before = scrape(mport)
         cpu0, swarm_cpu0 = proc_cpu_seconds(coord.pid), proc_cpu_seconds(swarm.pid)
+        faults0 = minor_faults(coord.pid)
         w, h = a.res.split("x")
         t0 = time.time()
         p = subprocess.run(
@@ -116,6 +123,7 @@ def run(a, n, s, tmp):
             raise SystemExit(f"the job failed:\n{p.stderr[-3000:]}")
         cpu = proc_cpu_seconds(coord.pid) - cpu0
         swarm_cpu = proc_cpu_seconds(swarm.pid) - swarm_cpu0
+        faults = minor_faults(coord.pid) - faults0
         sent = counter(scrape(mport), "pathfarm_blob_bytes_sent") - counter(
             before, "pathfarm_blob_bytes_sent")
     finally:
@@ -132,6 +140,7 @@ def run(a, n, s, tmp):
     render = sum(float(u["render_s"]) for u in units)
     return {"workers": n, "wall": wall, "units": len(units), "render": render,
             "rendering_per_worker": render / n, "coordinator_cpu": cpu, "swarm_cpu": swarm_cpu,
+            "faults": faults,
             "sent_per_worker": sent / n,
             "merge": sum(float(u["decode_s"]) + float(u["merge_s"]) for u in units),
             "ends": sum(float(u["end_s"]) + float(u["checkpoint_s"]) + float(u["publish_s"])
@@ -146,6 +155,10 @@ def main():
     ap.add_argument("--seconds-per-sample", default="auto")
     ap.add_argument("--binary", default=os.path.join(ROOT, "target", "release", "pathfarm"))
     ap.add_argument("--out", default=None)
+    ap.add_argument("--coordinator-arg", action="append", default=[],
+                    help="an argument for `pathfarm coordinator` (repeat for several)")
+    ap.add_argument("--coordinator-prefix", default="",
+                    help="a command the coordinator runs under (`perf record -g --`, say)")
     ap.add_argument("--logs", default=None, help="keep the coordinators' and swarms' logs here")
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="pathfarm-swarm-")
@@ -174,15 +187,16 @@ def main():
         "",
         "| workers | wall s | units | rendering a worker s | not rendering | coordinator CPU s "
         "(share of wall) | simulated workers' CPU s | decode + merge s | unit ends, checkpoints, publish s | "
-        "MB sent a worker |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "MB sent a worker | coordinator page faults (thousands) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['workers']} | {r['wall']:.1f} | {r['units']} | {r['rendering_per_worker']:.1f} | "
             f"**{100 * (1 - r['rendering_per_worker'] / r['wall']):.1f} %** | "
             f"{r['coordinator_cpu']:.1f} ({100 * r['coordinator_cpu'] / r['wall']:.0f} %) | {r['swarm_cpu']:.1f} | "
-            f"{r['merge']:.1f} | {r['ends']:.1f} | {r['sent_per_worker'] / 1e6:.0f} |")
+            f"{r['merge']:.1f} | {r['ends']:.1f} | {r['sent_per_worker'] / 1e6:.0f} | "
+            f"{r['faults'] / 1e3:.0f} |")
     report("\n".join(lines), a.out)
 
 

@@ -94,7 +94,15 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             let mut dirty = Film::new(w, h);
             let smudge = |p: &mut PixelStats| p.add(0.75, Vec3::splat(2.0));
             dirty.pixels.iter_mut().for_each(smudge);
+            let dirty_film = dirty.clone();
             let (mut reused, mut reused_added) = (new(&[firsts[0] + 7]), new(&[firsts[0] + 7]));
+            for s in [&mut reused, &mut reused_added] {
+                // (an earlier unit's samples left in the buffers)
+                for &r in &tiles {
+                    s.add(r, &vec![Vec3::splat(3.0); s.plan().samples(r)]);
+                }
+                s.finish(&tiles);
+            }
             reused.reuse((&settings, spp), &firsts, dirty.clone());
             reused_added.reuse((&settings, spp), &firsts, dirty);
             let plan = reused.plan().clone();
@@ -115,13 +123,23 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             let what =
                 format!("{spp} spp x {calls} calls, passes {pass_spp:?}, {tile}-pixel tiles");
             assert_eq!(
-                film_bits(&splat.finish(&tiles)),
+                film_bits(&splat.finish(&tiles).into_film()),
                 film_bits(&whole),
                 "{what}"
             );
+            // The prepared interiors are held apart: merged into a film as if in place.
             let reused = reused.finish(&tiles);
-            assert_eq!(film_bits(&reused), film_bits(&whole), "reused: {what}");
-            let reused = reused_added.finish(&tiles);
+            let mut merged = dirty_film.clone();
+            reused.merge_into(&mut merged);
+            let mut expected = dirty_film.clone();
+            expected.merge(&whole);
+            assert_eq!(film_bits(&merged), film_bits(&expected), "merged: {what}");
+            assert_eq!(
+                film_bits(&reused.into_film()),
+                film_bits(&whole),
+                "reused: {what}"
+            );
+            let reused = reused_added.finish(&tiles).into_film();
             assert_eq!(
                 film_bits(&reused),
                 film_bits(&whole),
@@ -129,7 +147,7 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             );
             if calls == 1 {
                 // positions drawn from other streams give another film: they are really drawn
-                let other = shifted.finish(&tiles);
+                let other = shifted.finish(&tiles).into_film();
                 assert_ne!(film_bits(&other), film_bits(&whole), "{what}");
             }
         }

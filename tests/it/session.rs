@@ -216,7 +216,14 @@ fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
             seed,
             tile_size: 5,
         };
-        let out = render_unit(&inputs, &spec, flight.tiles[index], &|_| {});
+        let mut out = render_unit(&inputs, &spec, flight.tiles[index], &|_| {});
+        if let (TilePixels::Samples(v), Some(plan), true) =
+            (&out.pixels, session.splat_plan(spec.unit), index % 2 == 0)
+        {
+            // every other tile prepared apart, as a farm coordinator prepares them
+            let prepared = plan.prepare(flight.tiles[index], v);
+            out.pixels = TilePixels::Prepared(Box::new(prepared));
+        }
         let stats = match per_iteration {
             false => spec.record().then(|| wt.take_stats()),
             true => spec.record().then(|| wt.take_gradients()),

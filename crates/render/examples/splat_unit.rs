@@ -1,7 +1,8 @@
 //! The farm coordinator's splatting of one training unit, timed: a 1920x1080 unit of one
 //! sample a pixel arrives as 64-pixel tiles, each prepared ([`SplatPlan::prepare`]: film
-//! positions drawn, interior gathered) and put in place, then the bands gathered
-//! ([`UnitSplat::finish`]) and the unit merged into an iteration's film. Prints the median
+//! positions drawn, interior gathered) and put in place (its samples near its edges copied,
+//! its interior kept apart), then the bands gathered ([`UnitSplat::finish`]) and the unit
+//! merged into an iteration's film. Prints the median
 //! of the repetitions per step, in milliseconds, for the gaussian (Mitsuba's default) and
 //! the tent filter.
 //!
@@ -53,8 +54,13 @@ fn main() {
         }
         let mut steps = [const { Vec::new() }; 4];
         let mut iteration = Film::new(w, h);
+        // (buffers reused from unit to unit, as a session's spares are)
+        let mut splat = UnitSplat::new(filter, (w, h), (&settings, 1), &[0]);
+        let mut spare = None;
         for rep in 0..reps {
-            let mut splat = UnitSplat::new(filter, (w, h), (&settings, 1), &[rep as u64]);
+            if let Some(film) = spare.take() {
+                splat.reuse((&settings, 1), &[rep as u64], film);
+            }
             let plan = splat.plan().clone();
             let t0 = Instant::now();
             let prepared: Vec<_> = (tiles.iter().zip(&values))
@@ -67,8 +73,9 @@ fn main() {
             let t2 = Instant::now();
             let film = splat.finish(&tiles);
             let t3 = Instant::now();
-            iteration.merge(&film);
+            film.merge_into(&mut iteration);
             let t4 = Instant::now();
+            spare = Some(film.into_buffer());
             for (k, (a, b)) in [(t0, t1), (t1, t2), (t2, t3), (t3, t4)]
                 .into_iter()
                 .enumerate()

@@ -168,7 +168,7 @@ fn zeroed_pixels(n: usize) -> Vec<PixelStats> {
 impl PixelStats {
     /// Adds `q`'s sums to these.
     #[inline]
-    fn merge(&mut self, q: &PixelStats) {
+    pub(crate) fn merge(&mut self, q: &PixelStats) {
         self.sum_w += q.sum_w;
         self.sum_w2 += q.sum_w2;
         for c in 0..3 {

@@ -39,7 +39,7 @@ pub use render::{
     Estimator, PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
 };
 pub use scene::{Purpose, Scene};
-pub use splat::{RegionSplat, SplatPlan, UnitSplat};
+pub use splat::{RegionSplat, SplatPlan, UnitFilm, UnitSplat};
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).
 #[derive(Debug, thiserror::Error)]

@@ -41,6 +41,7 @@ use crate::guided::{
 };
 use crate::pass::{PassKind, PassSpec, TileOutput, PATH_STREAM};
 use crate::render::Region;
+use crate::splat::UnitFilm;
 
 mod pixels;
 use pixels::{Spares, UnitPixels};
@@ -642,6 +643,13 @@ impl Session {
             self.splits += out.split_paths;
             self.light_splits += out.extra_light_samples;
         }
+        if let (Some(oldest), Phase::Iterate(it)) = (self.pending.first_mut(), &mut self.phase) {
+            // The oldest unit's film is the next its iteration's film takes (end_unit), unless
+            // it is the iteration's first, whose film becomes the iteration's.
+            if it.passes > 0 {
+                oldest.pixels.merge_interiors(&mut it.film);
+            }
+        }
         while self.pending.first().is_some_and(|p| p.left == 0) {
             let p = self.pending.remove(0);
             self.end_unit(p, now);
@@ -866,6 +874,7 @@ impl Session {
             return self.end_job();
         };
         let stats = self.tree.stats();
+        self.spares.warm_up((self.width, self.height));
         self.phase = Phase::Iterate(Box::new(Iteration {
             k,
             record: !plan.is_last,
@@ -874,7 +883,8 @@ impl Session {
             passes: 0,
             issued: 0,
             last_pass: 0.0,
-            film: Film::new(self.width, self.height),
+            // (its first unit's film becomes the iteration's, end_unit)
+            film: Film::new(0, 0),
             t0: now,
             rays: 0,
             spp_before: self.spp_done,
@@ -935,12 +945,13 @@ impl Session {
                 if it.passes == 0 {
                     // The iteration's first unit: its film becomes the iteration's. The same
                     // bits as adding it to zeros (a gathered sum starts at +0.0, so it is
-                    // never -0.0), without first touching the fresh film's pages (190 MB at
-                    // 1920x1080) here, under a farm coordinator's lock; the fresh film is
-                    // kept as a spare instead.
-                    std::mem::swap(&mut it.film, &mut film);
+                    // never -0.0), without a fresh film's pages (190 MB at 1920x1080)
+                    // faulted in here, under a farm coordinator's lock; the units' films get
+                    // a new one faulted in on the pool instead (Spares::warm_up).
+                    let unit = std::mem::replace(&mut film, UnitFilm::whole(Film::new(0, 0)));
+                    it.film = unit.into_film();
                 } else {
-                    it.film.merge(&film);
+                    film.merge_into(&mut it.film);
                 }
                 it.rays += p.rays;
                 if spec.record() {
@@ -956,7 +967,7 @@ impl Session {
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
-                Arc::make_mut(&mut f.path_film).merge(&film);
+                film.merge_into(Arc::make_mut(&mut f.path_film));
                 f.path_seconds += seconds;
                 f.path_rays += p.rays;
                 f.path_spp += spec.unit_spp();
@@ -965,7 +976,7 @@ impl Session {
                 self.end_probe(now);
             }
             Phase::Rest { .. } => {
-                Arc::make_mut(&mut self.fallback.path_film).merge(&film);
+                film.merge_into(Arc::make_mut(&mut self.fallback.path_film));
                 self.fallback.path_spp += spec.unit_spp();
                 self.fallback.path_seconds += seconds;
             }
@@ -980,6 +991,9 @@ impl Session {
     /// iteration into the final one (the rest of the budget goes into its film); otherwise
     /// the iteration ends.
     fn end_passes(&mut self, mut it: Box<Iteration>, now: f64) {
+        if it.passes == 0 {
+            it.film = Film::new(self.width, self.height);
+        }
         self.flush_steps();
         let automatic = self.params.sample_combination == GuidedCombination::Automatic;
         if it.record && !it.stopped && automatic {

@@ -5,6 +5,8 @@
 //! and its halo, and a [`UnitSplat`] gathers a whole image from samples that arrive region by
 //! region (the farm's units of few samples per pixel), the same bits either way.
 
+use std::sync::Arc;
+
 use glam::Vec2;
 use rayon::prelude::*;
 
@@ -13,8 +15,10 @@ use crate::filter::Filter;
 use crate::render::{Region, RenderSettings};
 
 mod plan;
+mod unit_film;
 
 pub use plan::{RegionSplat, SplatPlan};
+pub use unit_film::UnitFilm;
 
 /// One camera sample, kept until it has been splatted: its film position
 /// within its pixel and its radiance estimate.
@@ -158,6 +162,8 @@ pub struct UnitSplat {
     /// as regions arrive).
     recs: Vec<Vec<SampleRec>>,
     film: Film,
+    /// The interiors of prepared regions, kept in their own films (not copied into `film`).
+    interiors: Vec<(Region, Arc<Film>)>,
     weights: Vec<f32>,
 }
 
@@ -185,6 +191,7 @@ impl UnitSplat {
             plan: SplatPlan::new(filter, size, (settings, spp), first_samples),
             recs: Vec::new(),
             film: Film::new(size.0, size.1),
+            interiors: Vec::new(),
             weights: Vec::new(),
         };
         s.size_buffers(Vec::new());
@@ -194,8 +201,9 @@ impl UnitSplat {
     /// This splat made the splat of another unit of the same image, filter and seed (as
     /// [`UnitSplat::new`] would make it), into `film` (of the image's size, whatever its
     /// pixels hold: every pixel is overwritten, by a region's interior or by a band gathered
-    /// into zeros): its buffers are reused (a unit's are tens of megabytes, faulted in again
-    /// if allocated anew for every unit, and zeroing them cost as much as splatting).
+    /// into zeros, or held apart with its prepared region): its buffers are reused (a unit's
+    /// are tens of megabytes, faulted in again if allocated anew for every unit, and zeroing
+    /// them cost as much as splatting).
     pub fn reuse(
         &mut self,
         (settings, spp): (&RenderSettings, u32),
@@ -204,6 +212,7 @@ impl UnitSplat {
     ) {
         assert_eq!((film.width, film.height), self.plan.size);
         self.film = film;
+        self.interiors.clear();
         let (filter, size) = (self.plan.filter, self.plan.size);
         self.plan = SplatPlan::new(filter, size, (settings, spp), first_samples);
         let old = std::mem::take(&mut self.recs);
@@ -249,28 +258,51 @@ impl UnitSplat {
         }
     }
 
-    /// A region [`SplatPlan::prepare`]d with this unit's plan (it panics otherwise): its
-    /// samples and its gathered interior put in place. The interior's pixels are zero in the
-    /// film until then and gathered nowhere else, so copying them is gathering them here.
+    /// A region [`SplatPlan::prepare`]d with this unit's plan (it panics otherwise): the
+    /// samples its own and its neighbours' bands will be gathered from put in place, and its
+    /// gathered interior kept (shared, not copied: [`UnitFilm`]). Its interior's pixels are
+    /// gathered nowhere else.
     pub fn add_prepared(&mut self, r: &RegionSplat) {
         assert_eq!(r.plan, self.plan, "a region prepared for another unit");
         let (w, region) = (self.plan.size.0 as usize, r.region);
+        // A band pixel reads samples within the filter's reach, so no band of this unit reads
+        // a sample deeper than twice the reach inside a region's edges (image edges aside).
+        let deep = self
+            .plan
+            .interior(region)
+            .and_then(|i| self.plan.interior(i));
+        let rw = region.width() as usize;
         for ((dst, src), pass) in self.recs.iter_mut().zip(&r.recs).zip(&self.plan.passes) {
-            let line = region.width() as usize * pass.n as usize;
-            for (row, src) in src.chunks_exact(line).enumerate() {
-                let y = region.y0 as usize + row;
-                let start = (y * w + region.x0 as usize) * pass.n as usize;
-                dst[start..start + line].copy_from_slice(src);
+            let n = pass.n as usize;
+            for band in bands(region, deep) {
+                let bw = band.width() as usize * n;
+                for y in band.y0 as usize..band.y1 as usize {
+                    let at = ((y - region.y0 as usize) * rw + (band.x0 - region.x0) as usize) * n;
+                    let start = (y * w + band.x0 as usize) * n;
+                    dst[start..start + bw].copy_from_slice(&src[at..at + bw]);
+                }
             }
         }
-        if let Some((inner, film)) = &r.interior {
-            put_rows(&mut self.film, *inner, film);
+        if let Some(interior) = &r.interior {
+            self.interiors.push(interior.clone());
+        }
+    }
+
+    /// Merges the interiors of the regions prepared so far into `dst` (a whole-image film)
+    /// and lets them go: for a unit whose film would be merged into `dst` when it ends, and
+    /// whose pixels come after everything else `dst` will take (its iteration's earlier units
+    /// ended), merging them now gives the same sums, as the tiles come in rather than all at
+    /// the unit's end.
+    pub fn merge_interiors(&mut self, dst: &mut Film) {
+        assert_eq!((dst.width, dst.height), self.plan.size);
+        for interior in self.interiors.drain(..) {
+            UnitFilm::merge_interior(dst, &interior);
         }
     }
 
     /// The film, once every region of the image was added: the pixels `add` left (those
     /// within the filter's reach of another of `regions`) gathered now.
-    pub fn finish(&mut self, regions: &[Region]) -> Film {
+    pub fn finish(&mut self, regions: &[Region]) -> UnitFilm {
         let full = Region::full(self.plan.size.0, self.plan.size.1);
         for &r in regions {
             let inner = self.plan.interior(r);
@@ -287,7 +319,10 @@ impl UnitSplat {
                 gather(&self.plan, recs, target, &mut self.weights, Threads::Caller);
             }
         }
-        std::mem::replace(&mut self.film, Film::new(0, 0))
+        UnitFilm {
+            film: std::mem::replace(&mut self.film, Film::new(0, 0)),
+            interiors: std::mem::take(&mut self.interiors),
+        }
     }
 }
 
@@ -297,15 +332,6 @@ fn zero_rows(film: &mut Film, r: Region) {
     for y in r.y0 as usize..r.y1 as usize {
         let start = y * w + r.x0 as usize;
         film.pixels[start..start + rw].fill(Default::default());
-    }
-}
-
-/// Copies the `inner`-sized `src` into `inner` of the whole-image `dst`.
-fn put_rows(dst: &mut Film, inner: Region, src: &Film) {
-    let (w, iw) = (dst.width as usize, inner.width() as usize);
-    for (row, line) in src.pixels.chunks_exact(iw).enumerate() {
-        let start = (inner.y0 as usize + row) * w + inner.x0 as usize;
-        dst.pixels[start..start + iw].copy_from_slice(line);
     }
 }
 
@@ -333,13 +359,19 @@ fn gather(
     let mut buffer = Vec::new();
     for (pass, recs) in plan.passes.iter().zip(recs) {
         let n = pass.n as usize;
-        buffer.clear();
-        for y in halo.y0..halo.y1 {
-            let row = (y - layout.y0) as usize * lw;
-            let a = row + (halo.x0 - layout.x0) as usize;
-            let b = row + (halo.x1 - layout.x0) as usize;
-            buffer.extend_from_slice(&recs[a * n..b * n]);
-        }
+        // (a prepared region's interior reads its whole layout: no copy)
+        let buffer: &[SampleRec] = if halo == layout {
+            recs
+        } else {
+            buffer.clear();
+            for y in halo.y0..halo.y1 {
+                let row = (y - layout.y0) as usize * lw;
+                let a = row + (halo.x0 - layout.x0) as usize;
+                let b = row + (halo.x1 - layout.x0) as usize;
+                buffer.extend_from_slice(&recs[a * n..b * n]);
+            }
+            &buffer
+        };
         let splat = Splat {
             filter: &plan.filter,
             size: plan.size,
@@ -347,7 +379,7 @@ fn gather(
             halo,
             tile: crate::render::DEFAULT_TILE as usize,
             threads,
-            buffer: &buffer,
+            buffer,
         };
         splat.add_to(n, weights, target.film, target.film_region);
     }

@@ -1,10 +1,12 @@
 //! A unit's pixels while its tiles come in: sums copied into place, or samples splatted as
 //! they arrive ([`UnitSplat`]), and the buffers of ended units kept for the next ones.
 
-use crate::film::Film;
+use std::sync::mpsc::{self, Receiver, TryRecvError};
+
+use crate::film::{Film, PixelStats};
 use crate::pass::{PassSpec, TilePixels};
 use crate::render::{Region, RenderSettings, DEFAULT_TILE};
-use crate::splat::{SplatPlan, UnitSplat};
+use crate::splat::{SplatPlan, UnitFilm, UnitSplat};
 
 use super::Splatting;
 
@@ -26,22 +28,61 @@ pub(super) struct Spares {
     films: Vec<Film>,
     /// (Two units are in flight at a time.)
     splats: Vec<Box<UnitSplat>>,
+    /// A film having its pages faulted in on the rayon pool ([`Spares::warm_up`]).
+    warming: Option<Receiver<Film>>,
 }
 
 impl Spares {
     /// A film of `w x h` pixels to be overwritten: a kept one holds an earlier unit's
     /// pixels, which is fine for a unit's pixels (a unit of sums copies its tiles over every
-    /// pixel; a splat overwrites every pixel, [`UnitSplat::reuse`]).
+    /// pixel; a splat overwrites every pixel it does not hold apart, [`UnitSplat::reuse`]).
     fn film(&mut self, (w, h): (u32, u32)) -> Film {
-        match self.films.pop() {
-            Some(f) if (f.width, f.height) == (w, h) => f,
-            _ => Film::new(w, h),
+        if let Some(f) = self.films.pop() {
+            if (f.width, f.height) == (w, h) {
+                return f;
+            }
+        }
+        match self.warming.as_ref().map(Receiver::try_recv) {
+            Some(Ok(f)) if (f.width, f.height) == (w, h) => {
+                self.warming = None;
+                f
+            }
+            Some(Err(TryRecvError::Empty)) | None => Film::new(w, h),
+            Some(_) => {
+                self.warming = None;
+                Film::new(w, h)
+            }
         }
     }
 
-    /// Keeps an ended unit's film for a later unit (two at most).
-    pub(super) fn keep(&mut self, film: Film) {
-        if self.films.len() < 2 {
+    /// Has a `w x h` film made, its pages faulted in, on the rayon pool, for the spares
+    /// (unless one is on its way). Every iteration keeps its first unit's film, so the
+    /// units' films need one new film an iteration: faulted in where a unit first writes
+    /// it, that was 190 MB at 1920x1080 under a farm coordinator's lock (slow page faults
+    /// on virtual machines: 0.2 s and more). The film's pixels are zeros either way.
+    pub(super) fn warm_up(&mut self, (w, h): (u32, u32)) {
+        if self.warming.is_some() {
+            return;
+        }
+        let (tx, rx) = mpsc::sync_channel(1);
+        rayon::spawn(move || {
+            let mut film = Film::new(w, h);
+            // one write a page faults every page in (a pixel is under a tenth of a page)
+            let step = (4096 / std::mem::size_of::<PixelStats>()).max(1);
+            film.pixels
+                .iter_mut()
+                .step_by(step)
+                .for_each(|p| *p = PixelStats::default());
+            let _ = tx.send(film);
+        });
+        self.warming = Some(rx);
+    }
+
+    /// Keeps an ended unit's film for a later unit (two at most; none that an iteration
+    /// kept, which leaves an empty one).
+    pub(super) fn keep(&mut self, film: UnitFilm) {
+        let film = film.into_buffer();
+        if self.films.len() < 2 && !film.pixels.is_empty() {
             self.films.push(film);
         }
     }
@@ -99,6 +140,14 @@ impl UnitPixels {
         }
     }
 
+    /// Merges the interiors of the tiles in so far into `dst` ([`UnitSplat::merge_interiors`]:
+    /// only for the oldest unit, whose film `dst` takes next).
+    pub(super) fn merge_interiors(&mut self, dst: &mut Film) {
+        if let UnitPixels::Samples(splat) = self {
+            splat.merge_interiors(dst);
+        }
+    }
+
     /// How the unit's samples are splatted (`None` for a unit of sums).
     pub(super) fn plan(&self) -> Option<&SplatPlan> {
         match self {
@@ -117,9 +166,9 @@ impl UnitPixels {
     }
 
     /// The unit's film, once every one of its `tiles` is in.
-    pub(super) fn film(self, tiles: &[Region], spares: &mut Spares) -> Film {
+    pub(super) fn film(self, tiles: &[Region], spares: &mut Spares) -> UnitFilm {
         match self {
-            UnitPixels::Sums(film) => film,
+            UnitPixels::Sums(film) => UnitFilm::whole(film),
             UnitPixels::Samples(mut splat) => {
                 let film = splat.finish(tiles);
                 if spares.splats.len() < 2 {

@@ -99,7 +99,7 @@ impl SplatPlan {
                 &mut Vec::new(),
                 Threads::Caller,
             );
-            (inner, film)
+            (inner, std::sync::Arc::new(film))
         });
         RegionSplat {
             plan: self.clone(),
@@ -173,7 +173,7 @@ pub struct RegionSplat {
     /// Per splat pass of the plan: `n` records a pixel, the region row-major.
     pub(crate) recs: Vec<Vec<SampleRec>>,
     /// The interior and its pixels (an interior-sized film), if it has any.
-    pub(crate) interior: Option<(Region, Film)>,
+    pub(crate) interior: Option<(Region, std::sync::Arc<Film>)>,
 }
 
 impl std::fmt::Debug for RegionSplat {
