@@ -96,7 +96,8 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             dirty.pixels.iter_mut().for_each(smudge);
             let dirty_film = dirty.clone();
             let (mut reused, mut reused_added) = (new(&[firsts[0] + 7]), new(&[firsts[0] + 7]));
-            for s in [&mut reused, &mut reused_added] {
+            let mut early = new(&[firsts[0] + 7]);
+            for s in [&mut reused, &mut reused_added, &mut early] {
                 // (an earlier unit's samples left in the buffers)
                 for &r in &tiles {
                     s.add(r, &vec![Vec3::splat(3.0); s.plan().samples(r)]);
@@ -104,7 +105,11 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
                 s.finish(&tiles);
             }
             reused.reuse((&settings, spp), &firsts, dirty.clone());
-            reused_added.reuse((&settings, spp), &firsts, dirty);
+            reused_added.reuse((&settings, spp), &firsts, dirty.clone());
+            // and one whose interiors are merged into the target as they come in (the oldest
+            // unit's, in a session), over a film whose stale pixels must not be merged again
+            early.reuse((&settings, spp), &firsts, dirty);
+            let mut merged_early = dirty_film.clone();
             let plan = reused.plan().clone();
             for &r in &tiles {
                 let mut values = Vec::new();
@@ -115,6 +120,10 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
                 }
                 splat.add(r, &values);
                 reused.add_prepared(&plan.prepare(r, &values));
+                early.add_prepared(&plan.prepare(r, &values));
+                if r.x0 % 2 == 0 {
+                    early.merge_interiors(&mut merged_early);
+                }
                 reused_added.add(r, &values);
                 if calls == 1 {
                     shifted.add(r, &values);
@@ -134,6 +143,12 @@ fn samples_rendered_by_tile_and_splatted_as_they_arrive_give_the_whole_image_bit
             let mut expected = dirty_film.clone();
             expected.merge(&whole);
             assert_eq!(film_bits(&merged), film_bits(&expected), "merged: {what}");
+            early.finish(&tiles).merge_into(&mut merged_early);
+            assert_eq!(
+                film_bits(&merged_early),
+                film_bits(&expected),
+                "merged early: {what}"
+            );
             assert_eq!(
                 film_bits(&reused.into_film()),
                 film_bits(&whole),

@@ -164,6 +164,8 @@ pub struct UnitSplat {
     film: Film,
     /// The interiors of prepared regions, kept in their own films (not copied into `film`).
     interiors: Vec<(Region, Arc<Film>)>,
+    /// Interiors merged already ([`UnitSplat::merge_interiors`]).
+    merged: Vec<Region>,
     weights: Vec<f32>,
 }
 
@@ -192,6 +194,7 @@ impl UnitSplat {
             recs: Vec::new(),
             film: Film::new(size.0, size.1),
             interiors: Vec::new(),
+            merged: Vec::new(),
             weights: Vec::new(),
         };
         s.size_buffers(Vec::new());
@@ -213,6 +216,7 @@ impl UnitSplat {
         assert_eq!((film.width, film.height), self.plan.size);
         self.film = film;
         self.interiors.clear();
+        self.merged.clear();
         let (filter, size) = (self.plan.filter, self.plan.size);
         self.plan = SplatPlan::new(filter, size, (settings, spp), first_samples);
         let old = std::mem::take(&mut self.recs);
@@ -297,6 +301,7 @@ impl UnitSplat {
         assert_eq!((dst.width, dst.height), self.plan.size);
         for interior in self.interiors.drain(..) {
             UnitFilm::merge_interior(dst, &interior);
+            self.merged.push(interior.0);
         }
     }
 
@@ -322,6 +327,7 @@ impl UnitSplat {
         UnitFilm {
             film: std::mem::replace(&mut self.film, Film::new(0, 0)),
             interiors: std::mem::take(&mut self.interiors),
+            merged: std::mem::take(&mut self.merged),
         }
     }
 }

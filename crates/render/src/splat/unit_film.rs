@@ -11,13 +11,16 @@ use rayon::prelude::*;
 use crate::film::{Film, PixelStats};
 use crate::render::Region;
 
-/// A unit's pixels: `film` holds every pixel but those of `interiors`, whose pixels there are
-/// stale (an earlier unit's) and never read.
+/// A unit's pixels: `film` holds every pixel but those of `interiors` and `merged`, whose
+/// pixels there are stale (an earlier unit's) and never read.
 #[derive(Debug)]
 pub struct UnitFilm {
     pub(crate) film: Film,
     /// Disjoint regions and their pixels (a region-sized film each).
     pub(crate) interiors: Vec<(Region, Arc<Film>)>,
+    /// Regions whose pixels were merged already ([`crate::UnitSplat::merge_interiors`]):
+    /// skipped by [`UnitFilm::merge_into`].
+    pub(crate) merged: Vec<Region>,
 }
 
 impl UnitFilm {
@@ -26,16 +29,19 @@ impl UnitFilm {
         UnitFilm {
             film,
             interiors: Vec::new(),
+            merged: Vec::new(),
         }
     }
 
     /// Adds every pixel's sums to `dst`'s (of the same size), pixel by pixel: the same bits
     /// as merging the film with its interiors in place ([`Film::merge`]), however the rows
-    /// are shared among threads.
+    /// are shared among threads. The `merged` regions are left as they are.
     pub fn merge_into(&self, dst: &mut Film) {
         let (w, h) = (self.film.width, self.film.height);
         assert_eq!((dst.width, dst.height), (w, h));
-        let mut order: Vec<&(Region, Arc<Film>)> = self.interiors.iter().collect();
+        let held = self.interiors.iter().map(|(r, f)| (*r, Some(f)));
+        let mut order: Vec<(Region, Option<&Arc<Film>>)> =
+            held.chain(self.merged.iter().map(|r| (*r, None))).collect();
         order.sort_by_key(|(r, _)| r.x0);
         let w = w as usize;
         (dst.pixels.par_chunks_mut(w).enumerate()).for_each(|(y, line)| {
@@ -45,8 +51,10 @@ impl UnitFilm {
             for (r, f) in order.iter().filter(|(r, _)| r.y0 <= y && y < r.y1) {
                 let (x0, x1, rw) = (r.x0 as usize, r.x1 as usize, r.width() as usize);
                 merge_run(&mut line[x..x0], &src[x..x0]);
-                let row = (y - r.y0) as usize * rw;
-                merge_run(&mut line[x0..x1], &f.pixels[row..row + rw]);
+                if let Some(f) = f {
+                    let row = (y - r.y0) as usize * rw;
+                    merge_run(&mut line[x0..x1], &f.pixels[row..row + rw]);
+                }
                 x = x1;
             }
             merge_run(&mut line[x..], &src[x..]);
@@ -63,8 +71,10 @@ impl UnitFilm {
         }
     }
 
-    /// The unit's pixels as one film (the interiors copied into place).
+    /// The unit's pixels as one film (the interiors copied into place). Not for a unit some
+    /// of whose pixels were merged already (it panics).
     pub fn into_film(self) -> Film {
+        assert!(self.merged.is_empty(), "a unit film partly merged already");
         let mut film = self.film;
         let w = film.width as usize;
         for (r, f) in &self.interiors {
