@@ -40,6 +40,7 @@ import argparse
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -70,6 +71,18 @@ def calibrate(binary, tmp):
     return secs / (w * h * spp)
 
 
+def stop(proc, sig, group):
+    """Sends `sig` to `proc`, or to its whole process group (the coordinator's: under a
+    --coordinator-prefix command the coordinator is that command's child)."""
+    try:
+        if group:
+            os.killpg(proc.pid, sig)
+        else:
+            proc.send_signal(sig)
+    except ProcessLookupError:
+        pass
+
+
 def minor_faults(pid):
     """The process's minor page faults so far (/proc/PID/stat, field 10)."""
     return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[7])
@@ -85,7 +98,8 @@ def run(a, n, s, tmp):
         a.coordinator_prefix.split() + [a.binary, "coordinator", "--listen", f"127.0.0.1:{port}", "--data",
          os.path.join(tmp, f"coord-{n}"), "--metrics", f"127.0.0.1:{mport}"]
         + a.coordinator_arg,
-        env=env, stderr=clog, stdout=subprocess.DEVNULL)
+        env=env, stderr=clog, stdout=subprocess.DEVNULL,
+        start_new_session=True)  # its own group: a --coordinator-prefix command's child too
     swarm = None
     try:
         for _ in range(100):
@@ -130,11 +144,12 @@ def run(a, n, s, tmp):
         for proc in (swarm, coord):
             if proc is None:
                 continue
-            proc.terminate()
+            stop(proc, signal.SIGTERM, proc is coord)
             try:
                 proc.wait(timeout=60)
             except subprocess.TimeoutExpired:
-                proc.kill()
+                stop(proc, signal.SIGKILL, proc is coord)
+                proc.wait()
         clog.close()
     units = parse_units(open(clog_path).read())
     render = sum(float(u["render_s"]) for u in units)
@@ -158,7 +173,7 @@ def main():
     ap.add_argument("--coordinator-arg", action="append", default=[],
                     help="an argument for `pathfarm coordinator` (repeat for several)")
     ap.add_argument("--coordinator-prefix", default="",
-                    help="a command the coordinator runs under (`perf record -g --`, say)")
+                    help="a command the coordinator runs under (`perf record -g --`, say; the CPU and page-fault columns are then that command's)")
     ap.add_argument("--logs", default=None, help="keep the coordinators' and swarms' logs here")
     a = ap.parse_args()
     tmp = tempfile.mkdtemp(prefix="pathfarm-swarm-")
