@@ -41,7 +41,6 @@ use crate::guided::{
 };
 use crate::pass::{PassKind, PassSpec, TileOutput, PATH_STREAM};
 use crate::render::Region;
-use crate::splat::UnitFilm;
 
 mod pixels;
 use pixels::{Spares, UnitPixels};
@@ -194,7 +193,9 @@ struct Iteration {
     passes: u32,
     issued: u32,
     last_pass: f64,
-    film: Film,
+    /// The iteration's pixels: its first unit's film (`None` until that unit ends), with the
+    /// later units' merged in.
+    film: Option<Film>,
     t0: f64,
     /// Rays traced by the iteration's units (not by a probe beside them).
     rays: u64,
@@ -244,6 +245,16 @@ struct Pending {
     issued_at: f64,
     /// Rays of the tiles that are in.
     rays: u64,
+}
+
+impl Iteration {
+    /// The iteration's film, once its passes ended ([`Session::end_passes`] makes one if no
+    /// unit did).
+    fn film(&self) -> &Film {
+        self.film
+            .as_ref()
+            .expect("an ended iteration's film (end_passes)")
+    }
 }
 
 /// The image so far ([`Session::preview`]): the finished iterations' films, shared with the
@@ -646,8 +657,8 @@ impl Session {
         if let (Some(oldest), Phase::Iterate(it)) = (self.pending.first_mut(), &mut self.phase) {
             // The oldest unit's film is the next its iteration's film takes (end_unit), unless
             // it is the iteration's first, whose film becomes the iteration's.
-            if it.passes > 0 {
-                oldest.pixels.merge_interiors(&mut it.film);
+            if let Some(film) = &mut it.film {
+                oldest.pixels.merge_interiors(film);
             }
         }
         while self.pending.first().is_some_and(|p| p.left == 0) {
@@ -883,8 +894,7 @@ impl Session {
             passes: 0,
             issued: 0,
             last_pass: 0.0,
-            // (its first unit's film becomes the iteration's, end_unit)
-            film: Film::new(0, 0),
+            film: None,
             t0: now,
             rays: 0,
             spp_before: self.spp_done,
@@ -937,22 +947,27 @@ impl Session {
 
     fn end_unit(&mut self, p: Pending, now: f64) {
         let spec = p.spec;
-        let mut film = p.pixels.film(&p.tiles, &mut self.spares);
+        let film = p.pixels.film(&p.tiles, &mut self.spares);
         let seconds = now - p.issued_at.max(self.last_end);
         self.last_end = now;
-        match &mut self.phase {
+        // (the film to keep for a later unit, if the unit's film is not kept elsewhere)
+        let spare = match &mut self.phase {
             Phase::Iterate(it) => {
-                if it.passes == 0 {
+                let spare = match &mut it.film {
+                    Some(f) => {
+                        film.merge_into(f);
+                        Some(film)
+                    }
                     // The iteration's first unit: its film becomes the iteration's. The same
                     // bits as adding it to zeros (a gathered sum starts at +0.0, so it is
                     // never -0.0), without a fresh film's pages (190 MB at 1920x1080)
                     // faulted in here, under a farm coordinator's lock; the units' films get
                     // a new one faulted in on the pool instead (Spares::warm_up).
-                    let unit = std::mem::replace(&mut film, UnitFilm::whole(Film::new(0, 0)));
-                    it.film = unit.into_film();
-                } else {
-                    film.merge_into(&mut it.film);
-                }
+                    None => {
+                        it.film = Some(film.into_film());
+                        None
+                    }
+                };
                 it.rays += p.rays;
                 if spec.record() {
                     self.deferred.push(spec.unit);
@@ -964,6 +979,7 @@ impl Session {
                 }
                 it.passes += spec.passes;
                 self.spp_done += spec.unit_spp();
+                spare
             }
             Phase::Probe => {
                 let f = &mut self.fallback;
@@ -974,26 +990,30 @@ impl Session {
                 f.probe_spp += spec.unit_spp();
                 self.passes_done += spec.passes;
                 self.end_probe(now);
+                Some(film)
             }
             Phase::Rest { .. } => {
                 film.merge_into(Arc::make_mut(&mut self.fallback.path_film));
                 self.fallback.path_spp += spec.unit_spp();
                 self.fallback.path_seconds += seconds;
+                Some(film)
             }
             Phase::Plan | Phase::Records(_) | Phase::Done => {
                 unreachable!("a unit completed outside an iteration")
             }
+        };
+        if let Some(film) = spare {
+            self.spares.keep(film);
         }
-        self.spares.keep(film);
     }
 
     /// The iteration's passes are done. Automatic combination may turn a training
     /// iteration into the final one (the rest of the budget goes into its film); otherwise
     /// the iteration ends.
     fn end_passes(&mut self, mut it: Box<Iteration>, now: f64) {
-        if it.passes == 0 {
-            it.film = Film::new(self.width, self.height);
-        }
+        let (w, h) = (self.width, self.height);
+        // (an iteration whose passes ended without a unit has an empty film)
+        it.film.get_or_insert_with(|| Film::new(w, h));
         self.flush_steps();
         let automatic = self.params.sample_combination == GuidedCombination::Automatic;
         if it.record && !it.stopped && automatic {
@@ -1002,7 +1022,7 @@ impl Session {
                 Budget::Seconds(_) => now - it.t0,
             };
             self.history.push(IterationOutcome {
-                variance: film_variance(&it.film),
+                variance: film_variance(it.film()),
                 cost,
                 remaining_before: it.remaining_before,
                 spp_before: it.spp_before,
@@ -1043,20 +1063,20 @@ impl Session {
             spp: spp as u32,
             nodes: it.nodes,
             leaves: it.leaves,
-            variance: film_variance(&it.film),
+            variance: film_variance(it.film()),
             seconds: secs,
             rays_per_sample: it.rays as f64 / (spp as f64 * npix as f64).max(1.0),
             training,
         });
         if self.params.russian_roulette == GuidedRoulette::Guided || self.fallback.enabled {
-            self.update_estimate(&it.film, spp);
+            self.update_estimate(it.film(), spp);
         }
         if !self.tree.is_built() {
             // sampled without a guide (iteration 0): plain path tracing
             self.unguided.push(self.films.len());
         }
         let checked = training && self.checks();
-        let Iteration { film, .. } = *it;
+        let film = it.film.expect("an ended iteration's film (end_passes)");
         self.films.push(Arc::new(film));
         if !training {
             self.kept = Some(self.films.len() - 1);

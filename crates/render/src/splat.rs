@@ -299,9 +299,9 @@ impl UnitSplat {
     /// the unit's end.
     pub fn merge_interiors(&mut self, dst: &mut Film) {
         assert_eq!((dst.width, dst.height), self.plan.size);
-        for interior in self.interiors.drain(..) {
-            UnitFilm::merge_interior(dst, &interior);
-            self.merged.push(interior.0);
+        for (r, f) in self.interiors.drain(..) {
+            unit_film::merge_region(dst, r, &f);
+            self.merged.push(r);
         }
     }
 
@@ -362,21 +362,21 @@ fn gather(
     let (w, h) = plan.size;
     let halo = target.region.grown(reach, w, h);
     let lw = layout.width() as usize;
-    let mut buffer = Vec::new();
+    let mut copied = Vec::new();
     for (pass, recs) in plan.passes.iter().zip(recs) {
         let n = pass.n as usize;
         // (a prepared region's interior reads its whole layout: no copy)
         let buffer: &[SampleRec] = if halo == layout {
             recs
         } else {
-            buffer.clear();
+            copied.clear();
             for y in halo.y0..halo.y1 {
                 let row = (y - layout.y0) as usize * lw;
                 let a = row + (halo.x0 - layout.x0) as usize;
                 let b = row + (halo.x1 - layout.x0) as usize;
-                buffer.extend_from_slice(&recs[a * n..b * n]);
+                copied.extend_from_slice(&recs[a * n..b * n]);
             }
-            &buffer
+            &copied
         };
         let splat = Splat {
             filter: &plan.filter,

@@ -43,14 +43,11 @@ impl Spares {
             }
         }
         match self.warming.as_ref().map(Receiver::try_recv) {
-            Some(Ok(f)) if (f.width, f.height) == (w, h) => {
-                self.warming = None;
-                f
-            }
             Some(Err(TryRecvError::Empty)) | None => Film::new(w, h),
-            Some(_) => {
+            Some(warmed) => {
                 self.warming = None;
-                Film::new(w, h)
+                let fits = |f: &Film| (f.width, f.height) == (w, h);
+                warmed.ok().filter(fits).unwrap_or_else(|| Film::new(w, h))
             }
         }
     }
@@ -78,12 +75,10 @@ impl Spares {
         self.warming = Some(rx);
     }
 
-    /// Keeps an ended unit's film for a later unit (two at most; none that an iteration
-    /// kept, which leaves an empty one).
+    /// Keeps an ended unit's film for a later unit (two at most).
     pub(super) fn keep(&mut self, film: UnitFilm) {
-        let film = film.into_buffer();
-        if self.films.len() < 2 && !film.pixels.is_empty() {
-            self.films.push(film);
+        if self.films.len() < 2 {
+            self.films.push(film.into_buffer());
         }
     }
 }

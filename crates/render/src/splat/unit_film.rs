@@ -61,28 +61,13 @@ impl UnitFilm {
         });
     }
 
-    /// Merges `interior` (a region's pixels, a region-sized film) into the same pixels of
-    /// the whole-image `dst`, pixel by pixel as [`UnitFilm::merge_into`] does.
-    pub(crate) fn merge_interior(dst: &mut Film, (r, f): &(Region, Arc<Film>)) {
-        let (w, rw) = (dst.width as usize, r.width() as usize);
-        for (row, line) in f.pixels.chunks_exact(rw).enumerate() {
-            let start = (r.y0 as usize + row) * w + r.x0 as usize;
-            merge_run(&mut dst.pixels[start..start + rw], line);
-        }
-    }
-
     /// The unit's pixels as one film (the interiors copied into place). Not for a unit some
     /// of whose pixels were merged already (it panics).
     pub fn into_film(self) -> Film {
         assert!(self.merged.is_empty(), "a unit film partly merged already");
         let mut film = self.film;
-        let w = film.width as usize;
         for (r, f) in &self.interiors {
-            let rw = r.width() as usize;
-            for (row, line) in f.pixels.chunks_exact(rw).enumerate() {
-                let start = (r.y0 as usize + row) * w + r.x0 as usize;
-                film.pixels[start..start + rw].copy_from_slice(line);
-            }
+            each_row(&mut film, *r, f, <[PixelStats]>::copy_from_slice);
         }
         film
     }
@@ -90,6 +75,21 @@ impl UnitFilm {
     /// The whole-image film (its interiors' pixels stale), for reuse by a later unit.
     pub fn into_buffer(self) -> Film {
         self.film
+    }
+}
+
+/// Merges a region's pixels `f` (a region-sized film) into the same pixels of the
+/// whole-image `dst`, pixel by pixel as [`UnitFilm::merge_into`] does.
+pub(crate) fn merge_region(dst: &mut Film, r: Region, f: &Film) {
+    each_row(dst, r, f, merge_run);
+}
+
+/// `op(row of r in dst, the same row of f)` for every row of region `r`, `f` its pixels.
+fn each_row(dst: &mut Film, r: Region, f: &Film, op: impl Fn(&mut [PixelStats], &[PixelStats])) {
+    let (w, rw) = (dst.width as usize, r.width() as usize);
+    for (row, line) in f.pixels.chunks_exact(rw).enumerate() {
+        let start = (r.y0 as usize + row) * w + r.x0 as usize;
+        op(&mut dst.pixels[start..start + rw], line);
     }
 }
 
