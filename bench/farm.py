@@ -510,7 +510,8 @@ def many_jobs_farm(a, tmp, jobs):
     builds = []
     for path in logs:
         text = open(path).read()
-        builds.append(text.count("built ahead in") + text.count("scene built in"))
+        scenes = text.count("built ahead in") + text.count("scene built in")
+        builds.append(f"{scenes} ({text.count('world built in')})")
     return wall, worker_cpu, coord_cpu, images, builds, sent
 
 
@@ -548,7 +549,7 @@ def many_jobs(a):
              f"Command: `python3 bench/farm.py {mode} --scene {a.scene} --res {a.res} --spp {a.spp} "
              f"--reps {a.reps} --workers {a.workers} --threads-per-worker {a.threads_per_worker}`", "",
              "| rep | renders, one after another (s) | farm (s) | farm / renders | render CPU s | "
-             "worker CPU s | coordinator CPU s | scene builds per worker | MB sent per worker |",
+             "worker CPU s | coordinator CPU s | scene builds (of them worlds) per worker | MB sent per worker |",
              "|---|---|---|---|---|---|---|---|---|"]
     for i, row in enumerate(rows):
         rw, rc, _ = row["render"]

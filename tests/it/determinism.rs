@@ -6,7 +6,10 @@ use pathfarm_render::{
     path_estimator, render, render_into, sample_region, Film, Region, RenderSettings, Scene,
     UnitSplat,
 };
+use pathfarm_scene::{load_scene, scan_scene_as, world_source, Limits};
 use pathfarm_testkit::TestRng;
+use std::fs;
+use std::path::Path;
 
 use crate::common::*;
 
@@ -236,4 +239,47 @@ fn batched_path_integrator_equals_the_one_path_estimator_bit_for_bit() {
             "{name}: the image is not black"
         );
     }
+}
+
+/// The frames of a shot share one world: veach-ajar (PLY and OBJ meshes, JPEG textures, an
+/// area light) with its camera moved, built on the first frame's world from a scan of its
+/// text, renders the bits of the same frame built from its files, and the world sources of
+/// the two frames are equal.
+#[test]
+fn a_frame_built_on_another_frames_world_renders_the_bits_of_its_own_build() {
+    let src = shared_scene("veach-ajar");
+    let dir = temp_dir("shared-world");
+    for sub in ["models", "textures"] {
+        fs::create_dir_all(dir.join(sub)).unwrap();
+        for f in fs::read_dir(src.parent().unwrap().join(sub)).unwrap() {
+            let f = f.unwrap().path();
+            fs::copy(&f, dir.join(sub).join(f.file_name().unwrap())).unwrap();
+        }
+    }
+    let xml = fs::read_to_string(&src).unwrap();
+    let eye = "4.05402 2.71355e-008";
+    assert!(xml.contains(eye));
+    let (first, moved) = (dir.join("frame-1.xml"), dir.join("frame-2.xml"));
+    fs::write(&first, &xml).unwrap();
+    fs::write(&moved, xml.replace(eye, "3.95402 2.71355e-008")).unwrap();
+    let defines: Vec<(String, String)> = [("resx", "48"), ("resy", "27")]
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .to_vec();
+    let limits = Limits::default();
+    let world_of = |p: &Path| world_source(p, &defines, &limits).unwrap();
+    assert_eq!(world_of(&first), world_of(&moved));
+    let build = |p: &Path| Scene::build(&load_scene(p, &defines).unwrap()).unwrap();
+    let a = build(&first);
+    let own = build(&moved);
+    let scan = scan_scene_as(&moved, &defines, &limits, None).unwrap();
+    let shared = Scene::with_world(&scan, a.shared_world()).unwrap();
+    assert!(std::ptr::eq(shared.world(), a.world()));
+    let settings = RenderSettings::new(Some(4), None, 3);
+    let image = |s: &Scene| film_bits(&render(s, &settings, &|_| {}).0);
+    let own_bits = image(&own);
+    assert_eq!(own_bits, image(&shared), "the frame on a shared world");
+    assert_ne!(own_bits, image(&a), "the cameras differ");
+    // A world is not another scene's: the shape count is checked.
+    let other = load_scene(&shared_scene("cornell-box"), &[]).unwrap();
+    assert!(Scene::with_world(&other, a.shared_world()).is_err());
 }

@@ -558,6 +558,34 @@ fn a_batch_of_frames_is_submitted_together_and_every_frame_is_exact() {
     for (i, reference) in refs.iter().enumerate() {
         assert_same_exr(&out.join(format!("frame-{}.exr", i + 1)), reference, &farm);
     }
+    // The frames share a world: a worker builds it from the files once and each other frame
+    // on it (a second build can only race with a build ahead of the lease).
+    let (mut worlds, mut on_held) = (0, 0);
+    for (i, w) in farm.workers.iter().enumerate() {
+        let log = w.stderr_text();
+        let built = log.matches("world built in").count();
+        assert!(
+            built <= 2,
+            "worker {i} built the world {built} times\n{}",
+            farm.logs()
+        );
+        worlds += built;
+        on_held += log.matches("built on the world of a scene held").count();
+    }
+    assert!(
+        on_held >= 1 && worlds <= farm.workers.len() + 1,
+        "{worlds} worlds built, {on_held} frames on a held world\n{}",
+        farm.logs()
+    );
+    let coordinator = farm.coordinator.as_ref().unwrap().stderr_text();
+    assert_eq!(
+        coordinator
+            .matches("validated on the world validated last")
+            .count(),
+        2,
+        "frames 2 and 3 are validated on frame 1's world\n{}",
+        farm.logs()
+    );
     let status = with_token(&["status", "--coordinator", &farm.url]);
     assert!(status.status.success(), "{}", status.describe());
     assert!(

@@ -223,7 +223,7 @@ fn session_of(scene: &Scene, n: u64, seed: u64, spp: u32, checkpoint: Option<&[u
             Session::restore(&params, budget, tiles, splatting, policy, &cp, tree).expect("restore")
         }
         None => {
-            let (lo, hi) = scene.accel.bounds();
+            let (lo, hi) = scene.world().accel.bounds();
             let tree = SdTree::new(lo, hi, guide_config(&params, scene));
             let size = (scene.width, scene.height);
             let budget = Budget::Spp(spp);

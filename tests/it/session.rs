@@ -311,7 +311,7 @@ fn new_session(
     tile: u32,
     policy: FallbackPolicy,
 ) -> (Session, Vec<Region>) {
-    let (lo, hi) = scene.accel.bounds();
+    let (lo, hi) = scene.world().accel.bounds();
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
     let tiles = Region::tiles(w, h, tile);

@@ -797,7 +797,7 @@ fn uniformly_scaled_scenes_from_1e_minus_4_to_1e4_render_the_unscaled_image() {
             std::fs::write(path.with_file_name("rug.obj"), rug_obj()).unwrap();
             let desc = load_scene(&path, &[]).unwrap_or_else(|e| panic!("{e}"));
             let scene = Scene::build(&desc).expect("build");
-            assert!(scene.triangle_count > 64, "the BVH is under test");
+            assert!(scene.world().triangle_count > 64, "the BVH is under test");
             render_scene(&scene, 64, seed)
         };
         let unit = at(1.0, *SEED);

@@ -76,7 +76,7 @@ fn shadow_rays_carry_the_product_of_the_pass_probabilities_they_cross() {
 fn a_scene_without_mask_or_null_surfaces_never_lets_light_through() {
     let opaque = r#"<bsdf type="diffuse"/>"#;
     let scene = build_scene(&panels("opaque", [opaque, opaque, opaque]), &[]);
-    assert!(!scene.features.pass_through);
+    assert!(!scene.world().features.pass_through);
     assert_eq!(scene.transmittance::<false>(&shadow_ray(0.5)), 1.0);
     assert_eq!(scene.transmittance::<false>(&shadow_ray(1.5)), 0.0);
 }

@@ -124,10 +124,10 @@ pub fn info(args: InfoArgs) -> Result<()> {
     println!(
         "shapes: {}, triangles: {}, bsdfs: {}, textures: {}, lights: {}",
         desc.shapes.len(),
-        scene.triangle_count,
+        scene.world().triangle_count,
         desc.bsdfs.len(),
         desc.textures.len(),
-        scene.lights.lights.len()
+        scene.world().lights.lights.len()
     );
     println!("features: {:?}", desc.features);
     Ok(())
@@ -198,8 +198,8 @@ pub fn render(args: RenderArgs) -> Result<()> {
         scene.width,
         scene.height,
         desc.shapes.len(),
-        scene.triangle_count,
-        scene.lights.lights.len(),
+        scene.world().triangle_count,
+        scene.world().lights.lights.len(),
         desc.features
     );
     let bar = ProgressBar::new(1);

@@ -24,7 +24,9 @@ use std::io::{self, Read, Write};
 use std::path::{Component, Path, PathBuf};
 
 use pathfarm_scene::limits::format_bytes;
-use pathfarm_scene::{load_scene_as, scene_files_as, Limits, SceneDesc, SceneError};
+use pathfarm_scene::{
+    load_scene_as, scan_scene_as, scene_files_as, world_source, Limits, SceneDesc, SceneError,
+};
 
 /// The blake3 digest (32 bytes) of a file's contents: the name of its blob.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -568,6 +570,91 @@ fn place(e: &ManifestEntry, blob: &Path, target: &Path) -> Result<(), BundleErro
 ///
 /// A file the scene needs and the bundle lacks is a [`BundleError::Scene`] naming it, the
 /// scene file and line.
+pub fn check(
+    manifest: &Manifest,
+    dir: &Path,
+    overrides: &[(String, String)],
+    integrator: Option<&str>,
+    limits: &Limits,
+) -> Result<SceneDesc, BundleError> {
+    let root = dir.join(&manifest.root);
+    let desc = load_scene_as(&root, overrides, &confined(limits), integrator)?;
+    verify_files(manifest, dir, &desc)?;
+    Ok(desc)
+}
+
+/// [`check`] without decoding the scene's meshes and images (its files are named, opened and
+/// verified against the manifest): for a scene whose world is built already
+/// ([`world_key`], `pathfarm_render::Scene::with_world`), only its camera and integrator
+/// are read from the description.
+pub fn scan(
+    manifest: &Manifest,
+    dir: &Path,
+    overrides: &[(String, String)],
+    integrator: Option<&str>,
+    limits: &Limits,
+) -> Result<SceneDesc, BundleError> {
+    let root = dir.join(&manifest.root);
+    let desc = scan_scene_as(&root, overrides, &confined(limits), integrator)?;
+    verify_files(manifest, dir, &desc)?;
+    Ok(desc)
+}
+
+/// Every file the load of `desc` read is one of the manifest's, of the manifest's size.
+fn verify_files(manifest: &Manifest, dir: &Path, desc: &SceneDesc) -> Result<(), BundleError> {
+    let entries = manifest.entries()?;
+    for file in &desc.files {
+        let path = manifest_path(file, dir)?;
+        let Some(e) = entries.get(path.as_str()) else {
+            return Err(BundleError::NotInManifest { file: file.clone() });
+        };
+        let len = fs::metadata(file)
+            .map_err(|error| BundleError::Io {
+                file: file.clone(),
+                action: "cannot inspect",
+                error,
+            })?
+            .len();
+        if len != e.size {
+            return Err(BundleError::SizeMismatch {
+                path: path.clone(),
+                file: file.clone(),
+                expected: e.size,
+                actual: len,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// What the world of the bundle's scene (materialised in `dir`) is built from: its
+/// [`pathfarm_scene::world_source`] with `overrides`, and the digest of every file in the
+/// manifest but the root. Two bundles with one key build the same world (geometry, BVH,
+/// lights, materials, textures) whatever their cameras and integrators: the frames of a shot
+/// share one. Reads only the scene's text.
+pub fn world_key(
+    manifest: &Manifest,
+    dir: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+) -> Result<Digest, BundleError> {
+    let root = dir.join(&manifest.root);
+    let source = world_source(&root, overrides, &confined(limits))?;
+    let mut h = blake3::Hasher::new();
+    h.update(&(source.len() as u64).to_le_bytes());
+    h.update(&source);
+    let mut files: Vec<&ManifestEntry> = (manifest.files.iter())
+        .filter(|e| e.path != manifest.root)
+        .collect();
+    files.sort_by(|a, b| a.path.cmp(&b.path));
+    for e in files {
+        h.update(&(e.path.len() as u64).to_le_bytes());
+        h.update(e.path.as_bytes());
+        h.update(&e.digest.0);
+    }
+    Ok(Digest(*h.finalize().as_bytes()))
+}
+
 /// Sets the film of `desc` to `width x height` (a job's resolution override), within the
 /// film limits the loader applies to a scene's own film.
 pub fn override_resolution(
@@ -592,38 +679,4 @@ pub fn override_resolution(
     desc.sensor.film.width = width;
     desc.sensor.film.height = height;
     Ok(())
-}
-
-pub fn check(
-    manifest: &Manifest,
-    dir: &Path,
-    overrides: &[(String, String)],
-    integrator: Option<&str>,
-    limits: &Limits,
-) -> Result<SceneDesc, BundleError> {
-    let entries = manifest.entries()?;
-    let root = dir.join(&manifest.root);
-    let desc = load_scene_as(&root, overrides, &confined(limits), integrator)?;
-    for file in &desc.files {
-        let path = manifest_path(file, dir)?;
-        let Some(e) = entries.get(path.as_str()) else {
-            return Err(BundleError::NotInManifest { file: file.clone() });
-        };
-        let len = fs::metadata(file)
-            .map_err(|error| BundleError::Io {
-                file: file.clone(),
-                action: "cannot inspect",
-                error,
-            })?
-            .len();
-        if len != e.size {
-            return Err(BundleError::SizeMismatch {
-                path: path.clone(),
-                file: file.clone(),
-                expected: e.size,
-                actual: len,
-            });
-        }
-    }
-    Ok(desc)
 }

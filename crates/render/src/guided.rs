@@ -125,7 +125,7 @@ pub fn guide_config(params: &GuidedParams, scene: &Scene) -> GuideConfig {
     let bytes = params
         .max_memory_mb
         .map_or(limit, |mb| (mb * 1048576.0).min(limit));
-    let (lo, hi) = scene.accel.bounds();
+    let (lo, hi) = scene.world().accel.bounds();
     let fresh = SdTree::new(lo, hi, cfg.clone()).stats();
     if params.max_memory_mb.is_some() {
         // Approximate: a spatial leaf costs about twice a fresh tree's single leaf (its
@@ -302,7 +302,7 @@ pub fn render_guided(
     } = options;
     // The budget's clock starts with the call (building the tree is part of the render).
     let start = Instant::now();
-    let (lo, hi) = scene.accel.bounds();
+    let (lo, hi) = scene.world().accel.bounds();
     let tree = SdTree::new(lo, hi, guide_config(params, scene));
     let (w, h) = (scene.width, scene.height);
     let whole = Region::full(w, h);

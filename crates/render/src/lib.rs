@@ -38,7 +38,7 @@ pub use render::{
     path_estimator, render, render_into, render_region_into, sample_region, CameraSample,
     Estimator, PathEstimator, Progress, Region, RenderSettings, RenderStats, DEFAULT_TILE,
 };
-pub use scene::{Purpose, Scene};
+pub use scene::{Purpose, Scene, World};
 pub use splat::{RegionSplat, SplatPlan, UnitFilm, UnitSplat};
 
 /// Errors of the renderer (scene loading has its own, in pathfarm-scene).

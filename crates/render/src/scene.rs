@@ -1,5 +1,8 @@
-//! The renderer's view of a scene: acceleration structure, materials,
-//! lights, camera, built once from a [`SceneDesc`].
+//! The renderer's view of a scene, built from a [`SceneDesc`]: its [`World`] (acceleration
+//! structure, lights, materials, textures), which the frames of a shot share, and the
+//! frame's camera, filter and integrator parameters ([`Scene`]).
+
+use std::sync::Arc;
 
 use pathfarm_bsdf::frame::Frame;
 use pathfarm_scene::{
@@ -16,9 +19,11 @@ use crate::shading::ShadedBsdf;
 use crate::RenderError;
 use pathfarm_scene::limits::{format_bytes, Limits};
 
-/// Everything a render reads, immutable once built: geometry, lights, materials and textures,
-/// camera, filter and the integrator's parameters.
-pub struct Scene {
+/// What the frames of one scene share, whatever their camera: the geometry with its BVH,
+/// the lights, the materials and textures. Built once and shared by the [`Scene`]s of its
+/// frames through an `Arc` (a farm worker serving a shot's frames builds its world once:
+/// [`Scene::with_world`]).
+pub struct World {
     /// All shapes' geometry, in world space, with the ray-query structure over them.
     pub accel: Accel,
     /// Every emitter, for next-event estimation and for emission found by paths.
@@ -29,6 +34,20 @@ pub struct Scene {
     shape_material: Vec<u32>,
     materials: Vec<Material>,
     textures: Vec<TextureDesc>,
+    /// The effects the scene calls for; [`crate::integrator::specialised`] picks code paths by
+    /// them.
+    pub features: Features,
+    /// Number of triangles over all meshes (for reports and memory estimates).
+    pub triangle_count: usize,
+    /// The bytes of the scene's meshes and textures (its description's
+    /// [`SceneDesc::data_bytes`]); with the BVH, [`World::memory_bytes`].
+    data_bytes: u64,
+}
+
+/// Everything a render reads, immutable once built: its [`World`] (geometry, lights,
+/// materials and textures), and the frame's camera, filter and integrator parameters.
+pub struct Scene {
+    world: Arc<World>,
     /// The sensor's camera, generating primary rays.
     pub camera: Camera,
     /// The film's reconstruction filter.
@@ -39,9 +58,6 @@ pub struct Scene {
     /// The `guided_path` parameters when the scene asks for that integrator
     /// (render it with [`crate::guided::render_guided`]).
     pub guided: Option<GuidedParams>,
-    /// The effects the scene calls for; [`crate::integrator::specialised`] picks code paths by
-    /// them.
-    pub features: Features,
     /// Image width in pixels.
     pub width: u32,
     /// Image height in pixels.
@@ -50,11 +66,6 @@ pub struct Scene {
     pub sample_count: u32,
     /// The sampler's seed from the scene file; drivers use it when no seed is given.
     pub seed: u64,
-    /// Number of triangles over all meshes (for reports and memory estimates).
-    pub triangle_count: usize,
-    /// The bytes of the scene's meshes and textures (its description's
-    /// [`SceneDesc::data_bytes`]); with the BVH, [`Scene::memory_bytes`].
-    data_bytes: u64,
     /// The resource limits the scene was loaded with (the renderer checks its own
     /// allocations against them).
     pub limits: Limits,
@@ -82,6 +93,61 @@ impl Scene {
     /// triangles; the farm's coordinator validates submitted scenes so, for a BVH is most of a
     /// large scene's build time.
     pub fn build_for(desc: &SceneDesc, purpose: Purpose) -> Result<Self, RenderError> {
+        check_memory(desc, desc_triangles(desc), desc.data_bytes())?;
+        let world = World::build(desc, purpose)?;
+        Self::with_world(desc, Arc::new(world))
+    }
+
+    /// The scene of `desc` on `world`, which was built from a description that differs from
+    /// `desc` at most in its sensor and integrator: the caller knows so from their equal
+    /// [`pathfarm_scene::world_source`]s and the equal bytes of the files they name. Only
+    /// `desc`'s sensor, integrator and limits are read, so it may be a scan
+    /// ([`pathfarm_scene::scan_scene_as`]: files named, not decoded). The scene renders the
+    /// bits a scene built from `desc` alone would. Fails as [`Scene::build`] does when the
+    /// frame's films and the world exceed the limits, and when `desc` has another number of
+    /// shapes than the world (not its scene).
+    pub fn with_world(desc: &SceneDesc, world: Arc<World>) -> Result<Self, RenderError> {
+        if desc.shapes.len() != world.shape_material.len() {
+            return Err(RenderError::Unsupported(format!(
+                "{}: {} shapes, but the world it was given has {}",
+                desc.source.display(),
+                desc.shapes.len(),
+                world.shape_material.len()
+            )));
+        }
+        check_memory(desc, world.triangle_count, world.data_bytes)?;
+        Ok(Self {
+            world,
+            camera: Camera::new(&desc.sensor),
+            filter: Filter::new(desc.sensor.film.rfilter),
+            path: desc.integrator.path_params(),
+            guided: match &desc.integrator {
+                IntegratorDesc::Path(_) => None,
+                IntegratorDesc::GuidedPath(g) => Some(g.clone()),
+            },
+            width: desc.sensor.film.width,
+            height: desc.sensor.film.height,
+            sample_count: desc.sensor.sample_count,
+            seed: desc.sensor.seed,
+            limits: desc.limits.clone(),
+        })
+    }
+
+    /// The geometry, lights, materials and textures this frame renders.
+    #[inline(always)]
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
+    /// [`Scene::world`], to share with another frame of the scene ([`Scene::with_world`]).
+    pub fn shared_world(&self) -> Arc<World> {
+        self.world.clone()
+    }
+}
+
+impl World {
+    /// The world of `desc` (everything but its sensor and integrator), for `purpose`.
+    fn build(desc: &SceneDesc, purpose: Purpose) -> Result<Self, RenderError> {
         let geoms: Vec<ShapeGeom> = desc
             .shapes
             .iter()
@@ -106,18 +172,7 @@ impl Scene {
                 } => ShapeGeom::Analytic(Analytic::cylinder(*to_world, *flip_normals)),
             })
             .collect();
-        let triangle_count = desc
-            .shapes
-            .iter()
-            .map(|s| {
-                if let Geometry::Mesh(m) = &s.geometry {
-                    m.indices.len()
-                } else {
-                    0
-                }
-            })
-            .sum();
-        check_memory(desc, triangle_count)?;
+        let triangle_count = desc_triangles(desc);
         // The BVH builder is third-party code: a failure there is an error, not a crash
         // (the loader bounds coordinates, so this is a second line of defence).
         let accel = std::panic::catch_unwind(move || {
@@ -203,33 +258,27 @@ impl Scene {
             .collect::<Result<Vec<_>, _>>()
             .map_err(|e| RenderError::Unsupported(format!("{}: {e}", desc.source.display())))?;
         let shape_material = desc.shapes.iter().map(|s| s.bsdf as u32).collect();
-        let path = desc.integrator.path_params();
-        let guided = match &desc.integrator {
-            IntegratorDesc::Path(_) => None,
-            IntegratorDesc::GuidedPath(g) => Some(g.clone()),
-        };
-        Ok(Self {
+        Ok(World {
             accel,
             lights: Lights::new(lights),
             shape_light,
             shape_material,
             materials,
             textures: desc.textures.clone(),
-            camera: Camera::new(&desc.sensor),
-            filter: Filter::new(desc.sensor.film.rfilter),
-            path,
-            guided,
             features: desc.features,
-            width: desc.sensor.film.width,
-            height: desc.sensor.film.height,
-            sample_count: desc.sensor.sample_count,
-            seed: desc.sensor.seed,
             triangle_count,
             data_bytes: desc.data_bytes(),
-            limits: desc.limits.clone(),
         })
     }
 
+    /// What the world holds in memory, an upper estimate: its meshes, textures and BVH (what
+    /// a worker's scene cache budgets).
+    pub fn memory_bytes(&self) -> u64 {
+        self.data_bytes + self.triangle_count as u64 * BVH_BYTES_PER_TRIANGLE
+    }
+}
+
+impl Scene {
     /// The BSDF at a hit (`si`, on triangle `prim` of its shape) and the shading frame to
     /// evaluate it in; `ray_d` is the incoming ray direction (two-sided materials pick their
     /// side by it).
@@ -240,27 +289,27 @@ impl Scene {
         prim: u32,
         ray_d: glam::Vec3,
     ) -> (ShadedBsdf<'_>, Frame) {
-        let m = &self.materials[self.shape_material[si.shape as usize] as usize];
-        m.bsdf(&self.textures, si, ray_d, || {
-            self.accel.uv_tangents(si, prim)
+        let m = &self.world.materials[self.world.shape_material[si.shape as usize] as usize];
+        m.bsdf(&self.world.textures, si, ray_d, || {
+            self.world.accel.uv_tangents(si, prim)
         })
     }
 
     /// What the scene holds in memory, an upper estimate: its meshes, textures and BVH (what a
     /// worker's scene cache budgets).
     pub fn memory_bytes(&self) -> u64 {
-        self.data_bytes + self.triangle_count as u64 * BVH_BYTES_PER_TRIANGLE
+        self.world.memory_bytes()
     }
 
     /// The probability that a path meeting the surface at `si` passes straight through it
     /// (`mask`, `null`); 0 in scenes without such surfaces.
     #[inline(always)]
     pub fn pass_probability(&self, si: &SurfaceInteraction) -> f32 {
-        if !self.features.pass_through {
+        if !self.world.features.pass_through {
             return 0.0;
         }
-        let m = &self.materials[self.shape_material[si.shape as usize] as usize];
-        m.pass_probability(&self.textures, si)
+        let m = &self.world.materials[self.world.shape_material[si.shape as usize] as usize];
+        m.pass_probability(&self.world.textures, si)
     }
 
     /// The fraction of light that reaches the end of shadow ray `ray`: 1 if nothing blocks
@@ -269,9 +318,9 @@ impl Scene {
     /// them, so that light sampling and direction sampling estimate the same light).
     #[inline(always)]
     pub fn transmittance<const ANALYTIC: bool>(&self, ray: &Ray) -> f32 {
-        if self.accel.unoccluded::<ANALYTIC>(ray) {
+        if self.world.accel.unoccluded::<ANALYTIC>(ray) {
             1.0
-        } else if self.features.pass_through {
+        } else if self.world.features.pass_through {
             self.transmittance_through::<ANALYTIC>(ray)
         } else {
             0.0
@@ -286,15 +335,15 @@ impl Scene {
         let mut ray = *ray;
         let mut t = 1.0;
         for _ in 0..MAX_PASSES {
-            let Some(hit) = self.accel.intersect::<ANALYTIC>(&ray) else {
+            let Some(hit) = self.world.accel.intersect::<ANALYTIC>(&ray) else {
                 return t;
             };
-            let si = self.accel.interaction(&ray, &hit);
+            let si = self.world.accel.interaction(&ray, &hit);
             t *= self.pass_probability(&si);
             if t <= 0.0 {
                 return 0.0;
             }
-            ray = spawn_ray_to(si.p, si.ng, target, self.accel.offset_floor());
+            ray = spawn_ray_to(si.p, si.ng, target, self.world.accel.offset_floor());
             // The step must make progress along the original direction.
             if ray.tmax <= 0.0 || ray.d.dot(target - si.p) <= 0.0 {
                 return t;
@@ -332,7 +381,8 @@ pub fn guided_session_bytes(width: u32, height: u32) -> u64 {
 
 /// Refuses, before the BVH or any film is allocated, a render whose estimated memory (the
 /// scene's meshes and textures, the BVH, the films) exceeds `Limits::max_memory_bytes`.
-fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {
+/// `triangles` and `data_bytes` are the world's (the description's when it is built from it).
+fn check_memory(desc: &SceneDesc, triangles: usize, data_bytes: u64) -> Result<(), RenderError> {
     let film = &desc.sensor.film;
     let pixels = film.width as u64 * film.height as u64;
     let sums = std::mem::size_of::<crate::film::PixelStats>() as u64;
@@ -342,7 +392,6 @@ fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {
     };
     let film_bytes = pixels * per_pixel;
     let bvh_bytes = triangles as u64 * BVH_BYTES_PER_TRIANGLE;
-    let data_bytes = desc.data_bytes();
     let total = film_bytes + bvh_bytes + data_bytes + SCRATCH_BYTES;
     let limit = desc.limits.max_memory_bytes;
     if total > limit {
@@ -361,4 +410,14 @@ fn check_memory(desc: &SceneDesc, triangles: usize) -> Result<(), RenderError> {
         )));
     }
     Ok(())
+}
+
+/// The triangles of `desc`'s meshes.
+fn desc_triangles(desc: &SceneDesc) -> usize {
+    (desc.shapes.iter())
+        .map(|s| match &s.geometry {
+            Geometry::Mesh(m) => m.indices.len(),
+            _ => 0,
+        })
+        .sum()
 }

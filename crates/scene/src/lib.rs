@@ -32,12 +32,14 @@ mod shapes;
 mod spectrum;
 mod textures;
 mod transform;
+mod world_source;
 mod xml;
 
 pub use desc::*;
 pub use error::{shown_bounded, SceneError};
 pub use imageio::srgb_to_linear;
 pub use limits::Limits;
+pub use world_source::world_source;
 
 use std::path::Path;
 use std::rc::Rc;

@@ -56,7 +56,7 @@ use pathfarm_proto::v1;
 use pathfarm_render::film::Film;
 use pathfarm_render::guided::{self, Budget, FallbackPolicy, Records, Session, Splatting};
 use pathfarm_render::pass::{PassKind, PassSpec};
-use pathfarm_render::{Purpose, Region, Scene};
+use pathfarm_render::{Purpose, Region, Scene, World};
 use pathfarm_scene::{GuidedParams, Limits};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -218,6 +218,11 @@ pub(crate) struct Shared {
     pub(crate) beats: Mutex<Vec<Beat>>,
     /// The scene and tree the dashboard's last guide picture was drawn from.
     pub(crate) guide_cache: Mutex<guide_view::GuideCache>,
+    /// The world of the last scene validated, by [`bundle::world_key`]: the next frames of a
+    /// batch (the same world, the camera moved) are validated by a scan of their text
+    /// against it, not by decoding the files it was checked from again. One world's meshes
+    /// and textures, within the scene limits.
+    pub(crate) inspected: Mutex<Option<(bundle::Digest, Arc<World>)>>,
 }
 
 /// Why a stored bundle's scene did not load ([`Shared::load_bundle`]).
@@ -572,6 +577,7 @@ impl Shared {
             throughput: Default::default(),
             beats: Mutex::new(Vec::new()),
             guide_cache: Mutex::new(Default::default()),
+            inspected: Mutex::new(None),
             cfg,
             blobs,
             db,
@@ -721,8 +727,6 @@ impl Shared {
         Millis(self.epoch.elapsed().as_millis() as u64)
     }
 
-    /// Validates a submission and loads its scene (from a temporary materialisation that is
-    /// removed again). Slow: call off the async executor.
     /// Advises the workers to build a just-submitted job's scene while it is validated
     /// ([`v1::Prefetch`]; see the worker's `prefetch` module): only when no other job is
     /// under way or waiting (a worker idle at another job's iteration boundary must not be
@@ -756,9 +760,19 @@ impl Shared {
         }
     }
 
+    /// The world of the last scene validated if it is `key`'s.
+    fn inspected_world(&self, key: &bundle::Digest) -> Option<Arc<World>> {
+        let held = self.inspected.lock().expect("inspected lock");
+        held.as_ref()
+            .filter(|(k, _)| k == key)
+            .map(|(_, w)| w.clone())
+    }
+
     /// The scene of a bundle whose files are in the blob store, with `settings` (built for
     /// `purpose`), from a temporary materialisation that is removed again. Messages name
-    /// files by their bundle paths. Slow: call off the executor.
+    /// files by their bundle paths. Slow: call off the executor. A
+    /// validation ([`Purpose::Inspect`]) of a scene whose world was the last one validated
+    /// reads only its text and checks its files against the manifest.
     pub(crate) fn load_bundle(
         &self,
         manifest: &Manifest,
@@ -777,18 +791,40 @@ impl Shared {
                 ..self.cfg.limits.clone()
             };
             let integrator = settings.integrator.as_deref();
-            let mut desc = bundle::check(manifest, &dir, overrides, integrator, &limits)
-                .map_err(|e| BundleLoad::Scene(local(&e)))?;
+            let scene_err = |e: bundle::BundleError| BundleLoad::Scene(local(&e));
+            let key = bundle::world_key(manifest, &dir, overrides, &limits).map_err(scene_err)?;
+            let held = match purpose {
+                Purpose::Inspect => self.inspected_world(&key),
+                Purpose::Render => None,
+            };
+            let mut desc = match held {
+                Some(_) => bundle::scan(manifest, &dir, overrides, integrator, &limits),
+                None => bundle::check(manifest, &dir, overrides, integrator, &limits),
+            }
+            .map_err(scene_err)?;
             if let Some(r) = &settings.resolution {
                 bundle::override_resolution(&mut desc, r.width, r.height, &limits)
                     .map_err(|e| BundleLoad::Resolution(e.to_string()))?;
             }
-            Scene::build_for(&desc, purpose).map_err(|e| BundleLoad::Scene(local(&e)))
+            let scene = match held {
+                Some(world) => {
+                    tracing::info!("{}: validated on the world validated last", manifest.root);
+                    Scene::with_world(&desc, world)
+                }
+                None => Scene::build_for(&desc, purpose),
+            }
+            .map_err(|e| BundleLoad::Scene(local(&e)))?;
+            if purpose == Purpose::Inspect {
+                *self.inspected.lock().expect("inspected lock") = Some((key, scene.shared_world()));
+            }
+            Ok(scene)
         })();
         let _ = std::fs::remove_dir_all(&dir);
         result
     }
 
+    /// Validates a submission and loads its scene (from a temporary materialisation that is
+    /// removed again). Slow: call off the async executor.
     pub(crate) fn prepare(&self, req: &v1::SubmitJobRequest) -> Result<Prepared, Status> {
         let bundle = req.bundle.as_ref().ok_or_else(|| bad("bundle: missing"))?;
         let manifest = manifest_from_proto(bundle)?;
@@ -853,7 +889,7 @@ impl Shared {
         };
         guided::check_budget(&params, budget).map_err(|e| bad(format!("settings: {e}")))?;
         let seed = scene_settings.seed.unwrap_or(scene.seed);
-        let (lo, hi) = scene.accel.bounds();
+        let (lo, hi) = scene.world().accel.bounds();
         let tree = SdTree::new(lo, hi, guided::guide_config(&params, &scene));
         let tile = match settings.tile_size {
             0 => self.cfg.default_tile.map(|t| t.max(1)),

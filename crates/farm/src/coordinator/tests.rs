@@ -522,7 +522,7 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
         let pass = lease.pass.clone().unwrap();
         let spec = codec::spec_from_proto(&pass).unwrap();
         let mut tree = if pass.tree_digest.is_empty() {
-            let (lo, hi) = scene.accel.bounds();
+            let (lo, hi) = scene.world().accel.bounds();
             SdTree::new(lo, hi, guided::guide_config(&params, scene))
         } else {
             SdTree::decode(&fetch(&mut workers, &pass.tree_digest).await).unwrap()

@@ -23,7 +23,7 @@ fn scene(test: &str) -> Scene {
 
 fn driver(scene: &Scene, spp: u32) -> JobDriver {
     let params = scene.guided.clone().unwrap();
-    let (lo, hi) = scene.accel.bounds();
+    let (lo, hi) = scene.world().accel.bounds();
     let tree = SdTree::new(lo, hi, guide_config(&params, scene));
     let splatting = Splatting {
         filter: scene.filter,

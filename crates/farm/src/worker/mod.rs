@@ -35,6 +35,7 @@ mod records;
 pub mod scenes;
 mod simulated;
 mod upload;
+mod worlds;
 
 pub use simulated::Rendering;
 
@@ -102,6 +103,7 @@ pub async fn run(cfg: WorkerConfig, shutdown: impl Future<Output = ()>) -> Resul
         caches: Mutex::new(Caches::new(cfg.scene_cache_bytes)),
         tmp_counter: AtomicU64::new(0),
         scene_builds: AtomicU64::new(0),
+        worlds: Mutex::default(),
         rendering: cfg.rendering,
     });
     tokio::pin!(shutdown);
@@ -174,6 +176,8 @@ struct Shared {
     tmp_counter: AtomicU64,
     /// Scenes built since the worker started (for leases or ahead).
     scene_builds: AtomicU64,
+    /// The worlds of the scenes the worker holds, which scenes of the same world share.
+    worlds: Mutex<worlds::Worlds>,
     rendering: Rendering,
 }
 
@@ -1066,12 +1070,16 @@ fn build_scene(
     shared.scene_builds.fetch_add(1, Ordering::Relaxed);
     let built = bundle::materialize(manifest, |d| blob_path(&cache, d), &dest)
         .map_err(|e| retryable(format!("materialising the bundle: {e}")))
-        .and_then(|_| build_in(&dest, manifest, settings));
+        .and_then(|_| build_in(shared, &dest, manifest, settings));
     let _ = std::fs::remove_dir_all(&dest);
     built
 }
 
+/// Builds the scene materialised in `dest`: on the world of a scene this worker holds when
+/// the two differ only in their camera and integrator (the frames of a shot), else from its
+/// files.
 fn build_in(
+    shared: &Shared,
     dest: &Path,
     manifest: &Manifest,
     settings: Option<&v1::SceneSettings>,
@@ -1089,12 +1097,36 @@ fn build_in(
         })
         .unwrap_or_default();
     let integrator = settings.and_then(|s| s.integrator.as_deref());
-    let mut desc = bundle::check(manifest, dest, &defines, integrator, &limits)
-        .map_err(|e| fatal(format!("loading the scene: {e}")))?;
+    let t0 = Instant::now();
+    let loading = |e: bundle::BundleError| fatal(format!("loading the scene: {e}"));
+    let key = bundle::world_key(manifest, dest, &defines, &limits).map_err(loading)?;
+    let held = shared.worlds.lock().expect("worlds lock").get(&key);
+    let mut desc = match held {
+        Some(_) => bundle::scan(manifest, dest, &defines, integrator, &limits),
+        None => bundle::check(manifest, dest, &defines, integrator, &limits),
+    }
+    .map_err(loading)?;
     if let Some(r) = settings.and_then(|s| s.resolution.as_ref()) {
         bundle::override_resolution(&mut desc, r.width, r.height, &limits).map_err(fatal)?;
     }
-    let scene = Scene::build(&desc).map_err(|e| fatal(format!("building the scene: {e}")))?;
+    let building = |e| fatal(format!("building the scene: {e}"));
+    let scene = match held {
+        Some(world) => {
+            tracing::info!("{}: built on the world of a scene held", manifest.root);
+            Scene::with_world(&desc, world).map_err(building)?
+        }
+        None => {
+            let scene = Scene::build(&desc).map_err(building)?;
+            let mut worlds = shared.worlds.lock().expect("worlds lock");
+            worlds.insert(key, &scene.shared_world());
+            tracing::info!(
+                "{}: world built in {:.3} s",
+                manifest.root,
+                t0.elapsed().as_secs_f64()
+            );
+            scene
+        }
+    };
     let params = scene.guided.clone().unwrap_or_default();
     Ok(JobScene { scene, params })
 }
@@ -1141,7 +1173,7 @@ fn lease_tree(shared: &Shared, p: &Prepared, js: &JobScene) -> Result<JobTree, F
                     SdTree::decode(bytes).map_err(|e| fatal(format!("tree blob: {e}")))?
                 }
                 None => {
-                    let (lo, hi) = js.scene.accel.bounds();
+                    let (lo, hi) = js.scene.world().accel.bounds();
                     SdTree::new(lo, hi, guide_config(&js.params, &js.scene))
                 }
             };

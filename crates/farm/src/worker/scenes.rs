@@ -2,6 +2,7 @@
 //! recently used out first) and shared by every job of the same scene: the same bundle and
 //! settings, seed aside ([`prefetch::scene_key`]). A worker that switches between the jobs
 //! of a farm then builds each scene once, however the coordinator interleaves their tiles.
+//! Scenes that share a world (the frames of a shot: [`super::worlds`]) count its bytes once.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -72,8 +73,18 @@ impl SceneCache {
         dropped
     }
 
+    /// The bytes of the entries' worlds, each world once.
     fn total(&self) -> u64 {
-        self.entries.iter().map(|e| e.bytes).sum()
+        let mut worlds: Vec<*const pathfarm_render::World> = Vec::new();
+        let mut total = 0;
+        for e in &self.entries {
+            let w: *const _ = e.scene.scene.world();
+            if !worlds.contains(&w) {
+                worlds.push(w);
+                total += e.bytes;
+            }
+        }
+        total
     }
 
     /// Whether `job`'s scene is here.
@@ -86,26 +97,33 @@ impl SceneCache {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use pathfarm_render::Scene;
     use pathfarm_scene::load_scene;
 
-    fn scene(xml_body: &str) -> Arc<JobScene> {
-        let dir = std::env::temp_dir().join(format!(
-            "pathfarm-scene-cache-{}-{}",
-            std::process::id(),
-            blake3::hash(xml_body.as_bytes()).to_hex()
-        ));
+    fn desc(sensor: &str, xml_body: &str) -> pathfarm_scene::SceneDesc {
+        static DIRS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = DIRS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let dir =
+            std::env::temp_dir().join(format!("pathfarm-scene-cache-{}-{n}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("scene.xml");
-        let xml =
-            format!("<scene version=\"3.0.0\"><sensor type=\"perspective\"/>{xml_body}</scene>");
+        let xml = format!("<scene version=\"3.0.0\">{sensor}{xml_body}</scene>");
         std::fs::write(&path, xml).unwrap();
         let desc = load_scene(&path, &[]).unwrap();
         let _ = std::fs::remove_dir_all(&dir);
-        let scene = pathfarm_render::Scene::build(&desc).unwrap();
+        desc
+    }
+
+    fn job_scene(scene: Scene) -> Arc<JobScene> {
         Arc::new(JobScene {
             scene,
             params: Default::default(),
         })
+    }
+
+    fn scene(xml_body: &str) -> Arc<JobScene> {
+        let desc = desc("<sensor type=\"perspective\"/>", xml_body);
+        job_scene(Scene::build(&desc).unwrap())
     }
 
     fn key(n: u8) -> SceneKey {
@@ -144,5 +162,23 @@ mod tests {
         assert!(c.insert(key(1), "j1", a.clone()).is_empty());
         assert_eq!(c.insert(key(2), "j2", a), vec!["j1".to_string()]);
         assert!(c.holds_job("j2") && !c.holds_job("j1"));
+    }
+
+    #[test]
+    fn frames_on_one_world_count_its_bytes_once() {
+        let body = "<shape type=\"cube\"/><shape type=\"sphere\"/>";
+        let a = scene(body);
+        let moved = desc(
+            "<sensor type=\"perspective\"><float name=\"fov\" value=\"30\"/></sensor>",
+            body,
+        );
+        let b = job_scene(Scene::with_world(&moved, a.scene.shared_world()).unwrap());
+        let world = a.scene.memory_bytes();
+        let mut c = SceneCache::new(world);
+        assert!(c.insert(key(1), "j1", a).is_empty());
+        assert!(c.insert(key(2), "j2", b).is_empty(), "both frames kept");
+        assert_eq!(c.total(), world);
+        let other = scene("<shape type=\"cube\"/>");
+        assert_eq!(c.insert(key(3), "j3", other), vec!["j1", "j2"]);
     }
 }

@@ -21,7 +21,10 @@ pub trait Specialise {
 /// `f` specialised for `scene`'s features: the one place the features choose an instance.
 #[inline]
 pub fn specialised<F: Specialise>(scene: &Scene, f: F) -> F::Output {
-    match (scene.features.environment, scene.features.analytic_shapes) {
+    match (
+        scene.world().features.environment,
+        scene.world().features.analytic_shapes,
+    ) {
         (false, false) => f.call::<false, false>(),
         (true, false) => f.call::<true, false>(),
         (false, true) => f.call::<false, true>(),
@@ -81,7 +84,7 @@ pub fn mitsuba_survival(throughput_max: f32, eta: f32) -> f32 {
 /// too). `None` means the sample is black; `Some(None)` a visible miss.
 #[inline]
 pub fn camera_hit<const ANALYTIC: bool>(scene: &Scene, ray: &mut Ray) -> Option<Option<Hit>> {
-    let first = scene.accel.intersect::<ANALYTIC>(ray);
+    let first = scene.world().accel.intersect::<ANALYTIC>(ray);
     camera_hit_from::<ANALYTIC>(scene, ray, first)
 }
 
@@ -110,9 +113,9 @@ fn hidden_emitters_skipped<const ANALYTIC: bool>(
     ray: &mut Ray,
     mut hit: Option<Hit>,
 ) -> Option<Option<Hit>> {
-    let accel = &scene.accel;
+    let accel = &scene.world().accel;
     while let Some(h) = hit {
-        if scene.shape_light[h.shape as usize].is_none() {
+        if scene.world().shape_light[h.shape as usize].is_none() {
             break;
         }
         let si = accel.interaction(ray, &h);

@@ -26,7 +26,7 @@ pub fn li<const ENV: bool, const ANALYTIC: bool>(scene: &Scene, ray: Ray, rng: &
         return Vec3::ZERO;
     }
     let max_depth = depth_limit(scene.path.max_depth);
-    let (accel, lights) = (&scene.accel, &scene.lights);
+    let (accel, lights) = (&scene.world().accel, &scene.world().lights);
     let mut lane = Lane::new(0, ray);
     let Some(hit) = camera_hit::<ANALYTIC>(scene, &mut lane.ray) else {
         return Vec3::ZERO;
@@ -137,7 +137,7 @@ pub(super) fn surface<'a, const ENV: bool>(
     max_depth: u32,
     rng: &mut Rng,
 ) -> Option<Shading<'a>> {
-    let lights = &scene.lights;
+    let lights = &scene.world().lights;
     lane.alive = false;
     let ray = lane.ray;
     let Some(h) = lane.hit else {
@@ -150,10 +150,10 @@ pub(super) fn surface<'a, const ENV: bool>(
         }
         return None;
     };
-    let si = scene.accel.interaction(&ray, &h);
+    let si = scene.world().accel.interaction(&ray, &h);
 
     // Emission found by BSDF sampling (or directly visible).
-    if let Some(light) = scene.shape_light[si.shape as usize] {
+    if let Some(light) = scene.world().shape_light[si.shape as usize] {
         let le = lights.area_radiance(light, si.ns, -ray.d);
         if le != Vec3::ZERO {
             let w = emission_mis(lane.prev_bsdf_pdf, lane.prev_delta, 1.0, || {
@@ -163,7 +163,7 @@ pub(super) fn surface<'a, const ENV: bool>(
         }
     }
 
-    if scene.features.pass_through && stepped_through(scene, lane, si, rng) {
+    if scene.world().features.pass_through && stepped_through(scene, lane, si, rng) {
         return None;
     }
     if lane.depth + 1 >= max_depth {
@@ -185,7 +185,7 @@ pub(super) fn surface<'a, const ENV: bool>(
         bsdf,
         frame,
         wi,
-        offset_floor: scene.accel.offset_floor(),
+        offset_floor: scene.world().accel.offset_floor(),
     })
 }
 
@@ -202,7 +202,7 @@ fn stepped_through(scene: &Scene, lane: &mut Lane, si: SurfaceInteraction, rng: 
     }
     lane.passes += 1;
     if lane.passes <= MAX_PASSES {
-        lane.ray = spawn_ray(si.p, si.ng, lane.ray.d, scene.accel.offset_floor());
+        lane.ray = spawn_ray(si.p, si.ng, lane.ray.d, scene.world().accel.offset_floor());
         lane.alive = true;
     }
     true

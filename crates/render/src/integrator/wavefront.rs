@@ -112,7 +112,7 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
             return;
         }
         let max_depth = depth_limit(params.max_depth);
-        let accel = &scene.accel;
+        let accel = &scene.world().accel;
         let mut next_sample = 0;
         lanes.clear();
         loop {
@@ -166,7 +166,10 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
             }
             light_samples.clear();
             light_samples.resize(queries.len(), None);
-            scene.lights.sample_many(accel, queries, light_samples);
+            scene
+                .world()
+                .lights
+                .sample_many(accel, queries, light_samples);
             for (&i, ls) in nee_lanes.iter().zip(light_samples.iter()) {
                 if let (Some(ls), Some(sh)) = (ls, &shading[i]) {
                     next_event(&mut lanes[i], sh, ls, params.strict_normals);
@@ -212,7 +215,7 @@ impl<'a, const ENV: bool, const ANALYTIC: bool> PathWavefront<'a, ENV, ANALYTIC>
                 if let Some((shadow, contribution)) = lane.shadow.take() {
                     if *next.next().expect("one answer per shadow ray") {
                         lane.result += contribution;
-                    } else if scene.features.pass_through {
+                    } else if scene.world().features.pass_through {
                         let t = scene.transmittance_through::<ANALYTIC>(&shadow);
                         if t > 0.0 {
                             lane.result += contribution * t;

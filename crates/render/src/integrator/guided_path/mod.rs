@@ -287,7 +287,7 @@ impl<'a> GuidedPath<'a> {
         rng: &mut Rng,
         out: &mut Option<Vertex<'a>>,
     ) -> bool {
-        let (scene, lights) = (self.scene, &self.scene.lights);
+        let (scene, lights) = (self.scene, &self.scene.world().lights);
         let (mut ray, mut hit) = (*ray, hit);
         let mut passes = 0;
         let (si, prim) = loop {
@@ -298,8 +298,8 @@ impl<'a> GuidedPath<'a> {
                 }
                 return false;
             };
-            let si = scene.accel.interaction(&ray, &h);
-            if let Some(light) = scene.shape_light[si.shape as usize] {
+            let si = scene.world().accel.interaction(&ray, &h);
+            if let Some(light) = scene.world().shape_light[si.shape as usize] {
                 let le = lights.area_radiance(light, si.ns, -ray.d);
                 if le != Vec3::ZERO {
                     let prev_p = self.prev_p;
@@ -315,8 +315,8 @@ impl<'a> GuidedPath<'a> {
             if passes > MAX_PASSES {
                 return false;
             }
-            ray = spawn_ray(si.p, si.ng, ray.d, scene.accel.offset_floor());
-            hit = scene.accel.intersect::<ANALYTIC>(&ray);
+            ray = spawn_ray(si.p, si.ng, ray.d, scene.world().accel.offset_floor());
+            hit = scene.world().accel.intersect::<ANALYTIC>(&ray);
             self.rays += 1;
         };
         let ray = &ray;
@@ -386,7 +386,12 @@ impl<'a> GuidedPath<'a> {
         region: CellWeights,
         rng: &mut Rng,
     ) -> u32 {
-        let (accel, lights, tree, g) = (&self.scene.accel, &self.scene.lights, self.g.tree, self.g);
+        let (accel, lights, tree, g) = (
+            &self.scene.world().accel,
+            &self.scene.world().lights,
+            self.g.tree,
+            self.g,
+        );
         let mut ls = lights.sample(accel, si.p, rng.next_f32(), rng.next_2d());
         vg.resolve(tree, region);
         let mut light_samples = 1u32;
@@ -531,7 +536,7 @@ impl<'a> GuidedPath<'a> {
         if tp_max <= 0.0 || !tp_max.is_finite() {
             return false;
         }
-        let accel = &self.scene.accel;
+        let accel = &self.scene.world().accel;
         *ray = spawn_ray(si.p, si.ng, ms.wo_world, accel.offset_floor());
         *hit = accel.intersect::<ANALYTIC>(ray);
         self.rays += 1;

@@ -36,8 +36,8 @@ pub fn scatter_at(
     samples: u32,
 ) -> Option<Scatter> {
     let ray = scene.camera.ray(pixel.floor() + Vec2::splat(0.5));
-    let hit = scene.accel.intersect::<true>(&ray)?;
-    let si = scene.accel.interaction(&ray, &hit);
+    let hit = scene.world().accel.intersect::<true>(&ray)?;
+    let si = scene.world().accel.interaction(&ray, &hit);
     let (bsdf, frame) = scene.bsdf_at(&si, hit.prim, ray.d);
     let wi = frame.to_local(-ray.d);
     let guide = match bsdf.flags().smooth {
