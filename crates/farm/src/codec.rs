@@ -131,12 +131,16 @@ pub fn encode_tile_estimate(
     if estimate.is_empty() || bytes > MAX_TILE_ESTIMATE_BYTES {
         return None;
     }
-    let mut v = Vec::with_capacity(bytes);
-    for y in region.y0..region.y1 {
+    let mut v = vec![0u8; bytes];
+    let row_bytes = (region.width() as usize * 4).max(1);
+    // Row by row into fixed-size chunks: a loop the compiler turns into block copies (one
+    // `extend_from_slice` a value was a capacity check a value, under the state lock).
+    for (y, out) in (region.y0..region.y1).zip(v.chunks_exact_mut(row_bytes)) {
         let row = (y * width) as usize;
         let line = &estimate[row + region.x0 as usize..row + region.x1 as usize];
-        line.iter()
-            .for_each(|x| v.extend_from_slice(&x.to_le_bytes()));
+        for (o, x) in out.chunks_exact_mut(4).zip(line) {
+            o.copy_from_slice(&x.to_le_bytes());
+        }
     }
     Some(v1::PixelEstimate {
         region: Some(region_to_proto(region)),

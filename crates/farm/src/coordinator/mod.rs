@@ -218,10 +218,10 @@ pub(crate) struct Shared {
     pub(crate) beats: Mutex<Vec<Beat>>,
     /// The scene and tree the dashboard's last guide picture was drawn from.
     pub(crate) guide_cache: Mutex<guide_view::GuideCache>,
-    /// The world of the last scene validated, by [`bundle::world_key`]: the next frames of a
-    /// batch (the same world, the camera moved) are validated by a scan of their text
+    /// The world of the last frame of a batch validated, by [`bundle::world_key`]: the next
+    /// frames (the same world, the camera moved) are validated by a scan of their text
     /// against it, not by decoding the files it was checked from again. One world's meshes
-    /// and textures, within the scene limits.
+    /// and textures (no BVH), within the scene limits; none after a lone job's validation.
     pub(crate) inspected: Mutex<Option<(bundle::Digest, Arc<World>)>>,
 }
 
@@ -857,6 +857,11 @@ impl Shared {
                 BundleLoad::Scene(m) => bad(format!("scene {:?}: {m}", manifest.root)),
                 BundleLoad::Resolution(m) => bad(format!("settings.scene.resolution: {m}")),
             })?;
+        if req.batch.is_empty() {
+            // Only a batch's next frame is likely to share the world: a lone job's is not
+            // kept in memory.
+            *self.inspected.lock().expect("inspected lock") = None;
+        }
         let Some(params) = scene.guided.clone() else {
             let integrator = (scene_settings.integrator.as_deref())
                 .map_or_else(|| "of the scene".to_string(), resources::echo);
