@@ -655,6 +655,68 @@ pub fn world_key(
     Ok(Digest(*h.finalize().as_bytes()))
 }
 
+/// Why [`build_scene`] failed.
+#[derive(Debug)]
+pub(crate) enum SceneBuild {
+    /// The scene did not load or check against the manifest.
+    Load(BundleError),
+    /// The resolution asked for is outside the film limits.
+    Resolution(String),
+    /// The loaded scene could not be built.
+    Build(pathfarm_render::RenderError),
+}
+
+/// How [`build_scene`] built the scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Built {
+    /// On the world `held` gave, from a scan of the scene's text.
+    OnHeldWorld,
+    /// From its files.
+    FromFiles,
+}
+
+/// What a job asks of its scene beside the bundle: `-D` overrides, an integrator in place of
+/// the scene's, a resolution in place of its film's.
+pub(crate) struct SceneOptions<'a> {
+    pub overrides: &'a [(String, String)],
+    pub integrator: Option<&'a str>,
+    pub resolution: Option<(u32, u32)>,
+}
+
+/// The scene of the bundle materialised in `dir` with `options`, built for `purpose`: on the world `held` gives for its
+/// [`world_key`] (a scan of its text against the manifest), else from its files. Returns
+/// the key with it, under which a caller keeps the world for the next scene.
+pub(crate) fn build_scene(
+    manifest: &Manifest,
+    dir: &Path,
+    options: &SceneOptions,
+    limits: &Limits,
+    purpose: pathfarm_render::Purpose,
+    held: impl FnOnce(&Digest) -> Option<std::sync::Arc<pathfarm_render::World>>,
+) -> Result<(pathfarm_render::Scene, Digest, Built), SceneBuild> {
+    use pathfarm_render::Scene;
+    let SceneOptions {
+        overrides,
+        integrator,
+        resolution,
+    } = *options;
+    let key = world_key(manifest, dir, overrides, limits).map_err(SceneBuild::Load)?;
+    let held = held(&key);
+    let mut desc = match held {
+        Some(_) => scan(manifest, dir, overrides, integrator, limits),
+        None => check(manifest, dir, overrides, integrator, limits),
+    }
+    .map_err(SceneBuild::Load)?;
+    if let Some((w, h)) = resolution {
+        override_resolution(&mut desc, w, h, limits).map_err(SceneBuild::Resolution)?;
+    }
+    let (scene, built) = match held {
+        Some(world) => (Scene::with_world(&desc, world), Built::OnHeldWorld),
+        None => (Scene::build_for(&desc, purpose), Built::FromFiles),
+    };
+    Ok((scene.map_err(SceneBuild::Build)?, key, built))
+}
+
 /// Sets the film of `desc` to `width x height` (a job's resolution override), within the
 /// film limits the loader applies to a scene's own film.
 pub fn override_resolution(

@@ -62,7 +62,9 @@ use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tonic::Status;
 
-use crate::bundle::{self, BundleLimits, Digest, Manifest, ManifestEntry};
+use crate::bundle::{
+    self, Built, BundleLimits, Digest, Manifest, ManifestEntry, SceneBuild, SceneOptions,
+};
 use crate::client::is_terminal;
 use crate::codec;
 use crate::driver::{Blame, Blocklist, JobDriver, Offer, Standing, Step, Tiling};
@@ -790,30 +792,26 @@ impl Shared {
                 confine_files: true,
                 ..self.cfg.limits.clone()
             };
-            let integrator = settings.integrator.as_deref();
-            let scene_err = |e: bundle::BundleError| BundleLoad::Scene(local(&e));
-            let key = bundle::world_key(manifest, &dir, overrides, &limits).map_err(scene_err)?;
-            let held = match purpose {
-                Purpose::Inspect => self.inspected_world(&key),
+            let options = SceneOptions {
+                overrides,
+                integrator: settings.integrator.as_deref(),
+                resolution: settings.resolution.as_ref().map(|r| (r.width, r.height)),
+            };
+            let held = |key: &Digest| match purpose {
+                Purpose::Inspect => self.inspected_world(key),
                 Purpose::Render => None,
             };
-            let mut desc = match held {
-                Some(_) => bundle::scan(manifest, &dir, overrides, integrator, &limits),
-                None => bundle::check(manifest, &dir, overrides, integrator, &limits),
+            let (scene, key, built) = bundle::build_scene(
+                manifest, &dir, &options, &limits, purpose, held,
+            )
+            .map_err(|e| match e {
+                SceneBuild::Load(e) => BundleLoad::Scene(local(&e)),
+                SceneBuild::Resolution(m) => BundleLoad::Resolution(m),
+                SceneBuild::Build(e) => BundleLoad::Scene(local(&e)),
+            })?;
+            if built == Built::OnHeldWorld {
+                tracing::info!("{}: validated on the world validated last", manifest.root);
             }
-            .map_err(scene_err)?;
-            if let Some(r) = &settings.resolution {
-                bundle::override_resolution(&mut desc, r.width, r.height, &limits)
-                    .map_err(|e| BundleLoad::Resolution(e.to_string()))?;
-            }
-            let scene = match held {
-                Some(world) => {
-                    tracing::info!("{}: validated on the world validated last", manifest.root);
-                    Scene::with_world(&desc, world)
-                }
-                None => Scene::build_for(&desc, purpose),
-            }
-            .map_err(|e| BundleLoad::Scene(local(&e)))?;
             if purpose == Purpose::Inspect {
                 *self.inspected.lock().expect("inspected lock") = Some((key, scene.shared_world()));
             }

@@ -20,13 +20,13 @@ use pathfarm_proto::v1::{self, workers_client::WorkersClient};
 use pathfarm_proto::PROTOCOL_VERSION;
 use pathfarm_render::guided::guide_config;
 use pathfarm_render::pass::{render_unit, UnitInputs};
-use pathfarm_render::Scene;
+use pathfarm_render::{Purpose, Scene};
 use pathfarm_scene::{GuidedParams, Limits};
 use prost::Message;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 
-use crate::bundle::{self, Digest, Manifest, ManifestEntry};
+use crate::bundle::{self, Built, Digest, Manifest, ManifestEntry, SceneBuild, SceneOptions};
 use crate::client::{endpoint, error_chain, Auth, AuthChannel, Backoff, Remote, WorkerKey};
 use crate::codec;
 
@@ -1096,27 +1096,26 @@ fn build_in(
                 .collect()
         })
         .unwrap_or_default();
-    let integrator = settings.and_then(|s| s.integrator.as_deref());
+    let options = SceneOptions {
+        overrides: &defines,
+        integrator: settings.and_then(|s| s.integrator.as_deref()),
+        resolution: (settings.and_then(|s| s.resolution.as_ref())).map(|r| (r.width, r.height)),
+    };
     let t0 = Instant::now();
-    let loading = |e: bundle::BundleError| fatal(format!("loading the scene: {e}"));
-    let key = bundle::world_key(manifest, dest, &defines, &limits).map_err(loading)?;
-    let held = shared.worlds.lock().expect("worlds lock").get(&key);
-    let mut desc = match held {
-        Some(_) => bundle::scan(manifest, dest, &defines, integrator, &limits),
-        None => bundle::check(manifest, dest, &defines, integrator, &limits),
-    }
-    .map_err(loading)?;
-    if let Some(r) = settings.and_then(|s| s.resolution.as_ref()) {
-        bundle::override_resolution(&mut desc, r.width, r.height, &limits).map_err(fatal)?;
-    }
-    let building = |e| fatal(format!("building the scene: {e}"));
-    let scene = match held {
-        Some(world) => {
-            tracing::info!("{}: built on the world of a scene held", manifest.root);
-            Scene::with_world(&desc, world).map_err(building)?
+    let held = |key: &Digest| shared.worlds.lock().expect("worlds lock").get(key);
+    let (scene, key, built) =
+        bundle::build_scene(manifest, dest, &options, &limits, Purpose::Render, held).map_err(
+            |e| match e {
+                SceneBuild::Load(e) => fatal(format!("loading the scene: {e}")),
+                SceneBuild::Resolution(m) => fatal(m),
+                SceneBuild::Build(e) => fatal(format!("building the scene: {e}")),
+            },
+        )?;
+    match built {
+        Built::OnHeldWorld => {
+            tracing::info!("{}: built on the world of a scene held", manifest.root)
         }
-        None => {
-            let scene = Scene::build(&desc).map_err(building)?;
+        Built::FromFiles => {
             let mut worlds = shared.worlds.lock().expect("worlds lock");
             worlds.insert(key, &scene.shared_world());
             tracing::info!(
@@ -1124,9 +1123,8 @@ fn build_in(
                 manifest.root,
                 t0.elapsed().as_secs_f64()
             );
-            scene
         }
-    };
+    }
     let params = scene.guided.clone().unwrap_or_default();
     Ok(JobScene { scene, params })
 }
