@@ -384,12 +384,41 @@ fn job_under_way(
 fn assert_same_exr(got: &Path, reference: &[u8], farm: &Farm) {
     let bytes = fs::read(got).unwrap_or_else(|e| panic!("{}: {e}\n{}", got.display(), farm.logs()));
     // The EXR encoding is deterministic: equal files mean equal pixel bits.
-    assert!(
-        bytes == reference,
-        "the farm's EXR differs from pathfarm render's ({} vs {} bytes)",
-        bytes.len(),
-        reference.len()
-    );
+    if bytes != reference {
+        let kept = got.with_extension("reference.exr");
+        fs::write(&kept, reference).expect("the reference beside the farm's EXR");
+        panic!(
+            "the farm's EXR differs from pathfarm render's: {}\n{}",
+            pixels_that_differ(got, &kept),
+            farm.logs()
+        );
+    }
+}
+
+/// Which pixels of two EXRs differ: their count and bounding box, so a failure tells one
+/// tile's bits apart from a whole image's (another tree or estimate).
+fn pixels_that_differ(a: &Path, b: &Path) -> String {
+    let read = |p: &Path| pathfarm_render::output::read_exr_rgb(p).map_err(|e| e.to_string());
+    let ((w, h, x), (w2, h2, y)) = match (read(a), read(b)) {
+        (Ok(a), Ok(b)) => (a, b),
+        (a, b) => return format!("unreadable: {:?} {:?}", a.err(), b.err()),
+    };
+    if (w, h) != (w2, h2) {
+        return format!("sizes {w}x{h} and {w2}x{h2}");
+    }
+    let bits = |p: &[f32; 3]| p.map(f32::to_bits);
+    let differ: Vec<(u32, u32)> = (x.iter().zip(&y).enumerate())
+        .filter(|(_, (p, q))| bits(p) != bits(q))
+        .map(|(i, _)| (i as u32 % w, i as u32 / w))
+        .collect();
+    let (xs, ys) = (differ.iter().map(|d| d.0), differ.iter().map(|d| d.1));
+    let (x0, x1) = (xs.clone().min(), xs.max());
+    let (y0, y1) = (ys.clone().min(), ys.max());
+    format!(
+        "{} of {w}x{h} pixels differ, in x {x0:?}..={x1:?}, y {y0:?}..={y1:?} ({} beside it)",
+        differ.len(),
+        b.display()
+    )
 }
 
 #[test]
