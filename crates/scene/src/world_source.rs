@@ -197,19 +197,20 @@ mod tests {
     use super::*;
 
     fn source_of(xml_body: &str, overrides: &[(&str, &str)]) -> Vec<u8> {
+        // A directory a call (tests run in parallel), removed with what it holds.
+        static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let dir =
-            std::env::temp_dir().join(format!("pathfarm-world-source-{}", std::process::id()));
+            std::env::temp_dir().join(format!("pathfarm-world-source-{}-{n}", std::process::id()));
         std::fs::create_dir_all(dir.join("meshes")).unwrap();
-        static FILES: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-        let n = FILES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let path = dir.join(format!("s{n}.xml"));
+        let path = dir.join("scene.xml");
         let xml = format!("<scene version=\"3.0.0\">{DEFAULTS}{xml_body}</scene>");
         std::fs::write(&path, xml).unwrap();
         let ov: Vec<(String, String)> = (overrides.iter())
             .map(|(a, b)| (a.to_string(), b.to_string()))
             .collect();
         let got = world_source(&path, &ov, &Limits::default()).unwrap();
-        let _ = std::fs::remove_file(&path);
+        let _ = std::fs::remove_dir_all(&dir);
         got
     }
 
