@@ -6,10 +6,12 @@ use pathfarm_render::{
     path_estimator, render, render_into, sample_region, Film, Region, RenderSettings, Scene,
     UnitSplat,
 };
-use pathfarm_scene::{load_scene, scan_scene_as, world_source, Limits};
+use pathfarm_scene::{
+    load_scene, load_scene_as, load_scene_geometry_as, scan_scene_as, world_source, Limits,
+};
 use pathfarm_testkit::TestRng;
 use std::fs;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::common::*;
 
@@ -282,4 +284,42 @@ fn a_frame_built_on_another_frames_world_renders_the_bits_of_its_own_build() {
     // A world is not another scene's: the shape count is checked.
     let other = load_scene(&shared_scene("cornell-box"), &[]).unwrap();
     assert!(Scene::with_world(&other, a.shared_world()).is_err());
+}
+
+/// The coordinator validates a submission from a read of its scene that leaves the images
+/// undecoded (`load_scene_geometry_as`: headers checked, stand-ins in their place), and
+/// starts the job's session from it: for every scene shipped (envmaps, textures, masks and
+/// bump maps among them), that read builds, and has the full load's files, film, filter,
+/// sample count, bounds and fresh guide, so the session is the one a full load would start.
+#[test]
+fn a_scene_read_without_its_images_starts_the_session_a_full_load_would() {
+    let mut scenes: Vec<PathBuf> = fs::read_dir(repo_root().join("scenes"))
+        .unwrap()
+        .map(|e| e.unwrap().path().join("scene.xml"))
+        .filter(|p| p.exists())
+        .collect();
+    scenes.sort();
+    scenes.extend(["cornell-box", "veach-ajar"].map(shared_scene));
+    assert!(scenes.len() >= 10, "{scenes:?}");
+    let limits = Limits::default();
+    let guided = Some("guided_path");
+    for path in &scenes {
+        let full = load_scene_as(path, &[], &limits, guided).unwrap();
+        let read = load_scene_geometry_as(path, &[], &limits, guided).unwrap();
+        assert_eq!(read.files, full.files, "{}", path.display());
+        let inspect = pathfarm_render::Purpose::Inspect;
+        let (a, b) = (
+            Scene::build_for(&full, inspect).unwrap(),
+            Scene::build_for(&read, inspect).unwrap(),
+        );
+        let settings = |s: &Scene| (s.width, s.height, s.filter, s.sample_count, s.seed);
+        assert_eq!(settings(&a), settings(&b), "{}", path.display());
+        let params = a.guided.clone().expect("guided_path");
+        let tree = |s: &Scene| {
+            let (lo, hi) = s.world().accel.bounds();
+            let config = pathfarm_render::guided::guide_config(&params, s);
+            pathfarm_guide::SdTree::new(lo, hi, config).encode()
+        };
+        assert_eq!(tree(&a), tree(&b), "{}: the fresh guide", path.display());
+    }
 }

@@ -862,6 +862,79 @@ fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_kept
     }
 }
 
+/// A PNG of `w x h` whose header is intact and whose pixel data (the IDAT chunk's) is not.
+fn png_with_bad_pixels(w: u32, h: u32) -> Vec<u8> {
+    let mut png = Vec::new();
+    let image = image::RgbImage::from_pixel(w, h, image::Rgb([200, 100, 50]));
+    (image.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png))
+        .expect("encode a PNG");
+    let idat = png
+        .windows(4)
+        .position(|c| c == b"IDAT")
+        .expect("an IDAT chunk");
+    png[idat + 4..idat + 10].fill(0xff);
+    png
+}
+
+#[test]
+fn an_image_with_bad_pixels_passes_validation_by_its_header_and_fails_the_job_on_the_worker() {
+    // The coordinator's validation reads images' headers, not their pixels (it needs the
+    // scene's bounds, and renders nothing): the job is accepted, and its worker, which
+    // decodes the image, fails it, naming the image by the scene's own path for it.
+    let farm = Farm::start("bad-image", 1);
+    let scene = write_scene(
+        "farm-bad-image",
+        r#"<scene version="3.0.0">
+  <integrator type="guided_path"/>
+  <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+  <emitter type="constant"/>
+  <shape type="sphere"><bsdf type="diffuse"><texture name="reflectance" type="bitmap"><string name="filename" value="textures/bad.png"/></texture></bsdf></shape>
+</scene>"#,
+    );
+    let png = scene.with_file_name("textures").join("bad.png");
+    fs::create_dir_all(png.parent().unwrap()).unwrap();
+    fs::write(&png, png_with_bad_pixels(4, 4)).unwrap();
+    let limits = pathfarm_scene::Limits::default();
+    let geometry = pathfarm_scene::load_scene_geometry_as(&scene, &[], &limits, None);
+    assert!(geometry.is_ok(), "its header is good: {:?}", geometry.err());
+    let full = pathfarm_scene::load_scene(&scene, &[])
+        .map(|_| ())
+        .unwrap_err();
+    assert!(
+        full.to_string().contains("bad.png"),
+        "its pixels are not: {full}"
+    );
+    let out = farm.data.join("bad-image.exr");
+    let argv = [
+        "submit",
+        path_str(&scene),
+        "--spp",
+        "4",
+        "--coordinator",
+        &farm.url,
+        "--wait",
+        "-o",
+        path_str(&out),
+    ];
+    let r = farm.start_client(&argv, &[]).wait(Duration::from_secs(120));
+    assert!(!r.status.success(), "the job must fail: {}", r.describe());
+    let worker_dir = farm.data.join("worker-0");
+    // Accepted (a job id), then failed by the worker's lease (not refused at submission).
+    let accepted = r.stdout.trim_start().starts_with("job-");
+    assert!(
+        accepted && r.stderr.contains("failed lease") && r.stderr.contains("cannot decode"),
+        "accepted, then failed on the worker: {}\n{}",
+        r.describe(),
+        farm.logs()
+    );
+    assert!(
+        r.stderr.contains("'textures/bad.png'") && !r.stderr.contains(worker_dir.to_str().unwrap()),
+        "the failure names the image by its bundle path: {}",
+        r.describe(),
+    );
+    assert!(!out.exists());
+}
+
 #[test]
 fn coordinator_killed_mid_job_resumes_bit_identical_and_keeps_finished_results() {
     // Checkpoints at every iteration's end, so one is durable early in the job.

@@ -25,7 +25,8 @@ use std::path::{Component, Path, PathBuf};
 
 use pathfarm_scene::limits::format_bytes;
 use pathfarm_scene::{
-    load_scene_as, scan_scene_as, scene_files_as, world_source, Limits, SceneDesc, SceneError,
+    load_scene_as, load_scene_geometry_as, scan_scene_as, scene_files_as, world_source, Limits,
+    SceneDesc, SceneError,
 };
 
 /// The blake3 digest (32 bytes) of a file's contents: the name of its blob.
@@ -382,9 +383,10 @@ fn confined(limits: &Limits) -> Limits {
 /// directory, by [`scene_files`]: the XML checked, meshes and images not decoded): the
 /// manifest of every file the scene reads, paths relative to the scene's directory, the root
 /// (the scene file's name) first, and the local file of each entry, in the same order.
-/// Digests are computed by streaming each file. A file whose contents are bad (a mesh with
-/// NaN positions, a corrupt image) is bundled: the coordinator's validation refuses the job,
-/// naming the file by its bundle path.
+/// Digests are computed by streaming each file. A file whose contents are bad is bundled: the
+/// coordinator's validation refuses the job if it is a mesh (NaN positions, say), the workers
+/// fail it if it is an image's pixels (the validation reads images' headers only), naming the
+/// file by its bundle path either way.
 ///
 /// A scene that reads a file outside its directory (an absolute name, `..`, a symbolic link
 /// leading out) cannot be bundled: [`BundleError::Collect`] names the file and line.
@@ -563,10 +565,10 @@ fn place(e: &ManifestEntry, blob: &Path, target: &Path) -> Result<(), BundleErro
 
 /// Load the materialised bundle in `dir` (with `overrides` and `limits`, confined to the root
 /// scene file's directory) and verify that every file the loader read is one of the
-/// manifest's, with the manifest's size. The coordinator calls this before it stores a job,
-/// a worker before it renders. Confinement keeps the loader from reading anything outside
-/// `dir`, so this also proves that the manifest names all the scene needs; entries the loader
-/// did not read are allowed (they cost only storage, within [`BundleLimits`]).
+/// manifest's, with the manifest's size. A worker calls this before it renders. Confinement
+/// keeps the loader from reading anything outside `dir`, so this also proves that the
+/// manifest names all the scene needs; entries the loader did not read are allowed (they cost
+/// only storage, within [`BundleLimits`]).
 ///
 /// A file the scene needs and the bundle lacks is a [`BundleError::Scene`] naming it, the
 /// scene file and line.
@@ -577,10 +579,23 @@ pub fn check(
     integrator: Option<&str>,
     limits: &Limits,
 ) -> Result<SceneDesc, BundleError> {
-    let root = dir.join(&manifest.root);
-    let desc = load_scene_as(&root, overrides, &confined(limits), integrator)?;
-    verify_files(manifest, dir, &desc)?;
-    Ok(desc)
+    let load = load_scene_as;
+    load_verified(load, manifest, dir, (overrides, integrator), limits)
+}
+
+/// [`check`] without decoding the images (their headers read and checked, stand-ins in their
+/// place; `pathfarm_scene::load_scene_geometry_as`): the coordinator's validation of a
+/// submission, which needs the scene's bounds and its checks but renders nothing. A bad image
+/// is found by the workers, whose lease of the job fails and so the job.
+pub fn check_geometry(
+    manifest: &Manifest,
+    dir: &Path,
+    overrides: &[(String, String)],
+    integrator: Option<&str>,
+    limits: &Limits,
+) -> Result<SceneDesc, BundleError> {
+    let load = load_scene_geometry_as;
+    load_verified(load, manifest, dir, (overrides, integrator), limits)
 }
 
 /// [`check`] without decoding the scene's meshes and images (its files are named, opened and
@@ -594,8 +609,23 @@ pub fn scan(
     integrator: Option<&str>,
     limits: &Limits,
 ) -> Result<SceneDesc, BundleError> {
+    let load = scan_scene_as;
+    load_verified(load, manifest, dir, (overrides, integrator), limits)
+}
+
+/// One of the scene crate's loads of the bundle's root (`load`), confined to `dir`, and its
+/// files verified against the manifest ([`verify_files`]).
+type Load = fn(&Path, &[(String, String)], &Limits, Option<&str>) -> Result<SceneDesc, SceneError>;
+
+fn load_verified(
+    load: Load,
+    manifest: &Manifest,
+    dir: &Path,
+    (overrides, integrator): (&[(String, String)], Option<&str>),
+    limits: &Limits,
+) -> Result<SceneDesc, BundleError> {
     let root = dir.join(&manifest.root);
-    let desc = scan_scene_as(&root, overrides, &confined(limits), integrator)?;
+    let desc = load(&root, overrides, &confined(limits), integrator)?;
     verify_files(manifest, dir, &desc)?;
     Ok(desc)
 }
@@ -683,9 +713,11 @@ pub(crate) struct SceneOptions<'a> {
     pub resolution: Option<(u32, u32)>,
 }
 
-/// The scene of the bundle materialised in `dir` with `options`, built for `purpose`: on the world `held` gives for its
-/// [`world_key`] (a scan of its text against the manifest), else from its files. Returns
-/// the key with it, under which a caller keeps the world for the next scene.
+/// The scene of the bundle materialised in `dir` with `options`, built for `purpose`: on the
+/// world `held` gives for its [`world_key`] (a scan of its text against the manifest), else
+/// from its files (for [`Purpose::Inspect`](pathfarm_render::Purpose), with stand-ins for
+/// its images: [`check_geometry`]). Returns the key with it, under which a caller keeps the
+/// world for the next scene.
 pub(crate) fn build_scene(
     manifest: &Manifest,
     dir: &Path,
@@ -702,11 +734,12 @@ pub(crate) fn build_scene(
     } = *options;
     let key = world_key(manifest, dir, overrides, limits).map_err(SceneBuild::Load)?;
     let held = held(&key);
-    let mut desc = match held {
-        Some(_) => scan(manifest, dir, overrides, integrator, limits),
-        None => check(manifest, dir, overrides, integrator, limits),
-    }
-    .map_err(SceneBuild::Load)?;
+    let load = match (&held, purpose) {
+        (Some(_), _) => scan,
+        (None, pathfarm_render::Purpose::Inspect) => check_geometry,
+        (None, pathfarm_render::Purpose::Render) => check,
+    };
+    let mut desc = load(manifest, dir, overrides, integrator, limits).map_err(SceneBuild::Load)?;
     if let Some((w, h)) = resolution {
         override_resolution(&mut desc, w, h, limits).map_err(SceneBuild::Resolution)?;
     }

@@ -20,6 +20,9 @@ pub(crate) enum Reading {
     /// Only what names and checks them: each file opened, an image's header (its size, for
     /// the limits); meshes and images are not decoded ([`crate::scene_files`]).
     Names,
+    /// Meshes decoded, images read as [`Reading::Names`] reads them: what a scene's bounds
+    /// and checks need when nothing is rendered from it ([`crate::load_scene_geometry_as`]).
+    Geometry,
 }
 
 /// Build state. Objects are cached by node identity, so an `id`'d BSDF or

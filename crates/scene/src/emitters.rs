@@ -8,7 +8,7 @@ use glam::{DVec3, Vec3};
 use crate::context::{Ctx, Reading};
 use crate::desc::{AreaEmitterDesc, EmitterDesc};
 use crate::error::SceneError;
-use crate::imageio::load_checked;
+use crate::imageio::{self, load_checked};
 use crate::props::Resolved;
 use crate::textures::const_color;
 use crate::xml::{invalid, Category};
@@ -126,23 +126,36 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
             let to_world = p.transform("to_world")?.as_mat4();
             let path = ctx.resolve_path(&name, &loc)?;
             let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
-            // (A scene read for its file names has a 1x1 stand-in: nothing to check.)
-            if ctx.reading != Reading::Names && (img.width < 2 || img.height < 3) {
+            // A scene read without its images has a 1x1 stand-in: the header has the size
+            // (it was read, so it reads again), and a uniform 2x3 map stands in, on which a
+            // world can be built.
+            let (width, height, texels) = match ctx.reading {
+                Reading::Contents => (img.width, img.height, img.texels.iter().collect()),
+                Reading::Names | Reading::Geometry => {
+                    let (w, h) = imageio::image_size(&path).map_err(|e| {
+                        invalid(&loc, format!("envmap file '{}': {e}", path.display()))
+                    })?;
+                    (w, h, vec![Vec3::ONE; 6])
+                }
+            };
+            if width < 2 || height < 3 {
                 return Err(invalid(
                     &loc,
                     format!(
-                        "envmap file '{}' is {}x{}: an environment map has at least 2x3 \
-                         pixels (as in Mitsuba 3)",
+                        "envmap file '{}' is {width}x{height}: an environment map has at \
+                         least 2x3 pixels (as in Mitsuba 3)",
                         path.display(),
-                        img.width,
-                        img.height
                     ),
                 ));
             }
+            let (width, height) = match ctx.reading {
+                Reading::Contents => (width, height),
+                Reading::Names | Reading::Geometry => (2, 3),
+            };
             EmitterDesc::EnvMap {
-                width: img.width,
-                height: img.height,
-                texels: Arc::new(img.texels.iter().collect()),
+                width,
+                height,
+                texels: Arc::new(texels),
                 scale,
                 to_world,
             }

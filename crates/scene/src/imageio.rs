@@ -53,7 +53,7 @@ pub(crate) fn load_checked(
     }
     // Decoded bytes plus our texels (up to 16 bytes a pixel for float images).
     ctx.reserve_memory(pixels * 24, &format!("{name} ({w}x{h})"), loc)?;
-    if ctx.reading == Reading::Names {
+    if ctx.reading != Reading::Contents {
         // The header read, the pixels not decoded: one black texel stands in.
         return Ok(LoadedImage {
             width: 1,
@@ -71,7 +71,7 @@ pub(crate) fn load_checked(
 const DECODER_ALLOWANCE: u64 = 16 << 20;
 
 /// Width and height from the file's header, without decoding it.
-fn image_size(path: &Path) -> Result<(u32, u32), String> {
+pub(crate) fn image_size(path: &Path) -> Result<(u32, u32), String> {
     if is_exr(path) {
         let meta = exr::meta::MetaData::read_from_file(path, false)
             .map_err(|e| format!("cannot read OpenEXR file: {e}"))?;

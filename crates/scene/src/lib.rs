@@ -99,6 +99,20 @@ pub fn load_scene_as(
     load(path, overrides, limits, Reading::Contents, integrator)
 }
 
+/// [`load_scene_as`] without decoding images (each one's header read and checked against
+/// the limits, a stand-in in its place): meshes and everything else as the full load has
+/// them, so the scene's bounds and every check but an image's pixels are the full load's.
+/// For a scene nothing is rendered from (a farm's validation of a submission: its workers
+/// decode the images and fail the job if one is bad).
+pub fn load_scene_geometry_as(
+    path: &Path,
+    overrides: &[(String, String)],
+    limits: &Limits,
+    integrator: Option<&str>,
+) -> Result<SceneDesc, SceneError> {
+    load(path, overrides, limits, Reading::Geometry, integrator)
+}
+
 /// The scene as [`scene_files_as`] reads it (files named and opened, not decoded): its
 /// [`SceneDesc::files`] and [`SceneDesc::warnings`] are those of the full load; its meshes and
 /// images are stand-ins.

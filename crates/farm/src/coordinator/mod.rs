@@ -847,8 +847,10 @@ impl Shared {
         let settings = req.settings.clone().unwrap_or_default();
         let scene_settings = settings.scene.clone().unwrap_or_default();
         let overrides = overrides_of(&scene_settings)?;
-        // The client bundled the scene without decoding it: a bad mesh or image is found
-        // here, and named by its bundle path, not by this coordinator's.
+        // The client bundled the scene without decoding it: a bad mesh is found here, and
+        // named by its bundle path, not by this coordinator's. Images are checked by their
+        // headers only (nothing here renders them): a bad one fails the workers' leases, and
+        // so the job, naming it by its bundle path too.
         let scene = (self.load_bundle(&manifest, &scene_settings, &overrides, Purpose::Inspect))
             .map_err(|e| match e {
                 BundleLoad::Bundle(m) => bad(format!("bundle: {m}")),

@@ -1103,12 +1103,15 @@ fn build_in(
     };
     let t0 = Instant::now();
     let held = |key: &Digest| shared.worlds.lock().expect("worlds lock").get(key);
+    // Files named by their bundle paths, as the submitter knows them (not this cache's).
+    let local =
+        |e: &dyn std::fmt::Display| e.to_string().replace(&format!("{}/", dest.display()), "");
     let (scene, key, built) =
         bundle::build_scene(manifest, dest, &options, &limits, Purpose::Render, held).map_err(
             |e| match e {
-                SceneBuild::Load(e) => fatal(format!("loading the scene: {e}")),
+                SceneBuild::Load(e) => fatal(format!("loading the scene: {}", local(&e))),
                 SceneBuild::Resolution(m) => fatal(m),
-                SceneBuild::Build(e) => fatal(format!("building the scene: {e}")),
+                SceneBuild::Build(e) => fatal(format!("building the scene: {}", local(&e))),
             },
         )?;
     match built {
