@@ -386,7 +386,11 @@ impl Jobs for Svc {
         let shared = self.shared.clone();
         let (req, prepared) = tokio::task::spawn_blocking(move || {
             shared.advise_prefetch(&req);
+            let t0 = std::time::Instant::now();
             let p = shared.prepare(&req);
+            let seconds = t0.elapsed().as_secs_f64();
+            let ok = p.is_ok();
+            tracing::info!(ok, "submission validated in {seconds:.3} s");
             (req, p)
         })
         .await
