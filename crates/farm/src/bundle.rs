@@ -563,12 +563,28 @@ fn place(e: &ManifestEntry, blob: &Path, target: &Path) -> Result<(), BundleErro
     Ok(())
 }
 
+/// How much of a bundle's files [`check`] decodes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decode {
+    /// Meshes and images: a scene to render (a worker's).
+    Everything,
+    /// Meshes, and of images only their headers (checked against the limits, stand-ins for
+    /// their pixels; `pathfarm_scene::load_scene_geometry_as`): the coordinator's validation
+    /// of a submission, which needs the scene's bounds and checks but renders nothing. A bad
+    /// image is found by the workers, whose leases of the job fail and so the job.
+    Geometry,
+    /// Neither (files named, opened and checked by size; `pathfarm_scene::scan_scene_as`):
+    /// for a scene whose world is built already ([`world_key`],
+    /// `pathfarm_render::Scene::with_world`), which reads only its camera and integrator.
+    Nothing,
+}
+
 /// Load the materialised bundle in `dir` (with `overrides` and `limits`, confined to the root
-/// scene file's directory) and verify that every file the loader read is one of the
-/// manifest's, with the manifest's size. A worker calls this before it renders. Confinement
-/// keeps the loader from reading anything outside `dir`, so this also proves that the
-/// manifest names all the scene needs; entries the loader did not read are allowed (they cost
-/// only storage, within [`BundleLimits`]).
+/// scene file's directory, decoding as `decode` says) and verify that every file the loader
+/// read is one of the manifest's, with the manifest's size. Confinement keeps the loader from
+/// reading anything outside `dir`, so this also proves that the manifest names all the scene
+/// needs; entries the loader did not read are allowed (they cost only storage, within
+/// [`BundleLimits`]).
 ///
 /// A file the scene needs and the bundle lacks is a [`BundleError::Scene`] naming it, the
 /// scene file and line.
@@ -578,52 +594,13 @@ pub fn check(
     overrides: &[(String, String)],
     integrator: Option<&str>,
     limits: &Limits,
+    decode: Decode,
 ) -> Result<SceneDesc, BundleError> {
-    let load = load_scene_as;
-    load_verified(load, manifest, dir, (overrides, integrator), limits)
-}
-
-/// [`check`] without decoding the images (their headers read and checked, stand-ins in their
-/// place; `pathfarm_scene::load_scene_geometry_as`): the coordinator's validation of a
-/// submission, which needs the scene's bounds and its checks but renders nothing. A bad image
-/// is found by the workers, whose lease of the job fails and so the job.
-pub fn check_geometry(
-    manifest: &Manifest,
-    dir: &Path,
-    overrides: &[(String, String)],
-    integrator: Option<&str>,
-    limits: &Limits,
-) -> Result<SceneDesc, BundleError> {
-    let load = load_scene_geometry_as;
-    load_verified(load, manifest, dir, (overrides, integrator), limits)
-}
-
-/// [`check`] without decoding the scene's meshes and images (its files are named, opened and
-/// verified against the manifest): for a scene whose world is built already
-/// ([`world_key`], `pathfarm_render::Scene::with_world`), only its camera and integrator
-/// are read from the description.
-pub fn scan(
-    manifest: &Manifest,
-    dir: &Path,
-    overrides: &[(String, String)],
-    integrator: Option<&str>,
-    limits: &Limits,
-) -> Result<SceneDesc, BundleError> {
-    let load = scan_scene_as;
-    load_verified(load, manifest, dir, (overrides, integrator), limits)
-}
-
-/// One of the scene crate's loads of the bundle's root (`load`), confined to `dir`, and its
-/// files verified against the manifest ([`verify_files`]).
-type Load = fn(&Path, &[(String, String)], &Limits, Option<&str>) -> Result<SceneDesc, SceneError>;
-
-fn load_verified(
-    load: Load,
-    manifest: &Manifest,
-    dir: &Path,
-    (overrides, integrator): (&[(String, String)], Option<&str>),
-    limits: &Limits,
-) -> Result<SceneDesc, BundleError> {
+    let load = match decode {
+        Decode::Everything => load_scene_as,
+        Decode::Geometry => load_scene_geometry_as,
+        Decode::Nothing => scan_scene_as,
+    };
     let root = dir.join(&manifest.root);
     let desc = load(&root, overrides, &confined(limits), integrator)?;
     verify_files(manifest, dir, &desc)?;
@@ -716,8 +693,8 @@ pub(crate) struct SceneOptions<'a> {
 /// The scene of the bundle materialised in `dir` with `options`, built for `purpose`: on the
 /// world `held` gives for its [`world_key`] (a scan of its text against the manifest), else
 /// from its files (for [`Purpose::Inspect`](pathfarm_render::Purpose), with stand-ins for
-/// its images: [`check_geometry`]). Returns the key with it, under which a caller keeps the
-/// world for the next scene.
+/// its images: [`Decode::Geometry`]). Returns the key with it, under which a caller keeps
+/// the world for the next scene.
 pub(crate) fn build_scene(
     manifest: &Manifest,
     dir: &Path,
@@ -734,12 +711,13 @@ pub(crate) fn build_scene(
     } = *options;
     let key = world_key(manifest, dir, overrides, limits).map_err(SceneBuild::Load)?;
     let held = held(&key);
-    let load = match (&held, purpose) {
-        (Some(_), _) => scan,
-        (None, pathfarm_render::Purpose::Inspect) => check_geometry,
-        (None, pathfarm_render::Purpose::Render) => check,
+    let decode = match (&held, purpose) {
+        (Some(_), _) => Decode::Nothing,
+        (None, pathfarm_render::Purpose::Inspect) => Decode::Geometry,
+        (None, pathfarm_render::Purpose::Render) => Decode::Everything,
     };
-    let mut desc = load(manifest, dir, overrides, integrator, limits).map_err(SceneBuild::Load)?;
+    let mut desc =
+        check(manifest, dir, overrides, integrator, limits, decode).map_err(SceneBuild::Load)?;
     if let Some((w, h)) = resolution {
         override_resolution(&mut desc, w, h, limits).map_err(SceneBuild::Resolution)?;
     }
