@@ -202,6 +202,8 @@ fn keep(
 ) {
     match held.get_mut(&job) {
         Some((k, mine)) if *k == key => mine.merge(&r).expect("one structure"),
+        // (from before a roll back, acknowledged after the new epoch's)
+        Some((k, _)) if k.1 > key.1 => {}
         _ => {
             held.insert(job, (key, r));
         }

@@ -123,7 +123,7 @@ fn round_trip(scene: &Path) -> Manifest {
             e.size
         );
     }
-    let checked = check(&manifest, &dest, &[], None, &limits).unwrap();
+    let checked = check(&manifest, &dest, &[], None, &limits, Decode::Everything).unwrap();
     assert_same_scene(&original, &checked);
     assert!(checked.files.iter().all(|f| f.starts_with(&dest)));
     assert_eq!(checked.source, root);
@@ -434,7 +434,7 @@ fn check_names_a_referenced_file_missing_from_the_bundle() {
     m.validate(&BundleLimits::default()).unwrap();
     let dest = t.path().join("bundle");
     let root = materialize(&m, |d| blobs.join(d.to_hex()), &dest).unwrap();
-    let err = check(&m, &dest, &[], None, &Limits::default()).unwrap_err();
+    let err = check(&m, &dest, &[], None, &Limits::default(), Decode::Everything).unwrap_err();
     let shown = err.to_string();
     assert!(matches!(err, BundleError::Scene(_)), "{err:?}");
     // The scene file and the line of the filename, and the missing name.
@@ -447,11 +447,19 @@ fn check_refuses_a_file_read_that_the_manifest_does_not_list() {
     let (t, m, blobs) = two_mesh_bundle("check-unlisted");
     let dest = t.path().join("bundle");
     materialize(&m, |d| blobs.join(d.to_hex()), &dest).unwrap();
-    check(&m, &dest, &[], None, &Limits::default()).unwrap();
+    check(&m, &dest, &[], None, &Limits::default(), Decode::Everything).unwrap();
     // The directory has the file, but the manifest checked against it does not.
     let mut short = m.clone();
     short.files.retain(|e| e.path != "models/a.obj");
-    let err = check(&short, &dest, &[], None, &Limits::default()).unwrap_err();
+    let err = check(
+        &short,
+        &dest,
+        &[],
+        None,
+        &Limits::default(),
+        Decode::Everything,
+    )
+    .unwrap_err();
     assert!(
         matches!(&err, BundleError::NotInManifest { file } if file == &dest.join("models/a.obj")),
         "{err:?}"
@@ -461,7 +469,7 @@ fn check_refuses_a_file_read_that_the_manifest_does_not_list() {
         &dest.join("models/b.obj"),
         format!("{QUAD_OBJ}\n").as_bytes(),
     );
-    let err = check(&m, &dest, &[], None, &Limits::default()).unwrap_err();
+    let err = check(&m, &dest, &[], None, &Limits::default(), Decode::Everything).unwrap_err();
     assert!(
         matches!(&err, BundleError::SizeMismatch { path, .. } if path == "models/b.obj"),
         "{err:?}"
@@ -511,7 +519,7 @@ fn materialize_copies_when_it_cannot_link() {
         assert!(meta.file_type().is_file(), "{}", e.path);
         assert_eq!(meta.len(), e.size);
     }
-    check(&m, &dest, &[], None, &Limits::default()).unwrap();
+    check(&m, &dest, &[], None, &Limits::default(), Decode::Everything).unwrap();
 }
 
 #[test]

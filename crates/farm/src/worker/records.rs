@@ -28,8 +28,10 @@ pub(super) struct Held {
 }
 
 /// Adds an accepted upload's records to those kept for `job` (replacing records of an older
-/// version or epoch, which the coordinator no longer wants). `tests/it/farm_sim.rs` has its
-/// own copy of this rule for the seeded simulation.
+/// version or epoch, which the coordinator no longer wants). Uploads run side by side, so an
+/// upload from before a roll back can be acknowledged after one of the new epoch: its
+/// records are not wanted, and do not replace the new epoch's. `tests/it/farm_sim.rs` has
+/// its own copy of this rule for the seeded simulation.
 pub(super) fn keep(held: &mut HashMap<String, Held>, job: &str, key: HeldKey, r: IterationStats) {
     match held.get_mut(job) {
         Some(h) if h.key == key => {
@@ -40,6 +42,7 @@ pub(super) fn keep(held: &mut HashMap<String, Held>, job: &str, key: HeldKey, r:
                 }
             }
         }
+        Some(h) if h.key.epoch > key.epoch => {}
         _ => {
             let h = Held {
                 key,
@@ -50,13 +53,20 @@ pub(super) fn keep(held: &mut HashMap<String, Held>, job: &str, key: HeldKey, r:
     }
 }
 
-/// Marks `job`'s records of `key` lost.
+/// Marks `job`'s records of `key` lost (not those of a later epoch, as [`keep`]).
 pub(super) fn lose(held: &mut HashMap<String, Held>, job: &str, key: HeldKey) {
+    if held.get(job).is_some_and(|h| h.key.epoch > key.epoch) {
+        return;
+    }
     tracing::warn!("job {job}: an upload's outcome is unknown: the records kept are lost");
     held.insert(job.to_string(), Held { key, records: None });
 }
 
-/// The records `f` asks for, if kept and intact (they leave the worker either way).
+/// The records `f` asks for, if kept and intact (they leave the worker either way). Records
+/// of another version or epoch stay: a flush the coordinator sent before it rolled the job
+/// back can be answered after this worker kept records of the new epoch, which the
+/// coordinator will ask for next (taking them here would hand in the new epoch's records
+/// without those of the uploads accepted before, and the guide would differ).
 pub(super) fn take(
     held: &mut HashMap<String, Held>,
     f: &v1::FlushRecords,
@@ -64,12 +74,14 @@ pub(super) fn take(
     if injected_loss() {
         return None;
     }
-    let h = held.remove(&f.job_id)?;
     let wanted = HeldKey {
         tree_digest: f.tree_digest.clone(),
         epoch: f.records_epoch,
     };
-    (h.key == wanted).then_some(h.records).flatten()
+    if held.get(&f.job_id)?.key != wanted {
+        return None;
+    }
+    held.remove(&f.job_id)?.records
 }
 
 /// Fault injection for tests: with `PATHFARM_FAULT_LOSE_RECORDS=N` in its environment a
@@ -117,5 +129,56 @@ pub(super) async fn send(
         // The coordinator notices: the control stream breaks with the connection, or it
         // restarted; either way the job rolls back, or the holder times out.
         Err(s) => tracing::warn!("job {job}: records upload failed: {}", s.message()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn key(epoch: u64) -> HeldKey {
+        HeldKey {
+            tree_digest: vec![7; 32],
+            epoch,
+        }
+    }
+
+    fn flush(epoch: u64) -> v1::FlushRecords {
+        v1::FlushRecords {
+            job_id: "job-1".into(),
+            tree_digest: vec![7; 32],
+            records_epoch: epoch,
+        }
+    }
+
+    #[test]
+    fn a_late_flush_of_an_earlier_epoch_leaves_the_records_of_the_current_one() {
+        let mut held = HashMap::new();
+        keep(&mut held, "job-1", key(0), IterationStats::default());
+        // The job rolled back (epoch 1) and an upload of the new epoch was accepted before
+        // the flush of epoch 0 was answered.
+        keep(&mut held, "job-1", key(1), IterationStats::default());
+        assert!(take(&mut held, &flush(0)).is_none(), "epoch 0's are gone");
+        assert!(take(&mut held, &flush(1)).is_some(), "epoch 1's are kept");
+        assert!(held.is_empty(), "taken records leave the worker");
+        assert!(take(&mut held, &flush(1)).is_none(), "and are taken once");
+    }
+
+    #[test]
+    fn an_upload_from_before_a_roll_back_acknowledged_late_leaves_the_new_epochs_records() {
+        let mut held = HashMap::new();
+        keep(&mut held, "job-1", key(1), IterationStats::default());
+        keep(&mut held, "job-1", key(0), IterationStats::default());
+        lose(&mut held, "job-1", key(0));
+        assert!(take(&mut held, &flush(1)).is_some(), "epoch 1's are kept");
+    }
+
+    #[test]
+    fn lost_records_are_answered_lost_for_their_key() {
+        let mut held = HashMap::new();
+        keep(&mut held, "job-1", key(2), IterationStats::default());
+        lose(&mut held, "job-1", key(2));
+        assert!(take(&mut held, &flush(2)).is_none());
+        assert!(held.is_empty());
     }
 }
