@@ -112,7 +112,11 @@ wait_until 300 "job ${id2} after the coordinator restart" job_done "${id2}"
 pf fetch "${id2}" --coordinator "${url}" -o "${work}/job2.exr" >/dev/null
 cmp -s "${work}/job2.exr" "${work}/ref-4.exr" || fail "job ${id2}: the EXR differs from docker run render"
 # the metrics port answers
-curl -sf "http://127.0.0.1:${PATHFARM_METRICS_PORT}/metrics" | grep -q '^pathfarm_jobs{state="done"} 2' \
-    || fail "metrics do not report two done jobs"
+# (read whole first: `grep -q` ends at its match, and under pipefail the curl still writing
+# the rest would fail the pipe)
+metrics="$(curl -sf "http://127.0.0.1:${PATHFARM_METRICS_PORT}/metrics")" \
+    || fail "the metrics port does not answer"
+grep -q '^pathfarm_jobs{state="done"} 2' <<<"${metrics}" \
+    || fail "metrics do not report two done jobs: $(grep '^pathfarm_jobs' <<<"${metrics}" | tr '\n' ' ')"
 
 echo "compose test: RAN: image built, stack up, a worker killed mid-iteration and the coordinator restarted mid-job; both EXRs byte-identical to docker run render"
