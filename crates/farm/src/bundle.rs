@@ -563,6 +563,12 @@ fn place(e: &ManifestEntry, blob: &Path, target: &Path) -> Result<(), BundleErro
     Ok(())
 }
 
+/// `e`'s message with the bundle's materialised directory `dir` taken out of its paths, so
+/// that it names files by their bundle paths, as the submitter knows them.
+pub(crate) fn in_bundle_paths(e: &dyn std::fmt::Display, dir: &Path) -> String {
+    e.to_string().replace(&format!("{}/", dir.display()), "")
+}
+
 /// How much of a bundle's files [`check`] decodes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Decode {

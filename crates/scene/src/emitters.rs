@@ -126,32 +126,34 @@ pub(crate) fn emitter(ctx: &mut Ctx, r: &Resolved) -> Result<EmitterDesc, SceneE
             let to_world = p.transform("to_world")?.as_mat4();
             let path = ctx.resolve_path(&name, &loc)?;
             let img = load_checked(ctx, &path, false, "envmap file", &loc)?;
-            // A scene read without its images has a 1x1 stand-in: the header has the size
+            // A scene read without its images has a 1x1 stand-in: the size is the header's
             // (it was read, so it reads again), and a uniform 2x3 map stands in, on which a
             // world can be built.
-            let (width, height, texels) = match ctx.reading {
-                Reading::Contents => (img.width, img.height, img.texels.iter().collect()),
+            let (size, map) = match ctx.reading {
+                Reading::Contents => {
+                    let size = (img.width, img.height);
+                    (size, (size, img.texels.iter().collect()))
+                }
                 Reading::Names | Reading::Geometry => {
-                    let (w, h) = imageio::image_size(&path).map_err(|e| {
+                    let size = imageio::image_size(&path).map_err(|e| {
                         invalid(&loc, format!("envmap file '{}': {e}", path.display()))
                     })?;
-                    (w, h, vec![Vec3::ONE; 6])
+                    (size, ((2, 3), vec![Vec3::ONE; 6]))
                 }
             };
-            if width < 2 || height < 3 {
+            if size.0 < 2 || size.1 < 3 {
                 return Err(invalid(
                     &loc,
                     format!(
-                        "envmap file '{}' is {width}x{height}: an environment map has at \
-                         least 2x3 pixels (as in Mitsuba 3)",
+                        "envmap file '{}' is {}x{}: an environment map has at least 2x3 \
+                         pixels (as in Mitsuba 3)",
                         path.display(),
+                        size.0,
+                        size.1
                     ),
                 ));
             }
-            let (width, height) = match ctx.reading {
-                Reading::Contents => (width, height),
-                Reading::Names | Reading::Geometry => (2, 3),
-            };
+            let ((width, height), texels) = map;
             EmitterDesc::EnvMap {
                 width,
                 height,

@@ -783,8 +783,7 @@ impl Shared {
         purpose: Purpose,
     ) -> Result<Scene, BundleLoad> {
         let dir = self.blobs.temp_path("bundle");
-        let local =
-            |e: &dyn std::fmt::Display| e.to_string().replace(&format!("{}/", dir.display()), "");
+        let local = |e: &dyn std::fmt::Display| bundle::in_bundle_paths(e, &dir);
         let result = (|| {
             bundle::materialize(manifest, |d| self.blobs.path(d), &dir)
                 .map_err(|e| BundleLoad::Bundle(e.to_string()))?;

@@ -1103,9 +1103,7 @@ fn build_in(
     };
     let t0 = Instant::now();
     let held = |key: &Digest| shared.worlds.lock().expect("worlds lock").get(key);
-    // Files named by their bundle paths, as the submitter knows them (not this cache's).
-    let local =
-        |e: &dyn std::fmt::Display| e.to_string().replace(&format!("{}/", dest.display()), "");
+    let local = |e: &dyn std::fmt::Display| bundle::in_bundle_paths(e, dest);
     let (scene, key, built) =
         bundle::build_scene(manifest, dest, &options, &limits, Purpose::Render, held).map_err(
             |e| match e {
