@@ -794,6 +794,36 @@ fn a_worker_that_lost_its_records_rolls_the_job_back_and_the_image_stays_bit_ide
 }
 
 #[test]
+fn records_that_miss_an_accepted_upload_are_refused_by_their_coverage_and_the_image_stays_bit_identical(
+) {
+    // The one worker forgets the records of one accepted recording upload that joins
+    // records it keeps and hands in the rest as if complete (fault injection), as a worker
+    // with a bookkeeping slip would: the sums decode, only the leases they cover tell. The
+    // coordinator refuses them, blames the worker (one bad result, under the limit) and
+    // rolls the job back; the result is still exact.
+    let mut farm = Farm::start("forget", 0);
+    farm.add_worker_env(&[("PATHFARM_FAULT_FORGET_RECORDS", "1")]);
+    // (64 spp: iterations of several recorded passes, so a worker keeps several uploads')
+    let reference = render_reference(&farm.data, 64);
+    let out = farm.data.join("forget.exr");
+    wait_for_job(submit(&farm, 64, &out, &[]), &farm);
+    assert_same_exr(&out, &reference, &farm);
+    let c = farm.coordinator.as_ref().expect("a running coordinator");
+    let log = c.stderr_text();
+    let refused = log
+        .lines()
+        .find(|l| l.contains("rolling back to the last checkpoint"))
+        .unwrap_or_else(|| panic!("the job rolled back\n{}", farm.logs()));
+    assert!(
+        refused.contains("records of worker") && refused.contains("accepted from it"),
+        "the roll back names the coverage: {refused}"
+    );
+    let w = farm.workers[0].stderr_text();
+    assert!(w.contains("records forgotten (fault injection)"), "{w}");
+    assert!(w.contains("records refused"), "the worker was told\n{w}");
+}
+
+#[test]
 fn submit_with_a_wrong_token_or_a_malformed_scene_is_refused_and_nothing_is_kept() {
     let farm = Farm::start("bad", 0);
     let out = farm.data.join("never.exr");

@@ -23,7 +23,9 @@ use std::collections::{BTreeMap, HashMap};
 use std::time::Duration;
 
 use pathfarm_farm::codec;
-use pathfarm_farm::driver::{Blame, Blocklist, JobDriver, Standing, Step, TileIn, Tiling};
+use pathfarm_farm::driver::{
+    Blame, Blocklist, Coverage, JobDriver, Standing, Step, TileIn, Tiling,
+};
 use pathfarm_farm::scheduler::{
     Event, JobId, LeaseId, Millis, Rejection, Scheduler, SchedulerConfig, WorkerId,
 };
@@ -101,7 +103,7 @@ struct SimWorker {
     /// A hung worker neither heartbeats nor delivers until it resumes.
     hung_until: Option<Millis>,
     /// Per job, the records of its accepted results, by tree version and epoch.
-    held: HashMap<u64, (RecordsKey, IterationStats)>,
+    held: HashMap<u64, (RecordsKey, IterationStats, Coverage)>,
     uploads: u64,
 }
 
@@ -195,17 +197,20 @@ fn checkpoint(d: &JobDriver, into: &mut Option<Vec<u8>>) {
 /// (`crates/farm/src/worker/records.rs` `keep`), written apart on purpose: a test that
 /// called the product's rule could not catch a mistake in it.
 fn keep(
-    held: &mut HashMap<u64, (RecordsKey, IterationStats)>,
-    job: u64,
+    held: &mut HashMap<u64, (RecordsKey, IterationStats, Coverage)>,
+    (job, lease): (u64, LeaseId),
     key: RecordsKey,
     r: IterationStats,
 ) {
     match held.get_mut(&job) {
-        Some((k, mine)) if *k == key => mine.merge(&r).expect("one structure"),
+        Some((k, mine, covered)) if *k == key => {
+            mine.merge(&r).expect("one structure");
+            covered.add(lease.0);
+        }
         // (from before a roll back, acknowledged after the new epoch's)
-        Some((k, _)) if k.1 > key.1 => {}
+        Some((k, _, _)) if k.1 > key.1 => {}
         _ => {
-            held.insert(job, (key, r));
+            held.insert(job, (key, r, Coverage::of([lease.0])));
         }
     }
 }
@@ -416,6 +421,7 @@ impl Farm<'_> {
         };
         let tile = TileIn {
             index: p.tile as usize,
+            lease: p.lease,
             out: &out,
             render_seconds: 1e-3 * (1 + p.tile % 5) as f64,
         };
@@ -431,7 +437,8 @@ impl Farm<'_> {
             .expect("checked");
         self.seen.accepted_after_cancel += j.cancelled as u32;
         if let Some((key, r)) = p.records {
-            keep(&mut self.workers.get_mut(&wid).unwrap().held, p.job, key, r);
+            let held = &mut self.workers.get_mut(&wid).unwrap().held;
+            keep(held, (p.job, p.lease), key, r);
         }
         if !ended.is_empty() {
             checkpoint(j.driver.as_ref().unwrap(), &mut j.checkpoint);
@@ -519,12 +526,12 @@ impl Farm<'_> {
                 if w.hung_until.is_some_and(|t| now < t) {
                     continue;
                 }
-                let (k, records) = w.held.remove(&n).expect("a holder keeps records");
+                let (k, records, covered) = w.held.remove(&n).expect("a holder keeps records");
                 assert_eq!(
                     k, key,
                     "a holder's records are of the version and epoch asked"
                 );
-                d.records_from(WorkerId(wid), &records)
+                d.records_from(WorkerId(wid), &records, &covered)
                     .expect("records taken");
             }
             if d.stalled(now, self.timeout) {

@@ -25,7 +25,7 @@ pub const FILE_DESCRIPTOR_SET: &[u8] =
 /// The protocol version this build speaks: a worker sends it in `Register`, and the
 /// coordinator refuses versions it does not speak. Bumped on any change that an older peer
 /// would misread; adding fields or messages does not bump it (fields are never renumbered).
-pub const PROTOCOL_VERSION: u32 = 5;
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// gRPC metadata key in which pathfarm's clients and workers send [`PROTOCOL_VERSION`] on
 /// every call; the coordinator refuses a call naming another version (calls without it, from

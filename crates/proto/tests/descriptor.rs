@@ -212,6 +212,20 @@ fn key_messages_keep_their_field_numbers() {
         ])
     );
     assert_eq!(
+        field_numbers(message(&fds, "RecordsHeader")),
+        table(&[
+            ("worker_id", 1),
+            ("job_id", 2),
+            ("tree_digest", 3),
+            ("records_epoch", 4),
+            ("lost", 5),
+            ("size", 6),
+            ("digest", 7),
+            ("covered_leases", 8),
+            ("covered_digest", 9),
+        ])
+    );
+    assert_eq!(
         field_numbers(message(&fds, "Lease")),
         table(&[
             ("lease_id", 1),

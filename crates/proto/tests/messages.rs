@@ -142,6 +142,8 @@ fn control_messages_round_trip() {
             lost: false,
             size: 3,
             digest: digest(2),
+            covered_leases: 4,
+            covered_digest: digest(3),
         })),
     });
     round_trip(&v1::RecordsUpload {
@@ -305,6 +307,6 @@ fn wire_form_is_stable() {
 
 #[test]
 fn constants() {
-    assert_eq!(PROTOCOL_VERSION, 5);
+    assert_eq!(PROTOCOL_VERSION, 6);
     assert_eq!(MAX_CHUNK_BYTES, 1_048_576);
 }

@@ -12,6 +12,7 @@ use tonic::{Code, Request};
 
 use super::*;
 use crate::bundle::digest_of;
+use crate::driver::Coverage;
 
 /// Job `id`'s EXR, downloaded.
 async fn download_exr(jobs: &mut JobsClient<Channel>, id: &str) -> Vec<u8> {
@@ -485,13 +486,15 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
     let mut tiles = 0;
     let (mut saw_preview, mut saw_eta) = (false, false);
     // the quadtree records of hold_records leases, kept until FlushRecords
-    let mut held: Option<pathfarm_guide::IterationStats> = None;
+    // (and the leases they are of)
+    let mut held: Option<(pathfarm_guide::IterationStats, Coverage)> = None;
     let mut flushes = 0;
     loop {
         let m = inbound.message().await.unwrap().unwrap();
         if let Some(v1::coordinator_message::Msg::FlushRecords(f)) = &m.msg {
-            let records = held.take().expect("records held when asked for");
-            let ack = upload_records(&mut workers, (worker_id, &key), f, &records.encode()).await;
+            let (records, covered) = held.take().expect("records held when asked for");
+            let (bytes, who) = (records.encode(), (worker_id, &key[..]));
+            let ack = upload_records(&mut workers, who, f, (&bytes, &covered)).await;
             assert!(ack.accepted, "{ack:?}");
             flushes += 1;
             continue;
@@ -559,8 +562,11 @@ async fn fake_worker_renders_a_job_bit_identical_to_one_process() {
                 let gradients = tree.take_gradients();
                 let records = tree.take_stats();
                 match &mut held {
-                    Some(h) => h.merge(&records).unwrap(),
-                    None => held = Some(records),
+                    Some((h, covered)) => {
+                        h.merge(&records).unwrap();
+                        covered.add(lease.lease_id);
+                    }
+                    None => held = Some((records, Coverage::of([lease.lease_id]))),
                 }
                 gradients.encode()
             }
@@ -773,7 +779,7 @@ async fn upload_records(
     workers: &mut WorkersClient<Channel>,
     (worker_id, key): (u64, &[u8]),
     f: &v1::FlushRecords,
-    records: &[u8],
+    (records, covered): (&[u8], &Coverage),
 ) -> v1::RecordsAck {
     use v1::records_upload::Part;
     let header = v1::RecordsHeader {
@@ -784,6 +790,8 @@ async fn upload_records(
         lost: false,
         size: records.len() as u64,
         digest: digest_of(records).0.to_vec(),
+        covered_leases: covered.leases(),
+        covered_digest: covered.digest(),
     };
     let mut parts = vec![v1::RecordsUpload {
         part: Some(Part::Header(header)),

@@ -18,7 +18,8 @@
 //! * tiles come in: [`JobDriver::tiles_in`] (after the scheduler checked the leases, before
 //!   it commits them: a tile the session refuses changes nothing).
 //! * [`Step::Collect`]: ask those workers for their records; each answer goes to
-//!   [`JobDriver::records_from`]. A holder that is lost ([`JobDriver::holds`]) or a
+//!   [`JobDriver::records_from`], with the leases they say they cover ([`Coverage`]), which
+//!   must be those the driver took from that worker. A holder that is lost ([`JobDriver::holds`]) or a
 //!   collection that stalls ([`JobDriver::stalled`]) means the job must restart from its
 //!   checkpoint, under a new epoch: a new driver.
 //! * [`Step::IterationEnded`]: the tree was refined; the session can be checkpointed.
@@ -26,10 +27,12 @@
 //!   [`Session::finish`]).
 
 mod blocklist;
+mod coverage;
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
 pub use blocklist::{Blame, Blocklist, Standing};
+pub use coverage::{Coverage, COVERAGE_DIGEST_BYTES};
 
 use pathfarm_guide::IterationStats;
 use pathfarm_render::guided::{Next, RecordsError, Session};
@@ -38,7 +41,7 @@ use pathfarm_render::session::TileError;
 use pathfarm_render::Region;
 
 use crate::codec;
-use crate::scheduler::{Millis, WorkerId};
+use crate::scheduler::{LeaseId, Millis, WorkerId};
 use crate::tiling::CostMap;
 
 /// How a job's units are cut into tiles.
@@ -99,12 +102,25 @@ pub enum RecordsRefused {
     NotAsked(WorkerId),
     #[error("records refused by the session: {0}")]
     Session(#[from] RecordsError),
+    #[error(
+        "records of worker {worker} cover {stated} leases (digest {stated_digest}), not the \
+         {taken} accepted from it (digest {taken_digest})"
+    )]
+    Coverage {
+        worker: WorkerId,
+        stated: u64,
+        stated_digest: String,
+        taken: u64,
+        taken_digest: String,
+    },
 }
 
 /// A rendered tile handed to [`JobDriver::tiles_in`].
 pub struct TileIn<'a> {
     /// Its index in the unit's tiling.
     pub index: usize,
+    /// The lease it was rendered under (what the holder's records say they cover).
+    pub lease: LeaseId,
     pub out: &'a TileOutput,
     /// What the worker says it spent rendering it (for the next units' tiling).
     pub render_seconds: f64,
@@ -132,9 +148,9 @@ pub struct JobDriver {
     flights: Vec<PassSpec>,
     tiling: Tiling,
     records_epoch: u64,
-    /// Workers whose tiles of the current tree version's recording units were accepted:
-    /// they keep those tiles' records until asked.
-    holders: BTreeSet<WorkerId>,
+    /// Workers whose tiles of the current tree version's recording units were accepted,
+    /// and those tiles' leases: the workers keep those tiles' records until asked.
+    holders: BTreeMap<WorkerId, Coverage>,
     collecting: Option<Collecting>,
     published: Published,
     /// When the driver started: the session's clock is seconds since then.
@@ -150,7 +166,7 @@ impl JobDriver {
             flights: Vec::new(),
             tiling,
             records_epoch,
-            holders: BTreeSet::new(),
+            holders: BTreeMap::new(),
             collecting: None,
             published: Published::default(),
             started: now,
@@ -207,7 +223,7 @@ impl JobDriver {
             Some(c) if !c.left.is_empty() => return Ok(Step::Wait),
             Some(_) => {}
             None if !self.holders.is_empty() => {
-                let left = self.holders.clone();
+                let left: BTreeSet<WorkerId> = self.holders.keys().copied().collect();
                 let ask = left.iter().copied().collect();
                 self.collecting = Some(Collecting { left, since: now });
                 return Ok(Step::Collect(ask));
@@ -288,7 +304,8 @@ impl JobDriver {
             .flight(unit)
             .expect("the session took tiles of a unit in flight");
         if spec.record() {
-            self.holders.insert(worker);
+            let covered = self.holders.entry(worker).or_default();
+            tiles.iter().for_each(|t| covered.add(t.lease.0));
         }
         if let Tiling::ByCost(cost) = &mut self.tiling {
             for t in tiles {
@@ -307,14 +324,31 @@ impl JobDriver {
         (self.collecting.as_ref()).is_some_and(|c| c.left.contains(&worker))
     }
 
-    /// Adds the records `worker` was asked for. Returns how many holders still owe theirs.
+    /// Adds the records `worker` was asked for, which it says are those of the leases
+    /// `covered`. Returns how many holders still owe theirs. Nothing changes on an error.
     pub fn records_from(
         &mut self,
         worker: WorkerId,
         records: &IterationStats,
+        covered: &Coverage,
     ) -> Result<usize, RecordsRefused> {
         if !self.is_asked(worker) {
             return Err(RecordsRefused::NotAsked(worker));
+        }
+        let taken = self.holders.get(&worker).copied().unwrap_or_default();
+        if *covered != taken {
+            // (a prefix names a digest well enough in a message)
+            let hex = |c: &Coverage| {
+                let d = crate::bundle::Digest(c.digest().try_into().expect("32 bytes"));
+                d.to_hex()[..16].to_string()
+            };
+            return Err(RecordsRefused::Coverage {
+                worker,
+                stated: covered.leases(),
+                stated_digest: hex(covered),
+                taken: taken.leases(),
+                taken_digest: hex(&taken),
+            });
         }
         self.session.add_records(records)?;
         let c = self.collecting.as_mut().expect("asked");
@@ -325,7 +359,7 @@ impl JobDriver {
     /// Whether `worker` holds records of the iteration in progress: if it is lost, or
     /// loses them, the job must restart from its checkpoint.
     pub fn holds(&self, worker: WorkerId) -> bool {
-        self.holders.contains(&worker)
+        self.holders.contains_key(&worker)
     }
 
     /// Whether the holders were asked more than `timeout` ago and some have not answered

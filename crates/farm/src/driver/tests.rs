@@ -45,8 +45,14 @@ fn driver(scene: &Scene, spp: u32) -> JobDriver {
     JobDriver::new(s, Tiling::Fixed(8), 7, Millis(0))
 }
 
+/// The lease tile `index` of `unit` is rendered under, in these tests.
+fn lease_of(unit: u64, index: usize) -> LeaseId {
+    LeaseId(unit * 100 + index as u64)
+}
+
 /// Renders every tile of `spec` as worker `w` would (a tree from its published form) and
-/// hands them in; the records stay with the "worker" and are returned.
+/// hands them in (tile `i` under lease [`lease_of`]); the records stay with the "worker"
+/// and are returned.
 fn render(
     scene: &Scene,
     d: &mut JobDriver,
@@ -80,6 +86,7 @@ fn render(
     let tiles: Vec<TileIn> = (outs.iter().enumerate())
         .map(|(index, out)| TileIn {
             index,
+            lease: lease_of(spec.unit, index),
             out,
             render_seconds: 0.01,
         })
@@ -108,7 +115,8 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
     assert_eq!(d.published_tree(), Some(first.spec.tree_version));
     assert_eq!(first.tiles, 4, "16x16 in tiles of 8");
     assert!(first.spec.record(), "the first unit trains the guide");
-    let mut records = None;
+    let mut records: Option<IterationStats> = None;
+    let mut leases = Vec::new();
     let mut offers = vec![first];
     let mut asked = Vec::new();
     // Render what is offered until the session wants the iteration's records.
@@ -119,7 +127,14 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
                 let spec = *d.flights().first().expect("a unit in flight");
                 let (ended, r) = render(&scene, &mut d, spec, w);
                 assert_eq!(ended.first().map(|s| s.unit), Some(spec.unit));
-                records = records.or(r);
+                if let Some(r) = r {
+                    match &mut records {
+                        Some(kept) => kept.merge(&r).unwrap(),
+                        None => records = Some(r),
+                    }
+                    let tiles = d.session().tiles_of(spec.unit).map_or(4, <[_]>::len);
+                    leases.extend((0..tiles).map(|i| lease_of(spec.unit, i).0));
+                }
                 assert!(d.holds(w), "a recording unit's worker holds its records");
             }
             Step::Collect(holders) => {
@@ -140,13 +155,29 @@ fn inputs_are_published_once_per_version_and_records_are_asked_of_their_holders(
         assert!(!o.new_tree, "the tree of a version is published once");
     }
     let records = records.expect("records were kept");
+    let covered = Coverage::of(leases.iter().copied());
     assert!(matches!(
-        d.records_from(WorkerId(4), &records),
+        d.records_from(WorkerId(4), &records, &covered),
         Err(RecordsRefused::NotAsked(_))
     ));
     assert!(!d.stalled(Millis(30), Duration::from_millis(100)));
     assert!(d.stalled(Millis(200), Duration::from_millis(100)));
-    assert_eq!(d.records_from(w, &records).unwrap(), 0);
+    // Records that leave out one accepted upload, or count one too many, are refused and
+    // change nothing: the holder is still asked.
+    let short = Coverage::of(leases[1..].iter().copied());
+    let mut extra = covered;
+    extra.add(leases[0]);
+    for wrong in [short, extra, Coverage::default()] {
+        let e = d.records_from(w, &records, &wrong).unwrap_err();
+        assert!(matches!(e, RecordsRefused::Coverage { .. }), "{e}");
+        assert!(
+            e.to_string()
+                .contains(&format!("not the {}", covered.leases())),
+            "{e}"
+        );
+        assert!(d.is_asked(w), "still owed");
+    }
+    assert_eq!(d.records_from(w, &records, &covered).unwrap(), 0);
     assert!(!d.stalled(Millis(200), Duration::from_millis(100)));
     match d.step(Millis(40), 1).unwrap() {
         Step::IterationEnded { iteration } => assert_eq!(iteration, offers[0].spec.iteration),
@@ -186,6 +217,7 @@ fn tiles_the_session_refuses_change_nothing() {
     let w = WorkerId(1);
     let wrong_unit = [TileIn {
         index: 0,
+        lease: LeaseId(1),
         out: &out,
         render_seconds: 0.0,
     }];
@@ -194,6 +226,7 @@ fn tiles_the_session_refuses_change_nothing() {
         .is_err());
     let wrong_index = [TileIn {
         index: 1,
+        lease: LeaseId(2),
         out: &out,
         render_seconds: 0.0,
     }];

@@ -452,7 +452,7 @@ impl Leases {
             // Kept only for tiles the coordinator took from this worker; a rejected
             // upload's records go with it (its tiles are rendered again elsewhere).
             (UploadEnd::Acked(ack), Some((key, stats))) if ack.accepted && !ack.duplicate => {
-                records::keep(&mut self.held, &job, key, stats)
+                records::keep(&mut self.held, (&job, &ids), key, stats)
             }
             // Whether the coordinator took it is unknown: the records kept cannot be
             // vouched for.

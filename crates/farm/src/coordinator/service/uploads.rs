@@ -22,7 +22,7 @@ use pathfarm_render::pass::TilePixels;
 use pathfarm_render::{Region, SplatPlan};
 
 use super::ledger::thread_cpu_seconds;
-use crate::driver::TileIn;
+use crate::driver::{Coverage, TileIn};
 
 /// Why an upload is refused, and whether its sender is to blame (a stale upload, whose
 /// lease expired or whose unit is over, is nobody's fault).
@@ -293,6 +293,7 @@ impl Svc {
         let tiles_in: Vec<TileIn> = (tiles.iter())
             .map(|t| TileIn {
                 index: t.index,
+                lease: t.lease,
                 out: &t.out,
                 render_seconds: t.counters.render_seconds,
             })
@@ -421,9 +422,15 @@ impl Svc {
             {
                 Err("size or digest does not match the records".to_string())
             }
-            false => IterationStats::decode(&bytes)
-                .map(Some)
-                .map_err(|e| format!("records: {e}")),
+            false => Coverage::from_wire(header.covered_leases, &header.covered_digest).and_then(
+                |covered| {
+                    let records = IterationStats::decode(&bytes);
+                    Ok(Some((
+                        records.map_err(|e| format!("records: {e}"))?,
+                        covered,
+                    )))
+                },
+            ),
         };
         // Decoding is timed apart from waiting for the state lock.
         let decode_s = decode_start.elapsed().as_secs_f64();
@@ -435,7 +442,7 @@ impl Svc {
             Err(detail) => return records_refused(detail),
         };
         let w = header.worker_id;
-        let records = match records {
+        let (records, covered) = match records {
             Ok(Some(r)) => r,
             Ok(None) => {
                 shared.roll_back(st, n, &format!("worker {w} lost the records it held"));
@@ -451,7 +458,7 @@ impl Svc {
             .and_then(|j| j.active_mut())
             .expect("asked");
         let merge_start = Instant::now();
-        let left = match a.driver.records_from(WorkerId(w), &records) {
+        let left = match a.driver.records_from(WorkerId(w), &records, &covered) {
             Ok(left) => left,
             Err(e) => {
                 let detail = e.to_string();
