@@ -95,7 +95,7 @@ impl FilmPart {
     fn write(&self, blobs: &BlobStore) -> std::io::Result<Digest> {
         match self.stored {
             Some(d) if blobs.has(&d) => Ok(d),
-            _ => blobs.put(&checkpoint::encode_film(&self.film)),
+            _ => blobs.put_written(|sink| checkpoint::write_film(&self.film, sink)),
         }
     }
 }
@@ -330,6 +330,39 @@ mod tests {
         assert_eq!(again.stored, Some(d3));
         assert_eq!(again.write(&blobs).unwrap(), d3);
         assert!(blobs.has(&d3));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_film_written_in_pieces_is_the_blob_of_its_encoding() {
+        let dir = std::env::temp_dir().join(format!("pathfarm-cp-pieces-{}", std::process::id()));
+        let blobs = BlobStore::open(&dir).unwrap();
+        // more pixels than one piece holds, and not a whole number of pieces
+        let mut film = Film::new(129, 67);
+        for (i, p) in film.pixels.iter_mut().enumerate() {
+            p.add(
+                0.25 + (i % 7) as f32,
+                glam::Vec3::new(i as f32, 1.0 / (1 + i) as f32, -2.0),
+            );
+        }
+        let whole = checkpoint::encode_film(&film);
+        let d = FilmPart::of(Arc::new(film.clone()), &[])
+            .write(&blobs)
+            .unwrap();
+        assert_eq!(d, crate::bundle::digest_of(&whole));
+        assert_eq!(std::fs::read(blobs.path(&d)).unwrap(), whole);
+        let back = checkpoint::decode_film(&whole, 129, 67).unwrap();
+        assert_eq!(back, film);
+        // written again: the same blob, and no temporary file left behind
+        assert_eq!(FilmPart::of(Arc::new(film), &[]).write(&blobs).unwrap(), d);
+        assert_eq!(std::fs::read_dir(dir.join("tmp")).unwrap().count(), 0);
+        // a sink that fails leaves nothing behind either
+        let e = blobs.put_written(|sink| {
+            sink(b"part")?;
+            Err(std::io::Error::other("disk full"))
+        });
+        assert!(e.is_err());
+        assert_eq!(std::fs::read_dir(dir.join("tmp")).unwrap().count(), 0);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

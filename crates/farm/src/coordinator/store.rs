@@ -106,6 +106,36 @@ impl BlobStore {
         result.map(|()| digest)
     }
 
+    /// [`BlobStore::put`] of the bytes `write` hands its sink, piece by piece, hashed as they
+    /// are written: a blob made on the fly never sits in memory whole (a checkpoint's film:
+    /// 190 MB at 1920x1080).
+    pub(crate) fn put_written(
+        &self,
+        write: impl FnOnce(&mut dyn FnMut(&[u8]) -> io::Result<()>) -> io::Result<()>,
+    ) -> io::Result<Digest> {
+        let tmp = self.temp_path("blob");
+        let result = (|| {
+            let mut f = fs::File::create(&tmp)?;
+            let mut hasher = blake3::Hasher::new();
+            write(&mut |piece: &[u8]| {
+                hasher.update(piece);
+                f.write_all(piece)
+            })?;
+            let digest = Digest(*hasher.finalize().as_bytes());
+            if self.has(&digest) {
+                fs::remove_file(&tmp)?;
+                return Ok(digest);
+            }
+            f.sync_all()?;
+            fs::rename(&tmp, self.path(&digest))?;
+            Ok(digest)
+        })();
+        if result.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        result
+    }
+
     /// [`BlobStore::put`] without waiting for the disk: for blobs derived from state that is
     /// kept durably elsewhere (a unit's inputs), or made durable later ([`BlobStore::sync`]).
     pub(crate) fn put_unsynced(&self, bytes: &[u8]) -> io::Result<Digest> {
