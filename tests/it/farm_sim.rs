@@ -504,7 +504,7 @@ impl Farm<'_> {
                 records,
             };
             w.uploads += 1;
-            if w.kind == Kind::Garbage && w.uploads % 2 == 0 {
+            if w.kind == Kind::Garbage && w.uploads.is_multiple_of(2) {
                 spoil(&mut p, w.uploads / 2);
             }
             w.pending.push(p);
@@ -641,7 +641,6 @@ fn random_schedule_with_faults_and_hostile_workers_gives_one_process_bits() {
         max_lease_lifetime: Duration::from_millis(3000),
         max_attempts: 1000,
         leases_per_worker: 3,
-        ..SchedulerConfig::default()
     };
     let mut total = Seen::default();
     for sim_seed in [1u64, 2, 3] {

@@ -217,9 +217,11 @@ fn render_tiled(scene: &Scene, params: &GuidedParams, drive: Drive) -> Driven {
             tile_size: 5,
         };
         let mut out = render_unit(&inputs, &spec, flight.tiles[index], &|_| {});
-        if let (TilePixels::Samples(v), Some(plan), true) =
-            (&out.pixels, session.splat_plan(spec.unit), index % 2 == 0)
-        {
+        if let (TilePixels::Samples(v), Some(plan), true) = (
+            &out.pixels,
+            session.splat_plan(spec.unit),
+            index.is_multiple_of(2),
+        ) {
             // every other tile prepared apart, as a farm coordinator prepares them
             let prepared = plan.prepare(flight.tiles[index], v);
             out.pixels = TilePixels::Prepared(Box::new(prepared));

@@ -1,5 +1,8 @@
 //! `pathfarm`: the command line.
 
+// Checks are written `!(x > 0.0)` on purpose: they also reject NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
 mod converge;
 mod cpu_time;
 mod farm_cmd;

@@ -403,7 +403,7 @@ impl Client {
     ) -> Result<String, ClientError> {
         let Collected { manifest, locals } = collected;
         let digests: Vec<Vec<u8>> = manifest.files.iter().map(|e| e.digest.0.to_vec()).collect();
-        let bundle = bundle_proto(&manifest);
+        let bundle = bundle_proto(manifest);
         let mut missing = Vec::new();
         for (i, batch) in digests.chunks(50_000).enumerate() {
             // the first request carries the manifest: a bundle over the coordinator's limits
@@ -419,11 +419,7 @@ impl Client {
             missing.extend(r.missing);
         }
         for m in &missing {
-            let Some(i) = manifest
-                .files
-                .iter()
-                .position(|e| &e.digest.0[..] == &m[..])
-            else {
+            let Some(i) = manifest.files.iter().position(|e| e.digest.0[..] == m[..]) else {
                 return Err(ClientError::Usage(
                     "the coordinator asked for a blob the bundle does not hold".into(),
                 ));

@@ -62,7 +62,7 @@ fn body<'a>(
     }
     let count = u32::from_le_bytes(bytes[5..9].try_into().unwrap()) as usize;
     let rest = &bytes[9..];
-    let expected = count.checked_mul(item).unwrap_or(usize::MAX);
+    let expected = count.saturating_mul(item);
     if rest.len() != expected {
         return Err(CodecError::Length {
             what,

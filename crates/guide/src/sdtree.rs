@@ -172,7 +172,7 @@ pub enum HeldSlot {
 impl HeldSlot {
     /// The slot of unit `unit`: consecutive units use different slots.
     pub fn of_unit(unit: u64) -> Self {
-        if unit % 2 == 0 {
+        if unit.is_multiple_of(2) {
             Self::Even
         } else {
             Self::Odd

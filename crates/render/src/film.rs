@@ -204,6 +204,8 @@ impl Accumulator {
     }
 
     /// Adds one sample `v` with filter weight `w`, as [`PixelStats::add`] does.
+    // (indexed loops over fixed-size arrays: the form the compiler puts in vector lanes)
+    #[allow(clippy::needless_range_loop)]
     #[inline(always)]
     pub(crate) fn add(&mut self, w: f32, v: Vec3) {
         let w = w as f64;

@@ -11,6 +11,8 @@
 //! - This crate does no network I/O.
 
 #![warn(missing_docs)]
+// Checks are written `!(x > 0.0)` on purpose: they also reject NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod camera;
 pub mod checkpoint;

@@ -1040,10 +1040,10 @@ impl Session {
                 return;
             }
         }
-        self.end_iteration(it, now);
+        self.end_iteration(*it, now);
     }
 
-    fn end_iteration(&mut self, it: Box<Iteration>, now: f64) {
+    fn end_iteration(&mut self, it: Iteration, now: f64) {
         let npix = self.width as u64 * self.height as u64;
         let k = it.k;
         self.passes_done += it.passes;

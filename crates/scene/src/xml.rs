@@ -273,7 +273,10 @@ fn parse_scene_file(s: &mut Shared, path: &Path, depth: usize) -> Result<(), Sce
     if depth > 0 && Category::from_tag(root.tag_name().name()).is_some() {
         // An included file may hold a single object instead of a scene.
         return match parser.parse_element(root)? {
-            Element::Object(obj) => Ok(parser.s.objects.push(obj)),
+            Element::Object(obj) => {
+                parser.s.objects.push(obj);
+                Ok(())
+            }
             Element::Prop(_) => unreachable!("an object tag"),
         };
     }

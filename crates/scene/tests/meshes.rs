@@ -40,8 +40,8 @@ fn polygon_obj(n: usize, negative: bool) -> String {
 fn load_polygon(name: &str, n: usize, negative: bool) -> SceneDesc {
     let obj = polygon_obj(n, negative);
     let (p, _, _) = mesh_scene(name, "obj", "poly.obj", obj.as_bytes());
-    let s = load_scene(&p, &[]).unwrap();
-    s
+
+    load_scene(&p, &[]).unwrap()
 }
 
 #[test]

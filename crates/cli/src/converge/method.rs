@@ -143,7 +143,7 @@ pub fn apply_sweep(p: &mut GuidedParams, name: &str, v: f64) -> Result<()> {
     };
     match name {
         "s_tree_threshold" if v > 0.0 => p.s_tree_threshold = v,
-        "d_tree_threshold" if v >= 1e-5 && v <= 1.0 => p.d_tree_threshold = v,
+        "d_tree_threshold" if (1e-5..=1.0).contains(&v) => p.d_tree_threshold = v,
         "spp_per_pass" => p.spp_per_pass = whole("a whole number of at least 1", 1.0)?,
         "carry_over" if v <= 1.0 => p.carry_over = v,
         "guided_rr_depth" => p.guided_rr_depth = whole("a whole number of at least 1", 1.0)?,

@@ -1302,7 +1302,7 @@ fn render(shared: &Shared, p: Prepared) -> Result<RenderedTile, Fail> {
     );
     let part = v1::UploadedTile {
         lease_id: p.lease.lease_id,
-        tile: Some(rect.clone()),
+        tile: Some(*rect),
         counters: Some(v1::TileCounters {
             render_seconds: seconds,
             prepare_seconds,

@@ -26,7 +26,8 @@ pub(super) enum UnitPixels {
 #[derive(Default)]
 pub(super) struct Spares {
     films: Vec<Film>,
-    /// (Two units are in flight at a time.)
+    /// (Two units are in flight at a time; boxed as `UnitPixels` holds them.)
+    #[allow(clippy::vec_box)]
     splats: Vec<Box<UnitSplat>>,
     /// A film having its pages faulted in on the rayon pool ([`Spares::warm_up`]).
     warming: Option<Receiver<Film>>,

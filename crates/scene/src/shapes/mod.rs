@@ -220,7 +220,7 @@ fn cylinder(p: &Props, to_world: DMat4, flip_normals: bool) -> Result<Geometry, 
     let radius = p.float("radius", 1.0)? as f64;
     let axis = p1 - p0;
     let length = axis.length();
-    if !(radius > 0.0 && radius.is_finite()) || !(length > 0.0 && length.is_finite()) {
+    if !(radius > 0.0 && radius.is_finite() && length > 0.0 && length.is_finite()) {
         let msg = "cylinder: radius and the distance from p0 to p1 must be positive and finite";
         return Err(invalid(&loc, msg));
     }
