@@ -716,7 +716,8 @@ pub(crate) fn build_scene(
         resolution,
     } = *options;
     let key = world_key(manifest, dir, overrides, limits).map_err(SceneBuild::Load)?;
-    let held = held(&key);
+    // (a world held for inspection is never rendered on)
+    let held = held(&key).filter(|w| w.serves(purpose));
     let decode = match (&held, purpose) {
         (Some(_), _) => Decode::Nothing,
         (None, pathfarm_render::Purpose::Inspect) => Decode::Geometry,
@@ -758,4 +759,50 @@ pub fn override_resolution(
     desc.sensor.film.width = width;
     desc.sensor.film.height = height;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pathfarm_render::Purpose;
+
+    #[test]
+    fn a_world_built_for_inspection_is_never_rendered_on() {
+        let dir = std::env::temp_dir().join(format!("pathfarm-held-world-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("scene.xml");
+        let xml = include_str!("coordinator/testdata/lit-floor.xml");
+        std::fs::write(&scene, xml).unwrap();
+        let limits = Limits::default();
+        let (manifest, _) = collect(&scene, &[], None, &limits).unwrap();
+        let options = SceneOptions {
+            overrides: &[],
+            integrator: None,
+            resolution: None,
+        };
+        let build = |purpose, held: Option<std::sync::Arc<pathfarm_render::World>>| {
+            let (s, _, built) =
+                build_scene(&manifest, &dir, &options, &limits, purpose, |_| held).unwrap();
+            (s.shared_world(), built)
+        };
+        let (inspected, built) = build(Purpose::Inspect, None);
+        assert_eq!(
+            (inspected.purpose(), built),
+            (Purpose::Inspect, Built::FromFiles)
+        );
+        let (_, built) = build(Purpose::Inspect, Some(inspected.clone()));
+        assert_eq!(built, Built::OnHeldWorld, "an inspection shares it");
+        let (rendered, built) = build(Purpose::Render, Some(inspected));
+        assert_eq!(built, Built::FromFiles, "a render builds its own");
+        assert_eq!(rendered.purpose(), Purpose::Render);
+        let (_, built) = build(Purpose::Inspect, Some(rendered.clone()));
+        assert_eq!(
+            built,
+            Built::OnHeldWorld,
+            "a render's world serves an inspection"
+        );
+        let (_, built) = build(Purpose::Render, Some(rendered));
+        assert_eq!(built, Built::OnHeldWorld);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -42,6 +42,8 @@ pub struct World {
     /// The bytes of the scene's meshes and textures (its description's
     /// [`SceneDesc::data_bytes`]); with the BVH, [`World::memory_bytes`].
     data_bytes: u64,
+    /// What it was built for ([`World::serves`]).
+    purpose: Purpose,
 }
 
 /// Everything a render reads, immutable once built: its [`World`] (geometry, lights,
@@ -268,7 +270,21 @@ impl World {
             features: desc.features,
             triangle_count,
             data_bytes: desc.data_bytes(),
+            purpose,
         })
+    }
+
+    /// What the world was built for.
+    pub fn purpose(&self) -> Purpose {
+        self.purpose
+    }
+
+    /// Whether a scene for `purpose` may be built on this world ([`Scene::with_world`]): a
+    /// world built for rendering serves any purpose; one built for inspection has no BVH
+    /// (and, from the farm's validation, stand-ins for its images), so it serves only
+    /// inspection.
+    pub fn serves(&self, purpose: Purpose) -> bool {
+        self.purpose == Purpose::Render || purpose == Purpose::Inspect
     }
 
     /// What the world holds in memory, an upper estimate: its meshes, textures and BVH (what
