@@ -9,6 +9,8 @@
 //! The digest is a sum (four wrapping u64 lanes of a hash of each lease id), so the order in
 //! which the uploads were acknowledged does not matter, and a lease counted twice changes it.
 
+use std::fmt;
+
 /// The leases some records cover: how many, and the lanes of their digest.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Coverage {
@@ -18,6 +20,11 @@ pub struct Coverage {
 
 /// Bytes of [`Coverage::digest`].
 pub const COVERAGE_DIGEST_BYTES: usize = 32;
+
+/// A stated coverage digest of the wrong size.
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
+#[error("covered_digest is {0} bytes, not {COVERAGE_DIGEST_BYTES}")]
+pub struct CoverageDigestLength(pub usize);
 
 /// Domain separation: these hashes are of nothing else.
 const DOMAIN: &[u8] = b"pathfarm records coverage v1";
@@ -54,18 +61,28 @@ impl Coverage {
     }
 
     /// The coverage a header states: `leases` and a digest of [`COVERAGE_DIGEST_BYTES`].
-    pub fn from_wire(leases: u64, digest: &[u8]) -> Result<Self, String> {
+    pub fn from_wire(leases: u64, digest: &[u8]) -> Result<Self, CoverageDigestLength> {
         if digest.len() != COVERAGE_DIGEST_BYTES {
-            return Err(format!(
-                "covered_digest is {} bytes, not {COVERAGE_DIGEST_BYTES}",
-                digest.len()
-            ));
+            return Err(CoverageDigestLength(digest.len()));
         }
         let mut lanes = [0; 4];
         for (lane, chunk) in lanes.iter_mut().zip(digest.chunks_exact(8)) {
             *lane = u64::from_le_bytes(chunk.try_into().expect("8 bytes"));
         }
         Ok(Coverage { leases, lanes })
+    }
+}
+
+/// "N leases (digest 0123abcd...)": the count and the digest's first 8 bytes, enough to
+/// tell two coverages apart in a message.
+impl fmt::Display for Coverage {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let prefix: String = self.lanes[0]
+            .to_le_bytes()
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect();
+        write!(f, "{} leases (digest {prefix}...)", self.leases)
     }
 }
 
@@ -89,7 +106,9 @@ mod tests {
         let c = Coverage::of([1, 2]);
         assert_eq!(Coverage::from_wire(c.leases(), &c.digest()), Ok(c));
         let e = Coverage::from_wire(2, &[0; 31]).unwrap_err();
-        assert!(e.contains("covered_digest is 31 bytes"), "{e}");
+        assert_eq!(e.to_string(), "covered_digest is 31 bytes, not 32");
+        let shown = Coverage::from_wire(3, &[0xab; 32]).unwrap().to_string();
+        assert_eq!(shown, "3 leases (digest abababababababab...)");
         assert_eq!(Coverage::default().digest(), vec![0; 32]);
     }
 }

@@ -32,7 +32,7 @@ mod coverage;
 use std::collections::{BTreeMap, BTreeSet};
 
 pub use blocklist::{Blame, Blocklist, Standing};
-pub use coverage::{Coverage, COVERAGE_DIGEST_BYTES};
+pub use coverage::{Coverage, CoverageDigestLength, COVERAGE_DIGEST_BYTES};
 
 use pathfarm_guide::IterationStats;
 use pathfarm_render::guided::{Next, RecordsError, Session};
@@ -102,16 +102,11 @@ pub enum RecordsRefused {
     NotAsked(WorkerId),
     #[error("records refused by the session: {0}")]
     Session(#[from] RecordsError),
-    #[error(
-        "records of worker {worker} cover {stated} leases (digest {stated_digest}), not the \
-         {taken} accepted from it (digest {taken_digest})"
-    )]
+    #[error("records of worker {worker} cover {stated}, not the {taken} accepted from it")]
     Coverage {
         worker: WorkerId,
-        stated: u64,
-        stated_digest: String,
-        taken: u64,
-        taken_digest: String,
+        stated: Coverage,
+        taken: Coverage,
     },
 }
 
@@ -337,17 +332,10 @@ impl JobDriver {
         }
         let taken = self.holders.get(&worker).copied().unwrap_or_default();
         if *covered != taken {
-            // (a prefix names a digest well enough in a message)
-            let hex = |c: &Coverage| {
-                let d = crate::bundle::Digest(c.digest().try_into().expect("32 bytes"));
-                d.to_hex()[..16].to_string()
-            };
             return Err(RecordsRefused::Coverage {
                 worker,
-                stated: covered.leases(),
-                stated_digest: hex(covered),
-                taken: taken.leases(),
-                taken_digest: hex(&taken),
+                stated: *covered,
+                taken,
             });
         }
         self.session.add_records(records)?;

@@ -422,15 +422,12 @@ impl Svc {
             {
                 Err("size or digest does not match the records".to_string())
             }
-            false => Coverage::from_wire(header.covered_leases, &header.covered_digest).and_then(
-                |covered| {
-                    let records = IterationStats::decode(&bytes);
-                    Ok(Some((
-                        records.map_err(|e| format!("records: {e}"))?,
-                        covered,
-                    )))
-                },
-            ),
+            false => (|| {
+                let covered = Coverage::from_wire(header.covered_leases, &header.covered_digest);
+                let records = IterationStats::decode(&bytes);
+                let records = records.map_err(|e| format!("records: {e}"))?;
+                Ok(Some((records, covered.map_err(|e| e.to_string())?)))
+            })(),
         };
         // Decoding is timed apart from waiting for the state lock.
         let decode_s = decode_start.elapsed().as_secs_f64();
