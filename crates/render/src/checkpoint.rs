@@ -53,11 +53,6 @@ impl Out {
         self.u8(v.is_some() as u8);
         self.f64(v.unwrap_or(0.0));
     }
-    pub fn film(&mut self, f: &Film) {
-        self.u32(f.width);
-        self.u32(f.height);
-        f.pixels.iter().for_each(|p| p.write_le(&mut self.0));
-    }
     pub fn iteration(&mut self, i: &GuidedIteration) {
         self.u32(i.index);
         self.u32(i.spp);
@@ -205,9 +200,13 @@ impl CheckpointParts {
 
 /// A film as checkpoint bytes: width, height, then every pixel's sums (exact bits).
 pub fn encode_film(f: &Film) -> Vec<u8> {
-    let mut o = Out(Vec::with_capacity(8 + f.pixels.len() * PixelStats::BYTES));
-    o.film(f);
-    o.0
+    let mut out = Vec::with_capacity(8 + f.pixels.len() * PixelStats::BYTES);
+    let to_vec = |piece: &[u8]| {
+        out.extend_from_slice(piece);
+        Ok::<(), std::convert::Infallible>(())
+    };
+    let Ok(()) = write_film(f, to_vec);
+    out
 }
 
 /// Pixels a piece of [`write_film`] holds (under a megabyte).

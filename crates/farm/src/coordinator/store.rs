@@ -9,6 +9,14 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use crate::bundle::{digest_of, Digest};
 
+/// Whether a blob is on disk when its put returns.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Durable {
+    Now,
+    /// Left to the kernel ([`BlobStore::sync`] waits for it).
+    Later,
+}
+
 /// The blob directory and its temporary directory.
 pub(crate) struct BlobStore {
     blobs: PathBuf,
@@ -89,21 +97,7 @@ impl BlobStore {
 
     /// Stores `bytes` (if not already held) and returns their digest.
     pub(crate) fn put(&self, bytes: &[u8]) -> io::Result<Digest> {
-        let digest = digest_of(bytes);
-        if self.has(&digest) {
-            return Ok(digest);
-        }
-        let tmp = self.temp_path("blob");
-        let result = (|| {
-            let mut f = fs::File::create(&tmp)?;
-            f.write_all(bytes)?;
-            f.sync_all()?;
-            fs::rename(&tmp, self.path(&digest))
-        })();
-        if result.is_err() {
-            let _ = fs::remove_file(&tmp);
-        }
-        result.map(|()| digest)
+        self.put_bytes(bytes, Durable::Now)
     }
 
     /// [`BlobStore::put`] of the bytes `write` hands its sink, piece by piece, hashed as they
@@ -113,20 +107,49 @@ impl BlobStore {
         &self,
         write: impl FnOnce(&mut dyn FnMut(&[u8]) -> io::Result<()>) -> io::Result<()>,
     ) -> io::Result<Digest> {
-        let tmp = self.temp_path("blob");
-        let result = (|| {
-            let mut f = fs::File::create(&tmp)?;
+        self.place(Durable::Now, |f| {
             let mut hasher = blake3::Hasher::new();
             write(&mut |piece: &[u8]| {
                 hasher.update(piece);
                 f.write_all(piece)
             })?;
-            let digest = Digest(*hasher.finalize().as_bytes());
+            Ok(Digest(*hasher.finalize().as_bytes()))
+        })
+    }
+
+    /// [`BlobStore::put`] without waiting for the disk: for blobs derived from state that is
+    /// kept durably elsewhere (a unit's inputs), or made durable later ([`BlobStore::sync`]).
+    pub(crate) fn put_unsynced(&self, bytes: &[u8]) -> io::Result<Digest> {
+        self.put_bytes(bytes, Durable::Later)
+    }
+
+    fn put_bytes(&self, bytes: &[u8], durable: Durable) -> io::Result<Digest> {
+        let digest = digest_of(bytes);
+        if self.has(&digest) {
+            return Ok(digest);
+        }
+        self.place(durable, |f| f.write_all(bytes).map(|()| digest))
+    }
+
+    /// Writes a temporary file with `write`, which returns the digest of what it wrote, and
+    /// renames it into place as that blob (synced first with [`Durable::Now`]); a blob
+    /// already held is kept and the file removed, as is the file on any error.
+    fn place(
+        &self,
+        durable: Durable,
+        write: impl FnOnce(&mut fs::File) -> io::Result<Digest>,
+    ) -> io::Result<Digest> {
+        let tmp = self.temp_path("blob");
+        let result = (|| {
+            let mut f = fs::File::create(&tmp)?;
+            let digest = write(&mut f)?;
             if self.has(&digest) {
                 fs::remove_file(&tmp)?;
                 return Ok(digest);
             }
-            f.sync_all()?;
+            if durable == Durable::Now {
+                f.sync_all()?;
+            }
             fs::rename(&tmp, self.path(&digest))?;
             Ok(digest)
         })();
@@ -134,21 +157,6 @@ impl BlobStore {
             let _ = fs::remove_file(&tmp);
         }
         result
-    }
-
-    /// [`BlobStore::put`] without waiting for the disk: for blobs derived from state that is
-    /// kept durably elsewhere (a unit's inputs), or made durable later ([`BlobStore::sync`]).
-    pub(crate) fn put_unsynced(&self, bytes: &[u8]) -> io::Result<Digest> {
-        let digest = digest_of(bytes);
-        if self.has(&digest) {
-            return Ok(digest);
-        }
-        let tmp = self.temp_path("blob");
-        let result = fs::write(&tmp, bytes).and_then(|()| fs::rename(&tmp, self.path(&digest)));
-        if result.is_err() {
-            let _ = fs::remove_file(&tmp);
-        }
-        result.map(|()| digest)
     }
 
     /// Waits until the blob `d` is on disk.

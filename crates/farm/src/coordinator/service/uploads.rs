@@ -422,12 +422,14 @@ impl Svc {
             {
                 Err("size or digest does not match the records".to_string())
             }
-            false => (|| {
-                let covered = Coverage::from_wire(header.covered_leases, &header.covered_digest);
-                let records = IterationStats::decode(&bytes);
-                let records = records.map_err(|e| format!("records: {e}"))?;
-                Ok(Some((records, covered.map_err(|e| e.to_string())?)))
-            })(),
+            false => match (
+                IterationStats::decode(&bytes),
+                Coverage::from_wire(header.covered_leases, &header.covered_digest),
+            ) {
+                (Ok(records), Ok(covered)) => Ok(Some((records, covered))),
+                (Err(e), _) => Err(format!("records: {e}")),
+                (_, Err(e)) => Err(e.to_string()),
+            },
         };
         // Decoding is timed apart from waiting for the state lock.
         let decode_s = decode_start.elapsed().as_secs_f64();
